@@ -1,0 +1,151 @@
+//! Function and exception codes as newtypes: vendor values are normal in Modbus, so these are open sets.
+
+use std::fmt;
+
+/// A Modbus function code byte (the high bit set marks an exception response).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
+#[cfg_attr(feature = "arbitrary", derive(arbitrary::Arbitrary))]
+pub struct FunctionCode(pub u8);
+
+impl FunctionCode {
+    pub const READ_COILS: Self = Self(0x01);
+    pub const READ_DISCRETE_INPUTS: Self = Self(0x02);
+    pub const READ_HOLDING_REGISTERS: Self = Self(0x03);
+    pub const READ_INPUT_REGISTERS: Self = Self(0x04);
+    pub const WRITE_SINGLE_COIL: Self = Self(0x05);
+    pub const WRITE_SINGLE_REGISTER: Self = Self(0x06);
+    pub const READ_EXCEPTION_STATUS: Self = Self(0x07);
+    pub const DIAGNOSTICS: Self = Self(0x08);
+    pub const GET_COMM_EVENT_COUNTER: Self = Self(0x0B);
+    pub const GET_COMM_EVENT_LOG: Self = Self(0x0C);
+    pub const WRITE_MULTIPLE_COILS: Self = Self(0x0F);
+    pub const WRITE_MULTIPLE_REGISTERS: Self = Self(0x10);
+    pub const REPORT_SERVER_ID: Self = Self(0x11);
+    pub const READ_FILE_RECORD: Self = Self(0x14);
+    pub const WRITE_FILE_RECORD: Self = Self(0x15);
+    pub const MASK_WRITE_REGISTER: Self = Self(0x16);
+    pub const READ_WRITE_MULTIPLE_REGISTERS: Self = Self(0x17);
+    pub const READ_FIFO_QUEUE: Self = Self(0x18);
+    pub const ENCAPSULATED_INTERFACE: Self = Self(0x2B);
+    /// IMS MDrive/LMD vendor code: read a parameter by MCode mnemonic.
+    pub const VENDOR_READ: Self = Self(0x41);
+    /// IMS MDrive/LMD vendor code: write a parameter or run a command by MCode mnemonic.
+    pub const VENDOR_WRITE: Self = Self(0x42);
+
+    /// True when the high bit marks an exception response.
+    pub fn is_exception(self) -> bool {
+        self.0 & 0x80 != 0
+    }
+
+    /// The exception form of this code (0x80 | code).
+    pub fn exception(self) -> Self {
+        Self(self.0 | 0x80)
+    }
+
+    /// The request code an exception response answers.
+    pub fn without_exception_bit(self) -> Self {
+        Self(self.0 & 0x7F)
+    }
+
+    /// The name of a known function code.
+    pub fn name(self) -> Option<&'static str> {
+        Some(match self.without_exception_bit().0 {
+            0x01 => "Read Coils",
+            0x02 => "Read Discrete Inputs",
+            0x03 => "Read Holding Registers",
+            0x04 => "Read Input Registers",
+            0x05 => "Write Single Coil",
+            0x06 => "Write Single Register",
+            0x07 => "Read Exception Status",
+            0x08 => "Diagnostics",
+            0x0B => "Get Comm Event Counter",
+            0x0C => "Get Comm Event Log",
+            0x0F => "Write Multiple Coils",
+            0x10 => "Write Multiple Registers",
+            0x11 => "Report Server ID",
+            0x14 => "Read File Record",
+            0x15 => "Write File Record",
+            0x16 => "Mask Write Register",
+            0x17 => "Read/Write Multiple Registers",
+            0x18 => "Read FIFO Queue",
+            0x2B => "Encapsulated Interface Transport",
+            0x41 => "Vendor Read (MCode mnemonic)",
+            0x42 => "Vendor Write (MCode mnemonic)",
+            _ => return None,
+        })
+    }
+}
+
+impl fmt::Display for FunctionCode {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self.name() {
+            Some(n) if self.is_exception() => write!(f, "0x{:02X} (exception: {n})", self.0),
+            Some(n) => write!(f, "0x{:02X} ({n})", self.0),
+            None => write!(f, "0x{:02X}", self.0),
+        }
+    }
+}
+
+/// A Modbus exception code byte.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
+#[cfg_attr(feature = "arbitrary", derive(arbitrary::Arbitrary))]
+pub struct ExceptionCode(pub u8);
+
+impl ExceptionCode {
+    pub const ILLEGAL_FUNCTION: Self = Self(0x01);
+    pub const ILLEGAL_DATA_ADDRESS: Self = Self(0x02);
+    pub const ILLEGAL_DATA_VALUE: Self = Self(0x03);
+    pub const SERVER_DEVICE_FAILURE: Self = Self(0x04);
+    pub const ACKNOWLEDGE: Self = Self(0x05);
+    pub const SERVER_DEVICE_BUSY: Self = Self(0x06);
+    pub const MEMORY_PARITY_ERROR: Self = Self(0x08);
+    pub const GATEWAY_PATH_UNAVAILABLE: Self = Self(0x0A);
+    pub const GATEWAY_TARGET_FAILED: Self = Self(0x0B);
+    /// SD2x FC 43/0x0D: an extended exception (SDO error) follows.
+    pub const EXTENDED: Self = Self(0xFF);
+
+    /// The name of a known exception code.
+    pub fn name(self) -> Option<&'static str> {
+        Some(match self.0 {
+            0x01 => "Illegal Function",
+            0x02 => "Illegal Data Address",
+            0x03 => "Illegal Data Value",
+            0x04 => "Server Device Failure",
+            0x05 => "Acknowledge",
+            0x06 => "Server Device Busy",
+            0x08 => "Memory Parity Error",
+            0x0A => "Gateway Path Unavailable",
+            0x0B => "Gateway Target Device Failed To Respond",
+            0xFF => "Extended Exception",
+            _ => return None,
+        })
+    }
+}
+
+impl fmt::Display for ExceptionCode {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self.name() {
+            Some(n) => write!(f, "0x{:02X} ({n})", self.0),
+            None => write!(f, "0x{:02X}", self.0),
+        }
+    }
+}
+
+/// MEI types of function code 0x2B.
+pub mod mei {
+    /// CANopen general reference (SD2x object dictionary access).
+    pub const CANOPEN: u8 = 0x0D;
+    /// Read device identification.
+    pub const DEVICE_ID: u8 = 0x0E;
+}
+
+/// FC 08 sub-function codes used by the drives.
+pub mod diag {
+    pub const RETURN_QUERY_DATA: u16 = 0x00;
+    pub const CLEAR_COUNTERS: u16 = 0x0A;
+    pub const BUS_MESSAGE_COUNT: u16 = 0x0B;
+    pub const BUS_COMM_ERROR_COUNT: u16 = 0x0C;
+    pub const BUS_EXCEPTION_ERROR_COUNT: u16 = 0x0D;
+    pub const SERVER_MESSAGE_COUNT: u16 = 0x0E;
+    pub const SERVER_NO_RESPONSE_COUNT: u16 = 0x0F;
+}

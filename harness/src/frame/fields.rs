@@ -1,0 +1,296 @@
+//! A decoded PDU as named fields: what the `decode` tool prints and what golden-frame expectations check.
+//! Field names are the keys of `[frame.expect]` in corpus/golden/SCHEMA.md.
+
+use std::fmt;
+
+use super::pdu::{Pdu, Request, Response};
+
+/// A field value.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum FieldValue {
+    Int(u64),
+    Ints(Vec<u64>),
+    Bytes(Vec<u8>),
+    Text(String),
+    /// Device identification objects: (id, value as text).
+    Objects(Vec<(u8, String)>),
+}
+
+/// One named field of a decoded frame.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct Field {
+    pub name: &'static str,
+    pub value: FieldValue,
+}
+
+impl fmt::Display for FieldValue {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            FieldValue::Int(v) => write!(f, "{v} (0x{v:X})"),
+            FieldValue::Ints(v) => {
+                let parts: Vec<String> = v.iter().map(|x| format!("0x{x:04X} ({x})")).collect();
+                write!(f, "[{}]", parts.join(", "))
+            }
+            FieldValue::Bytes(b) => write!(f, "{}", hex_spaced(b)),
+            FieldValue::Text(s) => write!(f, "{s:?}"),
+            FieldValue::Objects(o) => {
+                let parts: Vec<String> =
+                    o.iter().map(|(i, v)| format!("0x{i:02X}={v:?}")).collect();
+                write!(f, "{{{}}}", parts.join(", "))
+            }
+        }
+    }
+}
+
+/// Upper-case hex with spaces, as the golden files print bytes.
+pub fn hex_spaced(b: &[u8]) -> String {
+    let mut s = String::with_capacity(b.len() * 3);
+    for (i, x) in b.iter().enumerate() {
+        if i > 0 {
+            s.push(' ');
+        }
+        s.push_str(&format!("{x:02X}"));
+    }
+    s
+}
+
+fn int(name: &'static str, v: impl Into<u64>) -> Field {
+    Field {
+        name,
+        value: FieldValue::Int(v.into()),
+    }
+}
+
+fn ints(name: &'static str, v: &[u16]) -> Field {
+    Field {
+        name,
+        value: FieldValue::Ints(v.iter().map(|x| *x as u64).collect()),
+    }
+}
+
+fn bits(data: &[u8], quantity: Option<u16>) -> Field {
+    let n = quantity.map(|q| q as usize).unwrap_or(data.len() * 8);
+    let v = (0..n.min(data.len() * 8))
+        .map(|i| u64::from((data[i / 8] >> (i % 8)) & 1))
+        .collect();
+    Field {
+        name: "bits",
+        value: FieldValue::Ints(v),
+    }
+}
+
+fn bytes(name: &'static str, b: &[u8]) -> Field {
+    Field {
+        name,
+        value: FieldValue::Bytes(b.to_vec()),
+    }
+}
+
+fn text(name: &'static str, b: &[u8]) -> Field {
+    Field {
+        name,
+        value: FieldValue::Text(String::from_utf8_lossy(b).into_owned()),
+    }
+}
+
+/// The fields of a PDU, function code first.
+pub fn describe(pdu: &Pdu) -> Vec<Field> {
+    let mut f = Vec::new();
+    match pdu {
+        Pdu::Request(r) => {
+            f.push(int("function", r.function().0));
+            describe_request(r, &mut f);
+        }
+        Pdu::Response(r) => {
+            f.push(int("function", r.function().0));
+            describe_response(r, &mut f);
+        }
+    }
+    f
+}
+
+fn canopen(a: &super::mei::CanOpenAccess, f: &mut Vec<Field>) {
+    f.push(int("mei", 0x0Du8));
+    f.push(int("control", a.control));
+    f.push(int("reserved", a.reserved));
+    f.push(int("node_id", a.node_id));
+    f.push(int("index", a.index));
+    f.push(int("subindex", a.subindex));
+    f.push(int("offset", a.offset));
+    f.push(int("byte_count", a.byte_count));
+    if !a.data.is_empty() {
+        f.push(bytes("object_data", &a.data));
+        if let Some(v) = a.value_le() {
+            f.push(int("object_value", v));
+        }
+    }
+}
+
+fn describe_request(r: &Request, f: &mut Vec<Field>) {
+    use Request::*;
+    match r {
+        ReadCoils { address, quantity }
+        | ReadDiscreteInputs { address, quantity }
+        | ReadHoldingRegisters { address, quantity }
+        | ReadInputRegisters { address, quantity } => {
+            f.push(int("address", *address));
+            f.push(int("quantity", *quantity));
+        }
+        WriteSingleCoil { address, value } => {
+            f.push(int("address", *address));
+            f.push(ints("values", &[*value]));
+            if *value == 0xFF00 || *value == 0 {
+                f.push(Field {
+                    name: "bits",
+                    value: FieldValue::Ints(vec![u64::from(*value == 0xFF00)]),
+                });
+            }
+        }
+        WriteSingleRegister { address, value } => {
+            f.push(int("address", *address));
+            f.push(ints("values", &[*value]));
+        }
+        Diagnostics { sub_function, data } => {
+            f.push(int("sub_function", *sub_function));
+            diag_data(data, f);
+        }
+        WriteMultipleCoils {
+            address,
+            quantity,
+            data,
+        } => {
+            f.push(int("address", *address));
+            f.push(int("quantity", *quantity));
+            f.push(int("byte_count", data.len() as u64));
+            f.push(bits(data, Some(*quantity)));
+        }
+        WriteMultipleRegisters { address, values } => {
+            f.push(int("address", *address));
+            f.push(int("quantity", values.len() as u64));
+            f.push(int("byte_count", values.len() as u64 * 2));
+            f.push(ints("values", values));
+        }
+        ReadWriteMultipleRegisters {
+            read_address,
+            read_quantity,
+            write_address,
+            values,
+        } => {
+            f.push(int("address", *read_address));
+            f.push(int("quantity", *read_quantity));
+            f.push(int("write_address", *write_address));
+            f.push(int("write_quantity", values.len() as u64));
+            f.push(int("byte_count", values.len() as u64 * 2));
+            f.push(ints("values", values));
+        }
+        CanOpen(a) => canopen(a, f),
+        ReadDeviceId {
+            read_code,
+            object_id,
+        } => {
+            f.push(int("mei", 0x0Eu8));
+            f.push(int("read_code", *read_code));
+            f.push(int("object_id", *object_id));
+        }
+        VendorRead { mnemonic } => {
+            f.push(bytes("mnemonic_bytes", &mnemonic.0));
+            f.push(Field {
+                name: "mnemonic",
+                value: FieldValue::Text(mnemonic.name()),
+            });
+        }
+        VendorWrite { mnemonic, params } => {
+            f.push(bytes("mnemonic_bytes", &mnemonic.0));
+            f.push(Field {
+                name: "mnemonic",
+                value: FieldValue::Text(mnemonic.name()),
+            });
+            f.push(int("byte_count", params.len() as u64));
+            f.push(text("params", params));
+        }
+        Raw { data, .. } => f.push(bytes("data", data)),
+    }
+}
+
+fn diag_data(data: &[u8], f: &mut Vec<Field>) {
+    if data.len() == 2 {
+        f.push(int("data", u16::from_be_bytes([data[0], data[1]])));
+    } else {
+        f.push(bytes("data_bytes", data));
+    }
+}
+
+fn describe_response(r: &Response, f: &mut Vec<Field>) {
+    use Response::*;
+    match r {
+        ReadCoils { data } | ReadDiscreteInputs { data } => {
+            f.push(int("byte_count", data.len() as u64));
+            f.push(bits(data, None));
+        }
+        ReadHoldingRegisters { values }
+        | ReadInputRegisters { values }
+        | ReadWriteMultipleRegisters { values } => {
+            f.push(int("byte_count", values.len() as u64 * 2));
+            f.push(ints("values", values));
+        }
+        WriteSingleCoil { address, value } => {
+            f.push(int("address", *address));
+            f.push(ints("values", &[*value]));
+            if *value == 0xFF00 || *value == 0 {
+                f.push(Field {
+                    name: "bits",
+                    value: FieldValue::Ints(vec![u64::from(*value == 0xFF00)]),
+                });
+            }
+        }
+        WriteSingleRegister { address, value } => {
+            f.push(int("address", *address));
+            f.push(ints("values", &[*value]));
+        }
+        Diagnostics { sub_function, data } => {
+            f.push(int("sub_function", *sub_function));
+            diag_data(data, f);
+        }
+        WriteMultipleCoils { address, quantity } | WriteMultipleRegisters { address, quantity } => {
+            f.push(int("address", *address));
+            f.push(int("quantity", *quantity));
+        }
+        CanOpen(a) => canopen(a, f),
+        CanOpenError { sdo_code } => {
+            f.push(int("exception", 0xFFu8));
+            f.push(int("mei", 0x0Du8));
+            f.push(int("sdo_error", *sdo_code));
+        }
+        ReadDeviceId(d) => {
+            f.push(int("mei", 0x0Eu8));
+            f.push(int("read_code", d.read_code));
+            f.push(int("conformity", d.conformity));
+            f.push(int("more_follows", d.more_follows));
+            f.push(int("object_id", d.next_object_id));
+            f.push(int("object_count", d.objects.len() as u64));
+            f.push(Field {
+                name: "objects",
+                value: FieldValue::Objects(
+                    d.objects
+                        .iter()
+                        .map(|o| (o.id, String::from_utf8_lossy(&o.value).into_owned()))
+                        .collect(),
+                ),
+            });
+        }
+        VendorRead { params } => {
+            f.push(int("byte_count", params.len() as u64));
+            f.push(text("params", params));
+        }
+        VendorWrite { written, mnemonic } => {
+            f.push(int("byte_count", *written));
+            f.push(bytes("mnemonic_bytes", &mnemonic.0));
+            f.push(Field {
+                name: "mnemonic",
+                value: FieldValue::Text(mnemonic.name()),
+            });
+        }
+        Exception { code, .. } => f.push(int("exception", code.0)),
+        Raw { data, .. } => f.push(bytes("data", data)),
+    }
+}

@@ -1,0 +1,411 @@
+//! RTU stream framing: cut a timestamped byte stream into ADUs by the per-function-code length rules of
+//! the direction, confirm each cut with the CRC, fall back on inter-frame silence (t3.5), and report every
+//! byte discarded with the reason. Sans-IO: the caller supplies arrival times and polls on silence.
+
+use std::time::Duration;
+
+use super::pdu::Direction;
+use super::rtu::{MAX_ADU_LEN, MIN_ADU_LEN, crc_ok, crc16};
+
+/// Parity of a serial character.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum Parity {
+    None,
+    Even,
+    Odd,
+}
+
+/// Character format of an RTU line (always 8 data bits in RTU mode).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub struct CharFormat {
+    pub parity: Parity,
+    pub stop_bits: u8,
+}
+
+impl CharFormat {
+    /// Bits on the wire per character: start + 8 data + parity + stop.
+    pub fn bits(&self) -> u32 {
+        1 + 8 + u32::from(self.parity != Parity::None) + u32::from(self.stop_bits.max(1))
+    }
+}
+
+/// Inter-character (t1.5) and inter-frame (t3.5) silences of an RTU line.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct RtuTiming {
+    pub baud: u32,
+    pub char_time: Duration,
+    pub t1_5: Duration,
+    pub t3_5: Duration,
+}
+
+impl RtuTiming {
+    /// Timing per the serial line spec: 1.5 and 3.5 character times, fixed at 750 µs and 1.75 ms above 19200 baud.
+    pub fn new(baud: u32, format: CharFormat) -> Self {
+        let baud = baud.max(1);
+        let char_ns = u64::from(format.bits()) * 1_000_000_000 / u64::from(baud);
+        let char_time = Duration::from_nanos(char_ns);
+        let (t1_5, t3_5) = if baud > 19_200 {
+            (Duration::from_micros(750), Duration::from_micros(1750))
+        } else {
+            (
+                Duration::from_nanos(char_ns * 3 / 2),
+                Duration::from_nanos(char_ns * 7 / 2),
+            )
+        };
+        Self {
+            baud,
+            char_time,
+            t1_5,
+            t3_5,
+        }
+    }
+
+    /// Time to transmit `n` characters.
+    pub fn transmit_time(&self, n: usize) -> Duration {
+        self.char_time * n as u32
+    }
+}
+
+/// How long a frame of a function code is, in one direction.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum LengthRule {
+    /// The whole ADU (address to CRC) has this many bytes.
+    Fixed(usize),
+    /// A byte count of `width` (1 or 2, big-endian) bytes at ADU offset `offset` gives the bytes that follow it
+    /// before `trailer` more bytes (the CRC, usually 2).
+    ByteCountAt {
+        offset: usize,
+        width: usize,
+        trailer: usize,
+    },
+}
+
+/// A length rule for a vendor function code, from a profile.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub struct VendorRule {
+    pub function: u8,
+    pub request: LengthRule,
+    pub response: LengthRule,
+}
+
+/// What the rules say about the frame at the start of a buffer.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum FrameLen {
+    /// More bytes are needed before a length is known.
+    NeedMore,
+    /// One of these lengths (second is 0 when there is only one); the CRC decides.
+    Known(usize, usize),
+    /// No rule for this function code: silence delimits the frame.
+    Unknown,
+}
+
+fn apply(rule: LengthRule, buf: &[u8]) -> FrameLen {
+    match rule {
+        LengthRule::Fixed(n) => FrameLen::Known(n, 0),
+        LengthRule::ByteCountAt {
+            offset,
+            width,
+            trailer,
+        } => {
+            let Some(b) = buf.get(offset..offset + width) else {
+                return FrameLen::NeedMore;
+            };
+            let n = b.iter().fold(0usize, |acc, x| (acc << 8) | *x as usize);
+            FrameLen::Known(offset + width + n + trailer, 0)
+        }
+    }
+}
+
+const fn count_at(offset: usize) -> LengthRule {
+    LengthRule::ByteCountAt {
+        offset,
+        width: 1,
+        trailer: 2,
+    }
+}
+
+/// Length of the ADU starting at `buf[0]` per the Modbus rules of `dir` (and `vendor` rules first).
+pub fn expected_len(dir: Direction, buf: &[u8], vendor: &[VendorRule]) -> FrameLen {
+    let Some(&fc) = buf.get(1) else {
+        return FrameLen::NeedMore;
+    };
+    if let Some(v) = vendor.iter().find(|v| v.function == fc) {
+        return apply(
+            match dir {
+                Direction::Request => v.request,
+                Direction::Response => v.response,
+            },
+            buf,
+        );
+    }
+    use LengthRule::Fixed;
+    let rule = match dir {
+        Direction::Request => match fc {
+            0x01..=0x06 | 0x08 | 0x41 => Fixed(8),
+            0x07 | 0x0B | 0x0C | 0x11 => Fixed(4),
+            0x0F | 0x10 => count_at(6),
+            0x14 | 0x15 => count_at(2),
+            0x16 => Fixed(10),
+            0x17 => count_at(10),
+            0x18 => Fixed(6),
+            0x42 => count_at(6),
+            0x2B => match (buf.get(2), buf.get(3)) {
+                (None, _) => return FrameLen::NeedMore,
+                (Some(0x0E), _) => Fixed(7),
+                (Some(0x0D), None) => return FrameLen::NeedMore,
+                (Some(0x0D), Some(ctrl)) if ctrl & 0x80 == 0 => Fixed(15),
+                (Some(0x0D), Some(_)) => LengthRule::ByteCountAt {
+                    offset: 11,
+                    width: 2,
+                    trailer: 2,
+                },
+                _ => return FrameLen::Unknown,
+            },
+            _ => return FrameLen::Unknown,
+        },
+        Direction::Response => match fc {
+            0xAB => match buf.get(2) {
+                None => return FrameLen::NeedMore,
+                Some(0xFF) => LengthRule::ByteCountAt {
+                    offset: 3,
+                    width: 2,
+                    trailer: 2,
+                },
+                Some(_) => Fixed(5),
+            },
+            f if f & 0x80 != 0 => Fixed(5),
+            0x01..=0x04 | 0x0C | 0x11 | 0x14 | 0x15 | 0x17 | 0x41 => count_at(2),
+            0x05 | 0x06 | 0x08 | 0x0B | 0x0F | 0x10 => Fixed(8),
+            0x07 => Fixed(5),
+            0x16 => Fixed(10),
+            0x18 => LengthRule::ByteCountAt {
+                offset: 2,
+                width: 2,
+                trailer: 2,
+            },
+            0x42 => Fixed(9),
+            0x2B => match (buf.get(2), buf.get(3)) {
+                (None, _) => return FrameLen::NeedMore,
+                (Some(0x0E), _) => return device_id_len(buf),
+                (Some(0x0D), None) => return FrameLen::NeedMore,
+                (Some(0x0D), Some(ctrl)) => {
+                    let Some(b) = buf.get(11..13) else {
+                        return FrameLen::NeedMore;
+                    };
+                    let n = u16::from_be_bytes([b[0], b[1]]) as usize;
+                    // A write response may echo the data or carry none: the CRC picks.
+                    return if ctrl & 0x80 == 0 {
+                        FrameLen::Known(15 + n, 0)
+                    } else {
+                        FrameLen::Known(15 + n, 15)
+                    };
+                }
+                _ => return FrameLen::Unknown,
+            },
+            _ => return FrameLen::Unknown,
+        },
+    };
+    apply(rule, buf)
+}
+
+/// FC 2B/0E response: walk the object list (address, fc, mei, code, conformity, more, next, n, objects..., CRC).
+fn device_id_len(buf: &[u8]) -> FrameLen {
+    let Some(&n) = buf.get(7) else {
+        return FrameLen::NeedMore;
+    };
+    let mut at = 8usize;
+    for _ in 0..n {
+        let Some(&len) = buf.get(at + 1) else {
+            return FrameLen::NeedMore;
+        };
+        at += 2 + len as usize;
+        if at > MAX_ADU_LEN {
+            return FrameLen::Known(at + 2, 0);
+        }
+    }
+    FrameLen::Known(at + 2, 0)
+}
+
+/// Why the framer dropped bytes.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum DiscardReason {
+    /// Silence ended a frame whose CRC does not match (expected over all but the last two bytes).
+    BadCrc { expected: u16, received: u16 },
+    /// Silence ended a frame shorter than address + function + CRC.
+    TooShort,
+    /// More than 256 bytes arrived without a silence or a valid cut.
+    Overlong,
+}
+
+impl std::fmt::Display for DiscardReason {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            DiscardReason::BadCrc { expected, received } => write!(
+                f,
+                "CRC mismatch: expected 0x{expected:04X}, received 0x{received:04X}"
+            ),
+            DiscardReason::TooShort => write!(f, "fewer than 4 bytes before t3.5 silence"),
+            DiscardReason::Overlong => write!(f, "over 256 bytes without a frame boundary"),
+        }
+    }
+}
+
+/// What the framer produced.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum FramerEvent {
+    /// A frame with a valid CRC. `max_gap` is the largest silence between its bytes (over t1.5 breaks the
+    /// serial line spec, which the caller may report).
+    Frame {
+        bytes: Vec<u8>,
+        start: Duration,
+        end: Duration,
+        max_gap: Duration,
+    },
+    /// Bytes dropped, and why.
+    Discarded {
+        bytes: Vec<u8>,
+        at: Duration,
+        reason: DiscardReason,
+    },
+}
+
+/// Cuts a timestamped RTU byte stream into frames. Memory is bounded by the 256-byte ADU limit.
+#[derive(Clone, Debug)]
+pub struct RtuFramer {
+    direction: Direction,
+    timing: RtuTiming,
+    vendor: Vec<VendorRule>,
+    buf: Vec<u8>,
+    start: Duration,
+    last: Duration,
+    max_gap: Duration,
+}
+
+impl RtuFramer {
+    /// A framer for frames travelling in `direction` on a line with `timing`.
+    pub fn new(direction: Direction, timing: RtuTiming, vendor: Vec<VendorRule>) -> Self {
+        Self {
+            direction,
+            timing,
+            vendor,
+            buf: Vec::with_capacity(MAX_ADU_LEN),
+            start: Duration::ZERO,
+            last: Duration::ZERO,
+            max_gap: Duration::ZERO,
+        }
+    }
+
+    /// The line timing this framer cuts on.
+    pub fn timing(&self) -> RtuTiming {
+        self.timing
+    }
+
+    /// Bytes held waiting for more data or for silence.
+    pub fn pending(&self) -> &[u8] {
+        &self.buf
+    }
+
+    /// When `poll` should next be called (the end of the t3.5 silence after the last byte), if bytes are held.
+    pub fn deadline(&self) -> Option<Duration> {
+        (!self.buf.is_empty()).then(|| self.last + self.timing.t3_5)
+    }
+
+    /// Feed bytes that arrived at `now` (one timestamp per chunk).
+    pub fn push(&mut self, now: Duration, bytes: &[u8]) -> Vec<FramerEvent> {
+        let mut events = Vec::new();
+        self.poll_into(now, &mut events);
+        for &b in bytes {
+            if self.buf.is_empty() {
+                self.start = now;
+                self.max_gap = Duration::ZERO;
+            } else {
+                self.max_gap = self.max_gap.max(now.saturating_sub(self.last));
+            }
+            self.buf.push(b);
+            self.last = now;
+            self.cut(&mut events);
+        }
+        events
+    }
+
+    /// Report what silence has delimited by `now`.
+    pub fn poll(&mut self, now: Duration) -> Vec<FramerEvent> {
+        let mut events = Vec::new();
+        self.poll_into(now, &mut events);
+        events
+    }
+
+    /// End of stream: whatever is held is judged as if silence followed.
+    pub fn finish(&mut self) -> Vec<FramerEvent> {
+        let mut events = Vec::new();
+        self.end_by_silence(&mut events);
+        events
+    }
+
+    fn poll_into(&mut self, now: Duration, events: &mut Vec<FramerEvent>) {
+        if !self.buf.is_empty() && now.saturating_sub(self.last) >= self.timing.t3_5 {
+            self.end_by_silence(events);
+        }
+    }
+
+    fn emit(&mut self, n: usize, events: &mut Vec<FramerEvent>) {
+        let bytes: Vec<u8> = self.buf.drain(..n).collect();
+        events.push(FramerEvent::Frame {
+            bytes,
+            start: self.start,
+            end: self.last,
+            max_gap: self.max_gap,
+        });
+        self.start = self.last;
+        self.max_gap = Duration::ZERO;
+    }
+
+    fn cut(&mut self, events: &mut Vec<FramerEvent>) {
+        if let FrameLen::Known(a, b) = expected_len(self.direction, &self.buf, &self.vendor) {
+            for n in [a, b] {
+                if n >= MIN_ADU_LEN
+                    && n <= self.buf.len()
+                    && n <= MAX_ADU_LEN
+                    && crc_ok(&self.buf[..n])
+                {
+                    self.emit(n, events);
+                    return;
+                }
+            }
+        }
+        if self.buf.len() > MAX_ADU_LEN {
+            events.push(FramerEvent::Discarded {
+                bytes: std::mem::take(&mut self.buf),
+                at: self.last,
+                reason: DiscardReason::Overlong,
+            });
+        }
+    }
+
+    fn end_by_silence(&mut self, events: &mut Vec<FramerEvent>) {
+        if self.buf.is_empty() {
+            return;
+        }
+        if self.buf.len() < MIN_ADU_LEN {
+            events.push(FramerEvent::Discarded {
+                bytes: std::mem::take(&mut self.buf),
+                at: self.last,
+                reason: DiscardReason::TooShort,
+            });
+        } else if crc_ok(&self.buf) {
+            let n = self.buf.len();
+            self.emit(n, events);
+        } else {
+            let (body, c) = self.buf.split_at(self.buf.len() - 2);
+            let reason = DiscardReason::BadCrc {
+                expected: crc16(body),
+                received: u16::from_le_bytes([c[0], c[1]]),
+            };
+            events.push(FramerEvent::Discarded {
+                bytes: std::mem::take(&mut self.buf),
+                at: self.last,
+                reason,
+            });
+        }
+    }
+}

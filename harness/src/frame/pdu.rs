@@ -1,0 +1,844 @@
+//! Typed PDUs (function code + data) in both directions, with strict decoding and encoding.
+//!
+//! Decoding is structural: a quantity of 0 or above a device limit decodes (the device answers it with
+//! exception 03); a byte count that disagrees with its quantity or with the bytes present does not.
+
+use super::codes::{ExceptionCode, FunctionCode, mei};
+use super::error::{DecodeError, DecodeErrorKind, EncodeError};
+use super::mei::{CanOpenAccess, DeviceIdObject, DeviceIdResponse};
+use super::reader::{Reader, mismatch};
+use super::vendor::Mnemonic;
+
+/// Largest PDU the Modbus spec allows (256-byte RTU ADU minus address and CRC).
+pub const MAX_PDU_LEN: usize = 253;
+
+/// Which side sent a frame; the same function code has different layouts per direction.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+#[cfg_attr(feature = "arbitrary", derive(arbitrary::Arbitrary))]
+pub enum Direction {
+    Request,
+    Response,
+}
+
+/// A request PDU.
+#[derive(Clone, Debug, PartialEq, Eq)]
+#[cfg_attr(feature = "arbitrary", derive(arbitrary::Arbitrary))]
+pub enum Request {
+    ReadCoils {
+        address: u16,
+        quantity: u16,
+    },
+    ReadDiscreteInputs {
+        address: u16,
+        quantity: u16,
+    },
+    ReadHoldingRegisters {
+        address: u16,
+        quantity: u16,
+    },
+    ReadInputRegisters {
+        address: u16,
+        quantity: u16,
+    },
+    /// `value` is kept raw: only 0xFF00 and 0x0000 are legal, and devices must reject the rest.
+    WriteSingleCoil {
+        address: u16,
+        value: u16,
+    },
+    WriteSingleRegister {
+        address: u16,
+        value: u16,
+    },
+    /// FC 08; `data` is the data field (2 bytes for every sub-function the drives use).
+    Diagnostics {
+        sub_function: u16,
+        data: Vec<u8>,
+    },
+    /// FC 0F; `data` packs the coils LSB-first; its length must be ceil(quantity / 8).
+    WriteMultipleCoils {
+        address: u16,
+        quantity: u16,
+        data: Vec<u8>,
+    },
+    WriteMultipleRegisters {
+        address: u16,
+        values: Vec<u16>,
+    },
+    ReadWriteMultipleRegisters {
+        read_address: u16,
+        read_quantity: u16,
+        write_address: u16,
+        values: Vec<u16>,
+    },
+    /// FC 2B / MEI 0D (SD2x object dictionary access).
+    CanOpen(CanOpenAccess),
+    /// FC 2B / MEI 0E.
+    ReadDeviceId {
+        read_code: u8,
+        object_id: u8,
+    },
+    /// FC 41.
+    VendorRead {
+        mnemonic: Mnemonic,
+    },
+    /// FC 42; `params` is the ASCII parameter string (e.g. `=0,1,0`).
+    VendorWrite {
+        mnemonic: Mnemonic,
+        params: Vec<u8>,
+    },
+    /// Any other function code (or MEI type): kept as bytes.
+    Raw {
+        function: FunctionCode,
+        data: Vec<u8>,
+    },
+}
+
+/// A response PDU.
+#[derive(Clone, Debug, PartialEq, Eq)]
+#[cfg_attr(feature = "arbitrary", derive(arbitrary::Arbitrary))]
+pub enum Response {
+    /// FC 01; packed bits, LSB = first coil.
+    ReadCoils {
+        data: Vec<u8>,
+    },
+    ReadDiscreteInputs {
+        data: Vec<u8>,
+    },
+    ReadHoldingRegisters {
+        values: Vec<u16>,
+    },
+    ReadInputRegisters {
+        values: Vec<u16>,
+    },
+    WriteSingleCoil {
+        address: u16,
+        value: u16,
+    },
+    WriteSingleRegister {
+        address: u16,
+        value: u16,
+    },
+    Diagnostics {
+        sub_function: u16,
+        data: Vec<u8>,
+    },
+    WriteMultipleCoils {
+        address: u16,
+        quantity: u16,
+    },
+    WriteMultipleRegisters {
+        address: u16,
+        quantity: u16,
+    },
+    ReadWriteMultipleRegisters {
+        values: Vec<u16>,
+    },
+    CanOpen(CanOpenAccess),
+    /// SD2x extended exception: AB FF 00 06 0D CE + 4-byte SDO error code (little-endian on the wire).
+    CanOpenError {
+        sdo_code: u32,
+    },
+    ReadDeviceId(DeviceIdResponse),
+    /// FC 41: 1-byte count + ASCII parameter string.
+    VendorRead {
+        params: Vec<u8>,
+    },
+    /// FC 42: bytes written + mnemonic.
+    VendorWrite {
+        written: u8,
+        mnemonic: Mnemonic,
+    },
+    /// 0x80|FC + exception code.
+    Exception {
+        function: FunctionCode,
+        code: ExceptionCode,
+    },
+    Raw {
+        function: FunctionCode,
+        data: Vec<u8>,
+    },
+}
+
+fn bits_len(quantity: u16) -> usize {
+    (quantity as usize).div_ceil(8)
+}
+
+fn put_u16(out: &mut Vec<u8>, v: u16) {
+    out.extend_from_slice(&v.to_be_bytes());
+}
+
+fn put_regs(out: &mut Vec<u8>, field: &'static str, values: &[u16]) -> Result<(), EncodeError> {
+    let bc = values.len() * 2;
+    if bc > 255 {
+        return Err(EncodeError::TooLong {
+            field,
+            len: values.len(),
+            max: 127,
+        });
+    }
+    out.push(bc as u8);
+    for v in values {
+        put_u16(out, *v);
+    }
+    Ok(())
+}
+
+fn put_counted(out: &mut Vec<u8>, field: &'static str, data: &[u8]) -> Result<(), EncodeError> {
+    if data.len() > 255 {
+        return Err(EncodeError::TooLong {
+            field,
+            len: data.len(),
+            max: 255,
+        });
+    }
+    out.push(data.len() as u8);
+    out.extend_from_slice(data);
+    Ok(())
+}
+
+fn encode_canopen(out: &mut Vec<u8>, a: &CanOpenAccess) {
+    out.extend_from_slice(&[
+        FunctionCode::ENCAPSULATED_INTERFACE.0,
+        mei::CANOPEN,
+        a.control,
+        a.reserved,
+        a.node_id,
+    ]);
+    put_u16(out, a.index);
+    out.push(a.subindex);
+    put_u16(out, a.offset);
+    put_u16(out, a.byte_count);
+    out.extend_from_slice(&a.data);
+}
+
+fn decode_canopen(r: &mut Reader<'_>, dir: Direction) -> Result<CanOpenAccess, DecodeError> {
+    let control = r.u8("control code")?;
+    let reserved = r.u8("reserved")?;
+    let node_id = r.u8("node id")?;
+    let index = r.u16("index")?;
+    let subindex = r.u8("subindex")?;
+    let offset = r.u16("address offset")?;
+    let bc_at = r.pos();
+    let byte_count = r.u16("byte count")?;
+    let data_at = r.pos();
+    let data = r.rest().to_vec();
+    let write = control & CanOpenAccess::WRITE != 0;
+    // Which lengths the data field may have, per direction and access.
+    let (ok, expected, basis) = match (dir, write) {
+        (Direction::Request, false) => (data.is_empty(), 0, "read request (no data)"),
+        (Direction::Request, true) => (
+            data.len() == byte_count as usize,
+            byte_count as usize,
+            "write request data",
+        ),
+        (Direction::Response, false) => (
+            data.len() == byte_count as usize,
+            byte_count as usize,
+            "read response data",
+        ),
+        (Direction::Response, true) => (
+            data.is_empty() || data.len() == byte_count as usize,
+            byte_count as usize,
+            "write response data (none or echoed)",
+        ),
+    };
+    if !ok {
+        let _ = bc_at;
+        return Err(mismatch(data_at, "data", data.len(), expected, basis));
+    }
+    Ok(CanOpenAccess {
+        control,
+        reserved,
+        node_id,
+        index,
+        subindex,
+        offset,
+        byte_count,
+        data,
+    })
+}
+
+fn check_len(pdu: &[u8]) -> Result<(), DecodeError> {
+    if pdu.is_empty() {
+        return Err(DecodeError::new(0, DecodeErrorKind::Empty));
+    }
+    if pdu.len() > MAX_PDU_LEN {
+        return Err(DecodeError::new(
+            MAX_PDU_LEN,
+            DecodeErrorKind::PduTooLong { len: pdu.len() },
+        ));
+    }
+    Ok(())
+}
+
+impl Request {
+    /// The function code this request carries.
+    pub fn function(&self) -> FunctionCode {
+        use Request::*;
+        match self {
+            ReadCoils { .. } => FunctionCode::READ_COILS,
+            ReadDiscreteInputs { .. } => FunctionCode::READ_DISCRETE_INPUTS,
+            ReadHoldingRegisters { .. } => FunctionCode::READ_HOLDING_REGISTERS,
+            ReadInputRegisters { .. } => FunctionCode::READ_INPUT_REGISTERS,
+            WriteSingleCoil { .. } => FunctionCode::WRITE_SINGLE_COIL,
+            WriteSingleRegister { .. } => FunctionCode::WRITE_SINGLE_REGISTER,
+            Diagnostics { .. } => FunctionCode::DIAGNOSTICS,
+            WriteMultipleCoils { .. } => FunctionCode::WRITE_MULTIPLE_COILS,
+            WriteMultipleRegisters { .. } => FunctionCode::WRITE_MULTIPLE_REGISTERS,
+            ReadWriteMultipleRegisters { .. } => FunctionCode::READ_WRITE_MULTIPLE_REGISTERS,
+            CanOpen(_) | ReadDeviceId { .. } => FunctionCode::ENCAPSULATED_INTERFACE,
+            VendorRead { .. } => FunctionCode::VENDOR_READ,
+            VendorWrite { .. } => FunctionCode::VENDOR_WRITE,
+            Raw { function, .. } => *function,
+        }
+    }
+
+    /// Strictly decode one request PDU occupying all of `pdu`.
+    pub fn decode(pdu: &[u8]) -> Result<Self, DecodeError> {
+        check_len(pdu)?;
+        let mut r = Reader::new(pdu);
+        let fc = FunctionCode(r.u8("function code")?);
+        let req = match fc.0 {
+            0x01..=0x04 => {
+                let address = r.u16("starting address")?;
+                let quantity = r.u16("quantity")?;
+                match fc.0 {
+                    0x01 => Request::ReadCoils { address, quantity },
+                    0x02 => Request::ReadDiscreteInputs { address, quantity },
+                    0x03 => Request::ReadHoldingRegisters { address, quantity },
+                    _ => Request::ReadInputRegisters { address, quantity },
+                }
+            }
+            0x05 => Request::WriteSingleCoil {
+                address: r.u16("output address")?,
+                value: r.u16("output value")?,
+            },
+            0x06 => Request::WriteSingleRegister {
+                address: r.u16("register address")?,
+                value: r.u16("register value")?,
+            },
+            0x08 => Request::Diagnostics {
+                sub_function: r.u16("sub-function")?,
+                data: r.rest().to_vec(),
+            },
+            0x0F => {
+                let address = r.u16("starting address")?;
+                let quantity = r.u16("quantity of outputs")?;
+                let at = r.pos();
+                let bc = r.u8("byte count")? as usize;
+                if bc != bits_len(quantity) {
+                    return Err(mismatch(
+                        at,
+                        "byte count",
+                        bc,
+                        bits_len(quantity),
+                        "quantity of outputs",
+                    ));
+                }
+                let data = r.take("output values", bc)?.to_vec();
+                Request::WriteMultipleCoils {
+                    address,
+                    quantity,
+                    data,
+                }
+            }
+            0x10 => {
+                let address = r.u16("starting address")?;
+                let quantity = r.u16("quantity of registers")?;
+                let at = r.pos();
+                let bc = r.u8("byte count")? as usize;
+                if bc != quantity as usize * 2 {
+                    return Err(mismatch(
+                        at,
+                        "byte count",
+                        bc,
+                        quantity as usize * 2,
+                        "quantity of registers",
+                    ));
+                }
+                let values = r.registers("register values", bc)?;
+                Request::WriteMultipleRegisters { address, values }
+            }
+            0x17 => {
+                let read_address = r.u16("read starting address")?;
+                let read_quantity = r.u16("quantity to read")?;
+                let write_address = r.u16("write starting address")?;
+                let wq = r.u16("quantity to write")?;
+                let at = r.pos();
+                let bc = r.u8("write byte count")? as usize;
+                if bc != wq as usize * 2 {
+                    return Err(mismatch(
+                        at,
+                        "write byte count",
+                        bc,
+                        wq as usize * 2,
+                        "quantity to write",
+                    ));
+                }
+                let values = r.registers("write register values", bc)?;
+                Request::ReadWriteMultipleRegisters {
+                    read_address,
+                    read_quantity,
+                    write_address,
+                    values,
+                }
+            }
+            0x2B => {
+                let m = r.u8("MEI type")?;
+                match m {
+                    mei::CANOPEN => Request::CanOpen(decode_canopen(&mut r, Direction::Request)?),
+                    mei::DEVICE_ID => Request::ReadDeviceId {
+                        read_code: r.u8("read device id code")?,
+                        object_id: r.u8("object id")?,
+                    },
+                    _ => {
+                        let mut data = vec![m];
+                        data.extend_from_slice(r.rest());
+                        Request::Raw { function: fc, data }
+                    }
+                }
+            }
+            0x41 => Request::VendorRead {
+                mnemonic: Mnemonic(r.take("mnemonic", 4)?.try_into().unwrap_or([0; 4])),
+            },
+            0x42 => {
+                let mnemonic = Mnemonic(r.take("mnemonic", 4)?.try_into().unwrap_or([0; 4]));
+                let at = r.pos();
+                let bc = r.u8("byte count")? as usize;
+                if bc != r.remaining() {
+                    return Err(mismatch(
+                        at,
+                        "byte count",
+                        bc,
+                        r.remaining(),
+                        "parameter bytes present",
+                    ));
+                }
+                Request::VendorWrite {
+                    mnemonic,
+                    params: r.rest().to_vec(),
+                }
+            }
+            _ => Request::Raw {
+                function: fc,
+                data: r.rest().to_vec(),
+            },
+        };
+        r.finish()?;
+        Ok(req)
+    }
+
+    /// Append the PDU bytes to `out`.
+    pub fn encode(&self, out: &mut Vec<u8>) -> Result<(), EncodeError> {
+        use Request::*;
+        let start = out.len();
+        if !matches!(self, CanOpen(_)) {
+            out.push(self.function().0);
+        }
+        match self {
+            ReadCoils { address, quantity }
+            | ReadDiscreteInputs { address, quantity }
+            | ReadHoldingRegisters { address, quantity }
+            | ReadInputRegisters { address, quantity } => {
+                put_u16(out, *address);
+                put_u16(out, *quantity);
+            }
+            WriteSingleCoil { address, value } | WriteSingleRegister { address, value } => {
+                put_u16(out, *address);
+                put_u16(out, *value);
+            }
+            Diagnostics { sub_function, data } => {
+                put_u16(out, *sub_function);
+                out.extend_from_slice(data);
+            }
+            WriteMultipleCoils {
+                address,
+                quantity,
+                data,
+            } => {
+                put_u16(out, *address);
+                put_u16(out, *quantity);
+                put_counted(out, "output values", data)?;
+            }
+            WriteMultipleRegisters { address, values } => {
+                put_u16(out, *address);
+                put_u16(out, values.len() as u16);
+                put_regs(out, "register values", values)?;
+            }
+            ReadWriteMultipleRegisters {
+                read_address,
+                read_quantity,
+                write_address,
+                values,
+            } => {
+                put_u16(out, *read_address);
+                put_u16(out, *read_quantity);
+                put_u16(out, *write_address);
+                put_u16(out, values.len() as u16);
+                put_regs(out, "write register values", values)?;
+            }
+            CanOpen(a) => encode_canopen(out, a),
+            ReadDeviceId {
+                read_code,
+                object_id,
+            } => out.extend_from_slice(&[mei::DEVICE_ID, *read_code, *object_id]),
+            VendorRead { mnemonic } => out.extend_from_slice(&mnemonic.0),
+            VendorWrite { mnemonic, params } => {
+                out.extend_from_slice(&mnemonic.0);
+                put_counted(out, "parameter string", params)?;
+            }
+            Raw { data, .. } => out.extend_from_slice(data),
+        }
+        if out.len() - start > MAX_PDU_LEN {
+            let len = out.len() - start;
+            out.truncate(start);
+            return Err(EncodeError::TooLong {
+                field: "PDU",
+                len,
+                max: MAX_PDU_LEN,
+            });
+        }
+        Ok(())
+    }
+
+    /// The PDU as a fresh byte vector.
+    pub fn to_bytes(&self) -> Result<Vec<u8>, EncodeError> {
+        let mut v = Vec::with_capacity(16);
+        self.encode(&mut v)?;
+        Ok(v)
+    }
+}
+
+impl Response {
+    /// The function code byte this response carries (0x80|FC for exceptions).
+    pub fn function(&self) -> FunctionCode {
+        use Response::*;
+        match self {
+            ReadCoils { .. } => FunctionCode::READ_COILS,
+            ReadDiscreteInputs { .. } => FunctionCode::READ_DISCRETE_INPUTS,
+            ReadHoldingRegisters { .. } => FunctionCode::READ_HOLDING_REGISTERS,
+            ReadInputRegisters { .. } => FunctionCode::READ_INPUT_REGISTERS,
+            WriteSingleCoil { .. } => FunctionCode::WRITE_SINGLE_COIL,
+            WriteSingleRegister { .. } => FunctionCode::WRITE_SINGLE_REGISTER,
+            Diagnostics { .. } => FunctionCode::DIAGNOSTICS,
+            WriteMultipleCoils { .. } => FunctionCode::WRITE_MULTIPLE_COILS,
+            WriteMultipleRegisters { .. } => FunctionCode::WRITE_MULTIPLE_REGISTERS,
+            ReadWriteMultipleRegisters { .. } => FunctionCode::READ_WRITE_MULTIPLE_REGISTERS,
+            CanOpen(_) | ReadDeviceId(_) => FunctionCode::ENCAPSULATED_INTERFACE,
+            CanOpenError { .. } => FunctionCode::ENCAPSULATED_INTERFACE.exception(),
+            VendorRead { .. } => FunctionCode::VENDOR_READ,
+            VendorWrite { .. } => FunctionCode::VENDOR_WRITE,
+            Exception { function, .. } => *function,
+            Raw { function, .. } => *function,
+        }
+    }
+
+    /// An exception response to `request_fc` (sets the high bit).
+    pub fn exception(request_fc: FunctionCode, code: ExceptionCode) -> Self {
+        Response::Exception {
+            function: request_fc.exception(),
+            code,
+        }
+    }
+
+    /// True for exception responses (including the SD2x extended one).
+    pub fn is_exception(&self) -> bool {
+        self.function().is_exception()
+    }
+
+    /// Strictly decode one response PDU occupying all of `pdu`.
+    pub fn decode(pdu: &[u8]) -> Result<Self, DecodeError> {
+        check_len(pdu)?;
+        let mut r = Reader::new(pdu);
+        let fc = FunctionCode(r.u8("function code")?);
+        let resp = if fc == FunctionCode::ENCAPSULATED_INTERFACE.exception()
+            && pdu.get(1) == Some(&ExceptionCode::EXTENDED.0)
+        {
+            r.u8("exception code")?;
+            let at = r.pos();
+            let len = r.u16("extended exception length")? as usize;
+            if len != r.remaining() {
+                return Err(mismatch(
+                    at,
+                    "extended exception length",
+                    len,
+                    r.remaining(),
+                    "bytes present",
+                ));
+            }
+            let m_at = r.pos();
+            let m = r.u8("MEI type")?;
+            if m != mei::CANOPEN {
+                return Err(DecodeError::new(
+                    m_at,
+                    DecodeErrorKind::InvalidField {
+                        field: "MEI type",
+                        value: m as u32,
+                        rule: "an extended exception carries MEI 0x0D",
+                    },
+                ));
+            }
+            let c_at = r.pos();
+            let c = r.u8("extended exception code")?;
+            if c != 0xCE {
+                return Err(DecodeError::new(
+                    c_at,
+                    DecodeErrorKind::InvalidField {
+                        field: "extended exception code",
+                        value: c as u32,
+                        rule: "only 0xCE (SDO error) is defined",
+                    },
+                ));
+            }
+            let b = r.take("SDO error code", 4)?;
+            Response::CanOpenError {
+                sdo_code: u32::from_le_bytes([b[0], b[1], b[2], b[3]]),
+            }
+        } else if fc.is_exception() {
+            Response::Exception {
+                function: fc,
+                code: ExceptionCode(r.u8("exception code")?),
+            }
+        } else {
+            match fc.0 {
+                0x01..=0x04 | 0x17 => {
+                    let at = r.pos();
+                    let bc = r.u8("byte count")? as usize;
+                    if bc != r.remaining() {
+                        return Err(mismatch(
+                            at,
+                            "byte count",
+                            bc,
+                            r.remaining(),
+                            "data bytes present",
+                        ));
+                    }
+                    if fc.0 >= 0x03 && bc % 2 != 0 {
+                        return Err(DecodeError::new(
+                            at,
+                            DecodeErrorKind::InvalidField {
+                                field: "byte count",
+                                value: bc as u32,
+                                rule: "register data must be an even number of bytes",
+                            },
+                        ));
+                    }
+                    match fc.0 {
+                        0x01 => Response::ReadCoils {
+                            data: r.take("coil status", bc)?.to_vec(),
+                        },
+                        0x02 => Response::ReadDiscreteInputs {
+                            data: r.take("input status", bc)?.to_vec(),
+                        },
+                        0x03 => Response::ReadHoldingRegisters {
+                            values: r.registers("register values", bc)?,
+                        },
+                        0x04 => Response::ReadInputRegisters {
+                            values: r.registers("register values", bc)?,
+                        },
+                        _ => Response::ReadWriteMultipleRegisters {
+                            values: r.registers("register values", bc)?,
+                        },
+                    }
+                }
+                0x05 => Response::WriteSingleCoil {
+                    address: r.u16("output address")?,
+                    value: r.u16("output value")?,
+                },
+                0x06 => Response::WriteSingleRegister {
+                    address: r.u16("register address")?,
+                    value: r.u16("register value")?,
+                },
+                0x08 => Response::Diagnostics {
+                    sub_function: r.u16("sub-function")?,
+                    data: r.rest().to_vec(),
+                },
+                0x0F => Response::WriteMultipleCoils {
+                    address: r.u16("starting address")?,
+                    quantity: r.u16("quantity of outputs")?,
+                },
+                0x10 => Response::WriteMultipleRegisters {
+                    address: r.u16("starting address")?,
+                    quantity: r.u16("quantity of registers")?,
+                },
+                0x2B => {
+                    let m = r.u8("MEI type")?;
+                    match m {
+                        mei::CANOPEN => {
+                            Response::CanOpen(decode_canopen(&mut r, Direction::Response)?)
+                        }
+                        mei::DEVICE_ID => {
+                            let read_code = r.u8("read device id code")?;
+                            let conformity = r.u8("conformity level")?;
+                            let more_follows = r.u8("more follows")?;
+                            let next_object_id = r.u8("next object id")?;
+                            let n = r.u8("number of objects")?;
+                            let mut objects = Vec::with_capacity(n.min(32) as usize);
+                            for _ in 0..n {
+                                let id = r.u8("object id")?;
+                                let len = r.u8("object length")? as usize;
+                                let value = r.take("object value", len)?.to_vec();
+                                objects.push(DeviceIdObject { id, value });
+                            }
+                            Response::ReadDeviceId(DeviceIdResponse {
+                                read_code,
+                                conformity,
+                                more_follows,
+                                next_object_id,
+                                objects,
+                            })
+                        }
+                        _ => {
+                            let mut data = vec![m];
+                            data.extend_from_slice(r.rest());
+                            Response::Raw { function: fc, data }
+                        }
+                    }
+                }
+                0x41 => {
+                    let at = r.pos();
+                    let bc = r.u8("byte count")? as usize;
+                    if bc != r.remaining() {
+                        return Err(mismatch(
+                            at,
+                            "byte count",
+                            bc,
+                            r.remaining(),
+                            "parameter bytes present",
+                        ));
+                    }
+                    Response::VendorRead {
+                        params: r.rest().to_vec(),
+                    }
+                }
+                0x42 => Response::VendorWrite {
+                    written: r.u8("bytes written")?,
+                    mnemonic: Mnemonic(r.take("mnemonic", 4)?.try_into().unwrap_or([0; 4])),
+                },
+                _ => Response::Raw {
+                    function: fc,
+                    data: r.rest().to_vec(),
+                },
+            }
+        };
+        r.finish()?;
+        Ok(resp)
+    }
+
+    /// Append the PDU bytes to `out`.
+    pub fn encode(&self, out: &mut Vec<u8>) -> Result<(), EncodeError> {
+        use Response::*;
+        let start = out.len();
+        match self {
+            CanOpen(a) => encode_canopen(out, a),
+            CanOpenError { sdo_code } => {
+                out.extend_from_slice(&[
+                    FunctionCode::ENCAPSULATED_INTERFACE.exception().0,
+                    ExceptionCode::EXTENDED.0,
+                    0x00,
+                    0x06,
+                    mei::CANOPEN,
+                    0xCE,
+                ]);
+                out.extend_from_slice(&sdo_code.to_le_bytes());
+            }
+            _ => {
+                out.push(self.function().0);
+                match self {
+                    ReadCoils { data } | ReadDiscreteInputs { data } => {
+                        put_counted(out, "status bytes", data)?
+                    }
+                    ReadHoldingRegisters { values }
+                    | ReadInputRegisters { values }
+                    | ReadWriteMultipleRegisters { values } => {
+                        put_regs(out, "register values", values)?
+                    }
+                    WriteSingleCoil { address, value } | WriteSingleRegister { address, value } => {
+                        put_u16(out, *address);
+                        put_u16(out, *value);
+                    }
+                    Diagnostics { sub_function, data } => {
+                        put_u16(out, *sub_function);
+                        out.extend_from_slice(data);
+                    }
+                    WriteMultipleCoils { address, quantity }
+                    | WriteMultipleRegisters { address, quantity } => {
+                        put_u16(out, *address);
+                        put_u16(out, *quantity);
+                    }
+                    ReadDeviceId(d) => {
+                        out.extend_from_slice(&[
+                            mei::DEVICE_ID,
+                            d.read_code,
+                            d.conformity,
+                            d.more_follows,
+                            d.next_object_id,
+                        ]);
+                        if d.objects.len() > 255 {
+                            return Err(EncodeError::TooLong {
+                                field: "objects",
+                                len: d.objects.len(),
+                                max: 255,
+                            });
+                        }
+                        out.push(d.objects.len() as u8);
+                        for o in &d.objects {
+                            out.push(o.id);
+                            put_counted(out, "object value", &o.value)?;
+                        }
+                    }
+                    VendorRead { params } => put_counted(out, "parameter string", params)?,
+                    VendorWrite { written, mnemonic } => {
+                        out.push(*written);
+                        out.extend_from_slice(&mnemonic.0);
+                    }
+                    Exception { code, .. } => out.push(code.0),
+                    Raw { data, .. } => out.extend_from_slice(data),
+                    CanOpen(_) | CanOpenError { .. } => unreachable!("handled above"),
+                }
+            }
+        }
+        if out.len() - start > MAX_PDU_LEN {
+            let len = out.len() - start;
+            out.truncate(start);
+            return Err(EncodeError::TooLong {
+                field: "PDU",
+                len,
+                max: MAX_PDU_LEN,
+            });
+        }
+        Ok(())
+    }
+
+    /// The PDU as a fresh byte vector.
+    pub fn to_bytes(&self) -> Result<Vec<u8>, EncodeError> {
+        let mut v = Vec::with_capacity(16);
+        self.encode(&mut v)?;
+        Ok(v)
+    }
+}
+
+/// A decoded PDU of either direction.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum Pdu {
+    Request(Request),
+    Response(Response),
+}
+
+impl Pdu {
+    /// Strictly decode a PDU of the given direction.
+    pub fn decode(pdu: &[u8], dir: Direction) -> Result<Self, DecodeError> {
+        Ok(match dir {
+            Direction::Request => Pdu::Request(Request::decode(pdu)?),
+            Direction::Response => Pdu::Response(Response::decode(pdu)?),
+        })
+    }
+
+    /// Append the PDU bytes to `out`.
+    pub fn encode(&self, out: &mut Vec<u8>) -> Result<(), EncodeError> {
+        match self {
+            Pdu::Request(r) => r.encode(out),
+            Pdu::Response(r) => r.encode(out),
+        }
+    }
+}

@@ -1,2 +1,5 @@
 //! modbus-harness: a conformance and fuzz test harness for Modbus drive implementations.
+pub mod corpus;
 pub mod frame;
+pub mod golden;
+pub mod profile;

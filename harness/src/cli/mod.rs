@@ -1,0 +1,3 @@
+//! Subcommand implementations: thin layers over the library.
+pub mod decode;
+pub mod golden;

@@ -3,3 +3,4 @@ pub mod corpus;
 pub mod frame;
 pub mod golden;
 pub mod profile;
+pub mod sim;

@@ -1,0 +1,210 @@
+//! Injected faults: each makes a model misbehave the way real firmware does, so every conformance check
+//! can be shown to catch something.
+
+use std::collections::BTreeSet;
+use std::fmt;
+use std::str::FromStr;
+
+/// One way to break a drive.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub enum Fault {
+    WrongExceptionCode,
+    WrongFunctionCode,
+    TidNotEchoed,
+    MbapLength,
+    ProtocolIdIgnored,
+    PipelineDrop,
+    WrongCrc,
+    LateResponse,
+    TruncatedResponse,
+    StopAfterMalformed,
+    WordOrder,
+    ExceptionWithoutFc,
+    BroadcastAnswered,
+    QuantityUnchecked,
+    ReservedReadable,
+    ReadOnlyWritable,
+    RangeUnchecked,
+    AnswerOtherUnit,
+    CountersFrozen,
+    WatchdogDisabled,
+    UnitNotEchoed,
+    IllegalCoilValueAccepted,
+}
+
+impl Fault {
+    /// Every fault with its name and what it does.
+    pub const ALL: &'static [(Fault, &'static str, &'static str)] = &[
+        (
+            Fault::WrongExceptionCode,
+            "wrong-exception-code",
+            "exception responses carry the wrong code (01->02, 02->03, 03->04, 04->01)",
+        ),
+        (
+            Fault::WrongFunctionCode,
+            "wrong-function-code",
+            "normal responses carry a different function code than the request (FC xor 0x01)",
+        ),
+        (
+            Fault::TidNotEchoed,
+            "tid-not-echoed",
+            "Modbus/TCP: the response's transaction id is the request's plus one",
+        ),
+        (
+            Fault::MbapLength,
+            "mbap-length",
+            "Modbus/TCP: the response's MBAP length field is one more than the bytes sent",
+        ),
+        (
+            Fault::ProtocolIdIgnored,
+            "protocol-id-ignored",
+            "Modbus/TCP: requests with a non-zero protocol id are answered instead of discarded",
+        ),
+        (
+            Fault::PipelineDrop,
+            "pipeline-drop",
+            "Modbus/TCP: of several requests arriving together only the first is answered",
+        ),
+        (
+            Fault::WrongCrc,
+            "wrong-crc",
+            "RTU: responses carry a wrong CRC (low byte inverted)",
+        ),
+        (
+            Fault::LateResponse,
+            "late-response",
+            "responses are sent 1.5 s late, after any sensible timeout",
+        ),
+        (
+            Fault::TruncatedResponse,
+            "truncated-response",
+            "responses lose their last PDU byte (framing adjusted to match)",
+        ),
+        (
+            Fault::StopAfterMalformed,
+            "stop-after-malformed",
+            "after one malformed frame the drive never answers again",
+        ),
+        (
+            Fault::WordOrder,
+            "word-order",
+            "32-bit registers are read and written in the opposite word order",
+        ),
+        (
+            Fault::ExceptionWithoutFc,
+            "exception-without-fc",
+            "exception responses carry 0x80 instead of 0x80|FC",
+        ),
+        (
+            Fault::BroadcastAnswered,
+            "broadcast-answered",
+            "RTU: broadcast requests (address 0) get a response",
+        ),
+        (
+            Fault::QuantityUnchecked,
+            "quantity-unchecked",
+            "quantity 0 and quantities above the limit are served instead of exception 03",
+        ),
+        (
+            Fault::ReservedReadable,
+            "reserved-readable",
+            "reserved and unmapped addresses read as 0 instead of exception 02",
+        ),
+        (
+            Fault::ReadOnlyWritable,
+            "read-only-writable",
+            "writes to read-only registers and objects are accepted",
+        ),
+        (
+            Fault::RangeUnchecked,
+            "range-unchecked",
+            "out-of-range values are written instead of rejected",
+        ),
+        (
+            Fault::AnswerOtherUnit,
+            "answer-other-unit",
+            "frames addressed to another unit/slave are answered",
+        ),
+        (
+            Fault::CountersFrozen,
+            "counters-frozen",
+            "RTU: the FC 08 diagnostic counters never move",
+        ),
+        (
+            Fault::WatchdogDisabled,
+            "watchdog-disabled",
+            "SD2x: the RxPDO watchdog never trips",
+        ),
+        (
+            Fault::UnitNotEchoed,
+            "unit-not-echoed",
+            "the response carries a different unit id / slave address than the request",
+        ),
+        (
+            Fault::IllegalCoilValueAccepted,
+            "illegal-coil-value-accepted",
+            "FC 05 values other than 0xFF00/0x0000 are accepted",
+        ),
+    ];
+
+    /// The command-line name of the fault.
+    pub fn name(self) -> &'static str {
+        Self::ALL
+            .iter()
+            .find(|f| f.0 == self)
+            .map(|f| f.1)
+            .unwrap_or("?")
+    }
+
+    /// What the fault does.
+    pub fn description(self) -> &'static str {
+        Self::ALL
+            .iter()
+            .find(|f| f.0 == self)
+            .map(|f| f.2)
+            .unwrap_or("?")
+    }
+}
+
+impl fmt::Display for Fault {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+impl FromStr for Fault {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        Self::ALL
+            .iter()
+            .find(|f| f.1 == s)
+            .map(|f| f.0)
+            .ok_or_else(|| {
+                format!(
+                    "unknown fault `{s}`; known: {}",
+                    Self::ALL.iter().map(|f| f.1).collect::<Vec<_>>().join(", ")
+                )
+            })
+    }
+}
+
+/// The faults active in one simulator.
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub struct FaultSet(pub BTreeSet<Fault>);
+
+impl FaultSet {
+    /// No fault: a conforming drive.
+    pub fn none() -> Self {
+        Self::default()
+    }
+
+    /// Exactly these faults.
+    pub fn of(faults: &[Fault]) -> Self {
+        Self(faults.iter().copied().collect())
+    }
+
+    /// True when `f` is active.
+    pub fn has(&self, f: Fault) -> bool {
+        self.0.contains(&f)
+    }
+}

@@ -332,8 +332,9 @@ pub fn check_frame(frame: &GoldenFrame, order: WordOrder) -> FrameCheck {
     if frame.printed.is_none() && frame.corrected.is_none() {
         entry_errors.push("a template (`printed_text`) needs `corrected` bytes".into());
     }
-    if frame.corrected.is_some() && frame.erratum.is_none() {
-        entry_errors.push("`corrected` without `erratum`".into());
+    // A template (`printed_text`) instantiated as `corrected` bytes is not an erratum; changed bytes are.
+    if frame.printed.is_some() && frame.corrected.is_some() && frame.erratum.is_none() {
+        entry_errors.push("`corrected` bytes differ from `printed` without an `erratum`".into());
     }
     if frame.erratum.is_some() && frame.evidence.is_none() {
         entry_errors.push("`erratum` without `evidence`".into());

@@ -3,4 +3,5 @@ pub mod corpus;
 pub mod frame;
 pub mod golden;
 pub mod profile;
+pub mod run;
 pub mod sim;

@@ -1,0 +1,7 @@
+//! The conformance run: case catalog, safety policy, runner, oracle and verdicts.
+
+pub mod case;
+pub mod observe;
+
+pub use case::{Case, Compare, Level, Mutation, Send, Step, Tag, Verdict};
+pub use observe::{CaseResult, Dir, Outcome, StepResult, WireEvent};

@@ -428,8 +428,17 @@ impl Request {
         Ok(req)
     }
 
-    /// Append the PDU bytes to `out`.
+    /// Append the PDU bytes to `out`; on error `out` is left as it was.
     pub fn encode(&self, out: &mut Vec<u8>) -> Result<(), EncodeError> {
+        let start = out.len();
+        let r = self.encode_unrestored(out);
+        if r.is_err() {
+            out.truncate(start);
+        }
+        r
+    }
+
+    fn encode_unrestored(&self, out: &mut Vec<u8>) -> Result<(), EncodeError> {
         use Request::*;
         let start = out.len();
         if !matches!(self, CanOpen(_)) {
@@ -725,8 +734,17 @@ impl Response {
         Ok(resp)
     }
 
-    /// Append the PDU bytes to `out`.
+    /// Append the PDU bytes to `out`; on error `out` is left as it was.
     pub fn encode(&self, out: &mut Vec<u8>) -> Result<(), EncodeError> {
+        let start = out.len();
+        let r = self.encode_unrestored(out);
+        if r.is_err() {
+            out.truncate(start);
+        }
+        r
+    }
+
+    fn encode_unrestored(&self, out: &mut Vec<u8>) -> Result<(), EncodeError> {
         use Response::*;
         let start = out.len();
         match self {

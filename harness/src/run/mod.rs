@@ -1,7 +1,11 @@
 //! The conformance run: case catalog, safety policy, runner, oracle and verdicts.
 
 pub mod case;
+pub mod catalog;
+pub mod expect;
 pub mod observe;
+pub mod oracle;
+pub mod runner;
 
 pub use case::{Case, Compare, Level, Mutation, Send, Step, Tag, Verdict};
 pub use observe::{CaseResult, Dir, Outcome, StepResult, WireEvent};

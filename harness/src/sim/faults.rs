@@ -30,6 +30,7 @@ pub enum Fault {
     WatchdogDisabled,
     UnitNotEchoed,
     IllegalCoilValueAccepted,
+    CrcUnchecked,
 }
 
 impl Fault {
@@ -144,6 +145,11 @@ impl Fault {
             Fault::IllegalCoilValueAccepted,
             "illegal-coil-value-accepted",
             "FC 05 values other than 0xFF00/0x0000 are accepted",
+        ),
+        (
+            Fault::CrcUnchecked,
+            "crc-unchecked",
+            "RTU: frames with a bad CRC are processed and answered",
         ),
     ];
 

@@ -5,3 +5,4 @@ pub mod golden;
 pub mod profile;
 pub mod run;
 pub mod sim;
+pub mod target;

@@ -3,6 +3,7 @@ pub mod corpus;
 pub mod frame;
 pub mod golden;
 pub mod profile;
+pub mod report;
 pub mod run;
 pub mod sim;
 pub mod target;

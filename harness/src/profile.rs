@@ -332,6 +332,8 @@ pub struct Object {
     pub max: Option<i64>,
     #[serde(default)]
     pub motion: bool,
+    /// The PDO register (first of a pair) this object mirrors: both views must agree.
+    pub register: Option<u16>,
     pub description: Option<String>,
     pub note: Option<String>,
     pub line: Option<u32>,

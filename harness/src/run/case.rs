@@ -81,6 +81,13 @@ pub enum Step {
     Wait(Duration),
     /// Close and reopen the connection.
     Reconnect,
+    /// The 32-bit value captured as a register pair (in the profile's word order) in slot `registers`
+    /// equals the FC 43 object value (little-endian) captured in slot `object`.
+    Agree {
+        registers: usize,
+        object: usize,
+        note: String,
+    },
 }
 
 /// A conformance case.

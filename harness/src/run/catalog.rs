@@ -36,7 +36,6 @@ fn capture(send: Send, compare: Compare, slot: usize, note: impl Into<String>) -
 
 struct Ctx<'a> {
     p: &'a Profile,
-    framing: Framing,
     unit: u8,
     cases: Vec<Case>,
 }
@@ -180,7 +179,7 @@ fn probe_value(r: &Register) -> i64 {
 pub fn build(p: &Profile, golden: Option<&GoldenFile>, framing: Framing, unit: u8) -> Vec<Case> {
     let mut cx = Ctx {
         p,
-        framing,
+
         unit,
         cases: Vec::new(),
     };
@@ -1156,6 +1155,39 @@ fn canopen_cases(cx: &mut Ctx) {
                 )],
             );
         }
+    }
+    // Both views of a mirrored value agree: the register pair in the profile's word order, the object
+    // little-endian. This is where a device's word order shows against its manual.
+    for o in p.objects.iter().map(|o| o.get_ref()) {
+        let Some(reg) = o
+            .register
+            .and_then(|a| p.register_at(a, true).filter(|r| r.address == a))
+        else {
+            continue;
+        };
+        if reg.width != 2 || !o.access.readable() || !reg.access.readable() {
+            continue;
+        }
+        let read_reg = pdu(&cx.read_request(reg.address, 2, reg.table));
+        let read_obj = pdu(&Request::CanOpen(CanOpenAccess::read(
+            node,
+            o.index,
+            o.subindex,
+            o.ty.size() as u16,
+        )));
+        cx.push(
+            format!("profile/{}/object/{}-{}/agrees-with-register", p.device.id, o.index, slug(&o.name)),
+            format!("object {} and registers {}..{} hold the same value", o.index, reg.address, reg.address + 1),
+            format!("{manual}; section 4.3 (byte order of process data)"),
+            "A 32-bit value read as two registers in the device's word order equals the same value read as an FC 43 object (little-endian).",
+            Level::Must,
+            vec![],
+            vec![
+                capture(Send::Pdu(read_reg), Compare::InRange, 0, "read the register pair"),
+                capture(Send::Pdu(read_obj), Compare::Structure, 1, "read the object"),
+                Step::Agree { registers: 0, object: 1, note: "both views agree".into() },
+            ],
+        );
     }
     let missing = p
         .objects

@@ -6,6 +6,7 @@ pub mod expect;
 pub mod observe;
 pub mod oracle;
 pub mod runner;
+pub mod session;
 
 pub use case::{Case, Compare, Level, Mutation, Send, Step, Tag, Verdict};
 pub use observe::{CaseResult, Dir, Outcome, StepResult, WireEvent};

@@ -396,6 +396,7 @@ pub fn captured(framing: Framing, bytes: &[u8]) -> Option<Captured> {
         Pdu::Response(Response::ReadCoils { data }) => {
             Some(Captured::Bit(data.first().is_some_and(|b| b & 1 == 1)))
         }
+        Pdu::Response(Response::CanOpen(a)) => a.value_le().map(Captured::Object),
         _ => None,
     }
 }
@@ -405,4 +406,6 @@ pub fn captured(framing: Framing, bytes: &[u8]) -> Option<Captured> {
 pub enum Captured {
     Registers(Vec<u16>),
     Bit(bool),
+    /// An FC 43 object value, read little-endian.
+    Object(u32),
 }

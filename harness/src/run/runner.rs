@@ -204,6 +204,7 @@ impl Runner {
                 address,
                 value: if *on { 0xFF00 } else { 0 },
             },
+            Captured::Object(_) => return None,
         };
         req.to_bytes().ok()
     }
@@ -225,6 +226,11 @@ impl Runner {
                     self.target.reconnect()?;
                     self.shadow.reconnect()?;
                 }
+                Step::Agree {
+                    registers,
+                    object,
+                    note,
+                } => steps.push(self.agree(*registers, *object, note)),
                 Step::Exchange {
                     send,
                     compare,
@@ -260,6 +266,49 @@ impl Runner {
             result.verdict = v;
         }
         Ok(result)
+    }
+
+    /// A register pair and its mirroring object must hold the same value.
+    fn agree(&self, registers: usize, object: usize, note: &str) -> StepResult {
+        let order = self.profile.device.word_order;
+        let regs = self.slots.get(registers).cloned().flatten();
+        let obj = self.slots.get(object).cloned().flatten();
+        let findings = match (regs, obj) {
+            (Some(Captured::Registers(r)), Some(Captured::Object(o))) => {
+                let v = match r.as_slice() {
+                    [a, b] => order.join(*a, *b),
+                    [a] => u32::from(*a),
+                    _ => u32::MAX,
+                };
+                if v == o {
+                    vec![]
+                } else {
+                    let swapped = matches!(r.as_slice(), [a, b] if order.join(*b, *a) == o);
+                    vec![format!(
+                        "the registers read 0x{v:08X} ({order:?}) but the object reads 0x{o:08X}{}",
+                        if swapped {
+                            ": the two views disagree on the word order"
+                        } else {
+                            ""
+                        }
+                    )]
+                }
+            }
+            _ => vec!["one of the two reads gave no value to compare".into()],
+        };
+        let verdict = if findings.is_empty() {
+            Verdict::Pass
+        } else {
+            Verdict::Fail
+        };
+        StepResult {
+            note: note.to_string(),
+            sent: None,
+            expected: None,
+            observed: vec![],
+            verdict,
+            findings,
+        }
     }
 
     fn exchange(

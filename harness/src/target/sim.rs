@@ -35,18 +35,26 @@ impl SimTarget {
             .device
             .transports
             .contains(&Transport::Tcp);
+        Self::with_framing(station, if rtu { Framing::Rtu } else { Framing::Tcp }, None)
+    }
+
+    /// Wrap a station speaking `framing` (Tcp or Rtu); RTU `timing` defaults to the profile's line, 8E1.
+    pub fn with_framing(station: Station, framing: Framing, timing: Option<RtuTiming>) -> Self {
+        let rtu = framing == Framing::Rtu;
         let baud = station
             .profile()
             .serial
             .as_ref()
             .map_or(19_200, |s| s.default_baud);
-        let timing = RtuTiming::new(
-            baud,
-            CharFormat {
-                parity: Parity::Even,
-                stop_bits: 1,
-            },
-        );
+        let timing = timing.unwrap_or_else(|| {
+            RtuTiming::new(
+                baud,
+                CharFormat {
+                    parity: Parity::Even,
+                    stop_bits: 1,
+                },
+            )
+        });
         Self {
             station,
             framing: if rtu { Framing::Rtu } else { Framing::Tcp },

@@ -88,3 +88,18 @@ pub fn run(dir: Option<&Path>, verbose: bool) -> ExitCode {
         ExitCode::from(1)
     }
 }
+
+/// Print the errata index (corpus/golden/README.md) generated from the golden files.
+pub fn markdown(dir: Option<&Path>) -> ExitCode {
+    let corpus = Corpus::from_option(dir);
+    match modbus_harness::golden::errata_markdown(&corpus) {
+        Ok(md) => {
+            print!("{md}");
+            ExitCode::SUCCESS
+        }
+        Err(e) => {
+            eprintln!("error: {e}");
+            ExitCode::from(2)
+        }
+    }
+}

@@ -4,6 +4,7 @@
 //! Modbus/TCP stream splitting and MBAP checks, RTU addressing, broadcast, the serial-line counters of
 //! FC 08, and the injected faults that act on bytes.
 
+pub mod bank;
 pub mod faults;
 pub mod generic;
 pub mod mdrive;

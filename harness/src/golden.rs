@@ -379,7 +379,11 @@ pub fn errata_markdown(corpus: &crate::corpus::Corpus) -> Result<String, String>
     let files = corpus.files("golden").map_err(|e| e.to_string())?;
     for (name, text) in files {
         let g = GoldenFile::parse(&name, &text).map_err(|e| e.to_string())?;
-        let errata: Vec<&GoldenFrame> = g.frames.iter().filter(|f| f.erratum.is_some() || f.alternative.is_some()).collect();
+        let errata: Vec<&GoldenFrame> = g
+            .frames
+            .iter()
+            .filter(|f| f.erratum.is_some() || f.alternative.is_some())
+            .collect();
         let _ = writeln!(
             md,
             "## {}\n\nManual `{}`: {} printed frames, {} with an erratum or two readings.\n",
@@ -388,7 +392,10 @@ pub fn errata_markdown(corpus: &crate::corpus::Corpus) -> Result<String, String>
             g.frames.len(),
             errata.len()
         );
-        let _ = writeln!(md, "| frame | line | printed | used | what is wrong | evidence |\n|---|---|---|---|---|---|");
+        let _ = writeln!(
+            md,
+            "| frame | line | printed | used | what is wrong | evidence |\n|---|---|---|---|---|---|"
+        );
         let cell = |s: &str| s.replace('|', "\\|").replace('\n', " ");
         for f in errata {
             let printed = f.printed.clone().unwrap_or_else(|| "(template)".into());

@@ -5,5 +5,6 @@ pub mod golden;
 pub mod profile;
 pub mod report;
 pub mod run;
+pub mod server;
 pub mod sim;
 pub mod target;

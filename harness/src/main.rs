@@ -17,6 +17,8 @@ struct Cli {
 
 #[derive(Subcommand)]
 enum Command {
+    /// Run the conformance catalog (golden frames, spec cases, profile cases) against a target.
+    Run(Box<cli::run::RunArgs>),
     /// Decode one frame given as hex and print it field by field (or the exact error).
     Decode(cli::decode::DecodeArgs),
     /// Check every golden frame from the manuals: decode, expectations, errata.
@@ -27,13 +29,30 @@ enum Command {
         /// Print every frame, not only the errata and failures.
         #[arg(short, long)]
         verbose: bool,
+        /// Print the errata index as Markdown (corpus/golden/README.md is this output).
+        #[arg(long)]
+        markdown: bool,
     },
+    /// Serve a reference drive over Modbus/TCP, RTU over TCP and/or a serial line, until Ctrl-C or SIGTERM.
+    Simulate(cli::simulate::SimulateArgs),
 }
 
 fn main() -> ExitCode {
     let cli = Cli::parse();
     match cli.command {
+        Command::Run(args) => cli::run::run(&args),
         Command::Decode(args) => cli::decode::run(&args),
-        Command::Golden { corpus, verbose } => cli::golden::run(corpus.as_deref(), verbose),
+        Command::Golden {
+            corpus,
+            verbose,
+            markdown,
+        } => {
+            if markdown {
+                cli::golden::markdown(corpus.as_deref())
+            } else {
+                cli::golden::run(corpus.as_deref(), verbose)
+            }
+        }
+        Command::Simulate(args) => cli::simulate::run(args),
     }
 }

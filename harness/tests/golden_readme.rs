@@ -2,10 +2,15 @@
 
 #[test]
 fn errata_readme_is_up_to_date() {
-    let corpus = modbus_harness::corpus::Corpus::Dir(concat!(env!("CARGO_MANIFEST_DIR"), "/../corpus").into());
+    let corpus = modbus_harness::corpus::Corpus::Dir(
+        concat!(env!("CARGO_MANIFEST_DIR"), "/../corpus").into(),
+    );
     let want = modbus_harness::golden::errata_markdown(&corpus).expect("golden files load");
-    let have = std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/../corpus/golden/README.md"))
-        .expect("corpus/golden/README.md exists");
+    let have = std::fs::read_to_string(concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../corpus/golden/README.md"
+    ))
+    .expect("corpus/golden/README.md exists");
     assert!(
         have == want,
         "corpus/golden/README.md is stale: regenerate it with `cargo run -- golden --markdown > corpus/golden/README.md`"

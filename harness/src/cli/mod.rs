@@ -1,3 +1,5 @@
 //! Subcommand implementations: thin layers over the library.
 pub mod decode;
 pub mod golden;
+pub mod run;
+pub mod simulate;

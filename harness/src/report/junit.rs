@@ -173,6 +173,7 @@ impl JunitSink {
                 ))?;
             }
             xml.write_event(Event::End(BytesEnd::new("properties")))?;
+            xml.get_mut().write_all(b"\n")?;
             let mut cases = File::open(&self.partial)?;
             io::copy(&mut cases, xml.get_mut())?;
             xml.write_event(Event::End(BytesEnd::new("testsuite")))?;

@@ -42,12 +42,12 @@ use serde::Serialize;
 use crate::frame::hex_spaced;
 use crate::run::{Case, CaseResult, Dir, Outcome, Verdict, WireEvent};
 
-pub use html::HtmlSink;
-pub use json::JsonSink;
-pub use junit::JunitSink;
-pub use pcap::PcapSink;
+pub use html::{HTML_ROWS_PER_VERDICT, HtmlSink, escape_html};
+pub use json::{INDEX_FORMAT, JsonSink};
+pub use junit::{JunitSink, junit_names};
+pub use pcap::{CLIENT_PORT_BASE, CLIENT_PORTS, PcapSink};
 
-/// The file names written in a report directory.
+/// The run index.
 pub const INDEX_FILE: &str = "index.json";
 /// The folder of per-case JSON files.
 pub const CASES_DIR: &str = "cases";
@@ -515,10 +515,10 @@ pub(crate) fn xml_safe(s: &str) -> std::borrow::Cow<'_, str> {
     }
 }
 
-/// One line of a wire log: `+000123456 µs  Tx  01 03 …  [malformed on purpose]`.
+/// One line of a wire log: `     10850 µs  Rx  01 03 …` (`[malformed on purpose]` at the end if so).
 pub(crate) fn wire_line(e: &WireEvent) -> String {
     format!(
-        "+{:>10} us  {}  {}{}",
+        "{:>10} µs  {}  {}{}",
         e.at.as_micros(),
         dir_label(e.dir),
         hex_spaced(&e.bytes),

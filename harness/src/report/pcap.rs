@@ -1,13 +1,18 @@
 //! `session.pcapng`: every wire event as a TCP segment of a synthetic connection, one connection per case.
 //!
-//! Each case with traffic gets a new connection 127.0.0.1:<client port> ↔ 127.0.0.1:<server port> (client
+//! Each case with traffic gets a new connection `127.0.0.1:<client port>` ↔ `127.0.0.1:<server port>` (client
 //! ports cycle through 40000..44000, a range no Wireshark dissector claims), opened with a three-way
 //! handshake at the case's first event and closed with FIN/ACK after its last one; sequence and
 //! acknowledgement numbers follow the bytes. Packet times are the run's start plus `WireEvent::at`
-//! (nanosecond resolution). Comments mark the first packet of each case (`case <id>: <verdict>`), every
-//! frame sent malformed on purpose (`malformed on purpose: <case id>`), and any frame that the harness's
-//! strict codec rejects. Modbus/TCP runs carry MBAP frames, RTU runs (serial or over TCP) RTU frames; see
-//! [`super::pcap_decode_args`] for the tshark options.
+//! (nanosecond resolution). Each harness write is a segment of its own (a split on purpose stays visible);
+//! consecutive reads of the target are one segment at the time of the first read, because a reader's
+//! chunking is not the target's segmentation and Wireshark cannot reassemble RTU frames from pieces
+//! shorter than 5 bytes (the JSON and HTML wire logs keep every read).
+//!
+//! Packet comments mark the first packet of each case (`case <id>: <verdict>`), every frame sent malformed
+//! on purpose (`malformed on purpose: <case id>`), a request written in pieces, and any frame that the
+//! harness's strict codec rejects. Modbus/TCP runs carry MBAP frames, RTU runs (serial or over TCP) RTU
+//! frames; see [`super::pcap_decode_args`] for the tshark options.
 
 use std::borrow::Cow;
 use std::fs::File;
@@ -213,6 +218,38 @@ impl PcapSink {
             .map_err(pcap_error(partial))
     }
 
+    /// The comment for a run of reads or writes in one direction that the codec rejects, if it does.
+    ///
+    /// Each piece is a frame (or several Modbus/TCP frames) of its own: fine. Else the pieces together
+    /// must be one frame: a request written in pieces is named as such (Wireshark may show the pieces
+    /// undecoded), anything else is not valid Modbus.
+    fn group_problem(
+        &self,
+        group: &[&WireEvent],
+        bytes: &[u8],
+        from_client: bool,
+        id: &str,
+    ) -> Option<String> {
+        let (direction, what) = if from_client {
+            (Direction::Request, "request")
+        } else {
+            (Direction::Response, "response")
+        };
+        if group
+            .iter()
+            .all(|e| self.decode_problem(&e.bytes, direction).is_none())
+        {
+            return None;
+        }
+        match self.decode_problem(bytes, direction) {
+            None if from_client => Some(format!("request written in {} pieces: {id}", group.len())),
+            None => None,
+            Some(p) => Some(format!(
+                "not a valid Modbus {what} (harness codec: {p}): {id}"
+            )),
+        }
+    }
+
     /// Why the harness's strict codec rejects `bytes`, if it does (Modbus/TCP reads may hold several ADUs).
     fn decode_problem(&self, bytes: &[u8], direction: Direction) -> Option<String> {
         let whole = match decode_any(bytes, self.framing, direction) {
@@ -283,30 +320,29 @@ impl Sink for PcapSink {
                 .map_or(events.len(), |n| i + n);
             let group = &events[i..end];
             let from_client = dir == Dir::Tx;
+            let bytes: Vec<u8> = group.iter().flat_map(|e| e.bytes.iter().copied()).collect();
             let mut problem = if group.iter().any(|e| e.intended_malformed) {
                 None
             } else {
-                let bytes: Vec<u8> = group.iter().flat_map(|e| e.bytes.iter().copied()).collect();
-                let (direction, what) = if from_client {
-                    (Direction::Request, "request")
-                } else {
-                    (Direction::Response, "response")
-                };
-                self.decode_problem(&bytes, direction).map(|p| {
-                    format!(
-                        "not a valid Modbus {what} (harness codec: {p}): {}",
-                        result.id
-                    )
-                })
+                self.group_problem(group, &bytes, from_client, &result.id)
             };
-            for e in group {
-                let mut comment = if e.intended_malformed {
-                    Some(format!("malformed on purpose: {}", result.id))
-                } else {
-                    problem.take()
-                };
-                for chunk in e.bytes.chunks(MSS) {
-                    self.segment(&mut conn, e.at, from_client, data, chunk, comment.take())?;
+            if from_client {
+                for e in group {
+                    let mut comment = if e.intended_malformed {
+                        Some(format!("malformed on purpose: {}", result.id))
+                    } else {
+                        problem.take()
+                    };
+                    for chunk in e.bytes.chunks(MSS) {
+                        self.segment(&mut conn, e.at, true, data, chunk, comment.take())?;
+                    }
+                }
+            } else {
+                // How a reader chunked the target's bytes says nothing about the target's segments, and
+                // Wireshark cannot reassemble RTU frames from pieces of fewer than 5 bytes: one segment
+                // (or MSS-sized segments) at the time of the first piece. The wire log keeps every read.
+                for chunk in bytes.chunks(MSS) {
+                    self.segment(&mut conn, group[0].at, false, data, chunk, problem.take())?;
                 }
             }
             i = end;

@@ -41,13 +41,14 @@ struct Ctx<'a> {
 }
 
 impl Ctx<'_> {
+    /// Add a case checking a MUST-level requirement (every catalog case is one; SHOULD-level deviations
+    /// are found inside steps, e.g. RTU timing).
     fn push(
         &mut self,
         id: String,
         title: impl Into<String>,
         reference: impl Into<String>,
         requirement: impl Into<String>,
-        level: Level,
         tags: Vec<Tag>,
         steps: Vec<Step>,
     ) {
@@ -56,7 +57,7 @@ impl Ctx<'_> {
             title: title.into(),
             reference: reference.into(),
             requirement: requirement.into(),
-            level,
+            level: Level::Must,
             tags,
             steps,
         });
@@ -319,15 +320,7 @@ fn golden_cases(cx: &mut Ctx, g: &GoldenFile) {
         } else {
             format!("The drive handles the manual's example: {}", f.meaning)
         };
-        cx.push(
-            id,
-            f.meaning.clone(),
-            reference,
-            requirement,
-            Level::Must,
-            tags,
-            steps,
-        );
+        cx.push(id, f.meaning.clone(), reference, requirement, tags, steps);
     }
 }
 
@@ -359,7 +352,6 @@ fn spec_cases(cx: &mut Ctx) {
             format!("function code 0x{fc:02X} is not supported"),
             format!("{APP}, section 7 (exception codes), 6 (state diagrams)"),
             "A function code the server does not implement is answered with exception 01 (Illegal Function) in a response whose function code is the request's with the high bit set, and the exception response is exactly 2 bytes.",
-            Level::Must,
             vec![],
             vec![exchange(Send::Pdu(body), Compare::Exact, format!("FC 0x{fc:02X}"))],
         );
@@ -422,7 +414,6 @@ fn spec_cases(cx: &mut Ctx) {
                 format!("FC 0x{fc:02X} with quantity {q} (limit {max})"),
                 format!("{APP}, section 6.{} (state diagram: quantity out of range)", fc),
                 format!("A quantity of 0 or above the limit ({max} for this device) is answered with exception 03 (Illegal Data Value)."),
-                Level::Must,
                 if writes { vec![Tag::Write] } else { vec![] },
                 vec![exchange(Send::Pdu(bytes), Compare::Exact, format!("quantity {q}"))],
             );
@@ -450,7 +441,6 @@ fn spec_cases(cx: &mut Ctx) {
                 format!("FC 0x{fc:02X} at 0x{addr:04X}, past the last register"),
                 format!("{APP}, section 6.{fc} (state diagram: starting address + quantity out of range)"),
                 "A read of an address the device does not have is answered with exception 02 (Illegal Data Address).",
-                Level::Must,
                 vec![],
                 vec![exchange(Send::Pdu(pdu(&req)), Compare::Exact, format!("address 0x{addr:04X}"))],
             );
@@ -469,7 +459,6 @@ fn spec_cases(cx: &mut Ctx) {
             "FC 16 whose byte count disagrees with its quantity",
             format!("{APP}, section 6.12"),
             "A byte count that is not 2 x quantity is answered with exception 03 (Illegal Data Value); the drive keeps answering.",
-            Level::Must,
             vec![Tag::Write],
             vec![
                 exchange(Send::Pdu(b), Compare::Exact, "byte count 2 for 2 registers"),
@@ -490,7 +479,6 @@ fn spec_cases(cx: &mut Ctx) {
             "FC 15 whose byte count disagrees with its quantity",
             format!("{APP}, section 6.11"),
             "A byte count that is not ceil(quantity / 8) is answered with exception 03 (Illegal Data Value).",
-            Level::Must,
             vec![Tag::Write],
             vec![exchange(Send::Pdu(b), Compare::Exact, "byte count 1 for 9 coils"), cx.probe()],
         );
@@ -505,7 +493,6 @@ fn spec_cases(cx: &mut Ctx) {
             format!("FC 0x{fc:02X} with its data cut to 2 bytes"),
             format!("{APP}, section 6 (request PDU layouts) and 7"),
             "A request too short for its function code is rejected (exception 03) or ignored, never answered as if valid; the drive keeps answering.",
-            Level::Must,
             if matches!(fc, 0x06 | 0x10) { vec![Tag::Write] } else { vec![] },
             vec![exchange(Send::Pdu(vec![fc, 0x00, 0x01]), Compare::Structure, "3-byte PDU"), cx.probe()],
         );
@@ -518,7 +505,6 @@ fn spec_cases(cx: &mut Ctx) {
             "FC 05 with value 0x1234",
             format!("{APP}, section 6.5"),
             "A Write Single Coil value other than 0xFF00 or 0x0000 is answered with exception 03 (Illegal Data Value).",
-            Level::Must,
             vec![Tag::Write],
             vec![exchange(
                 Send::Pdu(pdu(&Request::WriteSingleCoil { address: addr, value: 0x1234 })),
@@ -536,7 +522,6 @@ fn tcp_cases(cx: &mut Ctx) {
         "transaction ids 0x0000, 0x1234 and 0xFFFF are echoed",
         format!("{TCPG}, section 3.1.3 (MBAP header)"),
         "The server copies the transaction identifier of the request into the response, and answers with protocol identifier 0 and a length field equal to the bytes that follow it.",
-        Level::Must,
         vec![Tag::TcpOnly],
         vec![
             exchange(Send::Pdu(probe.clone()), Compare::Structure, "first request"),
@@ -549,7 +534,6 @@ fn tcp_cases(cx: &mut Ctx) {
         "a request with protocol id 1 is not answered",
         format!("{TCPG}, section 3.1.3 and 4.4.1 (MBAP checks)"),
         "A request whose protocol identifier is not 0 (Modbus) is discarded; the server keeps serving the connection.",
-        Level::Must,
         vec![Tag::TcpOnly],
         vec![
             exchange(
@@ -567,7 +551,6 @@ fn tcp_cases(cx: &mut Ctx) {
             format!("a request whose MBAP length is off by {delta}"),
             format!("{TCPG}, section 3.1.3 and 4.4.1"),
             "A request whose MBAP length disagrees with its PDU is not answered as a valid request, and the server recovers on a new connection.",
-            Level::Must,
             vec![Tag::TcpOnly],
             vec![
                 exchange(
@@ -586,7 +569,6 @@ fn tcp_cases(cx: &mut Ctx) {
             format!("{k} requests in one TCP segment"),
             format!("{TCPG}, section 4.2.1 (several requests may be pipelined)"),
             "Requests that arrive together in one segment are all answered, in order, each with its own transaction id.",
-            Level::Must,
             vec![Tag::TcpOnly],
             vec![exchange(Send::Batch(vec![probe.clone(); k]), Compare::Structure, format!("{k} requests"))],
         );
@@ -596,7 +578,6 @@ fn tcp_cases(cx: &mut Ctx) {
         "one request split across two TCP segments 5 ms apart",
         format!("{TCPG}, section 4.2.1 (a TCP stream has no message boundaries)"),
         "A request whose bytes arrive in two segments is answered once, as if it had arrived whole.",
-        Level::Must,
         vec![Tag::TcpOnly],
         vec![exchange(
             Send::Mutated { pdu: probe.clone(), mutation: Mutation::Split { at: 4, gap_us: 5_000 } },
@@ -610,7 +591,6 @@ fn tcp_cases(cx: &mut Ctx) {
             format!("a request to unit id {unit}"),
             format!("{TCPG}, section 4.4.1.2 (unit identifier)"),
             "The server answers the unit ids its profile says it answers, echoing the unit id, and ignores the others.",
-            Level::Must,
             vec![Tag::TcpOnly],
             vec![exchange(Send::PduToUnit { pdu: probe.clone(), unit }, Compare::Structure, format!("unit {unit}"))],
         );
@@ -620,7 +600,6 @@ fn tcp_cases(cx: &mut Ctx) {
         "a request with a 254-byte PDU (MBAP length 255)",
         format!("{APP}, section 4.1 (PDU size limit); {TCPG} 4.4.1"),
         "A frame longer than the 253-byte PDU limit is not answered as a valid request; the server recovers on a new connection.",
-        Level::Must,
         vec![Tag::TcpOnly],
         vec![
             exchange(Send::Pdu(vec![0x03; 254]), Compare::Structure, "254-byte PDU"),
@@ -637,7 +616,6 @@ fn rtu_cases(cx: &mut Ctx) {
         "a request with a wrong CRC is not answered",
         format!("{SER}, section 2.5.1.2 (CRC checking)"),
         "A frame whose CRC does not match is discarded without a response; the drive keeps answering valid frames.",
-        Level::Must,
         vec![Tag::RtuOnly],
         vec![
             exchange(Send::Mutated { pdu: probe.clone(), mutation: Mutation::BadCrc }, Compare::Exact, "CRC inverted"),
@@ -654,7 +632,6 @@ fn rtu_cases(cx: &mut Ctx) {
         format!("a request to slave {other} is ignored by slave {}", cx.unit),
         format!("{SER}, section 2.2 (slave addressing)"),
         "A frame addressed to another slave is not answered.",
-        Level::Must,
         vec![Tag::RtuOnly],
         vec![exchange(
             Send::PduToUnit {
@@ -670,7 +647,6 @@ fn rtu_cases(cx: &mut Ctx) {
         "a broadcast (address 0) read is not answered",
         format!("{SER}, section 2.1 (broadcast mode: no reply)"),
         "No slave answers a frame sent to address 0.",
-        Level::Must,
         vec![Tag::RtuOnly],
         vec![exchange(
             Send::PduToUnit {
@@ -686,7 +662,6 @@ fn rtu_cases(cx: &mut Ctx) {
         "a request whose bytes arrive in two writes well inside t1.5",
         format!("{SER}, section 2.5.1.1 (RTU framing)"),
         "A frame delivered in pieces without an inter-character silence is answered once.",
-        Level::Must,
         vec![Tag::RtuOnly],
         vec![exchange(
             Send::Mutated {
@@ -709,7 +684,6 @@ fn rtu_cases(cx: &mut Ctx) {
             "FC 08/00 echoes its data",
             format!("{SER}, section 6.1.1; {APP} 6.8"),
             "Return Query Data echoes the request's data field unchanged.",
-            Level::Must,
             vec![Tag::RtuOnly],
             vec![exchange(
                 Send::Pdu(diag(0x00, 0xA537)),
@@ -762,7 +736,6 @@ fn rtu_cases(cx: &mut Ctx) {
             "FC 08 counters after a known sequence",
             format!("{SER}, section 6.1 (diagnostic counters)"),
             "After Clear Counters, the bus message, CRC error, exception, slave message and no-response counters count exactly the frames that followed.",
-            Level::Must,
             vec![Tag::RtuOnly],
             steps,
         );
@@ -819,7 +792,6 @@ fn profile_cases(cx: &mut Ctx) {
                     r.range().0,
                     r.range().1
                 ),
-                Level::Must,
                 vec![],
                 vec![exchange(Send::Pdu(read.clone()), Compare::InRange, "read")],
             );
@@ -873,7 +845,6 @@ fn profile_cases(cx: &mut Ctx) {
                 format!("write {} in range and read it back", r.name),
                 format!("{} register map: 0x{:04X} {}", p.device.name, r.address, r.name),
                 format!("Register 0x{:04X} accepts {v} and reads it back unchanged, in the device's word order.", r.address),
-                Level::Must,
                 tags.clone(),
                 steps,
             );
@@ -892,7 +863,6 @@ fn profile_cases(cx: &mut Ctx) {
                     format!("write {} = {b}, outside {min}..={max}", r.name),
                     format!("{} register map: 0x{:04X} {} range", p.device.name, r.address, r.name),
                     format!("A value outside {min}..={max} is rejected with an exception and not stored."),
-                    Level::Must,
                     tags.clone(),
                     vec![
                         exchange(
@@ -914,7 +884,6 @@ fn profile_cases(cx: &mut Ctx) {
                     p.device.name, r.address, r.name
                 ),
                 "A write to a read-only register is rejected with an exception.",
-                Level::Must,
                 vec![Tag::Write],
                 vec![exchange(
                     Send::Pdu(pdu(&cx.write_request(r.address, encode_value(p, r, v)))),
@@ -933,7 +902,6 @@ fn profile_cases(cx: &mut Ctx) {
             format!("read reserved 0x{:04X}..=0x{:04X}", res.start, res.end),
             format!("{} register map: reserved", p.device.name),
             "A read of a reserved address is answered with exception 02 (Illegal Data Address).",
-            Level::Must,
             vec![],
             vec![exchange(
                 Send::Pdu(pdu(&cx.read_request(res.start, 1, Table::Holding))),
@@ -963,7 +931,6 @@ fn profile_cases(cx: &mut Ctx) {
                 format!("switch {} on and read it back", c.name),
                 format!("{}: coil {} {}", p.device.name, c.address, c.name),
                 "Write Single Coil ON is echoed and Read Coils then shows the coil on.",
-                Level::Must,
                 tags,
                 vec![
                     capture(Send::Pdu(read.clone()), Compare::Structure, 0, "read"),
@@ -999,7 +966,6 @@ fn profile_cases(cx: &mut Ctx) {
                 format!("read {}", d.name),
                 format!("{}: discrete input {} {}", p.device.name, d.address, d.name),
                 "The input is readable with Read Discrete Inputs.",
-                Level::Must,
                 vec![],
                 vec![exchange(
                     Send::Pdu(pdu(&Request::ReadDiscreteInputs {
@@ -1023,7 +989,6 @@ fn profile_cases(cx: &mut Ctx) {
                 format!("FC 0x41 read of {}", m.name),
                 format!("{}: vendor FC 0x41, mnemonic {}", p.device.name, m.name),
                 "A readable mnemonic is answered with its parameter string.",
-                Level::Must,
                 vec![],
                 vec![exchange(
                     Send::Pdu(pdu(&Request::VendorRead { mnemonic: w })),
@@ -1048,7 +1013,6 @@ fn profile_cases(cx: &mut Ctx) {
                 format!("FC 0x42 write of {}{}", m.name, ex),
                 format!("{}: vendor FC 0x42, mnemonic {}", p.device.name, m.name),
                 "A writable mnemonic accepts the manual's example parameters and echoes the mnemonic.",
-                Level::Must,
                 tags,
                 vec![exchange(
                     Send::Pdu(pdu(&Request::VendorWrite { mnemonic: w, params: ex.as_bytes().to_vec() })),
@@ -1065,7 +1029,6 @@ fn profile_cases(cx: &mut Ctx) {
             "FC 0x41 read of an unknown mnemonic",
             format!("{}: vendor FC 0x41", p.device.name),
             "A mnemonic the drive does not know is answered with an exception.",
-            Level::Must,
             vec![],
             vec![exchange(
                 Send::Pdu(pdu(&Request::VendorRead { mnemonic: unknown })),
@@ -1082,7 +1045,6 @@ fn profile_cases(cx: &mut Ctx) {
                 format!("read device identification, {label} stream"),
                 format!("{APP}, section 6.21; {} device id", p.device.name),
                 "Read Device Identification returns the objects of the requested category with a consistent object list.",
-                Level::Must,
                 vec![],
                 vec![exchange(
                     Send::Pdu(pdu(&Request::ReadDeviceId { read_code: code, object_id: 0 })),
@@ -1096,7 +1058,6 @@ fn profile_cases(cx: &mut Ctx) {
             "read an individual identification object that does not exist",
             format!("{APP}, section 6.21"),
             "An individual access to an object id the device does not have is answered with exception 02.",
-            Level::Must,
             vec![],
             vec![exchange(
                 Send::Pdu(pdu(&Request::ReadDeviceId { read_code: 4, object_id: 0x7F })),
@@ -1130,7 +1091,6 @@ fn canopen_cases(cx: &mut Ctx) {
                 format!("FC 43/0x0D read of object {} {}", o.index, o.name),
                 manual,
                 "The object is read with FC 43 / MEI 0x0D, its size in bytes, little-endian data.",
-                Level::Must,
                 vec![],
                 vec![exchange(
                     Send::Pdu(read.clone()),
@@ -1146,7 +1106,6 @@ fn canopen_cases(cx: &mut Ctx) {
                 format!("FC 43/0x0D write of read-only object {}", o.index),
                 manual,
                 "A write to a read-only object is answered with the extended exception carrying SDO error 0xFFFF000A.",
-                Level::Must,
                 vec![Tag::Write],
                 vec![exchange(
                     Send::Pdu(pdu(&Request::CanOpen(CanOpenAccess::write(node, o.index, o.subindex, data)))),
@@ -1180,7 +1139,6 @@ fn canopen_cases(cx: &mut Ctx) {
             format!("object {} and registers {}..{} hold the same value", o.index, reg.address, reg.address + 1),
             format!("{manual}; section 4.3 (byte order of process data)"),
             "A 32-bit value read as two registers in the device's word order equals the same value read as an FC 43 object (little-endian).",
-            Level::Must,
             vec![],
             vec![
                 capture(Send::Pdu(read_reg), Compare::InRange, 0, "read the register pair"),
@@ -1201,7 +1159,6 @@ fn canopen_cases(cx: &mut Ctx) {
         format!("FC 43/0x0D read of object {missing}, which does not exist"),
         manual,
         "A read of an object that is not in the dictionary is answered with SDO error 0xFFFF000B.",
-        Level::Must,
         vec![],
         vec![exchange(
             Send::Pdu(pdu(&Request::CanOpen(CanOpenAccess::read(
@@ -1222,7 +1179,6 @@ fn canopen_cases(cx: &mut Ctx) {
             format!("FC 43/0x0D read of object {} with byte count 3", o.index),
             manual,
             "A read whose byte count does not match the object's size is answered with an SDO length error.",
-            Level::Must,
             vec![],
             vec![exchange(
                 Send::Pdu(pdu(&Request::CanOpen(CanOpenAccess::read(node, o.index, o.subindex, 3)))),
@@ -1274,7 +1230,6 @@ fn ds402_cases(cx: &mut Ctx) {
         "DS402: shutdown, switch on, enable operation, disable",
         manual,
         "The status word follows the control word through the DS402 states: ready to switch on, switched on, operation enabled, and back.",
-        Level::Must,
         vec![Tag::Write, Tag::Motion],
         vec![
             exchange(write(0x06, 0), Compare::Exact, "shutdown (0x06)"),
@@ -1292,7 +1247,6 @@ fn ds402_cases(cx: &mut Ctx) {
         "RxPDO watchdog: a 100 ms watchdog not rewritten trips the drive",
         format!("SD2x manual, section 4.1 and 6.1 (watchdog register {})", w.register),
         "With a watchdog time set, the drive is not faulted before the time elapses and is faulted, with its error code, once the RxPDO has not been rewritten for longer than the time.",
-        Level::Must,
         vec![Tag::Write, Tag::Motion, Tag::Destructive],
         vec![
             exchange(write(0x06, 100), Compare::Exact, "shutdown with watchdog 100 ms"),

@@ -388,9 +388,14 @@ impl Runner {
         }
         // The reference answers: every frame it sends before it falls silent.
         let mut expected = Vec::new();
+        let mut reference_closed = false;
         for _ in 0..frames.len() + 1 {
             match self.shadow.recv(self.cfg.timeout)? {
                 Received::Frame { bytes, .. } => expected.push(bytes),
+                Received::Closed { .. } => {
+                    reference_closed = true;
+                    break;
+                }
                 _ => break,
             }
         }
@@ -424,6 +429,7 @@ impl Runner {
                 &got,
                 compare,
                 &self.profile,
+                reference_closed,
             ));
             if let (
                 Some(t),

@@ -328,7 +328,8 @@ pub fn run(
     };
     let cfg = config(opts, &profile);
     let [lo, hi] = profile.device.unit_ids;
-    if !(lo..=hi).contains(&cfg.unit) && !(profile.device.broadcast && cfg.unit == 0) {
+    let broadcast = profile.device.broadcast && cfg.unit == 0;
+    if !((lo..=hi).contains(&cfg.unit) || broadcast) {
         let _ = writeln!(
             log,
             "warning: unit {} is outside the profile's unit ids {lo}..={hi}",

@@ -60,6 +60,18 @@ impl RtuTiming {
         }
     }
 
+    /// Timing for RTU frames carried over TCP (gateways, `simulate --rtu-over-tcp`). A TCP stream has no
+    /// line silence: segments of one frame may arrive milliseconds apart. Frames are cut by the length
+    /// rules and the CRC; silence only ends frames of unknown length, after 50 ms.
+    pub fn tcp_carrier() -> Self {
+        Self {
+            baud: 0,
+            char_time: Duration::ZERO,
+            t1_5: Duration::from_millis(20),
+            t3_5: Duration::from_millis(50),
+        }
+    }
+
     /// Time to transmit `n` characters.
     pub fn transmit_time(&self, n: usize) -> Duration {
         self.char_time * n as u32

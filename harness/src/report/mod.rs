@@ -253,7 +253,7 @@ pub trait Sink {
 /// Every report format of a `--report DIR`, fed together.
 pub struct Reports {
     dir: PathBuf,
-    sinks: Vec<Box<dyn Sink>>,
+    sinks: Vec<Box<dyn Sink + Send>>,
     tally: Tally,
 }
 
@@ -264,7 +264,7 @@ impl Reports {
         let cases = dir.join(CASES_DIR);
         fs::create_dir_all(&cases).map_err(with_path("cannot create directory", &cases))?;
         clean_earlier_run(dir)?;
-        let sinks: Vec<Box<dyn Sink>> = vec![
+        let sinks: Vec<Box<dyn Sink + Send>> = vec![
             Box::new(JsonSink::create(dir, info)?),
             Box::new(JunitSink::create(dir, info)?),
             Box::new(HtmlSink::create(dir, info)?),

@@ -1202,12 +1202,15 @@ fn ds402_cases(cx: &mut Ctx) {
     };
     let base = ctrl.address;
     let n = (w.register - base + 1) as usize;
-    let status = p
-        .registers
-        .iter()
-        .map(|r| r.get_ref())
-        .find(|r| r.access == Access::Ro && r.width == 1)
-        .map_or(2000, |r| r.address);
+    let ro = |pred: &dyn Fn(&Register) -> bool| {
+        p.registers
+            .iter()
+            .map(|r| r.get_ref())
+            .find(|r| r.access == Access::Ro && r.width == 1 && pred(r))
+            .map(|r| r.address)
+    };
+    let status = ro(&|_| true).unwrap_or(2000);
+    let error_code = ro(&|r| r.name.to_ascii_lowercase().contains("error")).unwrap_or(status);
     let write = |cw: u16, wd: u16| {
         let mut v = vec![0u16; n];
         v[0] = cw;
@@ -1217,46 +1220,78 @@ fn ds402_cases(cx: &mut Ctx) {
             values: v,
         }))
     };
-    let read_status = || {
+    // Only the state words: speeds and currents depend on the exact time of the read.
+    let read = |address: u16| {
         Send::Pdu(pdu(&Request::ReadHoldingRegisters {
-            address: status,
-            quantity: 6,
+            address,
+            quantity: 1,
         }))
+    };
+    let reset = || {
+        vec![
+            exchange(
+                write(0x80, 0),
+                Compare::Exact,
+                "fault reset (0x80), watchdog off",
+            ),
+            exchange(write(0x00, 0), Compare::Exact, "control word 0"),
+            exchange(read(status), Compare::Exact, "status: switch on disabled"),
+        ]
     };
     let manual =
         "SD2x manual, section 4 (process data), 6.1 (drive operation); CiA 402 state machine";
+    let mut steps = reset();
+    steps.extend([
+        exchange(write(0x06, 0), Compare::Exact, "shutdown (0x06)"),
+        exchange(read(status), Compare::Exact, "status: ready to switch on"),
+        exchange(write(0x07, 0), Compare::Exact, "switch on (0x07)"),
+        exchange(read(status), Compare::Exact, "status: switched on"),
+        exchange(write(0x0F, 0), Compare::Exact, "enable operation (0x0F)"),
+        exchange(read(status), Compare::Exact, "status: operation enabled"),
+        exchange(write(0x06, 0), Compare::Exact, "shutdown again"),
+        exchange(read(status), Compare::Exact, "status: ready to switch on"),
+    ]);
     cx.push(
         format!("profile/{}/ds402/enable-sequence", p.device.id),
-        "DS402: shutdown, switch on, enable operation, disable",
+        "DS402: fault reset, shutdown, switch on, enable operation, disable",
         manual,
-        "The status word follows the control word through the DS402 states: ready to switch on, switched on, operation enabled, and back.",
+        "The status word follows the control word through the DS402 states: switch on disabled, ready to switch on, switched on, operation enabled, and back.",
         vec![Tag::Write, Tag::Motion],
-        vec![
-            exchange(write(0x06, 0), Compare::Exact, "shutdown (0x06)"),
-            exchange(read_status(), Compare::Exact, "status: ready to switch on"),
-            exchange(write(0x07, 0), Compare::Exact, "switch on (0x07)"),
-            exchange(read_status(), Compare::Exact, "status: switched on"),
-            exchange(write(0x0F, 0), Compare::Exact, "enable operation (0x0F)"),
-            exchange(read_status(), Compare::Exact, "status: operation enabled"),
-            exchange(write(0x06, 0), Compare::Exact, "shutdown again"),
-            exchange(read_status(), Compare::Exact, "status: ready to switch on"),
-        ],
+        steps,
     );
+    let mut steps = reset();
+    steps.extend([
+        exchange(
+            write(0x06, 100),
+            Compare::Exact,
+            "shutdown with watchdog 100 ms",
+        ),
+        Step::Wait(Duration::from_millis(50)),
+        exchange(read(status), Compare::Exact, "50 ms later: not faulted"),
+        exchange(
+            read(error_code),
+            Compare::Exact,
+            "50 ms later: no error code",
+        ),
+        Step::Wait(Duration::from_millis(150)),
+        exchange(
+            read(status),
+            Compare::Exact,
+            "200 ms later: faulted by the watchdog",
+        ),
+        exchange(
+            read(error_code),
+            Compare::Exact,
+            "200 ms later: the watchdog's error code",
+        ),
+    ]);
+    steps.extend(reset());
     cx.push(
         format!("profile/{}/ds402/watchdog", p.device.id),
         "RxPDO watchdog: a 100 ms watchdog not rewritten trips the drive",
         format!("SD2x manual, section 4.1 and 6.1 (watchdog register {})", w.register),
         "With a watchdog time set, the drive is not faulted before the time elapses and is faulted, with its error code, once the RxPDO has not been rewritten for longer than the time.",
         vec![Tag::Write, Tag::Motion, Tag::Destructive],
-        vec![
-            exchange(write(0x06, 100), Compare::Exact, "shutdown with watchdog 100 ms"),
-            Step::Wait(Duration::from_millis(50)),
-            exchange(read_status(), Compare::Exact, "50 ms later: not faulted"),
-            Step::Wait(Duration::from_millis(150)),
-            exchange(read_status(), Compare::Exact, "200 ms later: faulted by the watchdog"),
-            exchange(write(0x80, 0), Compare::Exact, "fault reset, watchdog off"),
-            exchange(write(0x00, 0), Compare::Exact, "control word 0"),
-            exchange(read_status(), Compare::Exact, "status after the reset"),
-        ],
+        steps,
     );
 }

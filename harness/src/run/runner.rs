@@ -387,18 +387,7 @@ impl Runner {
             }
         }
         // The reference answers: every frame it sends before it falls silent.
-        let mut expected = Vec::new();
-        let mut reference_closed = false;
-        for _ in 0..frames.len() + 1 {
-            match self.shadow.recv(self.cfg.timeout)? {
-                Received::Frame { bytes, .. } => expected.push(bytes),
-                Received::Closed { .. } => {
-                    reference_closed = true;
-                    break;
-                }
-                _ => break,
-            }
-        }
+        let (expected, reference_closed) = self.shadow.settle();
         let mut observed = Vec::new();
         let mut findings: Vec<Finding> = Vec::new();
         let framing = self.target.framing();

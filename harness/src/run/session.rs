@@ -142,7 +142,13 @@ pub fn framing_of(url: &TargetUrl, profile: &Profile) -> Framing {
     match url {
         TargetUrl::Tcp { .. } => Framing::Tcp,
         TargetUrl::RtuOverTcp { .. } | TargetUrl::Serial { .. } => Framing::Rtu,
-        TargetUrl::Sim { .. } => {
+        TargetUrl::Sim {
+            rtu: Some(true), ..
+        } => Framing::Rtu,
+        TargetUrl::Sim {
+            rtu: Some(false), ..
+        } => Framing::Tcp,
+        TargetUrl::Sim { rtu: None, .. } => {
             if profile.device.transports.contains(&Transport::Tcp) {
                 Framing::Tcp
             } else {
@@ -173,7 +179,7 @@ pub fn select(cases: Vec<Case>, include: &[String], exclude: &[String]) -> Vec<C
 pub fn resolve_profile(opts: &Options, log: &mut dyn Write) -> Result<Profile, SessionError> {
     let name = match (&opts.profile, &opts.target) {
         (Some(p), _) if p != "auto" => p.clone(),
-        (None | Some(_), TargetUrl::Sim { profile }) => profile.clone(),
+        (None | Some(_), TargetUrl::Sim { profile, .. }) => profile.clone(),
         (Some(_), _) => return auto_profile(opts, log),
         (None, _) => {
             return Err(SessionError::Setup(format!(
@@ -356,7 +362,7 @@ pub fn run(
         FaultSet::none(),
         unit,
     );
-    let shadow = SimTarget::with_framing(shadow_station, framing, target.rtu_timing());
+    let shadow = SimTarget::with_framing(shadow_station, framing, target.rtu_timing()).mirror();
     let info = RunInfo {
         target: opts.target.to_string(),
         profile: profile.device.id.clone(),

@@ -18,7 +18,7 @@ use tokio::net::{TcpListener, TcpStream};
 use tokio::sync::watch;
 use tokio::task::JoinSet;
 
-use crate::frame::framer::{CharFormat, Parity, RtuTiming};
+use crate::frame::framer::RtuTiming;
 use crate::sim::Station;
 
 pub use serial::SerialConfig;
@@ -30,13 +30,7 @@ pub const MAX_CONNECTIONS: usize = 1024;
 /// The line timing assumed for RTU over TCP, where there is no line: 115200 8N1 (t3.5 = 1.75 ms). Frames
 /// are cut by their length and CRC; the silence only ends frames of function codes without a length rule.
 pub fn rtu_over_tcp_timing() -> RtuTiming {
-    RtuTiming::new(
-        115_200,
-        CharFormat {
-            parity: Parity::None,
-            stop_bits: 1,
-        },
-    )
+    RtuTiming::tcp_carrier()
 }
 
 /// The endpoints to serve. At least one must be set.

@@ -106,9 +106,15 @@ pub fn open(
         TargetUrl::Serial { path, baud, format } => {
             Box::new(serial::SerialTarget::open(path, *baud, *format)?)
         }
-        TargetUrl::Sim { profile } => {
+        TargetUrl::Sim { profile, rtu } => {
             let station = sim_station(profile).map_err(TargetError::Profile)?;
-            Box::new(sim::SimTarget::new(station))
+            match rtu {
+                None => Box::new(sim::SimTarget::new(station)),
+                Some(r) => {
+                    let framing = if *r { Framing::Rtu } else { Framing::Tcp };
+                    Box::new(sim::SimTarget::with_framing(station, framing, None))
+                }
+            }
         }
     })
 }

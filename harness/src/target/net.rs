@@ -6,7 +6,7 @@ use std::time::{Duration, Instant};
 
 use super::reader::FrameReader;
 use super::{Received, Target, TargetError};
-use crate::frame::{CharFormat, Framing, Parity, RtuTiming};
+use crate::frame::{Framing, RtuTiming};
 
 /// A TCP connection carrying Modbus/TCP ADUs or RTU frames.
 pub struct TcpTarget {
@@ -37,13 +37,7 @@ fn resolve(host: &str, port: u16) -> Result<SocketAddr, TargetError> {
 
 /// Nominal timing for RTU over TCP: frames are cut by length rules and CRC; silence only ends unknown ones.
 fn rtu_over_tcp_timing() -> RtuTiming {
-    RtuTiming::new(
-        115_200,
-        CharFormat {
-            parity: Parity::None,
-            stop_bits: 1,
-        },
-    )
+    RtuTiming::tcp_carrier()
 }
 
 impl TcpTarget {

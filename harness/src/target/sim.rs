@@ -25,6 +25,9 @@ pub struct SimTarget {
     queued: VecDeque<(Duration, Vec<u8>)>,
     reader: FrameReader,
     closed: bool,
+    /// Model the line's character times (a simulated target), or take time only from `idle`
+    /// (the oracle, which mirrors a target whose clock is the truth).
+    line_time: bool,
 }
 
 impl SimTarget {
@@ -69,12 +72,51 @@ impl SimTarget {
                 FrameReader::mbap()
             },
             closed: false,
+            line_time: true,
         }
+    }
+
+    /// The oracle's mode: time moves only when told (`idle`), never by modelled transmit times, so the
+    /// mirror keeps the target's clock.
+    pub fn mirror(mut self) -> Self {
+        self.line_time = false;
+        self
     }
 
     /// The station (tests inspect counters and model state).
     pub fn station(&self) -> &Station {
         &self.station
+    }
+
+    /// Everything the drive answers to what it has received, without waiting for more: the line's
+    /// t3.5 silence and the answers' transmit time pass, nothing else. Returns the frames and whether the
+    /// drive closed the connection. The oracle uses this so that its clock never runs ahead of the target's.
+    pub fn settle(&mut self) -> (Vec<Vec<u8>>, bool) {
+        let mut station_now = self.now;
+        if self.framing == Framing::Rtu
+            && let Some(d) = self.port.deadline()
+        {
+            self.now = self.now.max(d);
+            station_now = self.now;
+            self.poll_station();
+        }
+        let mut frames = Vec::new();
+        let mut closed = false;
+        // Bounded: a drive answers at most one frame per request, and a step sends at most a few.
+        for _ in 0..64 {
+            match self.recv(Duration::ZERO) {
+                Ok(Received::Frame { bytes, .. }) => frames.push(bytes),
+                Ok(Received::Closed { .. }) => {
+                    closed = true;
+                    break;
+                }
+                _ => break,
+            }
+        }
+        // Reading the answers off the line took time only on the reader's side; the drive has seen
+        // nothing after `station_now`, so the oracle's clock goes back there and never leads the target's.
+        self.now = station_now;
+        (frames, closed)
     }
 
     fn enqueue(&mut self, replies: Vec<crate::sim::Wire>) {
@@ -105,17 +147,25 @@ impl Target for SimTarget {
     fn send(&mut self, bytes: &[u8]) -> Result<(), TargetError> {
         match self.framing {
             Framing::Rtu => {
-                // The bytes take their transmit time; the last one arrives at the end.
-                self.now += self.timing.transmit_time(bytes.len());
-                let replies = self.station.serve_rtu(self.now, &mut self.port, bytes);
-                self.enqueue(replies);
+                // Bytes arrive one character time apart, as on a line: a chunk is not a silence.
+                for b in bytes {
+                    if self.line_time {
+                        self.now += self.timing.char_time;
+                    }
+                    let replies =
+                        self.station
+                            .serve_rtu(self.now, &mut self.port, std::slice::from_ref(b));
+                    self.enqueue(replies);
+                }
             }
             _ => {
                 if self.closed {
                     self.conn = TcpConn::default();
                     self.closed = false;
                 }
-                self.now += TCP_LATENCY;
+                if self.line_time {
+                    self.now += TCP_LATENCY;
+                }
                 let out = self.station.serve_tcp(self.now, &mut self.conn, bytes);
                 self.enqueue(out.replies);
                 if out.close {
@@ -162,7 +212,7 @@ impl Target for SimTarget {
                     at: self.now,
                 });
             }
-            self.now = deadline;
+            self.now = self.now.max(deadline);
             self.reader.poll(self.now);
             if let Some(r) = self.reader.next() {
                 return Ok(r);

@@ -17,8 +17,9 @@ pub enum TargetUrl {
         baud: u32,
         format: CharFormat,
     },
-    /// The in-process reference drive of a profile (no sockets, virtual clock).
-    Sim { profile: String },
+    /// The in-process reference drive of a profile (no sockets, virtual clock); `rtu` overrides the
+    /// profile's native framing (`sim:generic?transport=rtu`).
+    Sim { profile: String, rtu: Option<bool> },
 }
 
 /// Why a target URL was rejected.
@@ -84,11 +85,23 @@ impl TargetUrl {
         };
         if let Some(p) = url.strip_prefix("sim:") {
             let p = p.trim_start_matches("//");
-            if p.is_empty() {
+            let (profile, query) = p.split_once('?').unwrap_or((p, ""));
+            if profile.is_empty() {
                 return Err(err("no profile after `sim:` (e.g. sim:sd2x)".into()));
             }
+            let rtu = match query {
+                "" => None,
+                "transport=rtu" => Some(true),
+                "transport=tcp" => Some(false),
+                q => {
+                    return Err(err(format!(
+                        "unknown sim option `{q}` (transport=rtu or transport=tcp)"
+                    )));
+                }
+            };
             return Ok(TargetUrl::Sim {
-                profile: p.to_string(),
+                profile: profile.to_string(),
+                rtu,
             });
         }
         if let Some(rest) = url.strip_prefix("tcp://") {
@@ -183,7 +196,17 @@ impl fmt::Display for TargetUrl {
                     format.stop_bits
                 )
             }
-            TargetUrl::Sim { profile } => write!(f, "sim:{profile}"),
+            TargetUrl::Sim { profile, rtu: None } => write!(f, "sim:{profile}"),
+            TargetUrl::Sim {
+                profile,
+                rtu: Some(r),
+            } => {
+                write!(
+                    f,
+                    "sim:{profile}?transport={}",
+                    if *r { "rtu" } else { "tcp" }
+                )
+            }
         }
     }
 }

@@ -1,4 +1,6 @@
 //! modbus-harness: a conformance and fuzz test harness for Modbus drive implementations.
+/// Benchmark drivers for bench/run.sh and harness/benches/ (BENCHMARKS.md); not a stable API.
+#[doc(hidden)]
 pub mod corpus;
 pub mod frame;
 pub mod golden;

@@ -19,6 +19,8 @@ struct Cli {
 enum Command {
     /// Run the conformance catalog (golden frames, spec cases, profile cases) against a target.
     Run(Box<cli::run::RunArgs>),
+    /// Discover the function codes and readable registers of a target (no writes), beside a profile.
+    Probe(cli::probe::ProbeArgs),
     /// Decode one frame given as hex and print it field by field (or the exact error).
     Decode(cli::decode::DecodeArgs),
     /// Check every golden frame from the manuals: decode, expectations, errata.
@@ -41,6 +43,7 @@ fn main() -> ExitCode {
     let cli = Cli::parse();
     match cli.command {
         Command::Run(args) => cli::run::run(&args),
+        Command::Probe(args) => cli::probe::run(&args),
         Command::Decode(args) => cli::decode::run(&args),
         Command::Golden {
             corpus,

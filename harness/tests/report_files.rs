@@ -557,3 +557,9 @@ fn pcap_reassembles_a_response_read_in_pieces() {
     assert_eq!(comments.len(), 1, "{comments:?}");
     assert!(comments[0][0].starts_with("case bulk/pass/"));
 }
+
+#[test]
+fn reports_can_move_to_another_thread() {
+    fn send<T: Send>() {}
+    send::<Reports>();
+}

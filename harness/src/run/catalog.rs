@@ -659,14 +659,14 @@ fn rtu_cases(cx: &mut Ctx) {
     );
     cx.push(
         "rtu/framing/request-split-within-t1.5".into(),
-        "a request whose bytes arrive in two writes well inside t1.5",
+        "a request whose bytes arrive in two writes, back to back",
         format!("{SER}, section 2.5.1.1 (RTU framing)"),
         "A frame delivered in pieces without an inter-character silence is answered once.",
         vec![Tag::RtuOnly],
         vec![exchange(
             Send::Mutated {
                 pdu: probe.clone(),
-                mutation: Mutation::Split { at: 3, gap_us: 100 },
+                mutation: Mutation::Split { at: 3, gap_us: 0 },
             },
             Compare::Structure,
             "split after 3 bytes",

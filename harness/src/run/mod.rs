@@ -5,6 +5,7 @@ pub mod catalog;
 pub mod expect;
 pub mod observe;
 pub mod oracle;
+pub mod probe;
 pub mod runner;
 pub mod session;
 

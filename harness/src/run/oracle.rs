@@ -12,6 +12,9 @@ use crate::target::Received;
 /// How bad a finding is.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord)]
 pub enum Severity {
+    /// The harness could not establish the step's precondition (e.g. keep a split request's pieces
+    /// within t1.5 on a busy machine): nothing can be concluded about the target.
+    Inconclusive,
     /// A SHOULD of the specs (or a tolerated deviation) is broken.
     Should,
     /// The target answers "illegal function" where the profile says the function exists.
@@ -379,6 +382,12 @@ fn in_range(req: &[u8], o: &Response, p: &Profile, out: &mut Vec<Finding>) {
 
 /// The verdict of a list of findings under a requirement level.
 pub fn verdict(findings: &[Finding], level: Level) -> Verdict {
+    if findings
+        .iter()
+        .any(|f| f.severity == Severity::Inconclusive)
+    {
+        return Verdict::Informational;
+    }
     let worst = findings.iter().map(|f| f.severity).max();
     match (worst, level) {
         (None, _) => Verdict::Pass,

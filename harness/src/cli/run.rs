@@ -10,12 +10,44 @@ use std::time::Duration;
 use clap::Args;
 use modbus_harness::corpus::Corpus;
 use modbus_harness::run::Verdict;
-use modbus_harness::run::session::{self, Options};
+use modbus_harness::run::session::{self, Options, SnapshotOptions};
+use modbus_harness::run::shrink::ShrinkLimits;
 use modbus_harness::sim::{Fault, FaultSet};
 use modbus_harness::target::TargetUrl;
 
+/// What `run --help` says, after the options, about generated cases and snapshots.
+const GENERATED_HELP: &str = "\
+Generated cases:
+  --generated N --seed S runs N cases drawn from the profile's map (valid requests of every function
+  code, boundary addresses and quantities, 32-bit halves, and malformed variants: bit flips, truncation,
+  extension, byte-count mismatch, function-code swap, wrong unit, bad CRC, MBAP length, several requests
+  in one write, one request split in two), ids gen/S/INDEX/KIND, judged by the same oracle. The same seed
+  gives the same cases on every transport (transport-specific ones are SKIPPED on the other framing); the
+  seed is printed and is in every report. --generated alone runs only the generated cases; add
+  --with-catalog for the catalog too. A generated case that FAILs is shrunk against the target (at most
+  --shrink-steps candidates and --shrink-time seconds each, --max-shrinks cases) and the smallest case
+  that still FAILs is written to --regressions DIR/PROFILE/NAME.toml; the catalog replays those files
+  as regression/PROFILE/NAME.
+
+Snapshots:
+  --snapshot FILE compares the run's observations (per case, sorted by id: request bytes, answers or
+  silence or close, verdict; no timestamps) with FILE, prints a diff naming the cases that differ and
+  exits 1 on drift; with --update-snapshot it writes FILE instead. Compare a sim: run with a server's
+  using --policy-on-sim.";
+
 /// Arguments of `run`.
+///
+/// Generated cases: `--generated N --seed S` runs N cases drawn from the profile's map (valid requests,
+/// boundaries, malformed variants), ids `gen/S/INDEX/KIND`, judged by the same oracle; the same seed gives
+/// the same cases on every transport. Alone it runs only them; `--with-catalog` runs the catalog too. A
+/// failing generated case is shrunk against the target (`--shrink-steps`, `--shrink-time`) and written to
+/// `corpus/regressions/PROFILE/NAME.toml`, which the catalog replays as `regression/PROFILE/NAME`.
+///
+/// Snapshots: `--snapshot FILE` compares the run's observations (request and response bytes, verdict, per
+/// case; timestamps left out) with FILE and prints a diff naming the cases that differ (exit code 1 on
+/// drift); `--update-snapshot` writes FILE instead.
 #[derive(Args)]
+#[command(after_help = GENERATED_HELP)]
 pub struct RunArgs {
     /// The endpoint: tcp://HOST:PORT, rtu+tcp://HOST:PORT, rtu:///dev/ttyX?baud=19200&parity=even&stop=1, or sim:PROFILE.
     #[arg(long, default_value = "sim:sd2x")]
@@ -72,6 +104,41 @@ pub struct RunArgs {
     /// No progress bar.
     #[arg(long)]
     no_progress: bool,
+    /// Run N generated cases (ids gen/SEED/INDEX/KIND) instead of the catalog (with it: --with-catalog).
+    #[arg(long, value_name = "N")]
+    generated: Option<u64>,
+    /// Seed of the generated cases (default: from the clock; printed, and in every report).
+    #[arg(long, value_name = "S", requires = "generated")]
+    seed: Option<u64>,
+    /// With --generated: run the catalog (and the regressions) too.
+    #[arg(long, requires = "generated")]
+    with_catalog: bool,
+    /// Do not shrink failing generated cases.
+    #[arg(long)]
+    no_shrink: bool,
+    /// Candidates run against the target at most while shrinking one case.
+    #[arg(long, default_value_t = 200, value_name = "N")]
+    shrink_steps: usize,
+    /// Seconds spent at most shrinking one case.
+    #[arg(long, default_value_t = 30, value_name = "SECS")]
+    shrink_time: u64,
+    /// Failing generated cases shrunk at most per run (the first ones).
+    #[arg(long, default_value_t = 3, value_name = "N")]
+    max_shrinks: usize,
+    /// Where shrunk reproducers are written (DIR/PROFILE/NAME.toml). Default: the --corpus directory's
+    /// regressions/, else ./corpus/regressions when ./corpus exists; otherwise they are only printed.
+    #[arg(long, value_name = "DIR")]
+    regressions: Option<PathBuf>,
+    /// Compare the run's observations with this snapshot file (exit code 1 on drift).
+    #[arg(long, value_name = "FILE")]
+    snapshot: Option<PathBuf>,
+    /// Write the --snapshot file instead of comparing with it.
+    #[arg(long, requires = "snapshot")]
+    update_snapshot: bool,
+    /// Apply the safety policy to sim: targets as to a real drive (motion and destructive cases SKIPPED),
+    /// so that a sim: run selects the same cases as a run against a server.
+    #[arg(long)]
+    policy_on_sim: bool,
 }
 
 /// Run `run`: exit 0 without FAIL, 1 with a FAIL, 2 when the run could not be made.
@@ -117,6 +184,31 @@ pub fn run(args: &RunArgs) -> ExitCode {
     opts.faults = faults;
     opts.report_dir = args.report.clone();
     opts.command_line = std::env::args().collect::<Vec<_>>().join(" ");
+    if let Some(n) = args.generated {
+        opts.generated = n;
+        let seed = args
+            .seed
+            .unwrap_or_else(modbus_harness::run::generated::clock_seed);
+        opts.seed = Some(seed);
+        opts.with_catalog = args.with_catalog;
+        eprintln!("seed: {seed} (replay with --generated {n} --seed {seed})");
+    }
+    opts.shrink = (!args.no_shrink).then(|| ShrinkLimits {
+        max_steps: args.shrink_steps.max(1),
+        max_time: Duration::from_secs(args.shrink_time.max(1)),
+    });
+    opts.max_shrinks = args.max_shrinks;
+    opts.regressions_dir = args.regressions.clone().or_else(|| match &args.corpus {
+        Some(c) => Some(c.join("regressions")),
+        None => std::path::Path::new("corpus")
+            .is_dir()
+            .then(|| PathBuf::from("corpus/regressions")),
+    });
+    opts.snapshot = args.snapshot.clone().map(|path| SnapshotOptions {
+        path,
+        update: args.update_snapshot,
+    });
+    opts.policy_on_sim = args.policy_on_sim;
 
     if args.list || args.dry_run {
         return list(&opts, args.dry_run);
@@ -165,11 +257,54 @@ pub fn run(args: &RunArgs) -> ExitCode {
                     println!("     {line}");
                 }
             }
+            for r in &o.shrunk {
+                match (&r.shrunk, &r.file) {
+                    (Some(s), Some(p)) => println!(
+                        "SHRUNK {} -> {} ({} step(s); {} candidates run): {}",
+                        r.id,
+                        s.case.id,
+                        s.case.steps.len(),
+                        s.steps,
+                        p.display()
+                    ),
+                    (Some(s), None) => println!(
+                        "SHRUNK {} -> {} ({} step(s); {} candidates run){}",
+                        r.id,
+                        s.case.id,
+                        s.case.steps.len(),
+                        s.steps,
+                        r.note.as_ref().map_or(
+                            " (not written: pass --regressions DIR)".to_string(),
+                            |n| format!(": {n}")
+                        )
+                    ),
+                    (None, _) => {
+                        println!("NOT SHRUNK {}: {}", r.id, r.note.as_deref().unwrap_or(""))
+                    }
+                }
+            }
+            let drift = o.snapshot.as_ref().is_some_and(|s| s.drifted());
+            if let Some(s) = &o.snapshot {
+                match &s.drift {
+                    _ if s.written => println!("snapshot written: {}", s.path.display()),
+                    Some(d) if !d.is_clean() => {
+                        println!("snapshot {} differs from this run:", s.path.display());
+                        print!("{}", d.render());
+                    }
+                    Some(d) => println!("{} ({})", d.summary(), s.path.display()),
+                    None => {}
+                }
+            }
+            if drift {
+                println!(
+                    "the observations drifted: exit code 1 (accept them with --update-snapshot)"
+                );
+            }
             print!(
                 "{}",
                 modbus_harness::report::terminal_summary(&o.summary, &o.info)
             );
-            if o.summary.count(Verdict::Fail) > 0 {
+            if o.summary.count(Verdict::Fail) > 0 || drift {
                 ExitCode::from(1)
             } else if o.summary.interrupted {
                 ExitCode::from(2)

@@ -29,6 +29,7 @@ mod html;
 mod json;
 mod junit;
 mod pcap;
+pub mod snapshot;
 
 use std::collections::BTreeMap;
 use std::fmt::Write as _;

@@ -3,10 +3,10 @@
 use std::fmt;
 use std::time::Duration;
 
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 
 /// A tag that the safety policy acts on.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum Tag {
     /// The case writes to the drive.
@@ -21,7 +21,7 @@ pub enum Tag {
 }
 
 /// How a response is compared with what the reference model answers.
-#[derive(Clone, Debug, PartialEq, Eq, Serialize)]
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum Compare {
     /// Byte for byte (after framing): deterministic values.
@@ -50,8 +50,9 @@ pub enum Send {
     Restore { address: u16, slot: usize },
 }
 
-/// A deliberate alteration of a framed request.
-#[derive(Clone, Debug, PartialEq, Eq, Serialize)]
+/// A deliberate alteration of a request: of the framed bytes, or (the PDU-level ones, see
+/// [`Mutation::apply_to_pdu`]) of the PDU before it is framed with a correct header and CRC.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum Mutation {
     /// Modbus/TCP: protocol id set to this value.
@@ -62,6 +63,41 @@ pub enum Mutation {
     BadCrc,
     /// Send the frame in two writes, split after this many bytes, with this gap between.
     Split { at: usize, gap_us: u64 },
+    /// PDU: invert bit `bit` (bit 0 = most significant bit of the function code; wraps at the PDU's end).
+    BitFlip { bit: usize },
+    /// PDU: keep only the first `len` bytes.
+    Truncate { len: usize },
+    /// PDU: append these bytes.
+    Extend(Vec<u8>),
+    /// PDU: set byte `at` to `value` (a function-code swap, a byte count that disagrees); no-op past the end.
+    SetByte { at: usize, value: u8 },
+}
+
+impl Mutation {
+    /// The altered PDU for a PDU-level mutation; `None` for those that act on the framed bytes.
+    pub fn apply_to_pdu(&self, pdu: &[u8]) -> Option<Vec<u8>> {
+        let mut out = pdu.to_vec();
+        match self {
+            Mutation::BitFlip { bit } => {
+                if !out.is_empty() {
+                    let bit = bit % (out.len() * 8);
+                    out[bit / 8] ^= 0x80 >> (bit % 8);
+                }
+            }
+            Mutation::Truncate { len } => out.truncate(*len),
+            Mutation::Extend(extra) => out.extend_from_slice(extra),
+            Mutation::SetByte { at, value } => {
+                if let Some(b) = out.get_mut(*at) {
+                    *b = *value;
+                }
+            }
+            Mutation::ProtocolId(_)
+            | Mutation::LengthDelta(_)
+            | Mutation::BadCrc
+            | Mutation::Split { .. } => return None,
+        }
+        Some(out)
+    }
 }
 
 /// One step of a case.
@@ -108,7 +144,7 @@ pub struct Case {
 }
 
 /// Strength of a requirement.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "UPPERCASE")]
 pub enum Level {
     Must,

@@ -203,6 +203,12 @@ pub fn build(p: &Profile, golden: Option<&GoldenFile>, framing: Framing, unit: u
     cx.cases
 }
 
+/// The shrunk reproducers of a profile, `corpus/regressions/<profile>/*.toml`, as cases
+/// `regression/<profile>/<file name>` (see [`super::shrink`] for the file format).
+pub fn regressions(corpus: &crate::corpus::Corpus, p: &Profile) -> Result<Vec<Case>, String> {
+    super::shrink::load_regressions(corpus, &p.device.id)
+}
+
 fn golden_cases(cx: &mut Ctx, g: &GoldenFile) {
     let p = cx.p;
     for f in g

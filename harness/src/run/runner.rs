@@ -106,6 +106,9 @@ impl Runner {
     }
 
     fn frame(&mut self, pdu: &[u8], unit: u8, mutation: Option<&Mutation>) -> Framed {
+        // PDU-level mutations alter the PDU, which is then framed correctly (header and CRC match it).
+        let altered = mutation.and_then(|m| m.apply_to_pdu(pdu));
+        let pdu = altered.as_deref().unwrap_or(pdu);
         let framing = self.target.framing();
         let tid = (framing == Framing::Tcp).then(|| {
             let t = self.next_tid;
@@ -113,7 +116,7 @@ impl Runner {
             t
         });
         let mut bytes = Vec::with_capacity(pdu.len() + 7);
-        let mut malformed = pdu.len() > crate::frame::MAX_PDU_LEN;
+        let mut malformed = pdu.len() > crate::frame::MAX_PDU_LEN || altered.is_some();
         match framing {
             Framing::Tcp => {
                 if tcp::encode_adu(tid.unwrap_or(0), unit, pdu, &mut bytes).is_err() {

@@ -8,12 +8,15 @@ use std::time::{Duration, Instant};
 
 use super::case::{Case, Tag, Verdict};
 use super::expect::Expectations;
+use super::generated::{self, Generator};
 use super::observe::CaseResult;
 use super::runner::{RunConfig, Runner, skip_reason};
+use super::shrink::{self, Origin, ShrinkLimits, Shrunk};
 use crate::corpus::Corpus;
 use crate::frame::{Direction, Framing, Pdu, Request, Response, decode_any, rtu, tcp};
 use crate::golden::GoldenFile;
 use crate::profile::{Profile, Transport};
+use crate::report::snapshot::{self, Drift, SnapshotHeader, SnapshotWriter};
 use crate::report::{Reports, RunInfo, Summary, Tally};
 use crate::sim::{self, FaultSet, Station};
 use crate::target::sim::SimTarget;
@@ -44,6 +47,32 @@ pub struct Options {
     pub command_line: String,
     /// Keep every case's verdict in the outcome (tests); off for huge runs.
     pub keep_verdicts: bool,
+    /// Generated cases to run (`--generated N`); 0 runs none.
+    pub generated: u64,
+    /// Seed of the generated cases; `None` takes one from the clock (logged and put in the reports).
+    pub seed: Option<u64>,
+    /// With generated cases, run the catalog (and the regressions) too; without them the catalog always runs.
+    pub with_catalog: bool,
+    /// Shrink failing generated cases against the target within these bounds; `None` does not shrink.
+    pub shrink: Option<ShrinkLimits>,
+    /// Failing generated cases shrunk at most in one run (the first ones).
+    pub max_shrinks: usize,
+    /// Write each shrunk reproducer to `<dir>/<profile>/<name>.toml` (`corpus/regressions` for the catalog).
+    pub regressions_dir: Option<PathBuf>,
+    /// Compare the run's observations with a snapshot file, or write it.
+    pub snapshot: Option<SnapshotOptions>,
+    /// Apply the safety policy to the in-process simulator as to a real drive, so that a `sim:` run selects
+    /// the same cases as a run against a server (for comparing their snapshots).
+    pub policy_on_sim: bool,
+}
+
+/// Where the run's snapshot goes.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct SnapshotOptions {
+    /// The snapshot file.
+    pub path: PathBuf,
+    /// Write the file instead of comparing with it.
+    pub update: bool,
 }
 
 impl Options {
@@ -68,6 +97,14 @@ impl Options {
             report_dir: None,
             command_line: String::new(),
             keep_verdicts: false,
+            generated: 0,
+            seed: None,
+            with_catalog: false,
+            shrink: Some(ShrinkLimits::default()),
+            max_shrinks: 3,
+            regressions_dir: None,
+            snapshot: None,
+            policy_on_sim: false,
         }
     }
 }
@@ -92,6 +129,40 @@ pub struct Outcome {
     pub verdicts: Vec<(String, Verdict)>,
     /// Full results of FAIL cases (capped), for tests and the terminal.
     pub failures: Vec<CaseResult>,
+    /// The failing generated cases that were shrunk (or could not be), in run order.
+    pub shrunk: Vec<ShrinkReport>,
+    /// The snapshot written or compared, if `--snapshot` was given.
+    pub snapshot: Option<SnapshotOutcome>,
+}
+
+/// What became of one failing generated case.
+#[derive(Clone, Debug)]
+pub struct ShrinkReport {
+    /// The generated case that failed.
+    pub id: String,
+    /// The shrink, when the case failed again when re-run alone.
+    pub shrunk: Option<Shrunk>,
+    /// The regression file written.
+    pub file: Option<PathBuf>,
+    /// Why there is no shrink or no file, if so.
+    pub note: Option<String>,
+}
+
+/// The snapshot of a run.
+#[derive(Clone, Debug)]
+pub struct SnapshotOutcome {
+    pub path: PathBuf,
+    /// The file was written (`--update-snapshot`), not compared.
+    pub written: bool,
+    /// The comparison, when compared.
+    pub drift: Option<Drift>,
+}
+
+impl SnapshotOutcome {
+    /// True when the run's observations differ from the file.
+    pub fn drifted(&self) -> bool {
+        self.drift.as_ref().is_some_and(|d| !d.is_clean())
+    }
 }
 
 impl Outcome {
@@ -273,19 +344,26 @@ fn auto_profile(opts: &Options, log: &mut dyn Write) -> Result<Profile, SessionE
     }
 }
 
-/// The catalog a run would use, with the reason each case would be skipped.
-pub fn plan(
+/// True when the catalog runs: always, unless only generated cases were asked for.
+fn runs_catalog(opts: &Options) -> bool {
+    opts.generated == 0 || opts.with_catalog
+}
+
+/// The catalog part of a run (catalog and regressions, or nothing for a generated-only run), selected,
+/// with the reason each case would be skipped.
+fn catalog_plan(
     opts: &Options,
     profile: &Profile,
 ) -> Result<Vec<(Case, Option<String>)>, SessionError> {
+    if !runs_catalog(opts) {
+        return Ok(Vec::new());
+    }
     let golden = load_golden(&opts.corpus, &profile.device.id).map_err(SessionError::Setup)?;
     let framing = framing_of(&opts.target, profile);
     let unit = opts.unit.unwrap_or(profile.device.default_unit);
-    let cases = select(
-        super::catalog::build(profile, golden.as_ref(), framing, unit),
-        &opts.include,
-        &opts.exclude,
-    );
+    let mut all = super::catalog::build(profile, golden.as_ref(), framing, unit);
+    all.extend(super::catalog::regressions(&opts.corpus, profile).map_err(SessionError::Setup)?);
+    let cases = select(all, &opts.include, &opts.exclude);
     let cfg = config(opts, profile);
     Ok(cases
         .into_iter()
@@ -294,6 +372,44 @@ pub fn plan(
             (c, skip)
         })
         .collect())
+}
+
+/// The generator of a run's generated cases, if it has any (seed: the options', else the clock's).
+pub fn generator(opts: &Options, profile: &Profile) -> Option<Generator> {
+    (opts.generated > 0).then(|| {
+        Generator::new(
+            profile,
+            opts.unit.unwrap_or(profile.device.default_unit),
+            opts.seed.unwrap_or_else(generated::clock_seed),
+        )
+    })
+}
+
+/// The cases a run would use (catalog and regressions, then generated), with the reason each would be
+/// skipped. Generated cases are all built here: for listing; `run` builds them one at a time.
+pub fn plan(
+    opts: &Options,
+    profile: &Profile,
+) -> Result<Vec<(Case, Option<String>)>, SessionError> {
+    let mut out = catalog_plan(opts, profile)?;
+    if let Some(g) = generator(opts, profile) {
+        let cfg = config(opts, profile);
+        let framing = framing_of(&opts.target, profile);
+        out.extend(
+            g.cases(opts.generated)
+                .filter(|c| selected(c, &opts.include, &opts.exclude))
+                .map(|c| {
+                    let skip = skip_reason(&c, &cfg, framing);
+                    (c, skip)
+                }),
+        );
+    }
+    Ok(out)
+}
+
+/// True when a case passes the include/exclude selection.
+fn selected(c: &Case, include: &[String], exclude: &[String]) -> bool {
+    (include.is_empty() || matches_any(&c.id, include)) && !matches_any(&c.id, exclude)
 }
 
 fn config(opts: &Options, profile: &Profile) -> RunConfig {
@@ -305,8 +421,44 @@ fn config(opts: &Options, profile: &Profile) -> RunConfig {
         allow_destructive: opts.allow_destructive,
         read_only: opts.read_only,
         max_rate: opts.max_rate,
-        is_sim: opts.target.is_sim(),
+        is_sim: opts.target.is_sim() && !opts.policy_on_sim,
     }
+}
+
+/// Open the target and its reference drive (fault-free, in lockstep) and put a runner around them.
+fn open_runner(
+    opts: &Options,
+    profile: &Profile,
+    cfg: &RunConfig,
+    expectations: &Expectations,
+) -> Result<Runner, TargetError> {
+    let faults = opts.faults.clone();
+    let unit = cfg.unit;
+    let target = target::open(
+        &opts.target,
+        |_| {
+            Ok(Station::new(
+                sim::build(profile.clone(), faults.clone()),
+                faults.clone(),
+                unit,
+            ))
+        },
+        opts.connect_timeout,
+    )?;
+    let framing = target.framing();
+    let shadow_station = Station::new(
+        sim::build(profile.clone(), FaultSet::none()),
+        FaultSet::none(),
+        unit,
+    );
+    let shadow = SimTarget::with_framing(shadow_station, framing, target.rtu_timing()).mirror();
+    Ok(Runner::new(
+        target,
+        shadow,
+        profile.clone(),
+        cfg.clone(),
+        expectations.clone(),
+    ))
 }
 
 fn unix_ms() -> u64 {
@@ -342,27 +494,25 @@ pub fn run(
             cfg.unit
         );
     }
-    let planned = plan(opts, &profile)?;
-    let faults = opts.faults.clone();
-    let unit = cfg.unit;
-    let target = target::open(
-        &opts.target,
-        |_| {
-            Ok(Station::new(
-                sim::build(profile.clone(), faults.clone()),
-                faults.clone(),
-                unit,
-            ))
-        },
-        opts.connect_timeout,
-    )?;
-    let framing = target.framing();
-    let shadow_station = Station::new(
-        sim::build(profile.clone(), FaultSet::none()),
-        FaultSet::none(),
-        unit,
-    );
-    let shadow = SimTarget::with_framing(shadow_station, framing, target.rtu_timing()).mirror();
+    if let Some(snap) = &opts.snapshot
+        && !snap.update
+        && !snap.path.is_file()
+    {
+        return Err(SessionError::Setup(format!(
+            "no snapshot at {}: write it with --update-snapshot",
+            snap.path.display()
+        )));
+    }
+    // One seed for the whole run, chosen before anything is generated.
+    let mut opts = opts.clone();
+    if opts.generated > 0 && opts.seed.is_none() {
+        opts.seed = Some(generated::clock_seed());
+    }
+    let opts = &opts;
+    let planned = catalog_plan(opts, &profile)?;
+    let generator = generator(opts, &profile);
+    let mut runner = open_runner(opts, &profile, &cfg, &expectations)?;
+    let framing = runner.framing();
     let info = RunInfo {
         target: opts.target.to_string(),
         profile: profile.device.id.clone(),
@@ -371,10 +521,10 @@ pub fn run(
             (_, Framing::Rtu) => crate::report::Transport::Rtu,
             _ => crate::report::Transport::Tcp,
         },
-        server_port: target.server_port(),
+        server_port: runner.target().server_port(),
         started_unix_ms: unix_ms(),
         command_line: opts.command_line.clone(),
-        seed: None,
+        seed: generator.as_ref().map(Generator::seed).or(opts.seed),
         harness_version: env!("CARGO_PKG_VERSION").to_string(),
         report_dir: opts.report_dir.clone(),
     };
@@ -382,28 +532,70 @@ pub fn run(
         Some(d) => Some(Reports::create(d, &info)?),
         None => None,
     };
+    let mut snap = match &opts.snapshot {
+        Some(s) => {
+            let dir = snapshot_dir(&s.path)?;
+            let header = SnapshotHeader {
+                profile: profile.device.id.clone(),
+                framing: if framing == Framing::Rtu {
+                    "rtu"
+                } else {
+                    "tcp"
+                }
+                .into(),
+                unit: cfg.unit,
+                seed: info.seed,
+            };
+            Some(SnapshotWriter::new(&header, &dir))
+        }
+        None => None,
+    };
+    let total = planned.len() + usize::try_from(opts.generated).unwrap_or(usize::MAX);
     let _ = writeln!(
         log,
         "modbus-harness: {} with profile `{}` (unit {}), {} cases",
-        target.describe(),
+        runner.target().describe(),
         profile.device.id,
         cfg.unit,
-        planned.len()
+        total
     );
-    let mut runner = Runner::new(target, shadow, profile.clone(), cfg.clone(), expectations);
+    if let Some(g) = &generator {
+        let _ = writeln!(
+            log,
+            "generated: {} case(s), seed {} (replay with --seed {})",
+            opts.generated,
+            g.seed(),
+            g.seed()
+        );
+    }
     let mut tally = Tally::new();
     let mut verdicts = Vec::new();
     let mut failures = Vec::new();
+    // Failing generated cases to shrink after the run (the first `max_shrinks`).
+    let mut to_shrink: Vec<(u64, String)> = Vec::new();
     let started = Instant::now();
     let mut banner_done = cfg.is_sim;
-    let total = planned.len();
     let mut interrupted = false;
-    for (i, (case, skip)) in planned.iter().enumerate() {
+    let policy = &cfg;
+    let generated_cases = generator.iter().flat_map(|g| {
+        (0..opts.generated).filter_map(move |i| {
+            let c = g.case(i);
+            selected(&c, &opts.include, &opts.exclude).then(|| {
+                let skip = skip_reason(&c, policy, framing);
+                (c, skip, Some(i))
+            })
+        })
+    });
+    let cases = planned
+        .iter()
+        .map(|(c, s)| (c.clone(), s.clone(), None))
+        .chain(generated_cases);
+    for (i, (case, skip, gen_index)) in cases.enumerate() {
         if interrupt.load(Ordering::SeqCst) {
             interrupted = true;
             break;
         }
-        let result = match skip {
+        let result = match &skip {
             Some(reason) => CaseResult {
                 id: case.id.clone(),
                 verdict: Verdict::Skipped,
@@ -416,37 +608,230 @@ pub fn run(
             None => {
                 if !banner_done && case.has(Tag::Write) {
                     banner_done = true;
-                    write_banner(log, &planned, &profile);
+                    write_banner(log, &planned, &profile, opts.generated);
                 }
-                runner.run_case(case)?
+                runner.run_case(&case)?
             }
         };
         tally.record(&result);
         if let Some(r) = reports.as_mut() {
-            r.case(case, &result)?;
+            r.case(&case, &result)?;
+        }
+        if let Some(w) = snap.as_mut() {
+            w.add(&result)?;
         }
         progress(i + 1, total, &case.id, result.verdict);
         if opts.keep_verdicts {
             verdicts.push((case.id.clone(), result.verdict));
         }
-        if result.verdict == Verdict::Fail && failures.len() < 200 {
-            failures.push(result);
+        if result.verdict == Verdict::Fail {
+            if let Some(index) = gen_index
+                && to_shrink.len() < opts.max_shrinks
+            {
+                to_shrink.push((index, case.id.clone()));
+            }
+            if failures.len() < 200 {
+                failures.push(result);
+            }
+        }
+    }
+    let mut shrunk = Vec::new();
+    if let (Some(limits), Some(g), false) = (&opts.shrink, &generator, interrupted) {
+        for (index, id) in to_shrink {
+            if interrupt.load(Ordering::SeqCst) {
+                break;
+            }
+            let report = shrink_one(
+                opts,
+                &profile,
+                &cfg,
+                &expectations,
+                &mut runner,
+                g,
+                index,
+                id,
+                limits,
+            );
+            log_shrink(log, &report);
+            shrunk.push(report);
         }
     }
     let summary = tally.summary(interrupted, started.elapsed());
     if let Some(r) = reports {
         r.finish(&summary)?;
     }
+    let snapshot = match (snap, &opts.snapshot) {
+        (Some(w), Some(s)) => Some(finish_snapshot(w, s)?),
+        _ => None,
+    };
     Ok(Outcome {
         summary,
         info,
         verdicts,
         failures,
+        shrunk,
+        snapshot,
     })
 }
 
+/// The directory of a snapshot file (created when the file is to be written).
+fn snapshot_dir(path: &std::path::Path) -> Result<PathBuf, SessionError> {
+    let dir = match path.parent() {
+        Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
+        _ => PathBuf::from("."),
+    };
+    std::fs::create_dir_all(&dir).map_err(|e| {
+        SessionError::Setup(format!("cannot create directory {}: {e}", dir.display()))
+    })?;
+    Ok(dir)
+}
+
+/// Write the snapshot, or write it aside and compare it with the file.
+fn finish_snapshot(
+    w: SnapshotWriter,
+    s: &SnapshotOptions,
+) -> Result<SnapshotOutcome, SessionError> {
+    if s.update {
+        w.finish(&s.path)?;
+        return Ok(SnapshotOutcome {
+            path: s.path.clone(),
+            written: true,
+            drift: None,
+        });
+    }
+    let dir = snapshot_dir(&s.path)?;
+    let fresh = dir.join(format!(
+        ".{}.{}.new",
+        s.path
+            .file_name()
+            .map_or_else(|| "snapshot".into(), |n| n.to_string_lossy()),
+        std::process::id()
+    ));
+    w.finish(&fresh)?;
+    let drift = snapshot::compare(&s.path, &fresh);
+    let _ = std::fs::remove_file(&fresh);
+    Ok(SnapshotOutcome {
+        path: s.path.clone(),
+        written: false,
+        drift: Some(drift?),
+    })
+}
+
+/// Shrink one failing generated case: against a fresh in-process drive per candidate on `sim:`, against
+/// the run's own connection otherwise; write the reproducer when a directory is set.
+#[allow(clippy::too_many_arguments)]
+fn shrink_one(
+    opts: &Options,
+    profile: &Profile,
+    cfg: &RunConfig,
+    expectations: &Expectations,
+    runner: &mut Runner,
+    g: &Generator,
+    index: u64,
+    id: String,
+    limits: &ShrinkLimits,
+) -> ShrinkReport {
+    let framing = runner.framing();
+    // A candidate the safety policy would skip is not run: it counts as not failing.
+    let skipped = |case: &Case, reason: String| CaseResult {
+        id: case.id.clone(),
+        verdict: Verdict::Skipped,
+        expected_deviation: None,
+        steps: vec![],
+        wire: vec![],
+        duration: Duration::ZERO,
+        reason: Some(reason),
+    };
+    let result = if opts.target.is_sim() {
+        shrink::shrink(g, index, limits, |case| {
+            if let Some(reason) = skip_reason(case, cfg, framing) {
+                return Ok(skipped(case, reason));
+            }
+            open_runner(opts, profile, cfg, expectations)?.run_case(case)
+        })
+    } else {
+        shrink::shrink(g, index, limits, |case| {
+            if let Some(reason) = skip_reason(case, cfg, framing) {
+                return Ok(skipped(case, reason));
+            }
+            runner.run_case(case)
+        })
+    };
+    let mut report = ShrinkReport {
+        id,
+        shrunk: None,
+        file: None,
+        note: None,
+    };
+    match result {
+        Err(e) => report.note = Some(format!("shrinking stopped: {e}")),
+        Ok(None) => {
+            report.note = Some(
+                "does not FAIL when run again alone (it needs the state earlier cases left): not shrunk"
+                    .into(),
+            )
+        }
+        Ok(Some(s)) => {
+            if let Some(dir) = &opts.regressions_dir {
+                let origin = Origin {
+                    case: report.id.clone(),
+                    seed: g.seed(),
+                    index,
+                    target: opts.target.to_string(),
+                    faults: opts.faults.0.iter().map(|f| f.name().to_string()).collect(),
+                    harness: env!("CARGO_PKG_VERSION").to_string(),
+                    original_steps: s.original.steps.len(),
+                    shrink_steps: s.steps,
+                    findings: s.findings.clone(),
+                };
+                match shrink::write_regression(dir, &profile.device.id, &s, origin) {
+                    Ok(p) => report.file = Some(p),
+                    Err(e) => report.note = Some(format!("cannot write the reproducer: {e}")),
+                }
+            }
+            report.shrunk = Some(s);
+        }
+    }
+    report
+}
+
+fn log_shrink(log: &mut dyn Write, r: &ShrinkReport) {
+    match &r.shrunk {
+        Some(s) => {
+            let (exchanges, largest) = shrink::case_size(&s.case);
+            let _ = writeln!(
+                log,
+                "shrunk {} -> {}: {} step(s), {exchanges} exchange(s), largest PDU {largest} bytes ({} candidates run, {:.1} s, {:?})",
+                r.id,
+                s.case.id,
+                s.case.steps.len(),
+                s.steps,
+                s.elapsed.as_secs_f64(),
+                s.stop
+            );
+            for f in s.findings.iter().take(3) {
+                let _ = writeln!(log, "     {f}");
+            }
+        }
+        None => {
+            let _ = writeln!(log, "not shrunk {}", r.id);
+        }
+    }
+    if let Some(p) = &r.file {
+        let _ = writeln!(log, "     reproducer: {}", p.display());
+    }
+    if let Some(n) = &r.note {
+        let _ = writeln!(log, "     {n}");
+    }
+}
+
 /// Before the first write on real hardware: say what will be written.
-fn write_banner(log: &mut dyn Write, planned: &[(Case, Option<String>)], profile: &Profile) {
+fn write_banner(
+    log: &mut dyn Write,
+    planned: &[(Case, Option<String>)],
+    profile: &Profile,
+    generated: u64,
+) {
     let writes: Vec<&Case> = planned
         .iter()
         .filter(|(c, s)| s.is_none() && c.has(Tag::Write))
@@ -478,6 +863,12 @@ fn write_banner(log: &mut dyn Write, planned: &[(Case, Option<String>)], profile
     }
     if writes.len() > 30 {
         let _ = writeln!(log, "  ... and {} more (see --dry-run)", writes.len() - 30);
+    }
+    if generated > 0 {
+        let _ = writeln!(
+            log,
+            "  plus the generated cases that write, tagged by the same policy (list them with --dry-run)"
+        );
     }
     let _ = writeln!(
         log,

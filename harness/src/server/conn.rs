@@ -137,6 +137,9 @@ pub(crate) async fn drive<S, P>(
     let mut pending: VecDeque<(Duration, Vec<u8>)> = VecDeque::new();
     // No more reading: the peer finished sending or the stream cannot be resynchronised.
     let mut closing = false;
+    // One shutdown future for the whole stream: it registers with the signal once, not at every select.
+    let stop = shutdown.wait();
+    tokio::pin!(stop);
     loop {
         // Everything due goes out in one write, in order; a reply not yet due holds back those behind it.
         let now = shared.now();
@@ -148,7 +151,7 @@ pub(crate) async fn drive<S, P>(
         if !wbuf.is_empty() {
             tokio::select! {
                 biased;
-                _ = shutdown.wait() => return,
+                _ = &mut stop => return,
                 written = stream.write_all(&wbuf) => {
                     if let Err(e) = written {
                         eprintln!("server: {label}: write failed: {e}");
@@ -170,7 +173,7 @@ pub(crate) async fn drive<S, P>(
         let poll_at = tokio::time::Instant::from_std(shared.instant(deadline.unwrap_or(now)));
         tokio::select! {
             biased;
-            _ = shutdown.wait() => return,
+            _ = &mut stop => return,
             _ = tokio::time::sleep_until(due_at), if next_due.is_some() => {}
             _ = tokio::time::sleep_until(poll_at), if deadline.is_some() => {
                 let now = shared.now();

@@ -162,8 +162,10 @@ impl Station {
             if conn.buf.len() < len {
                 break;
             }
-            let adu: Vec<u8> = conn.buf.drain(..len).collect();
-            if let Some(w) = self.tcp_adu(now, &adu) {
+            // Answered in place, then dropped from the buffer: no copy of the ADU.
+            let reply = self.tcp_adu(now, &conn.buf[..len]);
+            conn.buf.drain(..len);
+            if let Some(w) = reply {
                 if answered == 0 || !self.faults.has(Fault::PipelineDrop) {
                     out.replies.push(w);
                 }

@@ -1,6 +1,7 @@
 //! Modbus/TCP and RTU-over-TCP targets on a blocking socket with deadlines.
 
 use std::io::{ErrorKind, Read, Write};
+use std::mem::MaybeUninit;
 use std::net::{SocketAddr, TcpStream, ToSocketAddrs};
 use std::time::{Duration, Instant};
 
@@ -18,6 +19,8 @@ pub struct TcpTarget {
     reader: FrameReader,
     rtu: bool,
     closed: bool,
+    /// The read timeout set on the socket, if any (each change is a system call).
+    read_timeout: Option<Duration>,
 }
 
 fn resolve(host: &str, port: u16) -> Result<SocketAddr, TargetError> {
@@ -62,6 +65,7 @@ impl TcpTarget {
             },
             rtu,
             closed: false,
+            read_timeout: None,
         };
         t.open()?;
         Ok(t)
@@ -78,6 +82,7 @@ impl TcpTarget {
         self.stream = Some(s);
         self.reader.clear();
         self.closed = false;
+        self.read_timeout = None;
         Ok(())
     }
 
@@ -96,11 +101,16 @@ impl TcpTarget {
         let Some(s) = self.stream.as_mut() else {
             return Ok(false);
         };
-        s.set_read_timeout(Some(left))
-            .map_err(|e| TargetError::Io {
-                target: String::new(),
-                source: e,
-            })?;
+        // Keep the timeout already set while it ends the read no later than `until` and not much before
+        // (at least half of what is left): successive exchanges with the same timeout set it once.
+        if self.read_timeout.is_none_or(|t| t > left || t < left / 2) {
+            s.set_read_timeout(Some(left))
+                .map_err(|e| TargetError::Io {
+                    target: String::new(),
+                    source: e,
+                })?;
+            self.read_timeout = Some(left);
+        }
         let mut chunk = [0u8; 1024];
         match s.read(&mut chunk) {
             Ok(0) => Ok(false),
@@ -213,12 +223,14 @@ impl Target for TcpTarget {
     }
 
     fn drain(&mut self) {
-        if let Some(s) = self.stream.as_mut() {
-            let _ = s.set_nonblocking(true);
-            let mut chunk = [0u8; 1024];
+        if let Some(s) = self.stream.as_ref() {
+            // Non-blocking receives (MSG_DONTWAIT) on the blocking socket: one system call when nothing is
+            // stale, where switching the socket to non-blocking mode and back took two more.
+            let sock = socket2::SockRef::from(s);
+            let mut chunk = [MaybeUninit::<u8>::uninit(); 1024];
             // Bounded: at most 64 KiB of stale bytes are discarded.
             for _ in 0..64 {
-                match s.read(&mut chunk) {
+                match sock.recv_with_flags(&mut chunk, libc::MSG_DONTWAIT) {
                     Ok(0) => {
                         self.closed = true;
                         break;
@@ -227,7 +239,6 @@ impl Target for TcpTarget {
                     Err(_) => break,
                 }
             }
-            let _ = s.set_nonblocking(false);
         }
         self.reader.clear();
     }

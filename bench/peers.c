@@ -8,6 +8,8 @@
  *   peers lm-client rtu DEVICE BAUD SECS
  *   peers pp-server PORT                  raw TCP: reads 12 bytes, writes 9, TCP_NODELAY
  *   peers pp-client HOST PORT SECS        raw TCP: writes 12 bytes, reads 9, TCP_NODELAY
+ *   peers time FILE CMD...                run CMD, write "PEAK_RSS_KIB WALL_SECONDS" to FILE, exit with its
+ *                                         status (bench/run.sh's stand-in where /usr/bin/time is not installed)
  *
  * Servers print `listening tcp 127.0.0.1:PORT` (or `listening rtu DEVICE`) once they serve, serve one
  * connection after another until killed (SIGTERM's default action: no handler, see PEERS.md on EINTR), and
@@ -26,7 +28,9 @@
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
+#include <sys/resource.h>
 #include <sys/socket.h>
+#include <sys/wait.h>
 #include <time.h>
 #include <unistd.h>
 
@@ -206,11 +210,32 @@ static int pp_client(char **argv) {
     return 0;
 }
 
+/* Peak RSS of CMD itself: this process is small, so what the child had before exec does not count. */
+static int timed(char **argv) {
+    double t = now_s();
+    pid_t pid = fork();
+    if (pid < 0) return perror("fork"), 1;
+    if (pid == 0) {
+        execvp(argv[3], argv + 3);
+        perror("exec");
+        _exit(127);
+    }
+    int status = 0;
+    struct rusage ru;
+    if (wait4(pid, &status, 0, &ru) < 0) return perror("wait4"), 1;
+    FILE *f = fopen(argv[2], "w");
+    if (!f) return perror(argv[2]), 1;
+    fprintf(f, "%ld %.2f\n", ru.ru_maxrss, now_s() - t);
+    fclose(f);
+    return WIFEXITED(status) ? WEXITSTATUS(status) : 128 + WTERMSIG(status);
+}
+
 int main(int argc, char **argv) {
     if (argc >= 4 && !strcmp(argv[1], "lm-server")) return lm_server(argc, argv);
     if (argc >= 6 && !strcmp(argv[1], "lm-client")) return lm_client(argc, argv);
     if (argc >= 3 && !strcmp(argv[1], "pp-server")) return pp_server(argv);
     if (argc >= 5 && !strcmp(argv[1], "pp-client")) return pp_client(argv);
+    if (argc >= 4 && !strcmp(argv[1], "time")) return timed(argv);
     fprintf(stderr, "usage: see the comment at the top of bench/peers.c\n");
     return 2;
 }

@@ -16,8 +16,9 @@
 #                 figure was produced (not its value) and exits non-zero otherwise. About 30 s after the build.
 #   --no-build    use the binaries already built (target/release, or target/debug with --smoke)
 #
-# Needs gcc, pkg-config and libmodbus-dev, python3 with pymodbus, socat, taskset, /usr/bin/time (the packages
-# .ci/run installs). Every process it starts is stopped by its pid on exit, Ctrl-C or timeout; the whole run
+# Needs gcc, pkg-config and libmodbus-dev, python3 with pymodbus, socat, taskset (the packages .ci/run
+# installs); peak RSS comes from /usr/bin/time -v (Debian package `time`), or from the same getrusage figure
+# through bench/peers.c where that is not installed. Every process it starts is stopped by its pid on exit, Ctrl-C or timeout; the whole run
 # is bounded by a watchdog. Prints the table on stdout and progress on stderr.
 set -euo pipefail
 
@@ -56,7 +57,7 @@ fi
 log() { printf 'bench: %s\n' "$*" >&2; }
 die() { log "error: $*"; exit 1; }
 
-for tool in gcc pkg-config python3 socat taskset /usr/bin/time timeout; do
+for tool in gcc pkg-config python3 socat taskset timeout; do
   command -v "$tool" >/dev/null || die "$tool is missing (see BENCHMARKS.md, Requirements)"
 done
 pkg-config --exists libmodbus || die "libmodbus-dev is missing"
@@ -190,6 +191,22 @@ stop_all
 # The watchdog was stopped with the servers; start it again for the rest.
 watchdog
 
+# measure FILE CMD...: run CMD pinned; write "PEAK_RSS_KIB WALL_SECONDS" to FILE; exit with CMD's status.
+# /usr/bin/time -v where installed, else `peers time` (bench/peers.c: wait4's ru_maxrss, the same figure).
+measure() {
+  local file=$1; shift
+  if [ -x /usr/bin/time ]; then
+    local rc=0
+    "${pin[@]}" /usr/bin/time -v -o "$file.v" "$@" || rc=$?
+    printf '%s %s\n' \
+      "$(sed -n 's/^[[:space:]]*Maximum resident set size (kbytes): //p' "$file.v")" \
+      "$(sed -n 's/^[[:space:]]*Elapsed (wall clock) time (h:mm:ss or m:ss): //p' "$file.v" \
+        | awk -F: '{ s = 0; for (i = 1; i <= NF; i++) s = s * 60 + $i; print s }')" >"$file"
+    return "$rc"
+  fi
+  "${pin[@]}" "$work/peers" time "$file" "$@"
+}
+
 # --- in process ----------------------------------------------------------------------------------------------
 log "in-process figures"
 inproc_secs=$(python3 -c "print(min(1.0, $SECS))")
@@ -200,24 +217,24 @@ cat "$work/inproc.txt" >&2
 log "full catalog against each sim: profile"
 : >"$work/catalog.tsv"
 for p in sd2x mdrive lmd generic; do
-  "${pin[@]}" /usr/bin/time -f '%e %M' -o "$work/time.txt" "$mh" run --target "sim:$p" --no-progress >"$work/run-$p.txt" 2>&1 \
+  measure "$work/time.txt" "$mh" run --target "sim:$p" --no-progress >"$work/run-$p.txt" 2>&1 \
     || [ $? = 1 ] || die "run --target sim:$p could not be made: $(tail -3 "$work/run-$p.txt")"
   cases=$(grep -oE '[0-9]+ cases' "$work/run-$p.txt" | head -1 | cut -d' ' -f1)
-  printf '%s\t%s\t%s\n' "$p" "${cases:-?}" "$(cat "$work/time.txt")" >>"$work/catalog.tsv"
+  read -r kib secs <"$work/time.txt"
+  printf '%s\t%s\t%s %s\n' "$p" "${cases:-?}" "$secs" "$kib" >>"$work/catalog.tsv"
 done
 cat "$work/catalog.tsv" >&2
 
 # --- memory --------------------------------------------------------------------------------------------------
-# mem NAME CMD...: peak RSS (KiB) and wall time of one run, from /usr/bin/time -v.
+# mem NAME CMD...: peak RSS (KiB) and wall time of one run.
 mem() {
   local name=$1; shift
   log "memory: $name: $*"
-  "${pin[@]}" /usr/bin/time -v -o "$work/mem-$name.txt" "$@" >"$work/mem-$name.out" 2>&1 \
+  measure "$work/mem-$name.txt" "$@" >"$work/mem-$name.out" 2>&1 \
     || [ $? = 1 ] || die "memory run $name failed: $(tail -5 "$work/mem-$name.out")"
-  printf '%s\t%s\t%s\t%s\n' "$name" \
-    "$(sed -n 's/^[[:space:]]*Maximum resident set size (kbytes): //p' "$work/mem-$name.txt")" \
-    "$(sed -n 's/^[[:space:]]*Elapsed (wall clock) time (h:mm:ss or m:ss): //p' "$work/mem-$name.txt")" \
-    "$*" >>"$work/mem.tsv"
+  local kib secs
+  read -r kib secs <"$work/mem-$name.txt"
+  printf '%s\t%s\t%s\t%s\n' "$name" "$kib" "$secs" "$*" >>"$work/mem.tsv"
   tail -1 "$work/mem-$name.out" >&2
 }
 : >"$work/mem.tsv"

@@ -128,7 +128,7 @@ def main():
         name, kib, wall, cmd = line.rstrip("\n").split("\t")
         cmd = cmd.replace(E["B_WORK"], "$TMP").replace(E["B_ROOT"] + "/", "")
         peaks.append(int(kib or 0))
-        w(f"| {name} | {int(kib or 0) / 1024:.1f} | {wall} | `/usr/bin/time -v {cmd}` |")
+        w(f"| {name} | {int(kib or 0) / 1024:.1f} | {float(wall):.2f} s | `/usr/bin/time -v {cmd}` |")
     text = "\n".join(out)
     print(text)
     if E.get("B_OUT"):

@@ -32,6 +32,9 @@ pub enum Compare {
     InRange,
     /// Anything but silence or a malformed frame (informational reads).
     Any,
+    /// The request is invalid: it may be rejected with the reference's exception, ignored (silence), or,
+    /// on TCP, end the connection; it must never be answered as a valid request.
+    RejectOrIgnore,
 }
 
 /// How the bytes of a step are put on the wire.

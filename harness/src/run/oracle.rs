@@ -96,6 +96,27 @@ pub fn judge(
     reference_closed: bool,
 ) -> Vec<Finding> {
     let mut out = Vec::new();
+    if *compare == Compare::RejectOrIgnore {
+        match observed {
+            Received::Silence { partial, .. } if partial.is_empty() => return out,
+            Received::Closed { .. } if framing == Framing::Tcp => return out,
+            Received::Frame { bytes, .. } if expected.is_none() => {
+                // The reference ignores it; a target may reject it instead, with any exception.
+                let rejected = matches!(
+                    decode_any(bytes, framing, Direction::Response).map(|d| d.pdu),
+                    Ok(Pdu::Response(r)) if r.is_exception()
+                );
+                if !rejected {
+                    out.push(must(format!(
+                        "an invalid request was answered as valid: {}",
+                        brief(framing, bytes)
+                    )));
+                }
+                return out;
+            }
+            _ => {}
+        }
+    }
     let (exp, obs) = match (expected, observed) {
         (None, Received::Silence { partial, .. }) => {
             if !partial.is_empty() {
@@ -176,8 +197,11 @@ pub fn judge(
         )));
         return out;
     };
+    // A reply identical to the reference's carries the right echoes by construction.
+    let identical = obs == exp;
     if let (Some(t), Some(got)) = (sent.tid, obs_d.transaction_id)
         && t != got
+        && !identical
     {
         out.push(must(format!(
             "transaction id 0x{got:04X} is not the request's 0x{t:04X}"
@@ -185,6 +209,7 @@ pub fn judge(
     }
     if let Some(u) = obs_d.unit
         && u != sent.unit
+        && !identical
     {
         out.push(must(format!(
             "unit id / slave address {u} is not the request's {}",
@@ -197,11 +222,22 @@ pub fn judge(
     match (e.is_exception(), o.is_exception()) {
         (true, true) => {
             if exp_d.pdu != obs_d.pdu {
-                out.push(must(format!(
+                let text = format!(
                     "exception {} where the reference answers {}",
                     summary(&obs_d.pdu),
                     summary(&exp_d.pdu)
-                )));
+                );
+                // "Illegal function" for a function the profile has: the target lacks it.
+                let illegal_fn = matches!(o, Response::Exception { code, function }
+                    if code.0 == 1 && function.without_exception_bit() == e.function().without_exception_bit());
+                out.push(if illegal_fn {
+                    Finding {
+                        severity: Severity::Unimplemented,
+                        text,
+                    }
+                } else {
+                    must(text)
+                });
             }
             return out;
         }
@@ -261,7 +297,7 @@ pub fn judge(
                 in_range(&sent.pdu, o, profile, &mut out);
             }
         }
-        Compare::Any => {}
+        Compare::Any | Compare::RejectOrIgnore => {}
     }
     out
 }

@@ -116,7 +116,10 @@ impl Runner {
             t
         });
         let mut bytes = Vec::with_capacity(pdu.len() + 7);
-        let mut malformed = pdu.len() > crate::frame::MAX_PDU_LEN || altered.is_some();
+        // Anything the strict codec refuses as a request was sent malformed on purpose.
+        let mut malformed = pdu.len() > crate::frame::MAX_PDU_LEN
+            || altered.is_some()
+            || Request::decode(pdu).is_err();
         match framing {
             Framing::Tcp => {
                 if tcp::encode_adu(tid.unwrap_or(0), unit, pdu, &mut bytes).is_err() {

@@ -21,6 +21,8 @@ enum Command {
     Run(Box<cli::run::RunArgs>),
     /// Discover the function codes and readable registers of a target (no writes), beside a profile.
     Probe(cli::probe::ProbeArgs),
+    /// A live fuzz campaign: generated and mutated requests, liveness probes, reproducers for findings.
+    Fuzz(Box<cli::fuzz::FuzzArgs>),
     /// Decode one frame given as hex and print it field by field (or the exact error).
     Decode(cli::decode::DecodeArgs),
     /// Check every golden frame from the manuals: decode, expectations, errata.
@@ -44,6 +46,7 @@ fn main() -> ExitCode {
     match cli.command {
         Command::Run(args) => cli::run::run(&args),
         Command::Probe(args) => cli::probe::run(&args),
+        Command::Fuzz(args) => cli::fuzz::run(&args),
         Command::Decode(args) => cli::decode::run(&args),
         Command::Golden {
             corpus,

@@ -1,5 +1,6 @@
 //! The conformance run: case catalog, safety policy, runner, oracle and verdicts.
 
+pub mod campaign;
 pub mod case;
 pub mod catalog;
 pub mod expect;

@@ -412,7 +412,7 @@ fn selected(c: &Case, include: &[String], exclude: &[String]) -> bool {
     (include.is_empty() || matches_any(&c.id, include)) && !matches_any(&c.id, exclude)
 }
 
-fn config(opts: &Options, profile: &Profile) -> RunConfig {
+pub(crate) fn config(opts: &Options, profile: &Profile) -> RunConfig {
     RunConfig {
         unit: opts.unit.unwrap_or(profile.device.default_unit),
         timeout: opts.timeout,
@@ -426,7 +426,7 @@ fn config(opts: &Options, profile: &Profile) -> RunConfig {
 }
 
 /// Open the target and its reference drive (fault-free, in lockstep) and put a runner around them.
-fn open_runner(
+pub(crate) fn open_runner(
     opts: &Options,
     profile: &Profile,
     cfg: &RunConfig,

@@ -177,35 +177,35 @@ fn sd2x_generated_observations_are_the_same_on_every_transport_and_match_the_sna
     drive_on_every_transport("sd2x", false);
 }
 
-// ---- Third-party servers (pymodbus, libmodbus) ----
-//
-// PLACE FOR THE PEER SERVER SNAPSHOTS. tests/peers/ is getting pymodbus and libmodbus *servers* (another
-// engineer's work). When they land, start each one here the way interop_support starts its clients (bounded
-// readiness wait, port 0), then call
-//
-//     check("generated-pymodbus-tcp", &snapshot(&format!("tcp://{addr}"), "generic"));
-//
-// with the profile that describes the peer's data model (`generic` if it serves 100 coils, inputs and
-// registers from address 0, else a profile of its own under corpus/profiles/), and accept the new
-// `snapshots/generated-pymodbus-tcp.snap` (and `generated-libmodbus-tcp.snap`) with `cargo insta review`.
-// Until then this test says, visibly, that it has nothing to run.
+/// Generated observations of the third-party servers of tests/peers/ on the generic profile: a change in
+/// pymodbus or libmodbus behaviour (or in the harness's judgement of it) shows as drift here.
 #[test]
 fn peer_server_snapshots() {
-    for (peer, file) in [
-        ("pymodbus", "pymodbus_server.py"),
-        ("libmodbus", "libmodbus_server.c"),
-    ] {
-        if !interop_support::peer_file(file).exists() {
+    use interop_support::servers::PeerServer;
+    let peers: [(&str, fn() -> PeerServer, bool); 2] = [
+        (
+            "pymodbus",
+            PeerServer::pymodbus,
+            interop_support::have_pymodbus(),
+        ),
+        (
+            "libmodbus",
+            PeerServer::libmodbus,
+            interop_support::have_libmodbus(),
+        ),
+    ];
+    for (peer, start, available) in peers {
+        if !available {
             skip(
                 &format!("generated snapshot of the {peer} server"),
-                &format!("tests/peers/{file} does not exist yet"),
+                &format!("{peer} is not installed"),
             );
-        } else {
-            skip(
-                &format!("generated snapshot of the {peer} server"),
-                "the server exists: wire it up here (see the comment above this test)",
-            );
+            continue;
         }
+        let server = start();
+        let text = snapshot(&format!("tcp://{}", server.addr), "generic");
+        check(&format!("generated-{peer}-tcp"), &text);
+        server.terminate();
     }
 }
 

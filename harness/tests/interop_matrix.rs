@@ -18,6 +18,7 @@ use std::sync::OnceLock;
 use std::sync::mpsc;
 use std::time::{Duration, Instant};
 
+use interop_support::servers::{PeerServer, libmodbus_server};
 use interop_support::*;
 
 /// Bound on one conformance run in these tests (they select a few dozen cases).
@@ -71,100 +72,6 @@ fn harness_run(args: &[&str]) -> (Option<i32>, String, String) {
     let status = wait_bounded(&mut child, RUN_LIMIT, "modbus-harness run");
     let text = |rx: mpsc::Receiver<String>| rx.recv_timeout(STEP).unwrap_or_default();
     (status.code(), text(out), text(err))
-}
-
-/// A peer server of tests/peers/ running as a child (killed on drop if a test panics first).
-struct PeerServer {
-    child: ChildGuard,
-    addr: SocketAddr,
-}
-
-impl PeerServer {
-    /// Start `cmd` (a server in `tcp 127.0.0.1 0` mode) and wait, bounded, for its `listening tcp ADDR` line.
-    fn start(mut cmd: Command) -> Self {
-        let mut child = cmd
-            .stdin(Stdio::null())
-            .stdout(Stdio::piped())
-            .stderr(Stdio::null())
-            .spawn()
-            .unwrap_or_else(|e| panic!("spawn {cmd:?}: {e}"));
-        let stdout = child.stdout.take().expect("stdout");
-        let guard = ChildGuard(child);
-        let (tx, rx) = mpsc::channel();
-        std::thread::spawn(move || {
-            for line in BufReader::new(stdout).lines() {
-                let Ok(line) = line else { break };
-                if tx.send(line).is_err() {
-                    break;
-                }
-            }
-        });
-        let line = rx
-            .recv_timeout(STEP)
-            .unwrap_or_else(|_| panic!("{cmd:?} printed no listening line within {STEP:?}"));
-        let addr = match line.split_whitespace().collect::<Vec<_>>().as_slice() {
-            ["listening", "tcp", a] => a.parse().expect("listening address"),
-            _ => panic!("unexpected first line from {cmd:?}: {line:?}"),
-        };
-        Self { child: guard, addr }
-    }
-
-    fn pymodbus() -> Self {
-        let mut c = Command::new("python3");
-        c.arg(peer_file("pymodbus_server.py"))
-            .args(["tcp", "127.0.0.1", "0"]);
-        Self::start(c)
-    }
-
-    fn libmodbus() -> Self {
-        let mut c = Command::new(libmodbus_server().unwrap_or_else(|e| panic!("{e}")));
-        c.args(["tcp", "127.0.0.1", "0"]);
-        Self::start(c)
-    }
-
-    /// SIGTERM by pid, then the exit status (bounded).
-    fn terminate(mut self) -> ExitStatus {
-        let pid = self.child.0.id() as libc::pid_t;
-        // SAFETY: kill(2) on the pid of a child this test started and has not reaped yet.
-        let rc = unsafe { libc::kill(pid, libc::SIGTERM) };
-        assert_eq!(rc, 0, "kill -TERM {pid}");
-        wait_bounded(&mut self.child.0, STEP, "the peer server after SIGTERM")
-    }
-}
-
-/// Build tests/peers/libmodbus_server.c once per test process (renamed into place when complete).
-fn libmodbus_server() -> Result<PathBuf, String> {
-    static EXE: OnceLock<Result<PathBuf, String>> = OnceLock::new();
-    EXE.get_or_init(|| {
-        let flags = Command::new("pkg-config")
-            .args(["--cflags", "--libs", "libmodbus"])
-            .output()
-            .map_err(|e| format!("pkg-config: {e}"))?;
-        if !flags.status.success() {
-            return Err("pkg-config does not know libmodbus".into());
-        }
-        let flags = String::from_utf8_lossy(&flags.stdout).into_owned();
-        let dir = Path::new(env!("CARGO_TARGET_TMPDIR"));
-        let exe = dir.join("libmodbus_server");
-        let tmp = dir.join(format!("libmodbus_server.{}", std::process::id()));
-        let out = Command::new("gcc")
-            .args(["-O2", "-Wall", "-Wextra", "-Werror"])
-            .arg(peer_file("libmodbus_server.c"))
-            .arg("-o")
-            .arg(&tmp)
-            .args(flags.split_whitespace())
-            .output()
-            .map_err(|e| format!("gcc: {e}"))?;
-        if !out.status.success() {
-            return Err(format!(
-                "gcc libmodbus_server.c failed:\n{}",
-                String::from_utf8_lossy(&out.stderr)
-            ));
-        }
-        std::fs::rename(&tmp, &exe).map_err(|e| format!("rename {}: {e}", tmp.display()))?;
-        Ok(exe)
-    })
-    .clone()
 }
 
 /// The generic profile's map through one connection each: input register n holds n, coil 99 is the last

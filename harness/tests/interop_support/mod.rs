@@ -2,6 +2,7 @@
 //! as a child process, in-process servers, and raw frame helpers. Every wait is bounded.
 #![allow(dead_code)] // each interop test file uses a different part of this module
 
+pub mod servers;
 use std::io::{BufRead, BufReader, Write};
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};

@@ -1,0 +1,122 @@
+//! The peer servers of tests/peers/ (pymodbus, libmodbus) as children of a test, started with `tcp 127.0.0.1 0`.
+#![allow(dead_code)]
+
+use std::io::{BufRead, BufReader};
+use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
+use std::process::{Command, ExitStatus, Stdio};
+use std::sync::OnceLock;
+use std::sync::mpsc;
+use std::time::{Duration, Instant};
+
+use super::{ChildGuard, STEP, peer_file};
+
+/// Wait for a child to exit, at most `limit`; kill it and panic past that.
+fn wait_bounded(child: &mut std::process::Child, limit: Duration, what: &str) -> ExitStatus {
+    let until = Instant::now() + limit;
+    loop {
+        if let Ok(Some(s)) = child.try_wait() {
+            return s;
+        }
+        if Instant::now() >= until {
+            let _ = child.kill();
+            let _ = child.wait();
+            panic!("{what} did not exit within {limit:?}");
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
+/// A peer server of tests/peers/ running as a child (killed on drop if a test panics first).
+pub struct PeerServer {
+    pub child: ChildGuard,
+    pub addr: SocketAddr,
+}
+
+impl PeerServer {
+    /// Start `cmd` (a server in `tcp 127.0.0.1 0` mode) and wait, bounded, for its `listening tcp ADDR` line.
+    pub fn start(mut cmd: Command) -> Self {
+        let mut child = cmd
+            .stdin(Stdio::null())
+            .stdout(Stdio::piped())
+            .stderr(Stdio::null())
+            .spawn()
+            .unwrap_or_else(|e| panic!("spawn {cmd:?}: {e}"));
+        let stdout = child.stdout.take().expect("stdout");
+        let guard = ChildGuard(child);
+        let (tx, rx) = mpsc::channel();
+        std::thread::spawn(move || {
+            for line in BufReader::new(stdout).lines() {
+                let Ok(line) = line else { break };
+                if tx.send(line).is_err() {
+                    break;
+                }
+            }
+        });
+        let line = rx
+            .recv_timeout(STEP)
+            .unwrap_or_else(|_| panic!("{cmd:?} printed no listening line within {STEP:?}"));
+        let addr = match line.split_whitespace().collect::<Vec<_>>().as_slice() {
+            ["listening", "tcp", a] => a.parse().expect("listening address"),
+            _ => panic!("unexpected first line from {cmd:?}: {line:?}"),
+        };
+        Self { child: guard, addr }
+    }
+
+    pub fn pymodbus() -> Self {
+        let mut c = Command::new("python3");
+        c.arg(peer_file("pymodbus_server.py"))
+            .args(["tcp", "127.0.0.1", "0"]);
+        Self::start(c)
+    }
+
+    pub fn libmodbus() -> Self {
+        let mut c = Command::new(libmodbus_server().unwrap_or_else(|e| panic!("{e}")));
+        c.args(["tcp", "127.0.0.1", "0"]);
+        Self::start(c)
+    }
+
+    /// SIGTERM by pid, then the exit status (bounded).
+    pub fn terminate(mut self) -> ExitStatus {
+        let pid = self.child.0.id() as libc::pid_t;
+        // SAFETY: kill(2) on the pid of a child this test started and has not reaped yet.
+        let rc = unsafe { libc::kill(pid, libc::SIGTERM) };
+        assert_eq!(rc, 0, "kill -TERM {pid}");
+        wait_bounded(&mut self.child.0, STEP, "the peer server after SIGTERM")
+    }
+}
+
+/// Build tests/peers/libmodbus_server.c once per test process (renamed into place when complete).
+pub fn libmodbus_server() -> Result<PathBuf, String> {
+    static EXE: OnceLock<Result<PathBuf, String>> = OnceLock::new();
+    EXE.get_or_init(|| {
+        let flags = Command::new("pkg-config")
+            .args(["--cflags", "--libs", "libmodbus"])
+            .output()
+            .map_err(|e| format!("pkg-config: {e}"))?;
+        if !flags.status.success() {
+            return Err("pkg-config does not know libmodbus".into());
+        }
+        let flags = String::from_utf8_lossy(&flags.stdout).into_owned();
+        let dir = Path::new(env!("CARGO_TARGET_TMPDIR"));
+        let exe = dir.join("libmodbus_server");
+        let tmp = dir.join(format!("libmodbus_server.{}", std::process::id()));
+        let out = Command::new("gcc")
+            .args(["-O2", "-Wall", "-Wextra", "-Werror"])
+            .arg(peer_file("libmodbus_server.c"))
+            .arg("-o")
+            .arg(&tmp)
+            .args(flags.split_whitespace())
+            .output()
+            .map_err(|e| format!("gcc: {e}"))?;
+        if !out.status.success() {
+            return Err(format!(
+                "gcc libmodbus_server.c failed:\n{}",
+                String::from_utf8_lossy(&out.stderr)
+            ));
+        }
+        std::fs::rename(&tmp, &exe).map_err(|e| format!("rename {}: {e}", tmp.display()))?;
+        Ok(exe)
+    })
+    .clone()
+}

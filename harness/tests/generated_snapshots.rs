@@ -182,7 +182,8 @@ fn sd2x_generated_observations_are_the_same_on_every_transport_and_match_the_sna
 #[test]
 fn peer_server_snapshots() {
     use interop_support::servers::PeerServer;
-    let peers: [(&str, fn() -> PeerServer, bool); 2] = [
+    type Start = fn() -> PeerServer;
+    let peers: [(&str, Start, bool); 2] = [
         (
             "pymodbus",
             PeerServer::pymodbus,

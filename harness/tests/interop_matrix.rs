@@ -14,11 +14,10 @@ use std::io::{BufRead, BufReader, Read};
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, ExitStatus, Stdio};
-use std::sync::OnceLock;
 use std::sync::mpsc;
 use std::time::{Duration, Instant};
 
-use interop_support::servers::{PeerServer, libmodbus_server};
+use interop_support::servers::PeerServer;
 use interop_support::*;
 
 /// Bound on one conformance run in these tests (they select a few dozen cases).

@@ -15,7 +15,7 @@ use std::process::Command;
 use std::sync::atomic::AtomicBool;
 use std::time::Duration;
 
-use interop_support::{PtyPair, have_socat, loopback_tcp_and_rtu, serial_19200_8n1, serve, skip};
+use interop_support::{PtyPair, have_socat, loopback_tcp_and_rtu, serve, skip};
 use modbus_harness::run::session::{self, Options, SnapshotOptions, run};
 use modbus_harness::server::ServerConfig;
 use modbus_harness::sim::{Fault, FaultSet};
@@ -143,12 +143,16 @@ fn drive_on_every_transport(profile: &str, tcp: bool) {
     if have_socat() {
         let pty = PtyPair::new();
         let config = ServerConfig {
-            serial: Some(serial_19200_8n1(&pty.a)),
+            serial: Some(interop_support::serial_run_8n1(&pty.a)),
             ..ServerConfig::default()
         };
         let h = rt.block_on(serve(profile, &[], config));
         let serial = snapshot(
-            &format!("rtu://{}?baud=19200&parity=none", pty.b.display()),
+            &format!(
+                "rtu://{}?baud={}&parity=none",
+                pty.b.display(),
+                interop_support::PTY_RUN_BAUD
+            ),
             profile,
         );
         drop(h);

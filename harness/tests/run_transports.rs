@@ -8,7 +8,7 @@ use std::collections::BTreeMap;
 use std::sync::atomic::AtomicBool;
 use std::time::Duration;
 
-use interop_support::{PtyPair, have_socat, loopback_tcp_and_rtu, serial_19200_8n1, serve, skip};
+use interop_support::{PtyPair, have_socat, loopback_tcp_and_rtu, serve, skip};
 use modbus_harness::run::Verdict;
 use modbus_harness::run::session::{Options, run};
 use modbus_harness::server::ServerConfig;
@@ -109,12 +109,16 @@ fn sd2x_over_rtu_over_tcp_and_a_pty() {
     }
     let pty = PtyPair::new();
     let config = ServerConfig {
-        serial: Some(serial_19200_8n1(&pty.a)),
+        serial: Some(interop_support::serial_run_8n1(&pty.a)),
         ..ServerConfig::default()
     };
     let h = rt.block_on(serve("sd2x", &[], config));
     let serial = verdicts(
-        &format!("rtu://{}?baud=19200&parity=none", pty.b.display()),
+        &format!(
+            "rtu://{}?baud={}&parity=none",
+            pty.b.display(),
+            interop_support::PTY_RUN_BAUD
+        ),
         "sd2x",
     );
     same_independent(&inproc, &serial, "sd2x pty vs sim");

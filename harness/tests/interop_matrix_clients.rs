@@ -35,36 +35,8 @@ enum Peer {
 /// into place, so test processes building at once never see a half-written file).
 fn libmodbus_client() -> Result<PathBuf, String> {
     static EXE: OnceLock<Result<PathBuf, String>> = OnceLock::new();
-    EXE.get_or_init(|| {
-        let flags = Command::new("pkg-config")
-            .args(["--cflags", "--libs", "libmodbus"])
-            .output()
-            .map_err(|e| format!("pkg-config: {e}"))?;
-        if !flags.status.success() {
-            return Err("pkg-config does not know libmodbus".into());
-        }
-        let flags = String::from_utf8_lossy(&flags.stdout).into_owned();
-        let dir = Path::new(env!("CARGO_TARGET_TMPDIR"));
-        let exe = dir.join("libmodbus_client_matrix");
-        let tmp = dir.join(format!("libmodbus_client_matrix.{}", std::process::id()));
-        let out = Command::new("gcc")
-            .args(["-O2", "-Wall"])
-            .arg(peer_file("libmodbus_client.c"))
-            .arg("-o")
-            .arg(&tmp)
-            .args(flags.split_whitespace())
-            .output()
-            .map_err(|e| format!("gcc: {e}"))?;
-        if !out.status.success() {
-            return Err(format!(
-                "gcc failed:\n{}",
-                String::from_utf8_lossy(&out.stderr)
-            ));
-        }
-        std::fs::rename(&tmp, &exe).map_err(|e| format!("rename {}: {e}", tmp.display()))?;
-        Ok(exe)
-    })
-    .clone()
+    EXE.get_or_init(|| compile_libmodbus_peer("libmodbus_client.c", "libmodbus_client_matrix"))
+        .clone()
 }
 
 /// The command that runs `peer`, or `None` after a visible skip notice when its toolchain is missing.

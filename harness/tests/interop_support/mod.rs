@@ -456,3 +456,36 @@ pub async fn wait_sd2x_status(server: &ServerHandle, want: u16) -> Result<(), Op
         tokio::time::sleep(STATUS_POLL).await;
     }
 }
+
+/// Compile a libmodbus peer of tests/peers/ (`source`) into cargo's test scratch directory as `exe_name`.
+/// Built under a name of this process and renamed into place: test processes running at once never see a
+/// half-written file. `Err` says what is missing or failed.
+pub fn compile_libmodbus_peer(source: &str, exe_name: &str) -> Result<PathBuf, String> {
+    let flags = Command::new("pkg-config")
+        .args(["--cflags", "--libs", "libmodbus"])
+        .output()
+        .map_err(|e| format!("pkg-config: {e}"))?;
+    if !flags.status.success() {
+        return Err("pkg-config does not know libmodbus".into());
+    }
+    let flags = String::from_utf8_lossy(&flags.stdout).into_owned();
+    let dir = Path::new(env!("CARGO_TARGET_TMPDIR"));
+    let exe = dir.join(exe_name);
+    let tmp = dir.join(format!("{exe_name}.{}", std::process::id()));
+    let out = Command::new("gcc")
+        .args(["-O2", "-Wall", "-Wextra", "-Werror"])
+        .arg(peer_file(source))
+        .arg("-o")
+        .arg(&tmp)
+        .args(flags.split_whitespace())
+        .output()
+        .map_err(|e| format!("gcc: {e}"))?;
+    if !out.status.success() {
+        return Err(format!(
+            "gcc {source} failed:\n{}",
+            String::from_utf8_lossy(&out.stderr)
+        ));
+    }
+    std::fs::rename(&tmp, &exe).map_err(|e| format!("rename {}: {e}", tmp.display()))?;
+    Ok(exe)
+}

@@ -1,7 +1,7 @@
 //! The C (libmodbus) and Python (pymodbus) clients of tests/peers/, and the scenarios both run against an
 //! in-process server. Both clients take the same arguments and print one line per operation.
 
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::sync::OnceLock;
 
 use modbus_harness::server::{ServerConfig, ServerHandle};
@@ -39,39 +39,8 @@ pub enum Scenario {
 /// Compile tests/peers/libmodbus_client.c once per test process; `Err` says what is missing or failed.
 fn libmodbus_client() -> Result<PathBuf, String> {
     static EXE: OnceLock<Result<PathBuf, String>> = OnceLock::new();
-    EXE.get_or_init(|| {
-        let flags = std::process::Command::new("pkg-config")
-            .args(["--cflags", "--libs", "libmodbus"])
-            .output()
-            .map_err(|e| format!("pkg-config: {e}"))?;
-        if !flags.status.success() {
-            return Err("pkg-config does not know libmodbus".into());
-        }
-        let flags = String::from_utf8_lossy(&flags.stdout).into_owned();
-        // CARGO_TARGET_TMPDIR is cargo's scratch directory for integration tests. Build under a name of
-        // this process and rename into place: test processes running at once never see a half-written file.
-        let dir = Path::new(env!("CARGO_TARGET_TMPDIR"));
-        let exe = dir.join("libmodbus_client");
-        let tmp = dir.join(format!("libmodbus_client.{}", std::process::id()));
-        let out = std::process::Command::new("gcc")
-            .arg("-O2")
-            .arg("-Wall")
-            .arg(peer_file("libmodbus_client.c"))
-            .arg("-o")
-            .arg(&tmp)
-            .args(flags.split_whitespace())
-            .output()
-            .map_err(|e| format!("gcc: {e}"))?;
-        if !out.status.success() {
-            return Err(format!(
-                "gcc failed:\n{}",
-                String::from_utf8_lossy(&out.stderr)
-            ));
-        }
-        std::fs::rename(&tmp, &exe).map_err(|e| format!("rename {}: {e}", tmp.display()))?;
-        Ok(exe)
-    })
-    .clone()
+    EXE.get_or_init(|| super::compile_libmodbus_peer("libmodbus_client.c", "libmodbus_client"))
+        .clone()
 }
 
 /// The command that runs `peer`, or `None` after a printed skip notice when its toolchain is missing.

@@ -3,7 +3,7 @@
 
 use std::io::{BufRead, BufReader};
 use std::net::SocketAddr;
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::process::{Command, ExitStatus, Stdio};
 use std::sync::OnceLock;
 use std::sync::mpsc;
@@ -89,34 +89,6 @@ impl PeerServer {
 /// Build tests/peers/libmodbus_server.c once per test process (renamed into place when complete).
 pub fn libmodbus_server() -> Result<PathBuf, String> {
     static EXE: OnceLock<Result<PathBuf, String>> = OnceLock::new();
-    EXE.get_or_init(|| {
-        let flags = Command::new("pkg-config")
-            .args(["--cflags", "--libs", "libmodbus"])
-            .output()
-            .map_err(|e| format!("pkg-config: {e}"))?;
-        if !flags.status.success() {
-            return Err("pkg-config does not know libmodbus".into());
-        }
-        let flags = String::from_utf8_lossy(&flags.stdout).into_owned();
-        let dir = Path::new(env!("CARGO_TARGET_TMPDIR"));
-        let exe = dir.join("libmodbus_server");
-        let tmp = dir.join(format!("libmodbus_server.{}", std::process::id()));
-        let out = Command::new("gcc")
-            .args(["-O2", "-Wall", "-Wextra", "-Werror"])
-            .arg(peer_file("libmodbus_server.c"))
-            .arg("-o")
-            .arg(&tmp)
-            .args(flags.split_whitespace())
-            .output()
-            .map_err(|e| format!("gcc: {e}"))?;
-        if !out.status.success() {
-            return Err(format!(
-                "gcc libmodbus_server.c failed:\n{}",
-                String::from_utf8_lossy(&out.stderr)
-            ));
-        }
-        std::fs::rename(&tmp, &exe).map_err(|e| format!("rename {}: {e}", tmp.display()))?;
-        Ok(exe)
-    })
-    .clone()
+    EXE.get_or_init(|| super::compile_libmodbus_peer("libmodbus_server.c", "libmodbus_server"))
+        .clone()
 }

@@ -17,61 +17,17 @@ mod interop_support;
 use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
-use std::sync::OnceLock;
 use std::sync::mpsc;
 
+use interop_support::peers::{Peer, client_command};
 use interop_support::*;
 use modbus_harness::server::{ServerConfig, ServerHandle};
 use tokio_modbus::prelude::*;
 
-/// A third-party client program of tests/peers/ (both take the same operations, one output line each).
-#[derive(Clone, Copy, Debug)]
-enum Peer {
-    Libmodbus,
-    Pymodbus,
-}
-
-/// Build tests/peers/libmodbus_client.c once per test process (under a name of this file's own, renamed
-/// into place, so test processes building at once never see a half-written file).
-fn libmodbus_client() -> Result<PathBuf, String> {
-    static EXE: OnceLock<Result<PathBuf, String>> = OnceLock::new();
-    EXE.get_or_init(|| compile_libmodbus_peer("libmodbus_client.c", "libmodbus_client_matrix"))
-        .clone()
-}
-
-/// The command that runs `peer`, or `None` after a visible skip notice when its toolchain is missing.
-fn peer_command(peer: Peer, test: &str) -> Option<tokio::process::Command> {
-    match peer {
-        Peer::Libmodbus => {
-            if !have_libmodbus() {
-                skip(
-                    test,
-                    "needs gcc and libmodbus (apt-get install gcc pkg-config libmodbus-dev)",
-                );
-                return None;
-            }
-            let exe = libmodbus_client().unwrap_or_else(|e| panic!("libmodbus client: {e}"));
-            Some(tokio::process::Command::new(exe))
-        }
-        Peer::Pymodbus => {
-            if !have_pymodbus() {
-                skip(
-                    test,
-                    "needs python3 with pymodbus (pip install 'pymodbus[serial]')",
-                );
-                return None;
-            }
-            let mut c = tokio::process::Command::new("python3");
-            c.arg(peer_file("pymodbus_client.py"));
-            Some(c)
-        }
-    }
-}
-
 /// Run `peer` with `endpoint` and the operations of `ops`, and compare every output line with the expected
 /// one (`ops`: operation, expected line).
 async fn expect_lines(peer: Peer, test: &str, endpoint: &[String], ops: &[(&str, &str)]) {
-    let mut cmd = peer_command(peer, test).expect("toolchain checked by the caller");
+    let mut cmd = client_command(peer, test).expect("toolchain checked by the caller");
     cmd.args(endpoint).args(ops.iter().map(|(op, _)| op));
     let (ok, out, err) = run_client(&mut cmd).await;
     let got: Vec<&str> = out.lines().collect();
@@ -112,7 +68,7 @@ const LMD_VM_600000: [u16; 2] = [0x27C0, 0x0009];
 /// The LMD's manual answers through a client that prints lines: 4.2.2 outputs (O1=1, O2=0, O3=1), 4.2.4 VM,
 /// 4.2.5 VM written and read back, 4.2.3 output 3 ON (its echo), then output 2 ON reads back.
 async fn lmd_tcp(peer: Peer, test: &str) {
-    if peer_command(peer, test).is_none() {
+    if client_command(peer, test).is_none() {
         return;
     }
     let server = serve_on("lmd", false).await;
@@ -341,7 +297,7 @@ fn sd2x_endpoint(peer: Peer, server: &ServerHandle, bridge: Option<&PtyTcpBridge
 /// SD2x manual 6.1 then 6.3 over RTU over TCP: the two RxPDO telegrams, the 500 ms watchdog they arm runs
 /// out, the status word reads 0x7038 by FC 04 and FC 03; FC 05 (not an SD2x function) gets exception 01.
 async fn sd2x_rtu_over_tcp(peer: Peer, test: &str) {
-    if peer_command(peer, test).is_none() {
+    if client_command(peer, test).is_none() {
         return;
     }
     if matches!(peer, Peer::Libmodbus) && !have_socat() {

@@ -44,7 +44,7 @@ fn libmodbus_client() -> Result<PathBuf, String> {
 }
 
 /// The command that runs `peer`, or `None` after a printed skip notice when its toolchain is missing.
-fn client_command(peer: Peer, test: &str) -> Option<tokio::process::Command> {
+pub fn client_command(peer: Peer, test: &str) -> Option<tokio::process::Command> {
     match peer {
         Peer::Libmodbus => {
             if !have_libmodbus() {

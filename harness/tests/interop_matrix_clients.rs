@@ -14,10 +14,8 @@
 
 mod interop_support;
 
-use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
-use std::sync::mpsc;
 
 use interop_support::peers::{Peer, client_command};
 use interop_support::*;
@@ -237,29 +235,7 @@ impl PtyTcpBridge {
             .expect("spawn socat");
         let stderr = child.stderr.take().expect("socat stderr");
         let guard = ChildGuard(child);
-        // Keep draining socat's log on a thread so it never blocks on a full pipe.
-        let (tx, rx) = mpsc::channel();
-        std::thread::spawn(move || {
-            for line in BufReader::new(stderr).lines() {
-                let Ok(line) = line else { break };
-                if tx.send(line).is_err() {
-                    break;
-                }
-            }
-        });
-        let mut log = Vec::new();
-        loop {
-            match rx.recv_timeout(STEP) {
-                Ok(l) => {
-                    let ready = l.contains("starting data transfer loop");
-                    log.push(l);
-                    if ready {
-                        break;
-                    }
-                }
-                Err(_) => panic!("socat bridge to {to} did not start within {STEP:?}: {log:#?}"),
-            }
-        }
+        let log = wait_socat_ready(stderr, &format!("socat bridge to {to}"));
         assert!(tty.exists(), "socat link missing: {log:#?}");
         Self {
             tty,

@@ -138,20 +138,7 @@ impl PtyPair {
         let guard = ChildGuard(child);
         // socat logs "starting data transfer loop" once both ptys and links are set up; the reader thread
         // keeps draining its stderr afterwards so it never blocks on a full pipe.
-        let lines = line_reader(stderr);
-        let mut log = Vec::new();
-        loop {
-            match lines.recv_timeout(STEP) {
-                Ok(l) => {
-                    let ready = l.contains("starting data transfer loop");
-                    log.push(l);
-                    if ready {
-                        break;
-                    }
-                }
-                Err(_) => panic!("socat did not start within {STEP:?}: {log:#?}"),
-            }
-        }
+        let log = wait_socat_ready(stderr, "socat");
         assert!(a.exists() && b.exists(), "socat links missing: {log:#?}");
         Self {
             a,
@@ -488,4 +475,24 @@ pub fn compile_libmodbus_peer(source: &str, exe_name: &str) -> Result<PathBuf, S
     }
     std::fs::rename(&tmp, &exe).map_err(|e| format!("rename {}: {e}", tmp.display()))?;
     Ok(exe)
+}
+
+/// Drain socat's log (stderr, run with `-d -d`) on a thread so it never blocks on a full pipe, and wait,
+/// bounded by `STEP`, until it logs "starting data transfer loop" (ptys and links made, peers connected).
+/// Returns the log so far; panics with it, naming `what`, when socat does not get there in time.
+pub fn wait_socat_ready(stderr: impl std::io::Read + Send + 'static, what: &str) -> Vec<String> {
+    let lines = line_reader(stderr);
+    let mut log = Vec::new();
+    loop {
+        match lines.recv_timeout(STEP) {
+            Ok(l) => {
+                let ready = l.contains("starting data transfer loop");
+                log.push(l);
+                if ready {
+                    return log;
+                }
+            }
+            Err(_) => panic!("{what} did not start within {STEP:?}: {log:#?}"),
+        }
+    }
 }

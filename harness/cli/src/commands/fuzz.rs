@@ -1,0 +1,203 @@
+//! `modbus-harness fuzz`: a live fuzz campaign against an endpoint.
+
+use std::io::IsTerminal;
+use std::path::PathBuf;
+use std::process::ExitCode;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::Duration;
+
+use clap::Args;
+use drives::corpus::Corpus;
+use drives::{Fault, FaultSet};
+use engine::campaign::{CampaignOptions, FindingKind, campaign};
+use engine::cases::generated::clock_seed;
+use engine::session::Options;
+use engine::targets::TargetUrl;
+
+/// Arguments of `fuzz`.
+#[derive(Args)]
+#[command(
+    after_help = "Safety: against anything but sim:, generated cases tagged motion or destructive are \
+skipped unless --allow-motion / --allow-destructive, and --read-only skips every write, as for `run`."
+)]
+pub struct FuzzArgs {
+    /// The endpoint (tcp://, rtu+tcp://, rtu://, sim:).
+    #[arg(long)]
+    target: String,
+    /// Drive profile (default: the simulator's own for sim:).
+    #[arg(long)]
+    profile: Option<String>,
+    /// Unit id / slave address (default: the profile's).
+    #[arg(long)]
+    unit: Option<u8>,
+    /// How long to fuzz: 30s, 10m, 1h, 500ms.
+    #[arg(long, default_value = "60s")]
+    duration: String,
+    /// Stop after this many cases.
+    #[arg(long)]
+    max_cases: Option<u64>,
+    /// Seed of the generated cases (default: from the clock; always printed).
+    #[arg(long)]
+    seed: Option<u64>,
+    /// A liveness probe (a known-good read) after every N cases.
+    #[arg(long, default_value_t = 20, value_name = "N")]
+    probe_every: u64,
+    /// Go on after a FAIL finding; a drive that stops answering always ends the campaign.
+    #[arg(long)]
+    keep_going: bool,
+    /// Directory for reproducers (default: corpus/regressions if ./corpus exists, else ./regressions).
+    #[arg(long)]
+    regressions: Option<PathBuf>,
+    /// Per-answer timeout in milliseconds.
+    #[arg(long, default_value_t = 1000, value_name = "MS")]
+    timeout: u64,
+    /// Inject a simulator fault (sim: only; repeatable).
+    #[arg(long = "fault", value_name = "NAME")]
+    faults: Vec<String>,
+    /// Allow cases that can move the motor or enable the power stage (real targets).
+    #[arg(long)]
+    allow_motion: bool,
+    /// Allow cases that change non-volatile state (real targets).
+    #[arg(long)]
+    allow_destructive: bool,
+    /// Skip every case that writes.
+    #[arg(long)]
+    read_only: bool,
+}
+
+/// Parse 30s / 10m / 1h / 500ms / a bare number of seconds.
+fn parse_duration(s: &str) -> Option<Duration> {
+    let s = s.trim();
+    let (num, unit) = s
+        .find(|c: char| !c.is_ascii_digit())
+        .map_or((s, "s"), |i| s.split_at(i));
+    let n: u64 = num.parse().ok()?;
+    Some(match unit {
+        "ms" => Duration::from_millis(n),
+        "s" => Duration::from_secs(n),
+        "m" => Duration::from_secs(n.checked_mul(60)?),
+        "h" => Duration::from_secs(n.checked_mul(3600)?),
+        _ => return None,
+    })
+}
+
+/// Run `fuzz`: exit 0 without findings, 1 with findings, 2 when it could not run.
+pub fn run(args: &FuzzArgs) -> ExitCode {
+    let fail = |m: String| {
+        eprintln!("error: {m}");
+        ExitCode::from(2)
+    };
+    let url = match TargetUrl::parse(&args.target) {
+        Ok(u) => u,
+        Err(e) => return fail(e.to_string()),
+    };
+    let Some(duration) = parse_duration(&args.duration).filter(|d| !d.is_zero()) else {
+        return fail(format!(
+            "--duration `{}` is not a duration like 30s, 10m, 1h or 500ms",
+            args.duration
+        ));
+    };
+    let mut faults = FaultSet::none();
+    for f in &args.faults {
+        match f.parse::<Fault>() {
+            Ok(f) => {
+                faults.0.insert(f);
+            }
+            Err(e) => return fail(e),
+        }
+    }
+    let mut base = Options::new(url);
+    base.profile = args.profile.clone();
+    base.corpus = Corpus::Embedded;
+    base.unit = args.unit;
+    base.timeout = Duration::from_millis(args.timeout.max(1));
+    base.faults = faults;
+    base.allow_motion = args.allow_motion;
+    base.allow_destructive = args.allow_destructive;
+    base.read_only = args.read_only;
+    let regressions = args.regressions.clone().unwrap_or_else(|| {
+        if std::path::Path::new("corpus").is_dir() {
+            PathBuf::from("corpus/regressions")
+        } else {
+            PathBuf::from("regressions")
+        }
+    });
+    let seed = args.seed.unwrap_or_else(clock_seed);
+    let opts = CampaignOptions {
+        base,
+        duration,
+        max_cases: args.max_cases,
+        seed,
+        probe_every: args.probe_every.max(1),
+        keep_going: args.keep_going,
+        regressions,
+    };
+    let interrupt = Arc::new(AtomicBool::new(false));
+    {
+        let flag = interrupt.clone();
+        let _ = ctrlc::set_handler(move || {
+            if flag.swap(true, Ordering::SeqCst) {
+                std::process::exit(130);
+            }
+        });
+    }
+    let tty = std::io::stderr().is_terminal();
+    let mut log = std::io::stderr();
+    let outcome = campaign(&opts, &mut log, &interrupt, |cases, rate, found| {
+        if tty {
+            eprint!("\r{cases} cases, {rate:.0} exec/s, {found} finding(s)   ");
+        } else {
+            eprintln!("{cases} cases, {rate:.0} exec/s, {found} finding(s)");
+        }
+    });
+    if tty {
+        eprintln!();
+    }
+    match outcome {
+        Ok(o) => {
+            for f in &o.findings {
+                let kind = match f.kind {
+                    FindingKind::StoppedAnswering => "STOPPED ANSWERING",
+                    FindingKind::Fail => "FAIL",
+                };
+                println!(
+                    "{kind} after {}: {}",
+                    f.case_id,
+                    f.findings.first().cloned().unwrap_or_default()
+                );
+                if let Some(p) = &f.file {
+                    println!(
+                        "  reproducer {} ({} steps)",
+                        p.display(),
+                        f.reproducer.steps.len()
+                    );
+                }
+                match f.replayed {
+                    Some(true) => println!(
+                        "  replayed: FAILs on a fresh faulted drive, PASSes on a healthy one"
+                    ),
+                    Some(false) => println!(
+                        "  replayed: does NOT reproduce on a fresh drive (depends on earlier state)"
+                    ),
+                    None => println!("  not replayed: a real target cannot be reset from here"),
+                }
+            }
+            println!(
+                "fuzz: {} cases, {} probes in {:.1} s ({:.0} exec/s), seed {}, {} finding(s)",
+                o.cases,
+                o.probes,
+                o.elapsed.as_secs_f64(),
+                o.exec_per_sec(),
+                o.seed,
+                o.findings.len()
+            );
+            if o.findings.is_empty() {
+                ExitCode::SUCCESS
+            } else {
+                ExitCode::from(1)
+            }
+        }
+        Err(e) => fail(e.to_string()),
+    }
+}

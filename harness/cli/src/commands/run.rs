@@ -1,0 +1,368 @@
+//! `modbus-harness run`: the conformance run against a target.
+
+use std::io::IsTerminal;
+use std::path::PathBuf;
+use std::process::ExitCode;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::Duration;
+
+use clap::Args;
+use drives::corpus::Corpus;
+use drives::{Fault, FaultSet};
+use engine::Verdict;
+use engine::cases::shrink::ShrinkLimits;
+use engine::session::{self, Options, SnapshotOptions};
+use engine::targets::TargetUrl;
+
+/// What `run --help` says, after the options, about generated cases and snapshots.
+const GENERATED_HELP: &str = "\
+Generated cases:
+  --generated N --seed S runs N cases drawn from the profile's map (valid requests of every function
+  code, boundary addresses and quantities, 32-bit halves, and malformed variants: bit flips, truncation,
+  extension, byte-count mismatch, function-code swap, wrong unit, bad CRC, MBAP length, several requests
+  in one write, one request split in two), ids gen/S/INDEX/KIND, judged by the same oracle. The same seed
+  gives the same cases on every transport (transport-specific ones are SKIPPED on the other framing); the
+  seed is printed and is in every report. --generated alone runs only the generated cases; add
+  --with-catalog for the catalog too. A generated case that FAILs is shrunk against the target (at most
+  --shrink-steps candidates and --shrink-time seconds each, --max-shrinks cases) and the smallest case
+  that still FAILs is written to --regressions DIR/PROFILE/NAME.toml; the catalog replays those files
+  as regression/PROFILE/NAME.
+
+Snapshots:
+  --snapshot FILE compares the run's observations (per case, sorted by id: request bytes, answers or
+  silence or close, verdict; no timestamps) with FILE, prints a diff naming the cases that differ and
+  exits 1 on drift; with --update-snapshot it writes FILE instead. Compare a sim: run with a server's
+  using --policy-on-sim.";
+
+/// Arguments of `run`.
+///
+/// Generated cases: `--generated N --seed S` runs N cases drawn from the profile's map (valid requests,
+/// boundaries, malformed variants), ids `gen/S/INDEX/KIND`, judged by the same oracle; the same seed gives
+/// the same cases on every transport. Alone it runs only them; `--with-catalog` runs the catalog too. A
+/// failing generated case is shrunk against the target (`--shrink-steps`, `--shrink-time`) and written to
+/// `corpus/regressions/PROFILE/NAME.toml`, which the catalog replays as `regression/PROFILE/NAME`.
+///
+/// Snapshots: `--snapshot FILE` compares the run's observations (request and response bytes, verdict, per
+/// case; timestamps left out) with FILE and prints a diff naming the cases that differ (exit code 1 on
+/// drift); `--update-snapshot` writes FILE instead.
+#[derive(Args)]
+#[command(after_help = GENERATED_HELP)]
+pub struct RunArgs {
+    /// The endpoint: tcp://HOST:PORT, rtu+tcp://HOST:PORT, rtu:///dev/ttyX?baud=19200&parity=even&stop=1, or sim:PROFILE.
+    #[arg(long, default_value = "sim:sd2x")]
+    target: String,
+    /// Drive profile (mdrive, lmd, sd2x, generic, ...) or `auto` to read the device identification.
+    /// Defaults to the simulator's own profile for sim: targets.
+    #[arg(long)]
+    profile: Option<String>,
+    /// Unit id (Modbus/TCP) or slave address (RTU); default: the profile's.
+    #[arg(long)]
+    unit: Option<u8>,
+    /// Write JSON, JUnit XML, HTML and pcapng reports into this directory.
+    #[arg(long)]
+    report: Option<PathBuf>,
+    /// Expectations file: known deviations of this target, each with a reason (TOML).
+    #[arg(long)]
+    expect: Option<PathBuf>,
+    /// Run only cases whose id matches (glob or id prefix; repeatable).
+    #[arg(long = "cases", value_name = "GLOB")]
+    cases: Vec<String>,
+    /// Leave out cases whose id matches (glob or id prefix; repeatable).
+    #[arg(long = "exclude", value_name = "GLOB")]
+    exclude: Vec<String>,
+    /// List the selected cases and exit.
+    #[arg(long)]
+    list: bool,
+    /// Show what would run and what the safety policy would skip, without touching the target.
+    #[arg(long)]
+    dry_run: bool,
+    /// Allow cases that can move the motor or enable the power stage (real targets).
+    #[arg(long)]
+    allow_motion: bool,
+    /// Allow cases that change non-volatile state or leave the drive faulted (real targets).
+    #[arg(long)]
+    allow_destructive: bool,
+    /// Skip every case that writes.
+    #[arg(long)]
+    read_only: bool,
+    /// At most this many requests per second (real targets).
+    #[arg(long, value_name = "N")]
+    max_rate: Option<f64>,
+    /// Per-answer timeout in milliseconds.
+    #[arg(long, default_value_t = 1000, value_name = "MS")]
+    timeout: u64,
+    /// How long to listen for an answer that should not come, in milliseconds.
+    #[arg(long, default_value_t = 300, value_name = "MS")]
+    silence: u64,
+    /// Inject a fault into the in-process simulator (sim: targets; repeatable; see `simulate --list-faults`).
+    #[arg(long = "fault", value_name = "NAME")]
+    faults: Vec<String>,
+    /// Corpus directory (default: the corpus built into the binary).
+    #[arg(long)]
+    corpus: Option<PathBuf>,
+    /// No progress bar.
+    #[arg(long)]
+    no_progress: bool,
+    /// Run N generated cases (ids gen/SEED/INDEX/KIND) instead of the catalog (with it: --with-catalog).
+    #[arg(long, value_name = "N")]
+    generated: Option<u64>,
+    /// Seed of the generated cases (default: from the clock; printed, and in every report).
+    #[arg(long, value_name = "S", requires = "generated")]
+    seed: Option<u64>,
+    /// With --generated: run the catalog (and the regressions) too.
+    #[arg(long, requires = "generated")]
+    with_catalog: bool,
+    /// Do not shrink failing generated cases.
+    #[arg(long)]
+    no_shrink: bool,
+    /// Candidates run against the target at most while shrinking one case.
+    #[arg(long, default_value_t = 200, value_name = "N")]
+    shrink_steps: usize,
+    /// Seconds spent at most shrinking one case.
+    #[arg(long, default_value_t = 30, value_name = "SECS")]
+    shrink_time: u64,
+    /// Failing generated cases shrunk at most per run (the first ones).
+    #[arg(long, default_value_t = 3, value_name = "N")]
+    max_shrinks: usize,
+    /// Where shrunk reproducers are written (DIR/PROFILE/NAME.toml). Default: the --corpus directory's
+    /// regressions/, else ./corpus/regressions when ./corpus exists; otherwise they are only printed.
+    #[arg(long, value_name = "DIR")]
+    regressions: Option<PathBuf>,
+    /// Compare the run's observations with this snapshot file (exit code 1 on drift).
+    #[arg(long, value_name = "FILE")]
+    snapshot: Option<PathBuf>,
+    /// Write the --snapshot file instead of comparing with it.
+    #[arg(long, requires = "snapshot")]
+    update_snapshot: bool,
+    /// Apply the safety policy to sim: targets as to a real drive (motion and destructive cases SKIPPED),
+    /// so that a sim: run selects the same cases as a run against a server.
+    #[arg(long)]
+    policy_on_sim: bool,
+}
+
+/// Run `run`: exit 0 without FAIL, 1 with a FAIL, 2 when the run could not be made.
+pub fn run(args: &RunArgs) -> ExitCode {
+    let url = match TargetUrl::parse(&args.target) {
+        Ok(u) => u,
+        Err(e) => {
+            eprintln!("error: {e}");
+            return ExitCode::from(2);
+        }
+    };
+    let mut faults = FaultSet::none();
+    for f in &args.faults {
+        match f.parse::<Fault>() {
+            Ok(f) => {
+                faults.0.insert(f);
+            }
+            Err(e) => {
+                eprintln!("error: {e}");
+                return ExitCode::from(2);
+            }
+        }
+    }
+    if let Some(r) = args.max_rate
+        && !(r > 0.0 && r.is_finite())
+    {
+        eprintln!("error: --max-rate must be a positive number of requests per second");
+        return ExitCode::from(2);
+    }
+    let mut opts = Options::new(url);
+    opts.profile = args.profile.clone();
+    opts.corpus = Corpus::from_option(args.corpus.as_deref());
+    opts.unit = args.unit;
+    opts.timeout = Duration::from_millis(args.timeout.max(1));
+    opts.silence = Duration::from_millis(args.silence.max(1));
+    opts.allow_motion = args.allow_motion;
+    opts.allow_destructive = args.allow_destructive;
+    opts.read_only = args.read_only;
+    opts.max_rate = args.max_rate;
+    opts.include = args.cases.clone();
+    opts.exclude = args.exclude.clone();
+    opts.expect = args.expect.clone();
+    opts.faults = faults;
+    opts.report_dir = args.report.clone();
+    opts.command_line = std::env::args().collect::<Vec<_>>().join(" ");
+    if let Some(n) = args.generated {
+        opts.generated = n;
+        let seed = args
+            .seed
+            .unwrap_or_else(engine::cases::generated::clock_seed);
+        opts.seed = Some(seed);
+        opts.with_catalog = args.with_catalog;
+        eprintln!("seed: {seed} (replay with --generated {n} --seed {seed})");
+    }
+    opts.shrink = (!args.no_shrink).then(|| ShrinkLimits {
+        max_steps: args.shrink_steps.max(1),
+        max_time: Duration::from_secs(args.shrink_time.max(1)),
+    });
+    opts.max_shrinks = args.max_shrinks;
+    opts.regressions_dir = args.regressions.clone().or_else(|| match &args.corpus {
+        Some(c) => Some(c.join("regressions")),
+        None => std::path::Path::new("corpus")
+            .is_dir()
+            .then(|| PathBuf::from("corpus/regressions")),
+    });
+    opts.snapshot = args.snapshot.clone().map(|path| SnapshotOptions {
+        path,
+        update: args.update_snapshot,
+    });
+    opts.policy_on_sim = args.policy_on_sim;
+
+    if args.list || args.dry_run {
+        return list(&opts, args.dry_run);
+    }
+
+    let interrupt = Arc::new(AtomicBool::new(false));
+    {
+        let flag = interrupt.clone();
+        // A second Ctrl-C while the report is being finished ends the process at once.
+        let _ = ctrlc::set_handler(move || {
+            if flag.swap(true, Ordering::SeqCst) {
+                std::process::exit(130);
+            }
+            eprintln!("\ninterrupted: finishing the current case and writing the report ...");
+        });
+    }
+    let bar = (!args.no_progress && std::io::stderr().is_terminal()).then(|| {
+        let b = indicatif::ProgressBar::new(0);
+        b.set_style(
+            indicatif::ProgressStyle::with_template("{bar:30} {pos}/{len} {msg}")
+                .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
+        );
+        b
+    });
+    let mut fails = 0usize;
+    let mut progress = |done: usize, total: usize, id: &str, v: Verdict| {
+        if v == Verdict::Fail {
+            fails += 1;
+        }
+        if let Some(b) = &bar {
+            b.set_length(total as u64);
+            b.set_position(done as u64);
+            b.set_message(format!("{fails} FAIL  {id}"));
+        }
+    };
+    let mut log = std::io::stderr();
+    let outcome = session::run(&opts, &mut log, &interrupt, &mut progress);
+    if let Some(b) = bar {
+        b.finish_and_clear();
+    }
+    match outcome {
+        Ok(o) => {
+            for f in o.failures.iter().take(20) {
+                println!("FAIL {}", f.id);
+                for line in f.findings().take(3) {
+                    println!("     {line}");
+                }
+            }
+            for r in &o.shrunk {
+                match (&r.shrunk, &r.file) {
+                    (Some(s), Some(p)) => println!(
+                        "SHRUNK {} -> {} ({} step(s); {} candidates run): {}",
+                        r.id,
+                        s.case.id,
+                        s.case.steps.len(),
+                        s.steps,
+                        p.display()
+                    ),
+                    (Some(s), None) => println!(
+                        "SHRUNK {} -> {} ({} step(s); {} candidates run){}",
+                        r.id,
+                        s.case.id,
+                        s.case.steps.len(),
+                        s.steps,
+                        r.note.as_ref().map_or(
+                            " (not written: pass --regressions DIR)".to_string(),
+                            |n| format!(": {n}")
+                        )
+                    ),
+                    (None, _) => {
+                        println!("NOT SHRUNK {}: {}", r.id, r.note.as_deref().unwrap_or(""))
+                    }
+                }
+            }
+            let drift = o.snapshot.as_ref().is_some_and(|s| s.drifted());
+            if let Some(s) = &o.snapshot {
+                match &s.drift {
+                    _ if s.written => println!("snapshot written: {}", s.path.display()),
+                    Some(d) if !d.is_clean() => {
+                        println!("snapshot {} differs from this run:", s.path.display());
+                        print!("{}", d.render());
+                    }
+                    Some(d) => println!("{} ({})", d.summary(), s.path.display()),
+                    None => {}
+                }
+            }
+            if drift {
+                println!(
+                    "the observations drifted: exit code 1 (accept them with --update-snapshot)"
+                );
+            }
+            print!("{}", engine::reports::terminal_summary(&o.summary, &o.info));
+            if o.summary.count(Verdict::Fail) > 0 || drift {
+                ExitCode::from(1)
+            } else if o.summary.interrupted {
+                ExitCode::from(2)
+            } else {
+                ExitCode::SUCCESS
+            }
+        }
+        Err(e) => {
+            eprintln!("error: {e}");
+            ExitCode::from(2)
+        }
+    }
+}
+
+fn list(opts: &Options, dry: bool) -> ExitCode {
+    let mut log = std::io::stderr();
+    let profile = match session::resolve_profile(opts, &mut log) {
+        Ok(p) => p,
+        Err(e) => {
+            eprintln!("error: {e}");
+            return ExitCode::from(2);
+        }
+    };
+    let planned = match session::plan(opts, &profile) {
+        Ok(p) => p,
+        Err(e) => {
+            eprintln!("error: {e}");
+            return ExitCode::from(2);
+        }
+    };
+    let (mut run, mut skip) = (0, 0);
+    for (c, s) in &planned {
+        let tags: Vec<String> = c
+            .tags
+            .iter()
+            .map(|t| format!("{t:?}").to_lowercase())
+            .collect();
+        let tags = if tags.is_empty() {
+            String::new()
+        } else {
+            format!(" [{}]", tags.join(","))
+        };
+        match (dry, s) {
+            (true, Some(reason)) => {
+                skip += 1;
+                println!("SKIP {}{tags}  ({reason})", c.id);
+            }
+            (true, None) => {
+                run += 1;
+                println!("RUN  {}{tags}  {}", c.id, c.title);
+            }
+            (false, _) => println!("{}{tags}  {}", c.id, c.title),
+        }
+    }
+    if dry {
+        println!(
+            "\n{run} to run, {skip} skipped by the safety policy or the transport, against {}",
+            opts.target
+        );
+    } else {
+        println!("\n{} cases", planned.len());
+    }
+    ExitCode::SUCCESS
+}

@@ -1,0 +1,295 @@
+//! `modbus-harness simulate`: serve a reference drive over Modbus/TCP, RTU over TCP and/or a serial line.
+
+use std::io::Write;
+use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+use std::time::Duration;
+
+use clap::{Args, ValueEnum};
+use codec::framer::Parity;
+use drives::corpus::Corpus;
+use drives::profile::{ParityName, Profile};
+use drives::{self, Fault, FaultSet, Station};
+use engine::servers::{self, SerialConfig, ServerConfig, ServerHandle};
+
+/// Arguments of `simulate`.
+#[derive(Args, Debug)]
+pub struct SimulateArgs {
+    /// Profile name in the corpus (e.g. sd2x, mdrive, lmd, generic) or a path to a profile .toml.
+    #[arg(long, required_unless_present = "list_faults")]
+    profile: Option<String>,
+    /// Serve Modbus/TCP on this address (port 0: any free port; the bound one is printed).
+    #[arg(long, value_name = "ADDR")]
+    listen: Option<SocketAddr>,
+    /// Serve RTU frames inside TCP on this address.
+    #[arg(long, value_name = "ADDR")]
+    rtu_over_tcp: Option<SocketAddr>,
+    /// Serve RTU on this serial device or pty.
+    #[arg(long, value_name = "PATH")]
+    serial: Option<PathBuf>,
+    /// Serial baud rate (default: the profile's, else 19200).
+    #[arg(long, requires = "serial")]
+    baud: Option<u32>,
+    /// Serial parity (default: the profile's, else even as the serial line spec says).
+    #[arg(long, value_enum, requires = "serial")]
+    parity: Option<ParityArg>,
+    /// Serial stop bits (default: the profile's, else 1).
+    #[arg(long, value_parser = clap::value_parser!(u8).range(1..=2), requires = "serial")]
+    stop: Option<u8>,
+    /// Unit id / slave address to answer as (default: the profile's default unit).
+    #[arg(long)]
+    unit: Option<u8>,
+    /// Inject a fault (repeatable); see --list-faults.
+    #[arg(long = "fault", value_name = "NAME", value_parser = parse_fault)]
+    faults: Vec<Fault>,
+    /// Print every fault with what it does, and exit.
+    #[arg(long)]
+    list_faults: bool,
+    /// Corpus directory (default: the corpus built into the binary).
+    #[arg(long, value_name = "DIR")]
+    corpus: Option<PathBuf>,
+}
+
+/// Parity on the command line.
+#[derive(Clone, Copy, Debug, ValueEnum)]
+enum ParityArg {
+    None,
+    Even,
+    Odd,
+}
+
+fn parse_fault(s: &str) -> Result<Fault, String> {
+    s.parse()
+}
+
+/// How long shutdown may take before the process gives up on stragglers.
+const SHUTDOWN_GRACE: Duration = Duration::from_secs(5);
+
+/// Run `simulate`: exit 0 after a clean stop (SIGINT/SIGTERM), 2 on unusable arguments, 1 when serving failed
+/// (the runtime, or an endpoint such as a serial line that stopped working).
+pub fn run(args: SimulateArgs) -> ExitCode {
+    if args.list_faults {
+        let width = Fault::ALL.iter().map(|f| f.1.len()).max().unwrap_or(0);
+        for (_, name, what) in Fault::ALL {
+            println!("{name:width$}  {what}");
+        }
+        return ExitCode::SUCCESS;
+    }
+    let (station, config, summary) = match prepare(&args) {
+        Ok(x) => x,
+        Err(msg) => {
+            eprintln!("error: {msg}");
+            return ExitCode::from(2);
+        }
+    };
+    // Two workers at most: the machines this runs on have two cores, and a client usually shares them.
+    let workers = std::thread::available_parallelism().map_or(1, |n| n.get().min(2));
+    let rt = match tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(workers)
+        .enable_all()
+        .build()
+    {
+        Ok(rt) => rt,
+        Err(e) => {
+            eprintln!("error: cannot start the runtime: {e}");
+            return ExitCode::FAILURE;
+        }
+    };
+    rt.block_on(serve(station, config, summary))
+}
+
+async fn serve(station: Station, config: ServerConfig, summary: String) -> ExitCode {
+    let mut signals = StopSignals::install();
+    let mut handle = match servers::start(station, &config).await {
+        Ok(h) => h,
+        Err(e) => {
+            eprintln!("error: {e}");
+            return ExitCode::from(2);
+        }
+    };
+    eprintln!("simulate: {summary}");
+    print_endpoints(&handle);
+    let code = tokio::select! {
+        signal = signals.recv() => {
+            eprintln!("simulate: {signal}, stopping");
+            ExitCode::SUCCESS
+        }
+        // A simulator that silently lost its serial line would look alive to whoever started it.
+        _ = handle.endpoint_stopped() => {
+            eprintln!("simulate: an endpoint stopped serving (error above), stopping");
+            ExitCode::FAILURE
+        }
+    };
+    if tokio::time::timeout(SHUTDOWN_GRACE, handle.shutdown())
+        .await
+        .is_err()
+    {
+        eprintln!("simulate: connections still open after {SHUTDOWN_GRACE:?}, exiting anyway");
+    }
+    code
+}
+
+/// One line per endpoint on stdout, flushed at once: scripts and tests wait for these lines.
+fn print_endpoints(handle: &ServerHandle) {
+    let mut out = std::io::stdout().lock();
+    if let Some(a) = handle.tcp_addr() {
+        let _ = writeln!(out, "listening tcp {a}");
+    }
+    if let Some(a) = handle.rtu_over_tcp_addr() {
+        let _ = writeln!(out, "listening rtu-over-tcp {a}");
+    }
+    if let Some(s) = handle.serial() {
+        let _ = writeln!(
+            out,
+            "listening serial {} {}",
+            s.path.display(),
+            s.describe()
+        );
+    }
+    let _ = out.flush();
+}
+
+/// The signals that stop the simulator, watched from before the listening lines are printed: a script that
+/// signals right after reading them must not meet the default action (death by signal, not a clean exit).
+struct StopSignals {
+    int: Option<tokio::signal::unix::Signal>,
+    term: Option<tokio::signal::unix::Signal>,
+}
+
+impl StopSignals {
+    fn install() -> Self {
+        use tokio::signal::unix::{SignalKind, signal};
+        let watch = |kind: SignalKind, name: &str| match signal(kind) {
+            Ok(s) => Some(s),
+            Err(e) => {
+                eprintln!("simulate: cannot watch {name} ({e})");
+                None
+            }
+        };
+        Self {
+            int: watch(SignalKind::interrupt(), "SIGINT"),
+            term: watch(SignalKind::terminate(), "SIGTERM"),
+        }
+    }
+
+    /// Resolves on SIGINT (Ctrl-C) or SIGTERM, naming the signal.
+    async fn recv(&mut self) -> &'static str {
+        async fn on(s: &mut Option<tokio::signal::unix::Signal>) {
+            match s {
+                Some(s) => {
+                    s.recv().await;
+                }
+                None => std::future::pending::<()>().await,
+            }
+        }
+        tokio::select! {
+            _ = on(&mut self.int) => "SIGINT",
+            _ = on(&mut self.term) => "SIGTERM",
+        }
+    }
+}
+
+/// Load the profile, check the arguments against it, build the station and the endpoint list.
+fn prepare(args: &SimulateArgs) -> Result<(Station, ServerConfig, String), String> {
+    let name = args.profile.as_deref().unwrap_or_default();
+    let corpus = Corpus::from_option(args.corpus.as_deref());
+    let profile = load_profile(&corpus, name)?;
+    if args.listen.is_none() && args.rtu_over_tcp.is_none() && args.serial.is_none() {
+        return Err(
+            "nothing to serve: give at least one of --listen ADDR, --rtu-over-tcp ADDR, --serial PATH"
+                .into(),
+        );
+    }
+    let [lo, hi] = profile.device.unit_ids;
+    let unit = args.unit.unwrap_or(profile.device.default_unit);
+    if !(lo..=hi).contains(&unit) {
+        return Err(format!(
+            "unit {unit} is not a unit id of profile {} (allowed: {lo}..={hi})",
+            profile.device.id
+        ));
+    }
+    if unit == 0 && (args.serial.is_some() || args.rtu_over_tcp.is_some()) {
+        return Err(
+            "unit 0 is the RTU broadcast address, not a slave address: give --unit 1..=247 for RTU"
+                .into(),
+        );
+    }
+    let serial = args.serial.as_ref().map(|path| {
+        let ps = profile.serial.as_ref();
+        let parity = match args.parity {
+            Some(ParityArg::None) => Parity::None,
+            Some(ParityArg::Even) => Parity::Even,
+            Some(ParityArg::Odd) => Parity::Odd,
+            None => match ps.map(|s| s.default_parity) {
+                Some(ParityName::None) => Parity::None,
+                Some(ParityName::Odd) => Parity::Odd,
+                Some(ParityName::Even) | None => Parity::Even,
+            },
+        };
+        SerialConfig {
+            path: path.clone(),
+            baud: args.baud.or(ps.map(|s| s.default_baud)).unwrap_or(19_200),
+            parity,
+            stop_bits: args.stop.or(ps.map(|s| s.stop_bits)).unwrap_or(1),
+        }
+    });
+    if let Some(s) = &serial {
+        if s.baud == 0 {
+            return Err("--baud must be above 0".into());
+        }
+    }
+    let faults = FaultSet::of(&args.faults);
+    let fault_names = if args.faults.is_empty() {
+        "none".to_string()
+    } else {
+        args.faults
+            .iter()
+            .map(|f| f.name())
+            .collect::<Vec<_>>()
+            .join(", ")
+    };
+    let summary = format!(
+        "profile {} ({}), unit {unit}, faults: {fault_names}",
+        profile.device.id, profile.device.name
+    );
+    let station = Station::new(drives::build(profile, faults.clone()), faults, unit);
+    let config = ServerConfig {
+        tcp: args.listen,
+        rtu_over_tcp: args.rtu_over_tcp,
+        serial,
+        ..ServerConfig::default()
+    };
+    Ok((station, config, summary))
+}
+
+/// A profile by corpus name, or from a file when `name` is a path to a .toml.
+fn load_profile(corpus: &Corpus, name: &str) -> Result<Profile, String> {
+    let path = Path::new(name);
+    if path.extension().is_some_and(|e| e == "toml") && path.is_file() {
+        return Profile::load(path).map_err(|e| e.to_string());
+    }
+    // Read the directory first: a corpus that cannot be read is not an unknown profile.
+    let files = corpus
+        .files("profiles")
+        .map_err(|e| format!("reading the {}: {e}", corpus.describe()))?;
+    match corpus.file("profiles", name) {
+        Ok((file, text)) => Profile::parse(&file, &text).map_err(|e| e.to_string()),
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+            let known: Vec<String> = files
+                .iter()
+                .filter_map(|(n, _)| {
+                    Path::new(n.trim_end_matches(" (embedded)"))
+                        .file_stem()
+                        .map(|s| s.to_string_lossy().into_owned())
+                })
+                .collect();
+            Err(format!(
+                "unknown profile `{name}` in the {}; known: {}",
+                corpus.describe(),
+                known.join(", ")
+            ))
+        }
+        Err(e) => Err(format!("reading the {}: {e}", corpus.describe())),
+    }
+}

@@ -1,0 +1,237 @@
+//! The `run` and `probe` commands as a user meets them: clear errors with exit code 2, reports on disk,
+//! safety on real targets, `--profile auto`, and an interrupted run that still leaves a complete report.
+
+use std::process::Command;
+use std::sync::atomic::{AtomicBool, Ordering};
+
+use engine::session::{Options, resolve_profile, run};
+use engine::targets::TargetUrl;
+use test_support::{TempDir, loopback_tcp_and_rtu, serve};
+
+fn harness(args: &[&str]) -> (i32, String, String) {
+    let out = Command::new(env!("CARGO_BIN_EXE_modbus-harness"))
+        .args(args)
+        .output()
+        .expect("run the binary");
+    (
+        out.status.code().unwrap_or(-1),
+        String::from_utf8_lossy(&out.stdout).into_owned(),
+        String::from_utf8_lossy(&out.stderr).into_owned(),
+    )
+}
+
+#[test]
+fn bad_targets_exit_2_with_a_clear_message() {
+    let cases: &[(&[&str], &str)] = &[
+        (&["run", "--target", "bogus://x"], "unknown scheme `bogus`"),
+        (
+            &[
+                "run",
+                "--target",
+                "tcp://127.0.0.1:notaport",
+                "--profile",
+                "mdrive",
+            ],
+            "is not a number",
+        ),
+        (&["run", "--target", "sim:nope"], "known profiles"),
+        (
+            &[
+                "run",
+                "--target",
+                "rtu:///dev/modbus-harness-no-such-tty",
+                "--profile",
+                "sd2x",
+            ],
+            "no such device",
+        ),
+        (
+            &[
+                "run",
+                "--target",
+                "rtu:///dev/ttyS0?baud=fast",
+                "--profile",
+                "sd2x",
+            ],
+            "baud `fast`",
+        ),
+        (
+            &[
+                "run",
+                "--target",
+                "tcp://127.0.0.1:1",
+                "--profile",
+                "mdrive",
+                "--timeout",
+                "200",
+            ],
+            "cannot connect to 127.0.0.1:1",
+        ),
+        (
+            &["run", "--target", "tcp://127.0.0.1:502"],
+            "--profile is required",
+        ),
+        (
+            &["run", "--target", "sim:sd2x", "--fault", "nonsense"],
+            "unknown fault `nonsense`",
+        ),
+        (
+            &[
+                "run",
+                "--target",
+                "tcp://127.0.0.1:1",
+                "--profile",
+                "mdrive",
+                "--fault",
+                "word-order",
+            ],
+            "in-process simulator only",
+        ),
+        (
+            &["probe", "--target", "sim:mdrive", "--scan", "9-3"],
+            "--scan",
+        ),
+    ];
+    for (args, want) in cases {
+        let (code, _, err) = harness(args);
+        assert_eq!(code, 2, "{args:?}: exit code, stderr: {err}");
+        assert!(err.contains(want), "{args:?}: stderr lacks `{want}`: {err}");
+        assert!(!err.contains("panicked"), "{args:?} panicked: {err}");
+    }
+}
+
+#[test]
+fn a_run_writes_every_report_and_exits_by_verdict() {
+    let dir = TempDir::new("cli-run");
+    let report = dir.path().join("r");
+    let (code, out, err) = harness(&[
+        "run",
+        "--target",
+        "sim:sd2x",
+        "--no-progress",
+        "--report",
+        report.to_str().unwrap(),
+    ]);
+    assert_eq!(code, 0, "{out}{err}");
+    assert!(
+        out.trim_end()
+            .lines()
+            .last()
+            .unwrap_or("")
+            .starts_with("RESULT: PASS"),
+        "summary last: {out}"
+    );
+    for f in ["index.json", "junit.xml", "report.html", "session.pcapng"] {
+        assert!(report.join(f).is_file(), "{f} missing");
+    }
+    let (code, out, _) = harness(&[
+        "run",
+        "--target",
+        "sim:mdrive",
+        "--no-progress",
+        "--fault",
+        "range-unchecked",
+    ]);
+    assert_eq!(code, 1, "a FAIL exits 1: {out}");
+    assert!(
+        out.contains("FAIL profile/mdrive/write-out-of-range/"),
+        "{out}"
+    );
+}
+
+#[test]
+fn dry_run_shows_the_safety_policy_without_touching_the_target() {
+    // Nothing listens on port 1: a dry run must not connect.
+    let (code, out, err) = harness(&[
+        "run",
+        "--dry-run",
+        "--target",
+        "tcp://127.0.0.1:1",
+        "--profile",
+        "mdrive",
+    ]);
+    assert_eq!(code, 0, "{err}");
+    assert!(
+        out.contains("SKIP profile/mdrive/write/0x0043-ma"),
+        "a move is skipped without --allow-motion: {out}"
+    );
+    assert!(out.contains("--allow-motion"), "{out}");
+    assert!(out.contains("RUN  profile/mdrive/read/0x008B-vm"), "{out}");
+    let (_, out, _) = harness(&[
+        "run",
+        "--dry-run",
+        "--read-only",
+        "--target",
+        "tcp://127.0.0.1:1",
+        "--profile",
+        "mdrive",
+    ]);
+    assert!(
+        out.contains("SKIP profile/mdrive/write/0x008B-vm") && out.contains("--read-only"),
+        "{out}"
+    );
+    let (_, out, _) = harness(&[
+        "run", "--list", "--target", "sim:sd2x", "--cases", "golden/*",
+    ]);
+    assert!(
+        out.contains("golden/sd2x/6.3/status-read/request") && !out.contains("profile/sd2x/"),
+        "{out}"
+    );
+}
+
+#[test]
+fn probe_finds_what_the_profile_documents() {
+    for p in ["mdrive", "sd2x", "generic"] {
+        let scan = if p == "sd2x" { "1995-2030" } else { "0-0xC0" };
+        let (code, out, err) = harness(&["probe", "--target", &format!("sim:{p}"), "--scan", scan]);
+        assert_eq!(code, 0, "{err}");
+        assert!(
+            !out.contains("DIFFERENT") && !out.contains("<-"),
+            "{p}: {out}"
+        );
+        assert!(out.contains("none of them writes"), "{out}");
+    }
+}
+
+#[test]
+fn profile_auto_reads_the_identification() {
+    let rt = tokio::runtime::Runtime::new().expect("runtime");
+    for p in ["mdrive", "lmd"] {
+        let h = rt.block_on(serve(p, &[], loopback_tcp_and_rtu()));
+        let mut o =
+            Options::new(TargetUrl::parse(&format!("tcp://{}", h.tcp_addr().unwrap())).unwrap());
+        o.profile = Some("auto".into());
+        let mut log = Vec::new();
+        let got = resolve_profile(&o, &mut log).expect("auto resolves");
+        assert_eq!(got.device.id, p, "{}", String::from_utf8_lossy(&log));
+        assert!(
+            String::from_utf8_lossy(&log).contains("picked"),
+            "says what it found"
+        );
+    }
+}
+
+#[test]
+fn an_interrupted_run_leaves_a_complete_report() {
+    let dir = TempDir::new("cli-interrupt");
+    let mut o = Options::new(TargetUrl::parse("sim:mdrive").unwrap());
+    o.report_dir = Some(dir.path().join("r"));
+    let stop = AtomicBool::new(false);
+    let out = run(&o, &mut std::io::sink(), &stop, &mut |done, _, _, _| {
+        if done == 10 {
+            stop.store(true, Ordering::SeqCst);
+        }
+    })
+    .expect("run");
+    assert!(out.summary.interrupted);
+    assert_eq!(out.summary.cases, 10);
+    let index: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(dir.path().join("r/index.json")).expect("index.json written"),
+    )
+    .expect("index.json is complete JSON");
+    assert_eq!(index["cases"].as_array().map(|a| a.len()), Some(10));
+    assert_eq!(
+        index["summary"]["interrupted"],
+        serde_json::Value::Bool(true)
+    );
+}

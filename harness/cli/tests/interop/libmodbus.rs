@@ -1,0 +1,82 @@
+//! A libmodbus client (tests/peers/libmodbus_client.c, built by the test with gcc) against the simulator's
+//! servers: Modbus/TCP and RTU on a socat pty pair. The value checks are the manuals' answers and hold once
+//! the drive models are in; the exception checks are the station's own.
+
+use test_support::peers::{Peer, Scenario, Via, run};
+
+#[tokio::test]
+async fn libmodbus_tcp_sd2x_status_word() {
+    run(
+        Peer::Libmodbus,
+        Scenario::Sd2xStatusWord,
+        Via::Tcp,
+        "libmodbus_tcp_sd2x_status_word",
+    )
+    .await;
+}
+
+#[tokio::test]
+async fn libmodbus_rtu_pty_sd2x_status_word() {
+    run(
+        Peer::Libmodbus,
+        Scenario::Sd2xStatusWord,
+        Via::Pty,
+        "libmodbus_rtu_pty_sd2x_status_word",
+    )
+    .await;
+}
+
+#[tokio::test]
+async fn libmodbus_tcp_sd2x_illegal_function() {
+    run(
+        Peer::Libmodbus,
+        Scenario::Sd2xIllegalFunction,
+        Via::Tcp,
+        "libmodbus_tcp_sd2x_illegal_function",
+    )
+    .await;
+}
+
+#[tokio::test]
+async fn libmodbus_rtu_pty_sd2x_illegal_function() {
+    run(
+        Peer::Libmodbus,
+        Scenario::Sd2xIllegalFunction,
+        Via::Pty,
+        "libmodbus_rtu_pty_sd2x_illegal_function",
+    )
+    .await;
+}
+
+#[tokio::test]
+async fn libmodbus_tcp_mdrive_max_velocity() {
+    run(
+        Peer::Libmodbus,
+        Scenario::MdriveMaxVelocity,
+        Via::Tcp,
+        "libmodbus_tcp_mdrive_max_velocity",
+    )
+    .await;
+}
+
+#[tokio::test]
+async fn libmodbus_tcp_generic_round_trip() {
+    run(
+        Peer::Libmodbus,
+        Scenario::GenericRoundTrip,
+        Via::Tcp,
+        "libmodbus_tcp_generic_round_trip",
+    )
+    .await;
+}
+
+#[tokio::test]
+async fn libmodbus_rtu_pty_generic_round_trip() {
+    run(
+        Peer::Libmodbus,
+        Scenario::GenericRoundTrip,
+        Via::Pty,
+        "libmodbus_rtu_pty_generic_round_trip",
+    )
+    .await;
+}

@@ -1,0 +1,270 @@
+//! The interop matrix can fail: what `.ci/interop` relies on, shown against real processes.
+//!
+//! - The peer servers of tests/peers/ (pymodbus, libmodbus) bind port 0, print where they listen, serve the
+//!   generic profile's map (and nothing past it) and stop on SIGTERM with exit code 0.
+//! - The conformance run against the pymodbus server passes with its committed expectations file and fails
+//!   (exit code 1, the case named) when one entry is taken out: a peer that changes behaviour, or an entry
+//!   that goes missing, turns the matrix red.
+//! - The run against `modbus-harness simulate --fault wrong-exception-code` fails (exit code 1) where the
+//!   same run against the healthy simulator passes: a broken reference drive turns the matrix red.
+
+use std::io::{BufReader, Read};
+use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, ExitStatus, Stdio};
+use std::sync::mpsc;
+use std::time::{Duration, Instant};
+
+use test_support::peer_servers::PeerServer;
+use test_support::*;
+
+/// Bound on one conformance run in these tests (they select a few dozen cases).
+const RUN_LIMIT: Duration = Duration::from_secs(120);
+
+/// The repository's top directory.
+fn repo() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("../..")
+}
+
+/// Wait for `child` to exit, bounded; kill it and panic on the bound.
+fn wait_bounded(child: &mut Child, limit: Duration, what: &str) -> ExitStatus {
+    let give_up = Instant::now() + limit;
+    loop {
+        if let Some(status) = child.try_wait().expect("try_wait") {
+            return status;
+        }
+        if Instant::now() >= give_up {
+            let _ = child.kill();
+            let _ = child.wait();
+            panic!("{what} did not finish within {limit:?}");
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
+/// Drain a pipe on a thread; the text arrives on the channel when the pipe closes.
+fn collect(pipe: impl Read + Send + 'static) -> mpsc::Receiver<String> {
+    let (tx, rx) = mpsc::channel();
+    std::thread::spawn(move || {
+        let mut s = String::new();
+        let _ = BufReader::new(pipe).read_to_string(&mut s);
+        let _ = tx.send(s);
+    });
+    rx
+}
+
+/// `modbus-harness run ARGS`, bounded: (exit code, stdout, stderr).
+fn harness_run(args: &[&str]) -> (Option<i32>, String, String) {
+    let mut child = Command::new(env!("CARGO_BIN_EXE_modbus-harness"))
+        .arg("run")
+        .args(args)
+        .arg("--no-progress")
+        .stdin(Stdio::null())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("spawn modbus-harness run");
+    let out = collect(child.stdout.take().expect("stdout"));
+    let err = collect(child.stderr.take().expect("stderr"));
+    let status = wait_bounded(&mut child, RUN_LIMIT, "modbus-harness run");
+    let text = |rx: mpsc::Receiver<String>| rx.recv_timeout(STEP).unwrap_or_default();
+    (status.code(), text(out), text(err))
+}
+
+/// The generic profile's map through one connection each: input register n holds n, coil 99 is the last
+/// coil, coil 100 and holding register 100 are past the map (exception 02).
+async fn serves_the_generic_map(addr: SocketAddr, who: &str) {
+    let cases: [(&[u8], &[u8], &str); 4] = [
+        (
+            &[0x04, 0x00, 0x07, 0x00, 0x01],
+            &[0x04, 0x02, 0x00, 0x07],
+            "input register 7 = 7",
+        ),
+        (
+            &[0x01, 0x00, 0x63, 0x00, 0x01],
+            &[0x01, 0x01, 0x00],
+            "coil 99 = 0",
+        ),
+        (
+            &[0x01, 0x00, 0x64, 0x00, 0x01],
+            &[0x81, 0x02],
+            "coil 100: exception 02",
+        ),
+        (
+            &[0x03, 0x00, 0x64, 0x00, 0x01],
+            &[0x83, 0x02],
+            "holding 100: exception 02",
+        ),
+    ];
+    for (tid, (req, want, what)) in cases.iter().enumerate() {
+        let reply = tcp_exchange(addr, &tcp_adu(tid as u16 + 1, 1, req)).await;
+        assert_eq!(&reply[7..], *want, "{who}: {what}; reply {reply:02X?}");
+    }
+}
+
+#[tokio::test]
+async fn pymodbus_server_serves_the_generic_map_and_stops_on_sigterm() {
+    let test = "pymodbus_server_serves_the_generic_map_and_stops_on_sigterm";
+    if !have_pymodbus() {
+        skip(
+            test,
+            "needs python3 with pymodbus (pip install 'pymodbus[serial]')",
+        );
+        return;
+    }
+    let server = PeerServer::pymodbus();
+    serves_the_generic_map(server.addr, "pymodbus").await;
+    let status = server.terminate();
+    assert!(status.success(), "pymodbus server after SIGTERM: {status}");
+}
+
+#[tokio::test]
+async fn libmodbus_server_serves_the_generic_map_and_stops_on_sigterm() {
+    let test = "libmodbus_server_serves_the_generic_map_and_stops_on_sigterm";
+    if !have_libmodbus() {
+        skip(
+            test,
+            "needs gcc and libmodbus (apt-get install gcc pkg-config libmodbus-dev)",
+        );
+        return;
+    }
+    let server = PeerServer::libmodbus();
+    serves_the_generic_map(server.addr, "libmodbus").await;
+    let status = server.terminate();
+    assert!(status.success(), "libmodbus server after SIGTERM: {status}");
+}
+
+/// The expectations entry this test takes out, and the cases both runs select: that entry's case and the
+/// cases of two other entries, which must stay tolerated in both runs.
+const DROPPED: &str = "spec/app-6.5/write-coil-illegal-value";
+const SELECTED: [&str; 3] = [
+    DROPPED,
+    "spec/app-6/quantity/*",
+    "spec/app-7/unsupported-function/*",
+];
+
+/// `text` without the `[[deviation]]` block whose case is `case`.
+fn without_entry(text: &str, case: &str) -> String {
+    let needle = format!("case = \"{case}\"");
+    let mut parts = text.split("[[deviation]]");
+    let mut out = parts.next().unwrap_or_default().to_string();
+    let mut dropped = 0;
+    for block in parts {
+        if block.contains(&needle) {
+            dropped += 1;
+        } else {
+            out.push_str("[[deviation]]");
+            out.push_str(block);
+        }
+    }
+    assert_eq!(dropped, 1, "exactly one entry for {case}");
+    out
+}
+
+/// The count the terminal summary gives for `verdict` (its line `  NON-STRICT      12`).
+fn count(summary: &str, verdict: &str) -> usize {
+    summary
+        .lines()
+        .find_map(|l| l.trim().strip_prefix(verdict))
+        .and_then(|n| n.trim().parse().ok())
+        .unwrap_or(0)
+}
+
+fn run_pymodbus(expect: &Path) -> (Option<i32>, String, String) {
+    // A fresh server per run: the cases write to it.
+    let server = PeerServer::pymodbus();
+    let target = format!("tcp://{}", server.addr);
+    let expect = expect.to_string_lossy().into_owned();
+    let mut args = vec![
+        "--target",
+        &target,
+        "--profile",
+        "generic",
+        "--expect",
+        &expect,
+    ];
+    for c in SELECTED {
+        args.extend(["--cases", c]);
+    }
+    let out = harness_run(&args);
+    let status = server.terminate();
+    assert!(status.success(), "pymodbus server after SIGTERM: {status}");
+    out
+}
+
+#[test]
+fn a_missing_expectation_fails_the_run_against_the_pymodbus_server() {
+    let test = "a_missing_expectation_fails_the_run_against_the_pymodbus_server";
+    if !have_pymodbus() {
+        skip(
+            test,
+            "needs python3 with pymodbus (pip install 'pymodbus[serial]')",
+        );
+        return;
+    }
+    let full = repo().join("tests/expect/pymodbus-tcp.toml");
+    let (code, out, err) = run_pymodbus(&full);
+    assert_eq!(
+        code,
+        Some(0),
+        "with the committed expectations the selected cases pass:\n{out}\n{err}"
+    );
+    assert!(
+        count(&out, "NON-STRICT") > 0,
+        "the listed deviations are NON-STRICT:\n{out}"
+    );
+
+    let dir = TempDir::new("expect");
+    let partial = dir.path().join("pymodbus-tcp-minus-one.toml");
+    let text = std::fs::read_to_string(&full).expect("read the expectations file");
+    std::fs::write(&partial, without_entry(&text, DROPPED)).expect("write the reduced file");
+    let (code, out, err) = run_pymodbus(&partial);
+    assert_eq!(
+        code,
+        Some(1),
+        "without the entry for {DROPPED} the run fails:\n{out}\n{err}"
+    );
+    assert!(
+        out.contains(&format!("FAIL {DROPPED}")),
+        "the failing case is named:\n{out}"
+    );
+    assert_eq!(
+        out.lines().filter(|l| l.starts_with("FAIL ")).count(),
+        1,
+        "only that case fails:\n{out}"
+    );
+}
+
+#[test]
+fn a_simulator_fault_fails_the_run_where_the_healthy_simulator_passes() {
+    let run = |fault: Option<&str>| {
+        let mut args = vec!["--profile", "generic", "--listen", "127.0.0.1:0"];
+        if let Some(f) = fault {
+            args.extend(["--fault", f]);
+        }
+        let sim = SimProcess::start(&args);
+        let target = format!("tcp://{}", sim.tcp.expect("tcp endpoint"));
+        let out = harness_run(&[
+            "--target",
+            &target,
+            "--profile",
+            "generic",
+            "--cases",
+            "spec/*",
+        ]);
+        drop(sim);
+        out
+    };
+    let (code, out, err) = run(None);
+    assert_eq!(code, Some(0), "the healthy simulator passes:\n{out}\n{err}");
+    let (code, out, err) = run(Some("wrong-exception-code"));
+    assert_eq!(
+        code,
+        Some(1),
+        "wrong-exception-code fails the run:\n{out}\n{err}"
+    );
+    assert!(
+        out.contains("FAIL spec/app-7/unsupported-function/"),
+        "an exception case is named among the failures:\n{out}"
+    );
+}

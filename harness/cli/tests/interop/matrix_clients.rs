@@ -1,0 +1,394 @@
+//! The client pairs of the interop matrix that the other interop tests leave out: every third-party client
+//! (tokio-modbus, mbpoll, the libmodbus client, the pymodbus client) against every reference drive over the
+//! transports its manual gives it. The others cover SD2x over a pty (all four clients) and RTU over TCP
+//! (tokio-modbus), MDrive over Modbus/TCP (all four); this file adds:
+//!
+//! - LMD over Modbus/TCP, all four clients: the manual's 4.2.2 output read (O1=1, O2=0, O3=1), 4.2.4 VM read
+//!   (768000, low word first), 4.2.5 VM write (600000) read back, 4.2.3 output write;
+//! - SD2x over RTU over TCP for the pymodbus client (its RTU framer on a socket), the libmodbus client and
+//!   mbpoll (neither speaks RTU over TCP: a socat pty whose bytes go to the simulator's RTU-over-TCP
+//!   endpoint carries their RTU frames): the manual's 6.1 telegrams, the watchdog, the 6.3 status word
+//!   0x7038, and exception 01 for a function the SD2x lacks.
+//!
+//! The README's "Interoperability" table lists which test covers which (client, drive, transport).
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Stdio};
+
+use engine::servers::{ServerConfig, ServerHandle};
+use test_support::peers::{Peer, client_command};
+use test_support::*;
+use tokio_modbus::prelude::*;
+
+/// Run `peer` with `endpoint` and the operations of `ops`, and compare every output line with the expected
+/// one (`ops`: operation, expected line).
+async fn expect_lines(peer: Peer, test: &str, endpoint: &[String], ops: &[(&str, &str)]) {
+    let mut cmd = client_command(peer, test).expect("toolchain checked by the caller");
+    cmd.args(endpoint).args(ops.iter().map(|(op, _)| op));
+    let (ok, out, err) = run_client(&mut cmd).await;
+    let got: Vec<&str> = out.lines().collect();
+    for (i, (op, want)) in ops.iter().enumerate() {
+        assert_eq!(
+            got.get(i).copied(),
+            Some(*want),
+            "{test}: {peer:?}, op {op}; whole output:\n{out}\nstderr:\n{err}"
+        );
+    }
+    assert!(ok, "{test}: {peer:?} exited with failure:\n{out}\n{err}");
+}
+
+/// An in-process server for `profile` on one loopback endpoint (port 0).
+async fn serve_on(profile_name: &str, rtu_over_tcp: bool) -> ServerHandle {
+    let any: std::net::SocketAddr = "127.0.0.1:0".parse().unwrap();
+    let config = if rtu_over_tcp {
+        ServerConfig {
+            rtu_over_tcp: Some(any),
+            ..ServerConfig::default()
+        }
+    } else {
+        ServerConfig {
+            tcp: Some(any),
+            ..ServerConfig::default()
+        }
+    };
+    serve(profile_name, &[], config).await
+}
+
+// ---- LMD over Modbus/TCP ---------------------------------------------------------------------------------
+
+/// LMD manual 4.2.4: VM (0x008B-0x008C) reads its default 768000 = 0x000BB800, low word first.
+const LMD_VM_DEFAULT: [u16; 2] = [0xB800, 0x000B];
+/// LMD manual 4.2.5: VM = 600000 = 0x000927C0, low word first.
+const LMD_VM_600000: [u16; 2] = [0x27C0, 0x0009];
+
+/// The LMD's manual answers through a client that prints lines: 4.2.2 outputs (O1=1, O2=0, O3=1), 4.2.4 VM,
+/// 4.2.5 VM written and read back, 4.2.3 output 3 ON (its echo), then output 2 ON reads back.
+async fn lmd_tcp(peer: Peer, test: &str) {
+    if client_command(peer, test).is_none() {
+        return;
+    }
+    let server = serve_on("lmd", false).await;
+    let port = server.tcp_addr().expect("tcp addr").port().to_string();
+    let unit = profile("lmd").device.default_unit.to_string();
+    let endpoint = vec!["tcp".into(), "127.0.0.1".into(), port, unit];
+    let vm = |w: [u16; 2]| format!("{} {}", w[0], w[1]);
+    let (vm_default, vm_new) = (vm(LMD_VM_DEFAULT), vm(LMD_VM_600000));
+    let write = format!("wh:0x8B:{},{}", LMD_VM_600000[0], LMD_VM_600000[1]);
+    expect_lines(
+        peer,
+        test,
+        &endpoint,
+        &[
+            ("rc:0:3", "1 0 1"),
+            ("rh:0x8B:2", &vm_default),
+            (&write, "ok"),
+            ("rh:0x8B:2", &vm_new),
+            ("wc:2:1", "ok"),
+            ("wc:1:1", "ok"),
+            ("rc:0:3", "1 1 1"),
+        ],
+    )
+    .await;
+    server.shutdown().await;
+}
+
+#[tokio::test]
+async fn libmodbus_tcp_lmd_manual_answers() {
+    lmd_tcp(Peer::Libmodbus, "libmodbus_tcp_lmd_manual_answers").await;
+}
+
+#[tokio::test]
+async fn pymodbus_tcp_lmd_manual_answers() {
+    lmd_tcp(Peer::Pymodbus, "pymodbus_tcp_lmd_manual_answers").await;
+}
+
+/// Bound one client call in time.
+async fn within<T>(what: &str, f: impl std::future::Future<Output = T>) -> T {
+    tokio::time::timeout(STEP, f)
+        .await
+        .unwrap_or_else(|_| panic!("{what}: no answer within {STEP:?}"))
+}
+
+/// The same LMD answers through tokio-modbus.
+#[tokio::test]
+async fn tokio_modbus_tcp_lmd_manual_answers() {
+    let server = serve_on("lmd", false).await;
+    let addr = server.tcp_addr().expect("tcp addr");
+    let slave = Slave(profile("lmd").device.default_unit);
+    let mut ctx = within("connect", tcp::connect_slave(addr, slave))
+        .await
+        .expect("connect");
+    let coils = within("FC 01", ctx.read_coils(0, 3)).await;
+    assert_eq!(
+        coils.expect("transport").expect("FC 01"),
+        [true, false, true]
+    );
+    let vm = within("FC 03", ctx.read_holding_registers(0x8B, 2)).await;
+    assert_eq!(vm.expect("transport").expect("FC 03"), LMD_VM_DEFAULT);
+    within("FC 16", ctx.write_multiple_registers(0x8B, &LMD_VM_600000))
+        .await
+        .expect("transport")
+        .expect("FC 16 accepted");
+    let vm = within("FC 03", ctx.read_holding_registers(0x8B, 2)).await;
+    let words = vm.expect("transport").expect("FC 03");
+    assert_eq!(words, LMD_VM_600000);
+    assert_eq!(
+        (u32::from(words[1]) << 16) | u32::from(words[0]),
+        600_000,
+        "low word first"
+    );
+    for coil in [2, 1] {
+        within("FC 05", ctx.write_single_coil(coil, true))
+            .await
+            .expect("transport")
+            .expect("FC 05 accepted");
+    }
+    let coils = within("FC 01", ctx.read_coils(0, 3)).await;
+    assert_eq!(
+        coils.expect("transport").expect("FC 01"),
+        [true, true, true]
+    );
+    server.shutdown().await;
+}
+
+/// mbpoll over Modbus/TCP to 127.0.0.1:`port`, references from 0 (`-0`), one poll; `values` make it write.
+fn mbpoll_tcp(port: u16, opts: &[&str], values: &[&str]) -> tokio::process::Command {
+    let mut c = tokio::process::Command::new("mbpoll");
+    c.args(["-m", "tcp", "-a", "1", "-p", &port.to_string()])
+        .args(["-0", "-1", "-o", "1"])
+        .args(opts)
+        .arg("127.0.0.1")
+        .args(values);
+    c
+}
+
+/// The value mbpoll printed for reference `reference` (`[139]: \t768000`).
+fn mbpoll_value(out: &str, reference: u32) -> Option<String> {
+    let tag = format!("[{reference}]:");
+    out.lines()
+        .find_map(|l| l.trim().strip_prefix(&tag))
+        .map(|v| v.split_whitespace().next().unwrap_or_default().to_string())
+}
+
+/// LMD through mbpoll: VM as a 32-bit integer in mbpoll's default word order, which is the LMD's (low word
+/// first): 768000, then 600000 after mbpoll writes it; the three outputs read 1 0 1.
+#[tokio::test]
+async fn mbpoll_tcp_lmd_manual_answers() {
+    let test = "mbpoll_tcp_lmd_manual_answers";
+    if !have_mbpoll() {
+        skip(test, "mbpoll is not installed (apt-get install mbpoll)");
+        return;
+    }
+    let server = serve_on("lmd", false).await;
+    let port = server.tcp_addr().expect("tcp addr").port();
+    let vm = ["-t", "4:int", "-r", "139"];
+    let (ok, out, err) = run_client(&mut mbpoll_tcp(port, &vm, &[])).await;
+    assert!(ok, "mbpoll read failed:\n{out}\n{err}");
+    assert_eq!(mbpoll_value(&out, 139).as_deref(), Some("768000"), "{out}");
+    let (ok, out, err) = run_client(&mut mbpoll_tcp(port, &vm, &["600000"])).await;
+    assert!(ok, "mbpoll write failed:\n{out}\n{err}");
+    let (ok, out, err) = run_client(&mut mbpoll_tcp(port, &vm, &[])).await;
+    assert!(ok, "mbpoll read back failed:\n{out}\n{err}");
+    assert_eq!(mbpoll_value(&out, 139).as_deref(), Some("600000"), "{out}");
+    let (ok, out, err) = run_client(&mut mbpoll_tcp(
+        port,
+        &["-t", "0", "-r", "0", "-c", "3"],
+        &[],
+    ))
+    .await;
+    assert!(ok, "mbpoll coil read failed:\n{out}\n{err}");
+    let outputs: Vec<Option<String>> = (0..3).map(|r| mbpoll_value(&out, r)).collect();
+    assert_eq!(
+        outputs,
+        [Some("1".into()), Some("0".into()), Some("1".into())],
+        "{out}"
+    );
+    server.shutdown().await;
+}
+
+// ---- SD2x over RTU over TCP ------------------------------------------------------------------------------
+
+/// A pty whose bytes socat carries to a TCP endpoint and back: an RTU client that only speaks serial (the
+/// libmodbus client, mbpoll) reaches the simulator's RTU-over-TCP endpoint through it. Killed on drop.
+struct PtyTcpBridge {
+    tty: PathBuf,
+    // Field order: socat is killed before its directory goes.
+    _socat: ChildGuard,
+    _dir: TempDir,
+}
+
+impl PtyTcpBridge {
+    /// Start socat and wait (bounded) until it runs its transfer loop (pty made, TCP connected).
+    fn new(to: std::net::SocketAddr) -> Self {
+        let dir = TempDir::new("bridge");
+        let tty = dir.path().join("tty");
+        let mut child = Command::new("socat")
+            .args(["-d", "-d"])
+            .arg(format!("pty,raw,echo=0,link={}", tty.display()))
+            .arg(format!("tcp:{to}"))
+            .stdin(Stdio::null())
+            .stdout(Stdio::null())
+            .stderr(Stdio::piped())
+            .spawn()
+            .expect("spawn socat");
+        let stderr = child.stderr.take().expect("socat stderr");
+        let guard = ChildGuard(child);
+        let log = wait_socat_ready(stderr, &format!("socat bridge to {to}"));
+        assert!(tty.exists(), "socat link missing: {log:#?}");
+        Self {
+            tty,
+            _socat: guard,
+            _dir: dir,
+        }
+    }
+}
+
+/// How a client reaches the SD2x's RTU-over-TCP endpoint.
+fn sd2x_endpoint(peer: Peer, server: &ServerHandle, bridge: Option<&PtyTcpBridge>) -> Vec<String> {
+    let unit = profile("sd2x").device.default_unit.to_string();
+    match (peer, bridge) {
+        (Peer::Libmodbus, Some(b)) => vec![
+            "rtu".into(),
+            b.tty.to_string_lossy().into_owned(),
+            "19200".into(),
+            "N".into(),
+            "1".into(),
+            unit,
+        ],
+        (Peer::Pymodbus, None) => {
+            let addr = server.rtu_over_tcp_addr().expect("rtu-over-tcp addr");
+            vec![
+                "rtutcp".into(),
+                addr.ip().to_string(),
+                addr.port().to_string(),
+                unit,
+            ]
+        }
+        (p, b) => panic!("no RTU-over-TCP route for {p:?} (bridge: {})", b.is_some()),
+    }
+}
+
+/// SD2x manual 6.1 then 6.3 over RTU over TCP: the two RxPDO telegrams, the 500 ms watchdog they arm runs
+/// out, the status word reads 0x7038 by FC 04 and FC 03; FC 05 (not an SD2x function) gets exception 01.
+async fn sd2x_rtu_over_tcp(peer: Peer, test: &str) {
+    if client_command(peer, test).is_none() {
+        return;
+    }
+    if matches!(peer, Peer::Libmodbus) && !have_socat() {
+        skip(test, "socat is not installed (apt-get install socat)");
+        return;
+    }
+    let server = serve_on("sd2x", true).await;
+    let bridge = matches!(peer, Peer::Libmodbus)
+        .then(|| PtyTcpBridge::new(server.rtu_over_tcp_addr().expect("rtu-over-tcp addr")));
+    let endpoint = sd2x_endpoint(peer, &server, bridge.as_ref());
+    let words = |w: &[u16]| w.iter().map(u16::to_string).collect::<Vec<_>>().join(",");
+    let (shutdown, enable) = (
+        format!("wh:3000:{}", words(&SD2X_SHUTDOWN)),
+        format!("wh:3000:{}", words(&SD2X_ENABLE)),
+    );
+    expect_lines(
+        peer,
+        test,
+        &endpoint,
+        &[
+            (&shutdown, "ok"),
+            (&enable, "ok"),
+            ("wc:0:1", "exception 1"),
+        ],
+    )
+    .await;
+    if let Err(last) = wait_sd2x_status(&server, SD2X_STATUS_AFTER_61).await {
+        panic!(
+            "{test}: the SD2x status word did not become 0x7038 within {SD2X_WATCHDOG_BOUND:?} (last: {last:04X?})"
+        );
+    }
+    let status = SD2X_STATUS_AFTER_61.to_string();
+    expect_lines(
+        peer,
+        test,
+        &endpoint,
+        &[("ri:2000:1", &status), ("rh:2000:1", &status)],
+    )
+    .await;
+    drop(bridge);
+    server.shutdown().await;
+}
+
+#[tokio::test]
+async fn libmodbus_rtu_over_tcp_sd2x_status_word_and_illegal_function() {
+    sd2x_rtu_over_tcp(
+        Peer::Libmodbus,
+        "libmodbus_rtu_over_tcp_sd2x_status_word_and_illegal_function",
+    )
+    .await;
+}
+
+#[tokio::test]
+async fn pymodbus_rtu_over_tcp_sd2x_status_word_and_illegal_function() {
+    sd2x_rtu_over_tcp(
+        Peer::Pymodbus,
+        "pymodbus_rtu_over_tcp_sd2x_status_word_and_illegal_function",
+    )
+    .await;
+}
+
+/// mbpoll in RTU mode at 19200 8N1 on `tty`, slave 1, one poll; `values` make it write.
+fn mbpoll_rtu(tty: &Path, opts: &[&str], values: &[&str]) -> tokio::process::Command {
+    let mut c = tokio::process::Command::new("mbpoll");
+    c.args([
+        "-m", "rtu", "-a", "1", "-b", "19200", "-P", "none", "-s", "1",
+    ])
+    .args(["-0", "-1", "-o", "1"])
+    .args(opts)
+    .arg(tty)
+    .args(values);
+    c
+}
+
+/// SD2x over RTU over TCP through mbpoll (on a socat pty bridged to the endpoint): 6.1, the watchdog, the
+/// 6.3 status word 28728 = 0x7038; FC 01 (not an SD2x function) fails with libmodbus' "Illegal function".
+#[tokio::test]
+async fn mbpoll_rtu_over_tcp_sd2x_status_word_and_illegal_function() {
+    let test = "mbpoll_rtu_over_tcp_sd2x_status_word_and_illegal_function";
+    if !have_socat() || !have_mbpoll() {
+        skip(
+            test,
+            "needs socat and mbpoll (apt-get install socat mbpoll)",
+        );
+        return;
+    }
+    let server = serve_on("sd2x", true).await;
+    let bridge = PtyTcpBridge::new(server.rtu_over_tcp_addr().expect("rtu-over-tcp addr"));
+    for words in [SD2X_SHUTDOWN, SD2X_ENABLE] {
+        let values: Vec<String> = words.iter().map(u16::to_string).collect();
+        let values: Vec<&str> = values.iter().map(String::as_str).collect();
+        let mut cmd = mbpoll_rtu(&bridge.tty, &["-t", "4", "-r", "3000"], &values);
+        let (ok, out, err) = run_client(&mut cmd).await;
+        assert!(ok, "mbpoll write of {words:?} failed:\n{out}\n{err}");
+    }
+    if let Err(last) = wait_sd2x_status(&server, SD2X_STATUS_AFTER_61).await {
+        panic!("the SD2x status word did not become 0x7038 (last: {last:04X?})");
+    }
+    let (ok, out, err) = run_client(&mut mbpoll_rtu(
+        &bridge.tty,
+        &["-t", "3", "-r", "2000"],
+        &[],
+    ))
+    .await;
+    assert!(ok, "mbpoll read failed:\n{out}\n{err}");
+    assert_eq!(
+        mbpoll_value(&out, 2000),
+        Some(SD2X_STATUS_AFTER_61.to_string()),
+        "{out}"
+    );
+    let (ok, out, err) =
+        run_client(&mut mbpoll_rtu(&bridge.tty, &["-t", "0", "-r", "0"], &[])).await;
+    assert!(!ok, "FC 01 should fail on an SD2x:\n{out}");
+    assert!(
+        err.contains("Illegal function"),
+        "expected libmodbus' 'Illegal function':\n{out}\n{err}"
+    );
+    drop(bridge);
+    server.shutdown().await;
+}

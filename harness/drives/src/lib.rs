@@ -1,0 +1,15 @@
+//! Drives: profiles (register maps, limits, mnemonics, object dictionaries), the golden frames of the
+//! manuals, and the executable reference drive models with the wire-level station and injected faults.
+//!
+//! Sans-IO: no sockets, no clock of its own (time is passed in), no tokio.
+
+pub mod corpus;
+pub mod faults;
+pub mod golden;
+pub mod models;
+pub mod profile;
+pub mod station;
+
+pub use faults::{Fault, FaultSet};
+pub use models::{DriveModel, build};
+pub use station::{Counters, RtuPort, Station, TcpConn, Wire};

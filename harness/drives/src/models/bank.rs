@@ -1,0 +1,436 @@
+//! The data model of a simulated drive, built from its profile: every holding/input register at its width,
+//! every coil and discrete input, with the Modbus address, access and range rules applied on each access.
+//!
+//! Models (`generic`, `mdrive`) answer the plain data-model function codes through this bank and add their own
+//! behaviour around it (motion, cross-register limits, I/O mirroring).
+//!
+//! Choices where the manuals are silent (line numbers of the MDrive manual 000_b25109cd5b573b4c.txt; the LMD
+//! manual 001_aafa6838846abfce.txt has the same text):
+//!
+//! - **A read may start or end inside a 32-bit register** and returns the halves it covers, in the word order.
+//!   The manual only says values are "1, 2 or 4 bytes" so "you will not need to read more than two consecutive
+//!   registers" (line 616), which is advice, not a rule; and its own FC 03 example reads 0x008A-0x008B (line 644),
+//!   a range that in the register map (lines 1123-1124) straddles VI's low word and VM's high word, so the manual's
+//!   authors expected such a read to be answered. Every address of the range must still belong to a readable
+//!   register: reserved and unmapped addresses give exception 02 (lines 618, 662), as do write-only registers.
+//! - **A write must cover whole registers**: a range that starts or ends inside a 32-bit register gives
+//!   exception 02. A half-written value would be neither the old nor the new value, and the Modbus application
+//!   protocol spec defines 02 for exactly this case: "the combination of reference number and transfer length is
+//!   invalid" (MODBUS Application Protocol v1.1b3, section 7, code 02).
+//! - **A write to a read-only register gives exception 02**, like a reserved register (lines 618, 662): the
+//!   address is not a writable address, whatever the value. Exception 03 would blame the value, which is not
+//!   what is wrong. The manual has no access column at all (see the profile's device note).
+//! - **Out-of-range values give exception 03** (illegal data value, line 429). All address/access checks of a
+//!   request run before any value check, and a request is applied all or nothing.
+//! - Registers without a default start at 0, or at their minimum when 0 is outside their range.
+
+use std::collections::BTreeMap;
+
+use crate::faults::{Fault, FaultSet};
+use crate::profile::{Access, Profile, Register, Table, WordOrder};
+use codec::ExceptionCode;
+
+/// Which register table an access goes to.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum RegTable {
+    /// FC 03/06/10/17.
+    Holding,
+    /// FC 04.
+    Input,
+}
+
+/// Which single-bit table an access goes to.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum BitTable {
+    /// FC 01/05/0F.
+    Coils,
+    /// FC 02.
+    DiscreteInputs,
+}
+
+/// One register value a validated write will store.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct Change {
+    /// First address of the register.
+    pub address: u16,
+    /// The value as an integer (sign applied).
+    pub value: i64,
+}
+
+#[derive(Clone, Debug)]
+struct Slot {
+    reg: Register,
+    value: i64,
+}
+
+#[derive(Clone, Copy, Debug)]
+struct BitCell {
+    access: Access,
+    state: bool,
+}
+
+/// Register, coil and discrete-input storage with the profile's map, access modes and ranges.
+#[derive(Clone, Debug)]
+pub struct RegisterBank {
+    slots: Vec<Slot>,
+    /// Every address a holding-visible register covers → its slot.
+    holding: BTreeMap<u16, usize>,
+    /// Every address an input-visible register covers → its slot.
+    input: BTreeMap<u16, usize>,
+    coils: BTreeMap<u16, BitCell>,
+    discrete: BTreeMap<u16, BitCell>,
+    order: WordOrder,
+    reserved_readable: bool,
+    read_only_writable: bool,
+    range_unchecked: bool,
+}
+
+/// The value a register starts with: its default, else 0 moved into its range.
+fn initial_value(reg: &Register) -> i64 {
+    let (lo, hi) = reg.range();
+    reg.default.unwrap_or(0).clamp(lo, hi)
+}
+
+/// Reduce `value` to what a register of this width and sign can hold (two's complement wrap, like the drive's
+/// own 16/32-bit variables).
+fn wrap_to_width(reg: &Register, value: i64) -> i64 {
+    match (reg.width, reg.signed) {
+        (1, true) => i64::from(value as i16),
+        (1, false) => i64::from(value as u16),
+        (_, true) => i64::from(value as i32),
+        (_, false) => i64::from(value as u32),
+    }
+}
+
+impl RegisterBank {
+    /// Build the bank: every register at its default, every bit off; faults that change the data model apply.
+    pub fn new(profile: &Profile, faults: &FaultSet) -> Self {
+        let mut slots = Vec::with_capacity(profile.registers.len());
+        let mut holding = BTreeMap::new();
+        let mut input = BTreeMap::new();
+        for r in &profile.registers {
+            let reg = r.get_ref().clone();
+            let idx = slots.len();
+            for a in u32::from(reg.address)..reg.end().min(0x1_0000) {
+                let a = a as u16;
+                if matches!(reg.table, Table::Holding | Table::Both) {
+                    holding.insert(a, idx);
+                }
+                if matches!(reg.table, Table::Input | Table::Both) {
+                    input.insert(a, idx);
+                }
+            }
+            let value = initial_value(&reg);
+            slots.push(Slot { reg, value });
+        }
+        let bits = |list: &[toml::Spanned<crate::profile::Bit>]| {
+            list.iter()
+                .map(|b| {
+                    let b = b.get_ref();
+                    (
+                        b.address,
+                        BitCell {
+                            access: b.access,
+                            state: false,
+                        },
+                    )
+                })
+                .collect::<BTreeMap<_, _>>()
+        };
+        let order = if faults.has(Fault::WordOrder) {
+            match profile.device.word_order {
+                WordOrder::HighFirst => WordOrder::LowFirst,
+                WordOrder::LowFirst => WordOrder::HighFirst,
+            }
+        } else {
+            profile.device.word_order
+        };
+        Self {
+            slots,
+            holding,
+            input,
+            coils: bits(&profile.coils),
+            discrete: bits(&profile.discrete_inputs),
+            order,
+            reserved_readable: faults.has(Fault::ReservedReadable),
+            read_only_writable: faults.has(Fault::ReadOnlyWritable),
+            range_unchecked: faults.has(Fault::RangeUnchecked),
+        }
+    }
+
+    /// The word order 32-bit registers travel in (the profile's, or the opposite under `Fault::WordOrder`).
+    pub fn word_order(&self) -> WordOrder {
+        self.order
+    }
+
+    /// True when out-of-range values are accepted (`Fault::RangeUnchecked`); models apply it to their own limits.
+    pub fn range_unchecked(&self) -> bool {
+        self.range_unchecked
+    }
+
+    /// True when read-only items accept writes (`Fault::ReadOnlyWritable`).
+    pub fn read_only_writable(&self) -> bool {
+        self.read_only_writable
+    }
+
+    fn map(&self, table: RegTable) -> &BTreeMap<u16, usize> {
+        match table {
+            RegTable::Holding => &self.holding,
+            RegTable::Input => &self.input,
+        }
+    }
+
+    fn words(&self, reg: &Register, value: i64) -> [u16; 2] {
+        if reg.width == 1 {
+            [value as u16, 0]
+        } else {
+            self.order.split(value as u32)
+        }
+    }
+
+    fn value_of_words(&self, reg: &Register, words: &[u16]) -> i64 {
+        match (reg.width, words) {
+            (1, [w, ..]) => {
+                if reg.signed {
+                    i64::from(*w as i16)
+                } else {
+                    i64::from(*w)
+                }
+            }
+            (_, [a, b, ..]) => {
+                let raw = self.order.join(*a, *b);
+                if reg.signed {
+                    i64::from(raw as i32)
+                } else {
+                    i64::from(raw)
+                }
+            }
+            _ => 0,
+        }
+    }
+
+    /// Read `quantity` registers from `address` (FC 03/04). Quantity 0 (only reachable when the station's
+    /// quantity check is faulted off) reads nothing.
+    pub fn read(
+        &self,
+        table: RegTable,
+        address: u16,
+        quantity: u16,
+    ) -> Result<Vec<u16>, ExceptionCode> {
+        let end = u32::from(address) + u32::from(quantity);
+        if end > 0x1_0000 {
+            // Modbus spec state diagrams: starting address + quantity must be a valid address range.
+            return Err(ExceptionCode::ILLEGAL_DATA_ADDRESS);
+        }
+        let map = self.map(table);
+        let mut out = Vec::with_capacity(usize::from(quantity));
+        for a in u32::from(address)..end {
+            let a = a as u16;
+            match map.get(&a).and_then(|&i| self.slots.get(i)) {
+                Some(slot) if slot.reg.access.readable() => {
+                    let half = usize::from(a.wrapping_sub(slot.reg.address));
+                    let w = self.words(&slot.reg, slot.value);
+                    out.push(w.get(half).copied().unwrap_or(0));
+                }
+                Some(_) => return Err(ExceptionCode::ILLEGAL_DATA_ADDRESS),
+                None if self.reserved_readable => out.push(0),
+                None => return Err(ExceptionCode::ILLEGAL_DATA_ADDRESS),
+            }
+        }
+        Ok(out)
+    }
+
+    /// Validate a holding-register write of `words` at `address` without applying it: address/access errors
+    /// (02) first for the whole range, then value errors (03).
+    pub fn plan_write(&self, address: u16, words: &[u16]) -> Result<Vec<Change>, ExceptionCode> {
+        let end = u32::from(address) + words.len() as u32;
+        if end > 0x1_0000 {
+            return Err(ExceptionCode::ILLEGAL_DATA_ADDRESS);
+        }
+        // Pass 1: every address belongs to a writable register that the range covers completely.
+        let mut spans = Vec::new();
+        let mut a = u32::from(address);
+        while a < end {
+            let Some(&idx) = self.holding.get(&(a as u16)) else {
+                return Err(ExceptionCode::ILLEGAL_DATA_ADDRESS);
+            };
+            let Some(slot) = self.slots.get(idx) else {
+                return Err(ExceptionCode::ILLEGAL_DATA_ADDRESS);
+            };
+            if u32::from(slot.reg.address) != a || slot.reg.end() > end {
+                return Err(ExceptionCode::ILLEGAL_DATA_ADDRESS);
+            }
+            if !slot.reg.access.writable() && !self.read_only_writable {
+                return Err(ExceptionCode::ILLEGAL_DATA_ADDRESS);
+            }
+            spans.push((idx, (a - u32::from(address)) as usize));
+            a = slot.reg.end();
+        }
+        // Pass 2: every value within the register's range.
+        let mut changes = Vec::with_capacity(spans.len());
+        for (idx, off) in spans {
+            let Some(slot) = self.slots.get(idx) else {
+                return Err(ExceptionCode::ILLEGAL_DATA_ADDRESS);
+            };
+            let w = words.get(off..).unwrap_or(&[]);
+            let value = self.value_of_words(&slot.reg, w);
+            let (lo, hi) = slot.reg.range();
+            if (value < lo || value > hi) && !self.range_unchecked {
+                return Err(ExceptionCode::ILLEGAL_DATA_VALUE);
+            }
+            changes.push(Change {
+                address: slot.reg.address,
+                value,
+            });
+        }
+        Ok(changes)
+    }
+
+    /// Store validated changes (from `plan_write`).
+    pub fn commit(&mut self, changes: &[Change]) {
+        for c in changes {
+            self.set_value(c.address, c.value);
+        }
+    }
+
+    /// Validate and apply a holding-register write (FC 06/10/17); returns what changed.
+    pub fn write(&mut self, address: u16, words: &[u16]) -> Result<Vec<Change>, ExceptionCode> {
+        let changes = self.plan_write(address, words)?;
+        self.commit(&changes);
+        Ok(changes)
+    }
+
+    fn slot_at(&self, address: u16) -> Option<&Slot> {
+        let idx = *self.holding.get(&address).or(self.input.get(&address))?;
+        self.slots.get(idx).filter(|s| s.reg.address == address)
+    }
+
+    /// The register starting at `address` (either table).
+    pub fn register(&self, address: u16) -> Option<&Register> {
+        self.slot_at(address).map(|s| &s.reg)
+    }
+
+    /// The value of the register starting at `address` (either table).
+    pub fn value(&self, address: u16) -> Option<i64> {
+        self.slot_at(address).map(|s| s.value)
+    }
+
+    /// Set the register starting at `address` from inside the drive (status, counters): no access or range
+    /// check; the value wraps to the register's width. False when no register starts there.
+    pub fn set_value(&mut self, address: u16, value: i64) -> bool {
+        let idx = self
+            .holding
+            .get(&address)
+            .or(self.input.get(&address))
+            .copied();
+        match idx.and_then(|i| self.slots.get_mut(i)) {
+            Some(slot) if slot.reg.address == address => {
+                slot.value = wrap_to_width(&slot.reg, value);
+                true
+            }
+            _ => false,
+        }
+    }
+
+    /// First address of the register with MCode mnemonic `mnemonic` (case-insensitive).
+    pub fn address_of(&self, mnemonic: &str) -> Option<u16> {
+        self.slots
+            .iter()
+            .find(|s| {
+                s.reg
+                    .mnemonic
+                    .as_deref()
+                    .is_some_and(|m| m.eq_ignore_ascii_case(mnemonic))
+            })
+            .map(|s| s.reg.address)
+    }
+
+    fn bits(&self, table: BitTable) -> &BTreeMap<u16, BitCell> {
+        match table {
+            BitTable::Coils => &self.coils,
+            BitTable::DiscreteInputs => &self.discrete,
+        }
+    }
+
+    fn bits_mut(&mut self, table: BitTable) -> &mut BTreeMap<u16, BitCell> {
+        match table {
+            BitTable::Coils => &mut self.coils,
+            BitTable::DiscreteInputs => &mut self.discrete,
+        }
+    }
+
+    /// Read `quantity` bits from `address`, packed LSB-first as FC 01/02 carry them.
+    pub fn read_bits(
+        &self,
+        table: BitTable,
+        address: u16,
+        quantity: u16,
+    ) -> Result<Vec<u8>, ExceptionCode> {
+        let end = u32::from(address) + u32::from(quantity);
+        if end > 0x1_0000 {
+            return Err(ExceptionCode::ILLEGAL_DATA_ADDRESS);
+        }
+        let map = self.bits(table);
+        let mut out = vec![0u8; usize::from(quantity).div_ceil(8)];
+        for (i, a) in (u32::from(address)..end).enumerate() {
+            let on = match map.get(&(a as u16)) {
+                Some(c) if c.access.readable() => c.state,
+                Some(_) => return Err(ExceptionCode::ILLEGAL_DATA_ADDRESS),
+                None if self.reserved_readable => false,
+                None => return Err(ExceptionCode::ILLEGAL_DATA_ADDRESS),
+            };
+            if on && let Some(byte) = out.get_mut(i / 8) {
+                *byte |= 1 << (i % 8);
+            }
+        }
+        Ok(out)
+    }
+
+    /// Write coils from `address` on (FC 05/0F): all or nothing; unmapped or read-only coils give 02.
+    pub fn write_coils(&mut self, address: u16, states: &[bool]) -> Result<(), ExceptionCode> {
+        let end = u32::from(address) + states.len() as u32;
+        if end > 0x1_0000 {
+            return Err(ExceptionCode::ILLEGAL_DATA_ADDRESS);
+        }
+        for a in u32::from(address)..end {
+            match self.coils.get(&(a as u16)) {
+                Some(c) if c.access.writable() || self.read_only_writable => {}
+                _ => return Err(ExceptionCode::ILLEGAL_DATA_ADDRESS),
+            }
+        }
+        for (a, &s) in (u32::from(address)..end).zip(states) {
+            if let Some(c) = self.coils.get_mut(&(a as u16)) {
+                c.state = s;
+            }
+        }
+        Ok(())
+    }
+
+    /// The state of one bit, if it exists.
+    pub fn bit(&self, table: BitTable, address: u16) -> Option<bool> {
+        self.bits(table).get(&address).map(|c| c.state)
+    }
+
+    /// Set one bit from inside the drive (input levels, outputs driven by registers); false if it does not exist.
+    pub fn set_bit(&mut self, table: BitTable, address: u16, on: bool) -> bool {
+        match self.bits_mut(table).get_mut(&address) {
+            Some(c) => {
+                c.state = on;
+                true
+            }
+            None => false,
+        }
+    }
+
+    /// The addresses of a bit table in ascending order.
+    pub fn bit_addresses(&self, table: BitTable) -> Vec<u16> {
+        self.bits(table).keys().copied().collect()
+    }
+}
+
+/// Unpack `quantity` LSB-first bits of an FC 0F request.
+pub fn unpack_bits(data: &[u8], quantity: u16) -> Vec<bool> {
+    (0..usize::from(quantity))
+        .map(|i| data.get(i / 8).is_some_and(|b| b & (1 << (i % 8)) != 0))
+        .collect()
+}

@@ -1,0 +1,1056 @@
+//! MDrive Plus2 / MDrive Hybrid and Lexium MDrive (LMD) Ethernet: one model for both, driven by the profile.
+//!
+//! Manuals: MDrive `000_b25109cd5b573b4c.txt` ("000"), LMD `001_aafa6838846abfce.txt` ("001"); line numbers
+//! below are lines of those files. The two drives share the register map layout, the motion variables and the
+//! vendor function codes; where they differ (I/O addresses, 3 outputs on the LMD, word order, mnemonics, VM
+//! maximum) the difference is data in `corpus/profiles/{mdrive,lmd}.toml`, not code here.
+//!
+//! Behaviour and the choices made where the manuals are silent:
+//!
+//! - **Registers** (FC 03/06/10/17, 04 if listed) go through `bank::RegisterBank`; see there for partial 32-bit
+//!   reads (allowed), partial writes (02), read-only writes (02) and ranges (03). On top of the static ranges
+//!   the model enforces the dependent ones: VI < VM (000 lines 1123-1124: VI "1 to max. velocity – 1", VM
+//!   "Initial velocity +1 to 5000000"), the microstep table of MS (000 lines 1081-1087), HT ≠ 1 and
+//!   HT + MT ≤ 65535 (000 lines 1056, 1088). A violation is exception 03; `range-unchecked` lifts them all.
+//! - **I/O**: FC 01/05 act on the profile's coils and FC 02 on its discrete inputs; coil k (in address order)
+//!   is output k+1 and mirrors register Ok+1, input k mirrors register Ik+1, and IN/IL (inputs) and OT/OL
+//!   (outputs) hold the group as a binary-weighted value. The drive starts with inputs 1-4 = 1,1,0,1 and outputs
+//!   1-4 = 1,0,1,0 (the LMD has 3 outputs: 1,0,1) so that the manuals' FC 02 and FC 01 examples (000 lines
+//!   515-525, 557-567; 001 lines 751-767, 816-832) read back as printed on a fresh drive. The I/O point setup
+//!   (S1-S4, IS/OS) is stored but does not gate FC 01/02/05: the manuals do not say what a drive answers for a
+//!   point configured the other way, and on the MDrive (I/O points shared between inputs and outputs) the two
+//!   examples could not both hold otherwise.
+//! - **Motion**: writing MA (move absolute), MR (move relative) or SL (slew) starts a move over virtual time.
+//!   Point moves start at VI, accelerate at A to VM (or less, for a short move: triangular profile), cruise,
+//!   decelerate at D to VI and stop exactly on the target; slews ramp from the present velocity to the SL
+//!   velocity (at A when speeding up, D when slowing down, through VI/0 on a reversal) and run until SL 0, which
+//!   ramps down to VI and stops on the nearest whole step. During a move reads of P and C1 return the
+//!   interpolated position (both count motor steps, C1 being the clock-pulse counter of 000 line 1027),
+//!   V the velocity, MV = 1, VC = 1 while accelerating or decelerating and MP = 1 during MA/MR moves. A new
+//!   MA/MR while the axis moves, or any move while the drive is disabled (DE = 0), is refused with exception 04
+//!   (slave device failure, the only one of the manual's four codes, 000 lines 427-430, that means "cannot do
+//!   it now"); SL is accepted during any move and turns it into a slew, as SL is MCode's way to change speed or
+//!   stop. DE = 0 stops the axis at once. Writing P or C1 sets the counter without moving. The 32-bit counters
+//!   wrap like the drive's registers. HM (homing) and the hybrid calibration instructions are stored, not
+//!   simulated (no switches or encoder are modelled).
+//! - **Save** (S, 0x0076) and other destructive writes are counted (`nvm_writes`), nothing else.
+//! - **Device identification** (FC 2B/0E): `generic::read_device_id` over the profile's objects; conformity 0x82
+//!   (regular, individual access), as the golden frames adopt (ERRATA-mdrive.md item 11).
+//! - **Vendor FC 0x41/0x42** (000 section 4.3; 001 sections 4.3-4.4): the mnemonic (reversed, space padded on
+//!   the wire) must be one of the profile's; an unknown mnemonic is exception 02, because the mnemonic plays the
+//!   role of the data address (like a reserved register, 000 line 618). Reading a write-only mnemonic (E, EX,
+//!   PS, RS, ...) or writing a read-only one (IT, VT, AV) is exception 02 for the same reason (the address does
+//!   not allow that access; `read-only-writable` accepts the write). Bad parameters are exception 03: more than
+//!   28 bytes (000 line 985), non-printable bytes, a setting without the leading '=' (000 line 1006: "the data
+//!   string includes all of the characters, including the equal sign"), non-numeric values, too many values,
+//!   and values outside the parameter tables the manuals print (S1-S4, S5, S7/S8, S13, MU, IS, OS, AO, RD, BE,
+//!   FL; see `RULES`). A write may give fewer values than the setting has; the rest keep their values.
+//!   A read returns the values without '=' and separated by ", ", as the only printed read-back does
+//!   (TR → "0, 0, 0", 000 lines 964-975, ERRATA-mdrive.md table row "FC 0x41 response '='"); the parameter of
+//!   a mnemonic that mirrors a register (MU → 0x00A0) is that register's value in decimal. Read-only status
+//!   mnemonics (IT, VT, AV) read back the profile's example as a fixed measurement. The write response is
+//!   0x42, "bytes written" = 0x04 and the echoed mnemonic, as both manuals print it (000 line 1010, 001
+//!   line 1208; ERRATA-mdrive.md item 20: the field counts the 4 mnemonic characters returned).
+//!   Program commands (E, EX, PS, RS, ESC, CP) change a recorded program state; ESC also stops the axis.
+
+use std::collections::BTreeMap;
+use std::time::Duration;
+
+use super::DriveModel;
+use super::bank::{BitTable, Change, RegTable, RegisterBank};
+use super::generic::{read_device_id, serve_data_model};
+use crate::faults::FaultSet;
+use crate::profile::{Profile, VendorMnemonic};
+use codec::{ExceptionCode, FunctionCode, Mnemonic, Request, Response};
+
+/// The longest FC 0x42 parameter string: "1-n bytes (28 max)" (000 line 985, 001 line 1174).
+const MAX_PARAM_BYTES: usize = 28;
+
+/// The FC 0x42 response's "bytes written" field: the 4 mnemonic characters returned (see the module notes).
+const BYTES_WRITTEN: u8 = 4;
+
+/// Inputs 1-4 at power-up, chosen so the FC 02 examples (I1=1, I2=1, I3=0, I4=1) hold.
+const INITIAL_INPUTS: [bool; 4] = [true, true, false, true];
+
+/// Outputs 1-4 at power-up, chosen so the FC 01 examples (O1=1, O2=0, O3=1, O4=0) hold.
+const INITIAL_OUTPUTS: [bool; 4] = [true, false, true, false];
+
+/// Valid microstep resolutions (000 lines 1084-1087, 001 lines 2246-2248).
+const MICROSTEPS: &[i64] = &[
+    1, 2, 4, 5, 8, 10, 16, 25, 32, 50, 64, 100, 125, 128, 200, 250, 256, 180, 108, 127,
+];
+
+/// What one parameter of a vendor setting may be.
+#[derive(Clone, Copy, Debug)]
+enum Allowed {
+    /// Any decimal number (integer or with a fraction, e.g. CR "1.500").
+    Any,
+    /// One of these integers.
+    Set(&'static [i64]),
+    /// An integer in this inclusive range.
+    Range(i64, i64),
+}
+
+/// What the manuals print about a vendor setting's parameters.
+struct Rule {
+    names: &'static [&'static str],
+    params: &'static [Allowed],
+    /// Power-up values where the manual gives them.
+    default: Option<&'static [&'static str]>,
+    /// A check across parameters (on the integers, after merging with the stored values).
+    check: Option<fn(&[i64]) -> bool>,
+}
+
+const BOOL: &[i64] = &[0, 1];
+
+/// I/O types of S1-S4 (000 lines 743-759): inputs 0-11, outputs 16-25.
+const MDRIVE_IO_TYPES: &[i64] = &[0, 1, 2, 3, 5, 7, 8, 11, 16, 17, 18, 20, 21, 23, 24, 25];
+
+/// Digital input types of IS lines 1-4 (001 lines 1417-1433).
+const LMD_INPUT_TYPES: &[i64] = &[0, 1, 2, 3, 5, 7, 8, 11, 12];
+
+/// LMD IS: lines 1-4 take the digital input types, line 5 (analog) 9 voltage / 10 current (001 lines 1437-1484).
+fn lmd_input_setup_ok(v: &[i64]) -> bool {
+    match v {
+        [5, mode, ..] => *mode == 9 || *mode == 10,
+        [_, ty, ..] => LMD_INPUT_TYPES.contains(ty),
+        _ => true,
+    }
+}
+
+/// LMD OS: function 28 (trip) is for output 3 only (001 line 1597).
+fn lmd_output_setup_ok(v: &[i64]) -> bool {
+    match v {
+        [line, 28, ..] => *line == 3,
+        _ => true,
+    }
+}
+
+/// The vendor settings whose parameter tables the manuals print.
+const RULES: &[Rule] = &[
+    // 000 lines 743-759; default "general purpose input, active low, sinking" (000 line 1263).
+    Rule {
+        names: &["S1", "S2", "S3", "S4"],
+        params: &[
+            Allowed::Set(MDRIVE_IO_TYPES),
+            Allowed::Set(BOOL),
+            Allowed::Set(BOOL),
+        ],
+        default: Some(&["0", "0", "0"]),
+        check: None,
+    },
+    // 000 lines 824-829: 9 voltage, 10 current; range 0/1.
+    Rule {
+        names: &["S5"],
+        params: &[Allowed::Set(&[9, 10]), Allowed::Set(BOOL)],
+        default: None,
+        check: None,
+    },
+    // 000 lines 783-789: 33-35 inputs, 49-51 outputs; active 0/1.
+    Rule {
+        names: &["S7", "S8"],
+        params: &[Allowed::Set(&[33, 34, 35, 49, 50, 51]), Allowed::Set(BOOL)],
+        default: None,
+        check: None,
+    },
+    // 000 lines 852-853: 60 capture input, 61 trip output; active 0/1.
+    Rule {
+        names: &["S13"],
+        params: &[Allowed::Set(&[60, 61]), Allowed::Set(BOOL)],
+        default: None,
+        check: None,
+    },
+    // 000 lines 936-938, 001 lines 1535-1541: mode 0-2, lead/lag 0/1.
+    Rule {
+        names: &["MU"],
+        params: &[Allowed::Set(&[0, 1, 2]), Allowed::Set(BOOL)],
+        default: None,
+        check: None,
+    },
+    // Three values, read back "0, 0, 0" (000 lines 964-975, 001 lines 1141-1163); their meaning is not given.
+    Rule {
+        names: &["TR"],
+        params: &[Allowed::Any, Allowed::Any, Allowed::Any],
+        default: Some(&["0", "0", "0"]),
+        check: None,
+    },
+    // 001 lines 1411-1484: line 1-5, type, active 0/1.
+    Rule {
+        names: &["IS"],
+        params: &[Allowed::Range(1, 5), Allowed::Any, Allowed::Set(BOOL)],
+        default: None,
+        check: Some(lmd_input_setup_ok),
+    },
+    // 001 lines 1573-1599: line 1-3, function 16-29 without the reserved 26/27 and the undefined 19/22.
+    Rule {
+        names: &["OS"],
+        params: &[
+            Allowed::Range(1, 3),
+            Allowed::Set(&[16, 17, 18, 20, 21, 23, 24, 25, 28, 29]),
+            Allowed::Set(BOOL),
+        ],
+        default: None,
+        check: Some(lmd_output_setup_ok),
+    },
+    // 001 lines 1283-1315: a mask of 16 condition bits.
+    Rule {
+        names: &["AO"],
+        params: &[Allowed::Range(0, 65535)],
+        default: None,
+        check: None,
+    },
+    // 001 sections 4.4.14, 4.4.17, 4.4.25: flags.
+    Rule {
+        names: &["RD", "BE", "FL"],
+        params: &[Allowed::Set(BOOL)],
+        default: None,
+        check: None,
+    },
+];
+
+fn rule_for(name: &str) -> Option<&'static Rule> {
+    RULES
+        .iter()
+        .find(|r| r.names.iter().any(|n| n.eq_ignore_ascii_case(name)))
+}
+
+/// The state of the stored MCode program, as the program commands leave it (nothing is executed).
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum Program {
+    /// No program running.
+    Idle,
+    /// Started with EX at this label or address.
+    Running(String),
+    /// Paused with PS.
+    Paused(String),
+}
+
+/// How a vendor mnemonic behaves, from its profile entry.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum VendorKind {
+    /// Write-only: an action; `takes_params` when its format names a parameter (EX label, HF "=n").
+    Command { takes_params: bool },
+    /// Read and write: a setting with up to `count` values.
+    Setting { count: usize },
+    /// Read-only: a measurement.
+    Status,
+}
+
+fn vendor_kind(m: &VendorMnemonic) -> VendorKind {
+    if !m.read {
+        let none = m.format.as_deref().is_none_or(|f| {
+            let f = f.trim();
+            f.is_empty() || f.to_ascii_lowercase().contains("no parameters")
+        });
+        VendorKind::Command {
+            takes_params: !none,
+        }
+    } else if !m.write {
+        VendorKind::Status
+    } else {
+        let count = rule_for(&m.name)
+            .map(|r| r.params.len())
+            .unwrap_or_else(|| {
+                m.format
+                    .as_deref()
+                    .map(|f| f.trim_start().trim_start_matches('=').split(',').count())
+                    .unwrap_or(1)
+            });
+        VendorKind::Setting {
+            count: count.max(1),
+        }
+    }
+}
+
+/// A decimal number as MCode parameters carry them: optional sign, digits, optional fraction.
+fn is_number(s: &str) -> bool {
+    let s = s.strip_prefix(['+', '-']).unwrap_or(s);
+    let (int, frac) = s.split_once('.').unwrap_or((s, ""));
+    !(int.is_empty() && frac.is_empty())
+        && int.bytes().all(|b| b.is_ascii_digit())
+        && frac.bytes().all(|b| b.is_ascii_digit())
+}
+
+/// Split a read-back or example string ("=1,0,0", "0, 0, 0") into trimmed values.
+fn split_values(s: &str) -> Vec<String> {
+    let s = s.trim().strip_prefix('=').unwrap_or(s.trim());
+    s.split(',').map(|v| v.trim().to_string()).collect()
+}
+
+/// Registers the model drives or reacts to, by mnemonic; `None` where the profile lacks one.
+#[derive(Clone, Debug, Default)]
+struct Addrs {
+    p: Option<u16>,
+    c1: Option<u16>,
+    v: Option<u16>,
+    mv: Option<u16>,
+    vc: Option<u16>,
+    mp: Option<u16>,
+    vi: Option<u16>,
+    vm: Option<u16>,
+    a: Option<u16>,
+    d: Option<u16>,
+    ma: Option<u16>,
+    mr: Option<u16>,
+    sl: Option<u16>,
+    de: Option<u16>,
+    ms: Option<u16>,
+    ht: Option<u16>,
+    mt: Option<u16>,
+    /// Registers mirroring outputs 1.. (O1, O2, ...).
+    outputs: Vec<Option<u16>>,
+    /// Registers mirroring inputs 1.. (I1, I2, ...).
+    inputs: Vec<Option<u16>>,
+    /// Registers holding all outputs as a binary-weighted value (OT, OL).
+    output_groups: Vec<u16>,
+    /// Registers holding all inputs as a binary-weighted value (IN, IL).
+    input_groups: Vec<u16>,
+}
+
+/// One piece of a velocity profile: constant acceleration from a starting velocity.
+#[derive(Clone, Debug)]
+struct Segment {
+    /// Seconds.
+    duration: f64,
+    /// Steps/s at the start of the segment (signed).
+    v0: f64,
+    /// Steps/s² (signed).
+    accel: f64,
+}
+
+/// What kind of move is running.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum MoveKind {
+    /// MA/MR: ends on a target.
+    Point,
+    /// SL: runs until told otherwise.
+    Slew,
+}
+
+/// A move in progress, as a displacement profile over time.
+#[derive(Clone, Debug)]
+struct Motion {
+    kind: MoveKind,
+    /// When the move started (virtual time).
+    start: Duration,
+    /// Displacement (steps) at the start.
+    base: f64,
+    segments: Vec<Segment>,
+    /// After the segments: keep slewing at this velocity (`Some`), or stop (`None`).
+    cruise: Option<f64>,
+    /// Where a point move ends, exactly (floating-point sums must not leave it a step off).
+    end: Option<f64>,
+}
+
+/// Position, velocity and flags at one instant.
+#[derive(Clone, Copy, Debug)]
+struct Kinematics {
+    disp: f64,
+    vel: f64,
+    changing: bool,
+    /// The move still running, if any.
+    moving: Option<MoveKind>,
+}
+
+impl Motion {
+    fn at(&self, elapsed: f64) -> Kinematics {
+        let mut disp = self.base;
+        let mut rem = elapsed.max(0.0);
+        for s in &self.segments {
+            if rem < s.duration {
+                let mut x = disp + s.v0 * rem + 0.5 * s.accel * rem * rem;
+                if let Some(end) = self.end {
+                    // Never past the target on the way there.
+                    x = if end >= self.base {
+                        x.clamp(self.base, end)
+                    } else {
+                        x.clamp(end, self.base)
+                    };
+                }
+                return Kinematics {
+                    disp: x,
+                    vel: s.v0 + s.accel * rem,
+                    changing: s.accel != 0.0,
+                    moving: Some(self.kind),
+                };
+            }
+            disp += s.v0 * s.duration + 0.5 * s.accel * s.duration * s.duration;
+            rem -= s.duration;
+        }
+        match self.cruise {
+            Some(v) => Kinematics {
+                disp: disp + v * rem,
+                vel: v,
+                changing: false,
+                moving: Some(self.kind),
+            },
+            None => Kinematics {
+                // A stopped axis stands on a whole step.
+                disp: self.end.unwrap_or(disp).round(),
+                vel: 0.0,
+                changing: false,
+                moving: None,
+            },
+        }
+    }
+}
+
+/// Velocity-profile parameters, guarded so that faulted-in values (0, VI ≥ VM) cannot divide by zero.
+#[derive(Clone, Copy, Debug)]
+struct Ramp {
+    vi: f64,
+    vm: f64,
+    accel: f64,
+    decel: f64,
+}
+
+/// Plan a point move of `dist` steps from rest (trapezoid, or triangle when VM is not reached).
+fn plan_point(r: Ramp, dist: f64) -> Vec<Segment> {
+    let s = dist.signum();
+    let d = dist.abs();
+    let peak = (r.vi * r.vi + 2.0 * d * r.accel * r.decel / (r.accel + r.decel))
+        .sqrt()
+        .min(r.vm)
+        .max(r.vi);
+    let t_acc = (peak - r.vi) / r.accel;
+    let d_acc = (peak * peak - r.vi * r.vi) / (2.0 * r.accel);
+    let t_dec = (peak - r.vi) / r.decel;
+    let d_dec = (peak * peak - r.vi * r.vi) / (2.0 * r.decel);
+    let t_cruise = if peak > 0.0 {
+        (d - d_acc - d_dec).max(0.0) / peak
+    } else {
+        0.0
+    };
+    [
+        Segment {
+            duration: t_acc,
+            v0: s * r.vi,
+            accel: s * r.accel,
+        },
+        Segment {
+            duration: t_cruise,
+            v0: s * peak,
+            accel: 0.0,
+        },
+        Segment {
+            duration: t_dec,
+            v0: s * peak,
+            accel: -s * r.decel,
+        },
+    ]
+    .into_iter()
+    .filter(|seg| seg.duration > 0.0 && seg.duration.is_finite())
+    .collect()
+}
+
+/// Plan a slew from velocity `v0` to `target` (0 = stop).
+fn plan_slew(r: Ramp, v0: f64, target: f64) -> (Vec<Segment>, Option<f64>) {
+    let mut segs = Vec::new();
+    let mut v = v0;
+    if v != 0.0 && (target == 0.0 || target.signum() != v.signum()) {
+        // Ramp down to the start/stop speed, then stop (a stepper stops from VI at once).
+        let speed = v.abs();
+        if speed > r.vi {
+            segs.push(Segment {
+                duration: (speed - r.vi) / r.decel,
+                v0: v,
+                accel: -v.signum() * r.decel,
+            });
+        }
+        v = 0.0;
+    }
+    if target == 0.0 {
+        return (segs, None);
+    }
+    let s = target.signum();
+    if v == 0.0 {
+        v = s * r.vi.min(target.abs());
+    }
+    let (from, to) = (v.abs(), target.abs());
+    if to > from {
+        segs.push(Segment {
+            duration: (to - from) / r.accel,
+            v0: v,
+            accel: s * r.accel,
+        });
+    } else if to < from {
+        segs.push(Segment {
+            duration: (from - to) / r.decel,
+            v0: v,
+            accel: -s * r.decel,
+        });
+    }
+    segs.retain(|seg| seg.duration > 0.0 && seg.duration.is_finite());
+    (segs, Some(target))
+}
+
+/// Round a displacement to whole steps (saturating; NaN counts as 0).
+fn steps(x: f64) -> i64 {
+    x.round() as i64
+}
+
+/// The MDrive/LMD reference model.
+pub struct Mdrive {
+    profile: Profile,
+    bank: RegisterBank,
+    addrs: Addrs,
+    /// Coil addresses in order: output 1, 2, ...
+    outputs: Vec<u16>,
+    /// Discrete-input addresses in order: input 1, 2, ...
+    inputs: Vec<u16>,
+    now: Duration,
+    motion: Option<Motion>,
+    /// Displacement (steps) while no move runs.
+    rest: f64,
+    /// P = p_origin + displacement.
+    p_origin: i64,
+    /// C1 = c1_origin + displacement.
+    c1_origin: i64,
+    /// Stored vendor parameters by upper-case mnemonic.
+    params: BTreeMap<String, Vec<String>>,
+    program: Program,
+    nvm_writes: u32,
+}
+
+impl Mdrive {
+    /// Build the model from its profile (`mdrive` or `lmd`); model-level faults act through the register bank.
+    pub fn new(profile: Profile, faults: FaultSet) -> Self {
+        let mut bank = RegisterBank::new(&profile, &faults);
+        let outputs = bank.bit_addresses(BitTable::Coils);
+        let inputs = bank.bit_addresses(BitTable::DiscreteInputs);
+        let at = |m: &str| bank.address_of(m);
+        let addrs = Addrs {
+            p: at("P"),
+            c1: at("C1"),
+            v: at("V"),
+            mv: at("MV"),
+            vc: at("VC"),
+            mp: at("MP"),
+            vi: at("VI"),
+            vm: at("VM"),
+            a: at("A"),
+            d: at("D"),
+            ma: at("MA"),
+            mr: at("MR"),
+            sl: at("SL"),
+            de: at("DE"),
+            ms: at("MS"),
+            ht: at("HT"),
+            mt: at("MT"),
+            outputs: (1..=outputs.len()).map(|k| at(&format!("O{k}"))).collect(),
+            inputs: (1..=inputs.len()).map(|k| at(&format!("I{k}"))).collect(),
+            output_groups: ["OT", "OL"].iter().filter_map(|m| at(m)).collect(),
+            input_groups: ["IN", "IL"].iter().filter_map(|m| at(m)).collect(),
+        };
+        for (a, on) in inputs.iter().zip(INITIAL_INPUTS) {
+            bank.set_bit(BitTable::DiscreteInputs, *a, on);
+        }
+        for (a, on) in outputs.iter().zip(INITIAL_OUTPUTS) {
+            bank.set_bit(BitTable::Coils, *a, on);
+        }
+        let p_origin = addrs.p.and_then(|a| bank.value(a)).unwrap_or(0);
+        let c1_origin = addrs.c1.and_then(|a| bank.value(a)).unwrap_or(0);
+        let mut params = BTreeMap::new();
+        for m in profile.mnemonics.iter().map(|m| m.get_ref()) {
+            if let VendorKind::Setting { count } = vendor_kind(m) {
+                params.insert(m.name.to_ascii_uppercase(), Self::initial_params(m, count));
+            }
+        }
+        let mut model = Self {
+            profile,
+            bank,
+            addrs,
+            outputs,
+            inputs,
+            now: Duration::ZERO,
+            motion: None,
+            rest: 0.0,
+            p_origin,
+            c1_origin,
+            params,
+            program: Program::Idle,
+            nvm_writes: 0,
+        };
+        model.refresh();
+        model
+    }
+
+    /// Power-up values of a setting: the manual's default, else the profile's example, else zeros.
+    fn initial_params(m: &VendorMnemonic, count: usize) -> Vec<String> {
+        if let Some(d) = rule_for(&m.name).and_then(|r| r.default) {
+            return d.iter().map(|s| s.to_string()).collect();
+        }
+        if let Some(ex) = m.example.as_deref() {
+            let v = split_values(ex);
+            if v.len() == count && v.iter().all(|x| is_number(x)) {
+                return v;
+            }
+        }
+        vec!["0".to_string(); count]
+    }
+
+    /// The register bank (tests inspect values through it).
+    pub fn bank(&self) -> &RegisterBank {
+        &self.bank
+    }
+
+    /// How many writes reached non-volatile memory (Save, and other destructive registers and mnemonics).
+    pub fn nvm_writes(&self) -> u32 {
+        self.nvm_writes
+    }
+
+    /// The recorded program state.
+    pub fn program(&self) -> &Program {
+        &self.program
+    }
+
+    /// Set a digital input level (tests and the in-process target play the outside world); false if absent.
+    pub fn set_input(&mut self, input: usize, on: bool) -> bool {
+        let ok = match input.checked_sub(1).and_then(|i| self.inputs.get(i)) {
+            Some(&a) => self.bank.set_bit(BitTable::DiscreteInputs, a, on),
+            None => false,
+        };
+        self.refresh();
+        ok
+    }
+
+    fn reg(&self, addr: Option<u16>) -> Option<i64> {
+        addr.and_then(|a| self.bank.value(a))
+    }
+
+    fn set_reg(&mut self, addr: Option<u16>, value: i64) {
+        if let Some(a) = addr {
+            self.bank.set_value(a, value);
+        }
+    }
+
+    fn ramp(&self) -> Ramp {
+        let get = |a: Option<u16>, dflt: f64| self.reg(a).map_or(dflt, |v| v as f64);
+        let vm = get(self.addrs.vm, 768_000.0).max(1.0);
+        Ramp {
+            vi: get(self.addrs.vi, 1_000.0).clamp(0.0, vm),
+            vm,
+            accel: get(self.addrs.a, 1_000_000.0).max(1.0),
+            decel: get(self.addrs.d, 1_000_000.0).max(1.0),
+        }
+    }
+
+    fn kinematics(&self) -> Kinematics {
+        match &self.motion {
+            Some(m) => m.at(self.now.saturating_sub(m.start).as_secs_f64()),
+            None => Kinematics {
+                disp: self.rest,
+                vel: 0.0,
+                changing: false,
+                moving: None,
+            },
+        }
+    }
+
+    fn position(&self, disp: f64) -> i64 {
+        // Through i32: P is a 32-bit register and wraps like one.
+        i64::from(self.p_origin.wrapping_add(steps(disp)) as i32)
+    }
+
+    /// Bring the status registers up to date: position, velocity, motion flags, I/O mirrors.
+    fn refresh(&mut self) {
+        let k = self.kinematics();
+        let d = steps(k.disp);
+        self.set_reg(self.addrs.p, self.p_origin.wrapping_add(d));
+        self.set_reg(self.addrs.c1, self.c1_origin.wrapping_add(d));
+        self.set_reg(self.addrs.v, steps(k.vel));
+        self.set_reg(self.addrs.mv, i64::from(k.moving.is_some()));
+        self.set_reg(self.addrs.vc, i64::from(k.changing));
+        self.set_reg(self.addrs.mp, i64::from(k.moving == Some(MoveKind::Point)));
+        let mut group = 0i64;
+        for (i, a) in self.inputs.clone().into_iter().enumerate() {
+            let on = self.bank.bit(BitTable::DiscreteInputs, a).unwrap_or(false);
+            group |= i64::from(on) << i.min(62);
+            self.set_reg(self.addrs.inputs.get(i).copied().flatten(), i64::from(on));
+        }
+        for g in self.addrs.input_groups.clone() {
+            self.bank.set_value(g, group);
+        }
+        let mut group = 0i64;
+        for (i, a) in self.outputs.clone().into_iter().enumerate() {
+            let on = self.bank.bit(BitTable::Coils, a).unwrap_or(false);
+            group |= i64::from(on) << i.min(62);
+            self.set_reg(self.addrs.outputs.get(i).copied().flatten(), i64::from(on));
+        }
+        for g in self.addrs.output_groups.clone() {
+            self.bank.set_value(g, group);
+        }
+    }
+
+    /// Stop the axis where it is (DE = 0, ESC).
+    fn halt(&mut self) {
+        let k = self.kinematics();
+        self.rest = k.disp.round();
+        self.motion = None;
+    }
+
+    /// The dependent limits a register write must respect (exception 03), beyond each register's own range.
+    fn check_limits(&self, changes: &[Change]) -> Result<(), ExceptionCode> {
+        if self.bank.range_unchecked() {
+            return Ok(());
+        }
+        let new = |addr: Option<u16>| {
+            let a = addr?;
+            changes
+                .iter()
+                .find(|c| c.address == a)
+                .map(|c| c.value)
+                .or_else(|| self.bank.value(a))
+        };
+        let touched =
+            |addr: Option<u16>| addr.is_some_and(|a| changes.iter().any(|c| c.address == a));
+        if (touched(self.addrs.vi) || touched(self.addrs.vm))
+            && let (Some(vi), Some(vm)) = (new(self.addrs.vi), new(self.addrs.vm))
+            && vi >= vm
+        {
+            return Err(ExceptionCode::ILLEGAL_DATA_VALUE);
+        }
+        if touched(self.addrs.ms) && new(self.addrs.ms).is_some_and(|m| !MICROSTEPS.contains(&m)) {
+            return Err(ExceptionCode::ILLEGAL_DATA_VALUE);
+        }
+        if touched(self.addrs.ht) || touched(self.addrs.mt) {
+            let ht = new(self.addrs.ht).unwrap_or(0);
+            let mt = new(self.addrs.mt).unwrap_or(0);
+            if (touched(self.addrs.ht) && ht == 1) || ht.saturating_add(mt) > 65_535 {
+                return Err(ExceptionCode::ILLEGAL_DATA_VALUE);
+            }
+        }
+        Ok(())
+    }
+
+    /// Whether the motion commands in `changes` can run now (exception 04 if not).
+    fn check_motion(&self, changes: &[Change]) -> Result<(), ExceptionCode> {
+        let moving = self.kinematics().moving.is_some();
+        let enabled = self.reg(self.addrs.de).is_none_or(|v| v != 0)
+            && !changes
+                .iter()
+                .any(|c| Some(c.address) == self.addrs.de && c.value == 0);
+        for c in changes {
+            let a = Some(c.address);
+            let point = a == self.addrs.ma || a == self.addrs.mr;
+            let slew = a == self.addrs.sl && c.value != 0;
+            if (point && (moving || !enabled)) || (slew && !enabled) {
+                return Err(ExceptionCode::SERVER_DEVICE_FAILURE);
+            }
+        }
+        Ok(())
+    }
+
+    /// Validate and apply a holding-register write, then react to what changed.
+    fn write_registers(&mut self, address: u16, words: &[u16]) -> Result<(), ExceptionCode> {
+        let changes = self.bank.plan_write(address, words)?;
+        self.check_limits(&changes)?;
+        self.check_motion(&changes)?;
+        self.bank.commit(&changes);
+        for c in &changes {
+            self.apply(c);
+        }
+        self.refresh();
+        Ok(())
+    }
+
+    /// What a stored register write does besides storing.
+    fn apply(&mut self, c: &Change) {
+        let a = Some(c.address);
+        let here = self.kinematics();
+        if a == self.addrs.ma || a == self.addrs.mr {
+            let dist = if a == self.addrs.ma {
+                c.value.wrapping_sub(self.position(here.disp))
+            } else {
+                c.value
+            };
+            if dist != 0 {
+                let base = here.disp.round();
+                self.motion = Some(Motion {
+                    kind: MoveKind::Point,
+                    start: self.now,
+                    base,
+                    segments: plan_point(self.ramp(), dist as f64),
+                    cruise: None,
+                    end: Some(base + dist as f64),
+                });
+            }
+        } else if a == self.addrs.sl {
+            if here.moving.is_some() || c.value != 0 {
+                let (segments, cruise) = plan_slew(self.ramp(), here.vel, c.value as f64);
+                self.motion = Some(Motion {
+                    kind: MoveKind::Slew,
+                    start: self.now,
+                    base: here.disp,
+                    segments,
+                    cruise,
+                    end: None,
+                });
+            }
+        } else if a == self.addrs.p {
+            self.p_origin = c.value.wrapping_sub(steps(here.disp));
+        } else if a == self.addrs.c1 {
+            self.c1_origin = c.value.wrapping_sub(steps(here.disp));
+        } else if a == self.addrs.de && c.value == 0 {
+            self.halt();
+        } else if let Some(k) = self.addrs.outputs.iter().position(|o| *o == a) {
+            if let Some(&coil) = self.outputs.get(k) {
+                self.bank.set_bit(BitTable::Coils, coil, c.value != 0);
+            }
+        } else if self.addrs.output_groups.contains(&c.address) {
+            for (i, coil) in self.outputs.clone().into_iter().enumerate() {
+                let on = i < 63 && (c.value >> i) & 1 == 1;
+                self.bank.set_bit(BitTable::Coils, coil, on);
+            }
+        }
+        if self.bank.register(c.address).is_some_and(|r| r.destructive) {
+            self.nvm_writes = self.nvm_writes.saturating_add(1);
+        }
+    }
+
+    fn vendor_entry(&self, mnemonic: &Mnemonic) -> Option<VendorMnemonic> {
+        self.profile.mnemonic(&mnemonic.name()).cloned()
+    }
+
+    /// FC 0x41: read a mnemonic's parameters.
+    fn vendor_read(&self, mnemonic: &Mnemonic) -> Response {
+        let fc = FunctionCode::VENDOR_READ;
+        let Some(m) = self.vendor_entry(mnemonic) else {
+            return Response::exception(fc, ExceptionCode::ILLEGAL_DATA_ADDRESS);
+        };
+        if !m.read {
+            return Response::exception(fc, ExceptionCode::ILLEGAL_DATA_ADDRESS);
+        }
+        let key = m.name.to_ascii_uppercase();
+        let mut values = match (vendor_kind(&m), self.params.get(&key)) {
+            (_, Some(v)) => v.clone(),
+            (VendorKind::Status, None) => {
+                // A measurement: the manual's printed reading stands in for the sensor.
+                return Response::VendorRead {
+                    params: m
+                        .example
+                        .as_deref()
+                        .unwrap_or("0")
+                        .trim_start_matches('=')
+                        .as_bytes()
+                        .to_vec(),
+                };
+            }
+            (_, None) => vec!["0".to_string()],
+        };
+        if let (Some(reg), Some(first)) = (m.register, values.first_mut())
+            && let Some(v) = self.bank.value(reg)
+        {
+            *first = v.to_string();
+        }
+        Response::VendorRead {
+            params: values.join(", ").into_bytes(),
+        }
+    }
+
+    /// FC 0x42: write a setting or run a command.
+    fn vendor_write(&mut self, mnemonic: &Mnemonic, params: &[u8]) -> Response {
+        let fc = FunctionCode::VENDOR_WRITE;
+        let fail = |e| Response::exception(fc, e);
+        let Some(m) = self.vendor_entry(mnemonic) else {
+            return fail(ExceptionCode::ILLEGAL_DATA_ADDRESS);
+        };
+        let kind = vendor_kind(&m);
+        let writable = m.write || (kind == VendorKind::Status && self.bank.read_only_writable());
+        if !writable {
+            return fail(ExceptionCode::ILLEGAL_DATA_ADDRESS);
+        }
+        if params.len() > MAX_PARAM_BYTES || !params.iter().all(|b| (0x20..=0x7E).contains(b)) {
+            return fail(ExceptionCode::ILLEGAL_DATA_VALUE);
+        }
+        // Printable ASCII only, so this cannot fail; an empty string stands in if it ever did.
+        let text = std::str::from_utf8(params).unwrap_or_default();
+        let key = m.name.to_ascii_uppercase();
+        let result = match kind {
+            VendorKind::Command { takes_params } => self.run_command(&key, text, takes_params),
+            VendorKind::Setting { count } => self.write_setting(&m, &key, text, count),
+            VendorKind::Status => {
+                // Only under `read-only-writable`: the "measurement" takes whatever was written.
+                self.params.insert(key, split_values(text));
+                Ok(())
+            }
+        };
+        match result {
+            Ok(()) => {
+                if m.destructive {
+                    self.nvm_writes = self.nvm_writes.saturating_add(1);
+                }
+                self.refresh();
+                Response::VendorWrite {
+                    written: BYTES_WRITTEN,
+                    mnemonic: *mnemonic,
+                }
+            }
+            Err(e) => fail(e),
+        }
+    }
+
+    fn run_command(
+        &mut self,
+        key: &str,
+        text: &str,
+        takes_params: bool,
+    ) -> Result<(), ExceptionCode> {
+        if takes_params == text.is_empty() {
+            return Err(ExceptionCode::ILLEGAL_DATA_VALUE);
+        }
+        let label = text.trim().to_string();
+        self.program = match (key, std::mem::replace(&mut self.program, Program::Idle)) {
+            ("E" | "CP", _) => Program::Idle,
+            ("\u{1b}", _) => {
+                // ESC aborts the program and any motion (MCode's escape).
+                self.halt();
+                Program::Idle
+            }
+            ("EX", _) => Program::Running(label),
+            ("PS", Program::Running(l)) => Program::Paused(l),
+            ("RS", Program::Paused(l)) => Program::Running(l),
+            (_, other) => other,
+        };
+        Ok(())
+    }
+
+    fn write_setting(
+        &mut self,
+        m: &VendorMnemonic,
+        key: &str,
+        text: &str,
+        count: usize,
+    ) -> Result<(), ExceptionCode> {
+        let bad = ExceptionCode::ILLEGAL_DATA_VALUE;
+        let body = text.strip_prefix('=').ok_or(bad)?;
+        let given: Vec<String> = body.split(',').map(|v| v.trim().to_string()).collect();
+        if given.len() > count || !given.iter().all(|v| is_number(v)) {
+            return Err(bad);
+        }
+        let mut merged = self
+            .params
+            .get(key)
+            .cloned()
+            .unwrap_or_else(|| vec!["0".to_string(); count]);
+        merged.resize(count, "0".to_string());
+        for (slot, v) in merged.iter_mut().zip(&given) {
+            slot.clone_from(v);
+        }
+        let unchecked = self.bank.range_unchecked();
+        if let Some(rule) = rule_for(&m.name)
+            && !unchecked
+        {
+            let ints: Vec<Option<i64>> = merged.iter().map(|v| v.parse::<i64>().ok()).collect();
+            for (allowed, v) in rule.params.iter().zip(&ints) {
+                let ok = match (allowed, v) {
+                    (Allowed::Any, _) => true,
+                    (Allowed::Set(s), Some(v)) => s.contains(v),
+                    (Allowed::Range(lo, hi), Some(v)) => (lo..=hi).contains(&v),
+                    (_, None) => false,
+                };
+                if !ok {
+                    return Err(bad);
+                }
+            }
+            if let Some(check) = rule.check {
+                let all: Option<Vec<i64>> = ints.iter().copied().collect();
+                if !all.is_some_and(|v| check(&v)) {
+                    return Err(bad);
+                }
+            }
+        }
+        if let Some(reg) = m.register {
+            // The first value is the register's: it must be an integer the register can hold.
+            let v: i64 = merged.first().and_then(|v| v.parse().ok()).ok_or(bad)?;
+            let r = self.bank.register(reg).ok_or(bad)?;
+            let (lo, hi) = if unchecked {
+                r.natural_range()
+            } else {
+                r.range()
+            };
+            if v < lo || v > hi {
+                return Err(bad);
+            }
+            self.bank.set_value(reg, v);
+        }
+        self.params.insert(key.to_string(), merged);
+        Ok(())
+    }
+}
+
+impl DriveModel for Mdrive {
+    fn profile(&self) -> &Profile {
+        &self.profile
+    }
+
+    fn advance(&mut self, now: Duration) {
+        self.now = self.now.max(now);
+        if let Some(m) = &self.motion {
+            let k = m.at(self.now.saturating_sub(m.start).as_secs_f64());
+            if k.moving.is_none() {
+                self.rest = k.disp;
+                self.motion = None;
+            }
+        }
+        self.refresh();
+    }
+
+    fn handle(&mut self, now: Duration, _unit: u8, request: &Request) -> Option<Response> {
+        self.advance(now);
+        let fc = request.function();
+        let exc = |e| Response::exception(fc, e);
+        let resp = match request {
+            Request::WriteSingleRegister { address, value } => {
+                match self.write_registers(*address, &[*value]) {
+                    Ok(()) => Response::WriteSingleRegister {
+                        address: *address,
+                        value: *value,
+                    },
+                    Err(e) => exc(e),
+                }
+            }
+            Request::WriteMultipleRegisters { address, values } => {
+                match self.write_registers(*address, values) {
+                    Ok(()) => Response::WriteMultipleRegisters {
+                        address: *address,
+                        quantity: u16::try_from(values.len()).unwrap_or(u16::MAX),
+                    },
+                    Err(e) => exc(e),
+                }
+            }
+            Request::ReadWriteMultipleRegisters {
+                read_address,
+                read_quantity,
+                write_address,
+                values,
+            } => {
+                // Spec 6.17: check both ranges, write, then read what the write left.
+                match self
+                    .bank
+                    .read(RegTable::Holding, *read_address, *read_quantity)
+                    .and_then(|_| self.write_registers(*write_address, values))
+                    .and_then(|()| {
+                        self.bank
+                            .read(RegTable::Holding, *read_address, *read_quantity)
+                    }) {
+                    Ok(values) => Response::ReadWriteMultipleRegisters { values },
+                    Err(e) => exc(e),
+                }
+            }
+            Request::ReadDeviceId {
+                read_code,
+                object_id,
+            } => read_device_id(&self.profile, *read_code, *object_id),
+            Request::VendorRead { mnemonic } => self.vendor_read(mnemonic),
+            Request::VendorWrite { mnemonic, params } => self.vendor_write(mnemonic, params),
+            other => match serve_data_model(&mut self.bank, other) {
+                // Reads and coil writes; a coil write shows in O1-O4/OT at the refresh below.
+                Some(r) => r,
+                None => exc(ExceptionCode::ILLEGAL_FUNCTION),
+            },
+        };
+        self.refresh();
+        Some(resp)
+    }
+}

@@ -1,0 +1,39 @@
+//! Reference drive models and the wire-level station around them. Sans-IO: time is passed in.
+//!
+//! A `DriveModel` answers typed requests and evolves on a virtual clock; the `Station` owns the wire:
+//! Modbus/TCP stream splitting and MBAP checks, RTU addressing, broadcast, the serial-line counters of
+//! FC 08, and the injected faults that act on bytes.
+
+pub mod bank;
+pub mod generic;
+pub mod mdrive;
+pub mod sd2x;
+
+use std::time::Duration;
+
+use crate::profile::Profile;
+use codec::{Request, Response};
+
+use crate::faults::FaultSet;
+
+/// An executable model of a drive: what a conforming drive answers, and its state over time.
+pub trait DriveModel: Send {
+    /// The profile the model was built from.
+    fn profile(&self) -> &Profile;
+
+    /// Move internal state (motion, watchdog, actual speed) forward to `now`. Time never goes back.
+    fn advance(&mut self, now: Duration);
+
+    /// Answer a request addressed to this drive as unit `unit` at `now` (after `advance(now)`).
+    /// `None` means the drive stays silent. Broadcasts are handled too; the station drops their answer.
+    fn handle(&mut self, now: Duration, unit: u8, request: &Request) -> Option<Response>;
+}
+
+/// Build the model a profile describes: sd2x, mdrive and lmd have their own models, anything else is generic.
+pub fn build(profile: Profile, faults: FaultSet) -> Box<dyn DriveModel> {
+    match profile.device.id.as_str() {
+        "sd2x" => Box::new(sd2x::Sd2x::new(profile, faults)),
+        "mdrive" | "lmd" => Box::new(mdrive::Mdrive::new(profile, faults)),
+        _ => Box::new(generic::Generic::new(profile, faults)),
+    }
+}

@@ -1,0 +1,28 @@
+//! In-process figures (BENCHMARKS.md): codec encode+decode per frame, the station answering request bytes,
+//! and the drive model answering a typed request, without sockets.
+//!
+//!   cargo bench --bench inproc [-- SECS]     SECS per figure, default 1
+
+extern crate modbus_harness_engine as engine;
+
+use std::process::ExitCode;
+
+fn main() -> ExitCode {
+    let secs = std::env::args()
+        .skip(1)
+        .find(|a| !a.starts_with("--"))
+        .and_then(|a| a.parse::<f64>().ok())
+        .unwrap_or(1.0);
+    match engine::bench::in_process(secs) {
+        Ok(figures) => {
+            for f in figures {
+                println!("{f}");
+            }
+            ExitCode::SUCCESS
+        }
+        Err(e) => {
+            eprintln!("inproc: {e}");
+            ExitCode::FAILURE
+        }
+    }
+}

@@ -1,0 +1,365 @@
+//! A live fuzz campaign against an endpoint: generated and mutated requests, a liveness probe every few
+//! cases, detection of a drive that stops answering, answers wrongly or sends malformed frames, and a
+//! reproducer for each finding (replayed, and shrunk on `sim:` targets where a fresh drive can be had).
+
+use std::io::Write;
+use std::path::PathBuf;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::{Duration, Instant};
+
+use crate::cases::catalog::probe_pdu;
+use crate::cases::generated::Generator;
+use crate::cases::shrink::{Origin, RegressionFile, file_stem};
+use crate::cases::{Case, Compare, Level, Send, Step, Verdict};
+use crate::expect::Expectations;
+use crate::runner::skip_reason;
+use crate::session::{Options, SessionError, config, open_runner, resolve_profile};
+
+/// How a campaign runs.
+#[derive(Clone, Debug)]
+pub struct CampaignOptions {
+    /// Target, profile, unit, timeouts, safety flags and (for `sim:`) faults.
+    pub base: Options,
+    /// Stop after this long.
+    pub duration: Duration,
+    /// Stop after this many cases, if given.
+    pub max_cases: Option<u64>,
+    pub seed: u64,
+    /// A liveness probe after every this many cases.
+    pub probe_every: u64,
+    /// Go on after a non-fatal finding (a FAIL) instead of stopping at the first.
+    pub keep_going: bool,
+    /// Where reproducers go: `<dir>/<profile>/<name>.toml`.
+    pub regressions: PathBuf,
+}
+
+/// What kind of thing went wrong.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum FindingKind {
+    /// The drive stopped answering the liveness probe: fatal, the campaign ends.
+    StoppedAnswering,
+    /// A generated case FAILed (wrong, malformed or missing answer) while the drive stayed alive.
+    Fail,
+}
+
+/// One finding of a campaign.
+#[derive(Clone, Debug)]
+pub struct CampaignFinding {
+    pub kind: FindingKind,
+    /// The case that failed (for a stop: the first case after the last good probe).
+    pub case_id: String,
+    pub findings: Vec<String>,
+    /// The reproducer: the cases since the last good probe, then the probe.
+    pub reproducer: Case,
+    /// Where it was written.
+    pub file: Option<PathBuf>,
+    /// On `sim:`: the reproducer FAILs on a fresh faulted drive and PASSes on a healthy one.
+    pub replayed: Option<bool>,
+}
+
+/// The end of a campaign.
+#[derive(Clone, Debug)]
+pub struct CampaignOutcome {
+    pub cases: u64,
+    pub probes: u64,
+    pub elapsed: Duration,
+    pub findings: Vec<CampaignFinding>,
+    pub seed: u64,
+}
+
+impl CampaignOutcome {
+    /// Cases per second over the whole campaign.
+    pub fn exec_per_sec(&self) -> f64 {
+        self.cases as f64 / self.elapsed.as_secs_f64().max(1e-9)
+    }
+}
+
+fn probe_case(profile: &drives::profile::Profile) -> Case {
+    Case {
+        id: "fuzz/liveness-probe".into(),
+        title: "liveness probe".into(),
+        reference: "Modbus Application Protocol Specification V1.1b3, section 6".into(),
+        requirement:
+            "After any sequence of requests, valid or not, the drive still answers a valid read."
+                .into(),
+        level: Level::Must,
+        tags: vec![],
+        steps: vec![Step::Exchange {
+            send: Send::Pdu(probe_pdu(profile)),
+            compare: Compare::Structure,
+            capture: None,
+            note: "liveness probe".into(),
+        }],
+    }
+}
+
+/// Concatenate cases into one reproducer ending with the liveness probe.
+fn reproducer(name: &str, history: &[Case], probe: &Case, requirement: &str) -> Case {
+    let mut steps = Vec::new();
+    let mut tags = Vec::new();
+    for c in history {
+        steps.extend(c.steps.iter().cloned());
+        for t in &c.tags {
+            if !tags.contains(t) {
+                tags.push(*t);
+            }
+        }
+    }
+    steps.extend(probe.steps.iter().cloned());
+    Case {
+        id: name.to_string(),
+        title: format!(
+            "fuzz finding: {} case(s) then a liveness probe",
+            history.len()
+        ),
+        reference: probe.reference.clone(),
+        requirement: requirement.to_string(),
+        level: Level::Must,
+        tags,
+        steps,
+    }
+}
+
+/// Run a case on a fresh drive of the run's target (sim: only); None when no fresh drive can be had.
+fn verdict_on_fresh(opts: &Options, case: &Case) -> Option<Verdict> {
+    if !opts.target.is_sim() {
+        return None;
+    }
+    let profile = resolve_profile(opts, &mut std::io::sink()).ok()?;
+    let cfg = config(opts, &profile);
+    let mut runner = open_runner(opts, &profile, &cfg, &Expectations::default()).ok()?;
+    runner.run_case(case).ok().map(|r| r.verdict)
+}
+
+/// Remove history cases one at a time while the reproducer still FAILs on a fresh drive (bounded).
+fn shrink_history(
+    opts: &Options,
+    history: Vec<Case>,
+    probe: &Case,
+    requirement: &str,
+    deadline: Instant,
+) -> Vec<Case> {
+    let mut h = history;
+    let mut i = 0;
+    while i < h.len() && Instant::now() < deadline && h.len() > 1 {
+        let mut candidate = h.clone();
+        candidate.remove(i);
+        let r = reproducer("fuzz/candidate", &candidate, probe, requirement);
+        if verdict_on_fresh(opts, &r) == Some(Verdict::Fail) {
+            h = candidate;
+        } else {
+            i += 1;
+        }
+    }
+    h
+}
+
+/// What the loop saw, before it becomes a reproducer.
+struct Detected {
+    kind: FindingKind,
+    case_id: String,
+    findings: Vec<String>,
+    history: Vec<Case>,
+}
+
+fn record(
+    opts: &CampaignOptions,
+    profile: &str,
+    d: Detected,
+    probe: &Case,
+    log: &mut dyn Write,
+) -> CampaignFinding {
+    let Detected {
+        kind,
+        case_id,
+        findings,
+        history,
+    } = d;
+    let case_id = case_id.as_str();
+    let requirement = match kind {
+        FindingKind::StoppedAnswering => {
+            "After this sequence the drive still answers a valid read (it stopped answering)."
+        }
+        FindingKind::Fail => "The drive answers this sequence as the reference drive does.",
+    };
+    let original = history.len();
+    let history = shrink_history(
+        &opts.base,
+        history,
+        probe,
+        requirement,
+        Instant::now() + Duration::from_secs(30),
+    );
+    let name = format!("fuzz-{}-{}", opts.seed, file_stem(case_id));
+    let case = reproducer(
+        &format!("regression/{profile}/{name}"),
+        &history,
+        probe,
+        requirement,
+    );
+    let replayed = if opts.base.target.is_sim() {
+        let faulted = verdict_on_fresh(&opts.base, &case);
+        let mut healthy = opts.base.clone();
+        healthy.faults = drives::FaultSet::none();
+        let ok = verdict_on_fresh(&healthy, &case);
+        Some(faulted == Some(Verdict::Fail) && ok == Some(Verdict::Pass))
+    } else {
+        None
+    };
+    let origin = Origin {
+        case: case_id.to_string(),
+        seed: opts.seed,
+        index: 0,
+        target: opts.base.target.to_string(),
+        faults: opts
+            .base
+            .faults
+            .0
+            .iter()
+            .map(|f| f.name().to_string())
+            .collect(),
+        harness: env!("CARGO_PKG_VERSION").to_string(),
+        original_steps: original,
+        shrink_steps: original - history.len(),
+        findings: findings.clone(),
+    };
+    let dir = opts.regressions.join(profile);
+    let path = dir.join(format!("{name}.toml"));
+    let file = std::fs::create_dir_all(&dir)
+        .and_then(|_| {
+            std::fs::write(
+                &path,
+                RegressionFile::from_case(&case, Some(origin)).to_toml(),
+            )
+        })
+        .map(|_| path.clone());
+    match &file {
+        Ok(p) => {
+            let _ = writeln!(
+                log,
+                "  reproducer: {} ({} case(s) of {original} kept)",
+                p.display(),
+                history.len()
+            );
+        }
+        Err(e) => {
+            let _ = writeln!(log, "  reproducer not written to {}: {e}", path.display());
+        }
+    }
+    CampaignFinding {
+        kind,
+        case_id: case_id.to_string(),
+        findings,
+        reproducer: case,
+        file: file.ok(),
+        replayed,
+    }
+}
+
+/// Run a campaign until the duration, the case limit, an interrupt, or the first fatal finding.
+pub fn campaign(
+    opts: &CampaignOptions,
+    log: &mut dyn Write,
+    interrupt: &AtomicBool,
+    mut tick: impl FnMut(u64, f64, usize),
+) -> Result<CampaignOutcome, SessionError> {
+    let base = &opts.base;
+    let profile = resolve_profile(base, log)?;
+    if !base.faults.0.is_empty() && !base.target.is_sim() {
+        return Err(SessionError::Setup(
+            "--fault applies to the in-process simulator only (sim:PROFILE)".into(),
+        ));
+    }
+    let cfg = config(base, &profile);
+    let mut runner = open_runner(base, &profile, &cfg, &Expectations::default())?;
+    let framing = runner.framing();
+    let generator = Generator::new(&profile, cfg.unit, opts.seed);
+    let probe = probe_case(&profile);
+    let _ = writeln!(
+        log,
+        "fuzz: {} with profile `{}`, seed {}, probe every {} cases, for {:?}",
+        runner.target().describe(),
+        profile.device.id,
+        opts.seed,
+        opts.probe_every,
+        opts.duration
+    );
+    let started = Instant::now();
+    let mut last_tick = Instant::now();
+    let (mut cases, mut probes, mut index) = (0u64, 0u64, 0u64);
+    let mut history: Vec<Case> = Vec::new();
+    let mut findings = Vec::new();
+    // Bounded by the duration, the case limit and the interrupt; a generator that only produced skipped
+    // cases is bounded by the index limit.
+    while started.elapsed() < opts.duration
+        && opts.max_cases.is_none_or(|m| cases < m)
+        && !interrupt.load(Ordering::SeqCst)
+        && index < u64::MAX / 2
+    {
+        let case = generator.case(index);
+        index += 1;
+        if skip_reason(&case, &cfg, framing).is_some() {
+            continue;
+        }
+        let result = runner.run_case(&case)?;
+        cases += 1;
+        history.push(case.clone());
+        if result.verdict == Verdict::Fail {
+            let f: Vec<String> = result.findings().cloned().collect();
+            let _ = writeln!(
+                log,
+                "finding: {} FAILs: {}",
+                case.id,
+                f.first().cloned().unwrap_or_default()
+            );
+            let d = Detected {
+                kind: FindingKind::Fail,
+                case_id: case.id.clone(),
+                findings: f,
+                history: vec![case.clone()],
+            };
+            findings.push(record(opts, &profile.device.id, d, &probe, log));
+            if !opts.keep_going {
+                break;
+            }
+        }
+        if cases % opts.probe_every.max(1) == 0 {
+            probes += 1;
+            let p = runner.run_case(&probe)?;
+            if p.verdict == Verdict::Fail {
+                let first = history.first().map_or("?".to_string(), |c| c.id.clone());
+                let f: Vec<String> = p.findings().cloned().collect();
+                let _ = writeln!(
+                    log,
+                    "finding: the drive stopped answering within the {} case(s) since the last good probe (from {first})",
+                    history.len()
+                );
+                let h = std::mem::take(&mut history);
+                let d = Detected {
+                    kind: FindingKind::StoppedAnswering,
+                    case_id: first,
+                    findings: f,
+                    history: h,
+                };
+                findings.push(record(opts, &profile.device.id, d, &probe, log));
+                break;
+            }
+            history.clear();
+        }
+        if last_tick.elapsed() >= Duration::from_secs(1) {
+            last_tick = Instant::now();
+            tick(
+                cases,
+                cases as f64 / started.elapsed().as_secs_f64().max(1e-9),
+                findings.len(),
+            );
+        }
+    }
+    Ok(CampaignOutcome {
+        cases,
+        probes,
+        elapsed: started.elapsed(),
+        findings,
+        seed: opts.seed,
+    })
+}

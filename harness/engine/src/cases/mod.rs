@@ -1,0 +1,223 @@
+//! Test cases: stable ids tied to spec sections, the requirement they check, their steps and tags.
+
+pub mod catalog;
+pub mod generate;
+pub mod generated;
+pub mod shrink;
+
+use std::fmt;
+use std::time::Duration;
+
+use serde::{Deserialize, Serialize};
+
+/// A tag that the safety policy acts on.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Tag {
+    /// The case writes to the drive.
+    Write,
+    /// The case can move the motor or enable the power stage.
+    Motion,
+    /// The case changes non-volatile state, resets the drive, or leaves it faulted.
+    Destructive,
+    /// The case needs a transport feature (e.g. TCP segments, RTU silences) and is skipped on others.
+    TcpOnly,
+    RtuOnly,
+}
+
+/// How a response is compared with what the reference model answers.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Compare {
+    /// Byte for byte (after framing): deterministic values.
+    Exact,
+    /// Same function code, same exception code if any, same byte counts/lengths; data values free.
+    Structure,
+    /// As `Structure`, and each register value of the response lies within the profile's range.
+    InRange,
+    /// Anything but silence or a malformed frame (informational reads).
+    Any,
+    /// The request is invalid: it may be rejected with the reference's exception, ignored (silence), or,
+    /// on TCP, end the connection; it must never be answered as a valid request.
+    RejectOrIgnore,
+}
+
+/// How the bytes of a step are put on the wire.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Send {
+    /// A PDU, framed for the target's transport with the run's unit id (and a fresh transaction id).
+    Pdu(Vec<u8>),
+    /// A PDU framed with a specific unit id / slave address.
+    PduToUnit { pdu: Vec<u8>, unit: u8 },
+    /// A PDU framed, then altered on purpose; the pcap marks these frames as malformed by intent.
+    Mutated { pdu: Vec<u8>, mutation: Mutation },
+    /// Several PDUs framed and sent in one write (pipelining / one TCP segment).
+    Batch(Vec<Vec<u8>>),
+    /// Restore registers captured by an earlier step into `slot` with FC 16 at `address`.
+    Restore { address: u16, slot: usize },
+}
+
+/// A deliberate alteration of a request: of the framed bytes, or (the PDU-level ones, see
+/// [`Mutation::apply_to_pdu`]) of the PDU before it is framed with a correct header and CRC.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Mutation {
+    /// Modbus/TCP: protocol id set to this value.
+    ProtocolId(u16),
+    /// Modbus/TCP: MBAP length field changed by this amount.
+    LengthDelta(i16),
+    /// RTU: CRC inverted.
+    BadCrc,
+    /// Send the frame in two writes, split after this many bytes, with this gap between.
+    Split { at: usize, gap_us: u64 },
+    /// PDU: invert bit `bit` (bit 0 = most significant bit of the function code; wraps at the PDU's end).
+    BitFlip { bit: usize },
+    /// PDU: keep only the first `len` bytes.
+    Truncate { len: usize },
+    /// PDU: append these bytes.
+    Extend(Vec<u8>),
+    /// PDU: set byte `at` to `value` (a function-code swap, a byte count that disagrees); no-op past the end.
+    SetByte { at: usize, value: u8 },
+}
+
+impl Mutation {
+    /// The altered PDU for a PDU-level mutation; `None` for those that act on the framed bytes.
+    pub fn apply_to_pdu(&self, pdu: &[u8]) -> Option<Vec<u8>> {
+        let mut out = pdu.to_vec();
+        match self {
+            Mutation::BitFlip { bit } => {
+                if !out.is_empty() {
+                    let bit = bit % (out.len() * 8);
+                    out[bit / 8] ^= 0x80 >> (bit % 8);
+                }
+            }
+            Mutation::Truncate { len } => out.truncate(*len),
+            Mutation::Extend(extra) => out.extend_from_slice(extra),
+            Mutation::SetByte { at, value } => {
+                if let Some(b) = out.get_mut(*at) {
+                    *b = *value;
+                }
+            }
+            Mutation::ProtocolId(_)
+            | Mutation::LengthDelta(_)
+            | Mutation::BadCrc
+            | Mutation::Split { .. } => return None,
+        }
+        Some(out)
+    }
+}
+
+/// One step of a case.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Step {
+    /// Send and observe the answer(s); compare with the reference model.
+    Exchange {
+        send: Send,
+        compare: Compare,
+        /// Store the register values of the response in this slot (for `Send::Restore`).
+        capture: Option<usize>,
+        /// What this step is about, for the report.
+        note: String,
+    },
+    /// Let time pass (virtual on `sim:`, real elsewhere) with the line idle.
+    Wait(Duration),
+    /// Close and reopen the connection.
+    Reconnect,
+    /// The 32-bit value captured as a register pair (in the profile's word order) in slot `registers`
+    /// equals the FC 43 object value (little-endian) captured in slot `object`.
+    Agree {
+        registers: usize,
+        object: usize,
+        note: String,
+    },
+}
+
+/// A conformance case.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize)]
+pub struct Case {
+    /// Stable id: `suite/section/name`.
+    pub id: String,
+    /// What the case is, in a few words.
+    pub title: String,
+    /// Spec or manual reference (document and section).
+    pub reference: String,
+    /// The requirement sentence the case checks.
+    pub requirement: String,
+    /// The level of the requirement: a broken SHOULD is NON-STRICT, a broken MUST a FAIL.
+    pub level: Level,
+    pub tags: Vec<Tag>,
+    pub steps: Vec<Step>,
+}
+
+/// Strength of a requirement.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "UPPERCASE")]
+pub enum Level {
+    Must,
+    Should,
+    /// Recorded, never failing (e.g. what a drive answers to an optional unit id).
+    Info,
+}
+
+impl Case {
+    /// True if the case carries `tag`.
+    pub fn has(&self, tag: Tag) -> bool {
+        self.tags.contains(&tag)
+    }
+}
+
+/// The graded outcome of a case.
+#[derive(
+    Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, serde::Deserialize,
+)]
+#[serde(rename_all = "SCREAMING-KEBAB-CASE")]
+pub enum Verdict {
+    Pass,
+    NonStrict,
+    Informational,
+    Fail,
+    Unimplemented,
+    Skipped,
+}
+
+impl Verdict {
+    /// Every verdict in report order.
+    pub const ALL: [Verdict; 6] = [
+        Verdict::Pass,
+        Verdict::NonStrict,
+        Verdict::Informational,
+        Verdict::Fail,
+        Verdict::Unimplemented,
+        Verdict::Skipped,
+    ];
+
+    /// The report label.
+    pub fn label(self) -> &'static str {
+        match self {
+            Verdict::Pass => "PASS",
+            Verdict::NonStrict => "NON-STRICT",
+            Verdict::Informational => "INFORMATIONAL",
+            Verdict::Fail => "FAIL",
+            Verdict::Unimplemented => "UNIMPLEMENTED",
+            Verdict::Skipped => "SKIPPED",
+        }
+    }
+}
+
+impl fmt::Display for Verdict {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(self.label())
+    }
+}
+
+impl std::str::FromStr for Verdict {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        Verdict::ALL
+            .into_iter()
+            .find(|v| v.label().eq_ignore_ascii_case(s))
+            .ok_or_else(|| format!("unknown verdict `{s}` (PASS, NON-STRICT, INFORMATIONAL, FAIL, UNIMPLEMENTED, SKIPPED)"))
+    }
+}

@@ -1,0 +1,26 @@
+//! The modbus-harness engine: the case catalog, the runner, the oracle, the targets, the servers around the
+//! reference drives, and the reports. One direction of flow:
+//!
+//! ```text
+//! corpus (drives) -> cases -> runner -> targets -> observation -> oracle -> verdicts -> reports
+//! ```
+
+/// Benchmark drivers for bench/run.sh and the benches (BENCHMARKS.md); not a stable API.
+#[doc(hidden)]
+pub mod bench;
+pub mod campaign;
+pub mod cases;
+pub mod expect;
+#[cfg(feature = "fuzzing")]
+pub mod fuzzing;
+pub mod observe;
+pub mod oracle;
+pub mod probe;
+pub mod reports;
+pub mod runner;
+pub mod servers;
+pub mod session;
+pub mod targets;
+
+pub use cases::{Case, Compare, Level, Mutation, Send, Step, Tag, Verdict};
+pub use observe::{CaseResult, Dir, Outcome, StepResult, WireEvent};

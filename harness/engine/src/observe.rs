@@ -1,0 +1,103 @@
+//! What the runner saw: every byte with its timestamp, and the outcome of each step.
+
+use std::time::Duration;
+
+use serde::Serialize;
+
+use crate::cases::Verdict;
+
+/// Which way bytes went.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Dir {
+    Tx,
+    Rx,
+}
+
+/// Bytes on the wire at a time (since the start of the run).
+#[derive(Clone, Debug, PartialEq, Eq, Serialize)]
+pub struct WireEvent {
+    pub dir: Dir,
+    #[serde(serialize_with = "micros")]
+    pub at: Duration,
+    #[serde(serialize_with = "hex_bytes")]
+    pub bytes: Vec<u8>,
+    /// Sent malformed on purpose (the pcap and the case log mark it).
+    #[serde(skip_serializing_if = "std::ops::Not::not")]
+    pub intended_malformed: bool,
+}
+
+/// What came back for one request.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "snake_case", tag = "kind")]
+pub enum Outcome {
+    /// A complete frame (it may still be malformed in its content).
+    Frame {
+        #[serde(serialize_with = "hex_bytes")]
+        bytes: Vec<u8>,
+    },
+    /// Nothing within the timeout (partial bytes, if any, are in the wire log).
+    Silence,
+    /// The peer closed the connection.
+    Closed,
+    /// Bytes that cannot be a frame (framer discard, impossible MBAP length).
+    Garbage {
+        #[serde(serialize_with = "hex_bytes")]
+        bytes: Vec<u8>,
+        reason: String,
+    },
+}
+
+/// The judged result of one step.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize)]
+pub struct StepResult {
+    pub note: String,
+    #[serde(serialize_with = "opt_hex")]
+    pub sent: Option<Vec<u8>>,
+    /// What the reference model answers (framed as on the wire; None = silence).
+    #[serde(serialize_with = "opt_hex")]
+    pub expected: Option<Vec<u8>>,
+    pub observed: Vec<Outcome>,
+    pub verdict: Verdict,
+    /// Why the verdict is not PASS, one line each.
+    pub findings: Vec<String>,
+}
+
+/// The judged result of a case.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize)]
+pub struct CaseResult {
+    pub id: String,
+    pub verdict: Verdict,
+    /// The verdict before an expectations file changed it, with the file's reason.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub expected_deviation: Option<(Verdict, String)>,
+    pub steps: Vec<StepResult>,
+    pub wire: Vec<WireEvent>,
+    #[serde(serialize_with = "micros")]
+    pub duration: Duration,
+    /// Why the case was skipped or could not complete.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub reason: Option<String>,
+}
+
+impl CaseResult {
+    /// Every finding of every step, in order.
+    pub fn findings(&self) -> impl Iterator<Item = &String> {
+        self.steps.iter().flat_map(|s| s.findings.iter())
+    }
+}
+
+fn micros<S: serde::Serializer>(d: &Duration, s: S) -> Result<S::Ok, S::Error> {
+    s.serialize_u64(d.as_micros() as u64)
+}
+
+fn hex_bytes<S: serde::Serializer>(b: &[u8], s: S) -> Result<S::Ok, S::Error> {
+    s.serialize_str(&codec::hex_spaced(b))
+}
+
+fn opt_hex<S: serde::Serializer>(b: &Option<Vec<u8>>, s: S) -> Result<S::Ok, S::Error> {
+    match b {
+        Some(b) => s.serialize_str(&codec::hex_spaced(b)),
+        None => s.serialize_none(),
+    }
+}

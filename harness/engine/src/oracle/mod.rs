@@ -1,0 +1,458 @@
+//! The oracle: the reference model's answer is what a conforming drive answers. A response passes when it
+//! matches in structure, and in value where the step says the value is deterministic.
+
+use crate::cases::{Compare, Level, Verdict};
+use crate::targets::Received;
+use codec::{
+    Decoded, Direction, FieldValue, Framing, Pdu, Request, Response, decode_any, describe,
+    hex_spaced,
+};
+use drives::profile::{Profile, Table};
+
+/// How bad a finding is.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord)]
+pub enum Severity {
+    /// The harness could not establish the step's precondition (e.g. keep a split request's pieces
+    /// within t1.5 on a busy machine): nothing can be concluded about the target.
+    Inconclusive,
+    /// A SHOULD of the specs (or a tolerated deviation) is broken.
+    Should,
+    /// The target answers "illegal function" where the profile says the function exists.
+    Unimplemented,
+    /// A MUST is broken.
+    Must,
+}
+
+/// One thing wrong with a response.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct Finding {
+    pub severity: Severity,
+    pub text: String,
+}
+
+fn must(text: impl Into<String>) -> Finding {
+    Finding {
+        severity: Severity::Must,
+        text: text.into(),
+    }
+}
+
+fn should(text: impl Into<String>) -> Finding {
+    Finding {
+        severity: Severity::Should,
+        text: text.into(),
+    }
+}
+
+/// What was sent in one frame, for echo checks.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct Sent {
+    pub tid: Option<u16>,
+    pub unit: u8,
+    pub pdu: Vec<u8>,
+}
+
+/// Describe a frame briefly: hex and, where it decodes, its function and fields.
+pub fn brief(framing: Framing, bytes: &[u8]) -> String {
+    match decode_any(bytes, framing, Direction::Response) {
+        Ok(d) => format!("{} ({})", hex_spaced(bytes), summary(&d.pdu)),
+        Err(_) => hex_spaced(bytes),
+    }
+}
+
+fn summary(p: &Pdu) -> String {
+    describe(p)
+        .iter()
+        .map(|f| match (&f.name, &f.value) {
+            (&"function", FieldValue::Int(v)) => format!("FC 0x{v:02X}"),
+            (n, v) => format!("{n} {v}"),
+        })
+        .collect::<Vec<_>>()
+        .join(", ")
+}
+
+fn field_diff(exp: &Pdu, obs: &Pdu) -> Vec<String> {
+    let e = describe(exp);
+    let o = describe(obs);
+    let mut out = Vec::new();
+    for f in &e {
+        match o.iter().find(|g| g.name == f.name) {
+            Some(g) if g.value == f.value => {}
+            Some(g) => out.push(format!("{}: expected {}, got {}", f.name, f.value, g.value)),
+            None => out.push(format!("{}: expected {}, absent", f.name, f.value)),
+        }
+    }
+    out
+}
+
+/// Judge one observation against the reference answer (`None`: the reference drive stays silent).
+pub fn judge(
+    framing: Framing,
+    sent: &Sent,
+    expected: Option<&[u8]>,
+    observed: &Received,
+    compare: &Compare,
+    profile: &Profile,
+    reference_closed: bool,
+) -> Vec<Finding> {
+    let mut out = Vec::new();
+    if *compare == Compare::RejectOrIgnore {
+        match observed {
+            Received::Silence { partial, .. } if partial.is_empty() => return out,
+            Received::Closed { .. } if framing == Framing::Tcp => return out,
+            Received::Frame { bytes, .. } if expected.is_none() => {
+                // The reference ignores it; a target may reject it instead, with any exception.
+                let rejected = matches!(
+                    decode_any(bytes, framing, Direction::Response).map(|d| d.pdu),
+                    Ok(Pdu::Response(r)) if r.is_exception()
+                );
+                if !rejected {
+                    out.push(must(format!(
+                        "an invalid request was answered as valid: {}",
+                        brief(framing, bytes)
+                    )));
+                }
+                return out;
+            }
+            _ => {}
+        }
+    }
+    let (exp, obs) = match (expected, observed) {
+        (None, Received::Silence { partial, .. }) => {
+            if !partial.is_empty() {
+                out.push(must(format!(
+                    "expected no response, but {} stray byte(s) arrived: {}",
+                    partial.len(),
+                    hex_spaced(partial)
+                )));
+            }
+            return out;
+        }
+        (None, Received::Closed { .. }) => {
+            if !reference_closed {
+                out.push(should("the connection was closed where the reference drive stays silent and keeps it open"));
+            }
+            return out;
+        }
+        (None, Received::Frame { bytes, .. }) => {
+            out.push(must(format!(
+                "expected no response, got {}",
+                brief(framing, bytes)
+            )));
+            return out;
+        }
+        (None, Received::Garbage { bytes, reason, .. }) => {
+            out.push(must(format!(
+                "expected no response, got malformed bytes {} ({reason})",
+                hex_spaced(bytes)
+            )));
+            return out;
+        }
+        (Some(e), Received::Silence { partial, .. }) => {
+            let tail = if partial.is_empty() {
+                String::new()
+            } else {
+                format!(
+                    "; {} byte(s) of an incomplete frame arrived: {}",
+                    partial.len(),
+                    hex_spaced(partial)
+                )
+            };
+            out.push(must(format!(
+                "no response within the timeout; the reference answers {}{tail}",
+                brief(framing, e)
+            )));
+            return out;
+        }
+        (Some(e), Received::Closed { .. }) => {
+            out.push(must(format!(
+                "the connection was closed instead of an answer; the reference answers {}",
+                brief(framing, e)
+            )));
+            return out;
+        }
+        (Some(_), Received::Garbage { bytes, reason, .. }) => {
+            out.push(must(format!(
+                "malformed response {}: {reason}",
+                hex_spaced(bytes)
+            )));
+            return out;
+        }
+        (Some(e), Received::Frame { bytes, .. }) => (e, bytes.as_slice()),
+    };
+    let obs_d = match decode_any(obs, framing, Direction::Response) {
+        Ok(d) => d,
+        Err(err) => {
+            out.push(must(format!(
+                "response {} does not decode: {err}",
+                hex_spaced(obs)
+            )));
+            return out;
+        }
+    };
+    let Ok(exp_d) = decode_any(exp, framing, Direction::Response) else {
+        out.push(must(format!(
+            "internal: the reference answer {} does not decode",
+            hex_spaced(exp)
+        )));
+        return out;
+    };
+    // A reply identical to the reference's carries the right echoes by construction.
+    let identical = obs == exp;
+    if let (Some(t), Some(got)) = (sent.tid, obs_d.transaction_id)
+        && t != got
+        && !identical
+    {
+        out.push(must(format!(
+            "transaction id 0x{got:04X} is not the request's 0x{t:04X}"
+        )));
+    }
+    if let Some(u) = obs_d.unit
+        && u != sent.unit
+        && !identical
+    {
+        out.push(must(format!(
+            "unit id / slave address {u} is not the request's {}",
+            sent.unit
+        )));
+    }
+    let (Pdu::Response(e), Pdu::Response(o)) = (&exp_d.pdu, &obs_d.pdu) else {
+        return out;
+    };
+    match (e.is_exception(), o.is_exception()) {
+        (true, true) => {
+            if exp_d.pdu != obs_d.pdu {
+                let text = format!(
+                    "exception {} where the reference answers {}",
+                    summary(&obs_d.pdu),
+                    summary(&exp_d.pdu)
+                );
+                // "Illegal function" for a function the profile has: the target lacks it.
+                let illegal_fn = matches!(o, Response::Exception { code, function }
+                    if code.0 == 1 && function.without_exception_bit() == e.function().without_exception_bit());
+                out.push(if illegal_fn {
+                    Finding {
+                        severity: Severity::Unimplemented,
+                        text,
+                    }
+                } else {
+                    must(text)
+                });
+            }
+            return out;
+        }
+        (true, false) => {
+            out.push(must(format!(
+                "answered {} where the reference answers with exception {}",
+                summary(&obs_d.pdu),
+                summary(&exp_d.pdu)
+            )));
+            return out;
+        }
+        (false, true) => {
+            let illegal_fn = matches!(o, Response::Exception { code, function } if code.0 == 1 && function.without_exception_bit() == e.function());
+            let text = format!(
+                "exception {} where the reference answers {}",
+                summary(&obs_d.pdu),
+                summary(&exp_d.pdu)
+            );
+            out.push(if illegal_fn {
+                Finding {
+                    severity: Severity::Unimplemented,
+                    text,
+                }
+            } else {
+                must(text)
+            });
+            return out;
+        }
+        (false, false) => {}
+    }
+    if e.function() != o.function() {
+        out.push(must(format!(
+            "function code 0x{:02X} is not the request's 0x{:02X}",
+            o.function().0,
+            e.function().0
+        )));
+        return out;
+    }
+    match compare {
+        Compare::Exact => {
+            if exp_d.pdu != obs_d.pdu {
+                let diffs = field_diff(&exp_d.pdu, &obs_d.pdu);
+                out.push(must(format!(
+                    "value differs from the reference: {}",
+                    if diffs.is_empty() {
+                        format!("got {}", hex_spaced(obs))
+                    } else {
+                        diffs.join("; ")
+                    }
+                )));
+            }
+        }
+        Compare::Structure => structure(e, o, &mut out),
+        Compare::InRange => {
+            structure(e, o, &mut out);
+            if out.is_empty() {
+                in_range(&sent.pdu, o, profile, &mut out);
+            }
+        }
+        Compare::Any | Compare::RejectOrIgnore => {}
+    }
+    out
+}
+
+/// Same shape: counts, echoed addresses, object lists; data values free.
+fn structure(e: &Response, o: &Response, out: &mut Vec<Finding>) {
+    use Response::*;
+    let bad = match (e, o) {
+        (ReadCoils { data: a }, ReadCoils { data: b })
+        | (ReadDiscreteInputs { data: a }, ReadDiscreteInputs { data: b }) => (a.len() != b.len())
+            .then(|| format!("byte count {} where {} is required", b.len(), a.len())),
+        (ReadHoldingRegisters { values: a }, ReadHoldingRegisters { values: b })
+        | (ReadInputRegisters { values: a }, ReadInputRegisters { values: b })
+        | (ReadWriteMultipleRegisters { values: a }, ReadWriteMultipleRegisters { values: b }) => {
+            (a.len() != b.len())
+                .then(|| format!("{} register(s) where {} were requested", b.len(), a.len()))
+        }
+        (
+            Diagnostics {
+                sub_function: a,
+                data: da,
+            },
+            Diagnostics {
+                sub_function: b,
+                data: db,
+            },
+        ) => (a != b || da.len() != db.len()).then(|| {
+            format!(
+                "sub-function 0x{b:04X} / {} data bytes, expected 0x{a:04X} / {}",
+                db.len(),
+                da.len()
+            )
+        }),
+        (CanOpen(a), CanOpen(b)) => (a.control != b.control
+            || a.node_id != b.node_id
+            || a.index != b.index
+            || a.subindex != b.subindex
+            || a.byte_count != b.byte_count
+            || a.data.len() != b.data.len())
+        .then(|| format!("object access header differs: expected {a:?}, got {b:?}")),
+        (CanOpenError { sdo_code: a }, CanOpenError { sdo_code: b }) => {
+            (a != b).then(|| format!("SDO error 0x{b:08X}, expected 0x{a:08X}"))
+        }
+        (ReadDeviceId(a), ReadDeviceId(b)) => {
+            let ids =
+                |d: &codec::DeviceIdResponse| d.objects.iter().map(|o| o.id).collect::<Vec<_>>();
+            (a.read_code != b.read_code || ids(a) != ids(b) || a.more_follows != b.more_follows).then(|| {
+                format!(
+                    "identification: read code {} objects {:?} more-follows 0x{:02X}, expected read code {} objects {:?} more-follows 0x{:02X}",
+                    b.read_code, ids(b), b.more_follows, a.read_code, ids(a), a.more_follows
+                )
+            })
+        }
+        (VendorRead { .. }, VendorRead { .. }) => None,
+        (a, b) if std::mem::discriminant(a) == std::mem::discriminant(b) => {
+            // Echo responses (FC 05, 06, 0F, 10, 42) carry the request's fields: they must match exactly.
+            (a != b).then(|| format!("echo differs: expected {a:?}, got {b:?}"))
+        }
+        (a, b) => Some(format!("response layout {b:?} where {a:?} is expected")),
+    };
+    if let Some(t) = bad {
+        out.push(must(t));
+    }
+}
+
+/// Register values lie within the profile's ranges, read in the device's word order.
+fn in_range(req: &[u8], o: &Response, p: &Profile, out: &mut Vec<Finding>) {
+    let (address, input) = match Request::decode(req) {
+        Ok(Request::ReadHoldingRegisters { address, .. }) => (address, false),
+        Ok(Request::ReadInputRegisters { address, .. }) => (address, true),
+        _ => return,
+    };
+    let (Response::ReadHoldingRegisters { values } | Response::ReadInputRegisters { values }) = o
+    else {
+        return;
+    };
+    let mut i = 0usize;
+    while i < values.len() {
+        let a = address.wrapping_add(i as u16);
+        let Some(r) = p
+            .register_at(a, input)
+            .filter(|r| r.address == a && (r.table != Table::Input || input))
+        else {
+            i += 1;
+            continue;
+        };
+        let w = usize::from(r.width);
+        if i + w > values.len() {
+            break;
+        }
+        let raw = if w == 2 {
+            p.device.word_order.join(values[i], values[i + 1]) as i64
+        } else {
+            i64::from(values[i])
+        };
+        let v = match (r.signed, w) {
+            (true, 2) => i64::from(raw as u32 as i32),
+            (true, _) => i64::from(raw as u16 as i16),
+            _ => raw,
+        };
+        let (min, max) = r.range();
+        if v < min || v > max {
+            out.push(must(format!(
+                "0x{:04X} {} reads {v} (0x{raw:X}), outside {min}..={max}{}",
+                r.address,
+                r.name,
+                if w == 2 {
+                    " — a word-order mix-up reads like this"
+                } else {
+                    ""
+                }
+            )));
+        }
+        i += w;
+    }
+}
+
+/// The verdict of a list of findings under a requirement level.
+pub fn verdict(findings: &[Finding], level: Level) -> Verdict {
+    if findings
+        .iter()
+        .any(|f| f.severity == Severity::Inconclusive)
+    {
+        return Verdict::Informational;
+    }
+    let worst = findings.iter().map(|f| f.severity).max();
+    match (worst, level) {
+        (None, _) => Verdict::Pass,
+        (Some(_), Level::Info) => Verdict::Informational,
+        (Some(Severity::Must), Level::Must) => Verdict::Fail,
+        (Some(Severity::Unimplemented), _) => Verdict::Unimplemented,
+        (Some(_), _) => Verdict::NonStrict,
+    }
+}
+
+/// Decoded response register values or bits, for captures.
+pub fn captured(framing: Framing, bytes: &[u8]) -> Option<Captured> {
+    let d: Decoded = decode_any(bytes, framing, Direction::Response).ok()?;
+    match d.pdu {
+        Pdu::Response(
+            Response::ReadHoldingRegisters { values } | Response::ReadInputRegisters { values },
+        ) => Some(Captured::Registers(values)),
+        Pdu::Response(Response::ReadCoils { data }) => {
+            Some(Captured::Bit(data.first().is_some_and(|b| b & 1 == 1)))
+        }
+        Pdu::Response(Response::CanOpen(a)) => a.value_le().map(Captured::Object),
+        _ => None,
+    }
+}
+
+/// What a capture step stored.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum Captured {
+    Registers(Vec<u16>),
+    Bit(bool),
+    /// An FC 43 object value, read little-endian.
+    Object(u32),
+}

@@ -1,0 +1,288 @@
+//! `junit.xml`: one `<testsuite>` in a `<testsuites>`, one `<testcase>` per case.
+//!
+//! Verdict mapping: FAIL has a `<failure>` (first finding as the message, every finding in the body),
+//! SKIPPED a `<skipped>` (the reason as the message); PASS, NON-STRICT, INFORMATIONAL and UNIMPLEMENTED are
+//! passing test cases. Every test case carries a `verdict` property and its `<system-out>` starts with
+//! `verdict: …`, so a NON-STRICT or UNIMPLEMENTED case is visible in a CI's JUnit view without failing the job.
+//! The test cases are streamed to `junit.xml.partial`; the `<testsuite>` header with the final counts is
+//! written at `finish`, which assembles `junit.xml`.
+
+use std::fmt::Write as _;
+use std::fs::{self, File};
+use std::io::{self, BufWriter, Write};
+use std::path::{Path, PathBuf};
+
+use quick_xml::Writer;
+use quick_xml::events::{BytesDecl, BytesEnd, BytesStart, BytesText, Event};
+
+use super::{
+    JUNIT_FILE, RunInfo, Sink, Summary, iso8601_utc, outcome_text, partial_path, promote,
+    wire_line, with_path, xml_safe,
+};
+use crate::{Case, CaseResult, Verdict};
+use codec::hex_spaced;
+
+/// Writes `junit.xml`.
+pub struct JunitSink {
+    dir: PathBuf,
+    partial: PathBuf,
+    info: RunInfo,
+    xml: Option<Writer<BufWriter<File>>>,
+    tests: usize,
+    failures: usize,
+    skipped: usize,
+}
+
+/// `classname` (the id up to its last `/`) and `name` (the last segment) of a case id.
+pub fn junit_names(id: &str) -> (&str, &str) {
+    match id.rsplit_once('/') {
+        Some((class, name)) => (class, name),
+        None => ("modbus-harness", id),
+    }
+}
+
+impl JunitSink {
+    /// Start `junit.xml.partial` in `dir`.
+    pub fn create(dir: &Path, info: &RunInfo) -> io::Result<Self> {
+        let partial = partial_path(dir, JUNIT_FILE);
+        let file = File::create(&partial).map_err(with_path("cannot create", &partial))?;
+        Ok(Self {
+            dir: dir.to_path_buf(),
+            partial,
+            info: info.clone(),
+            xml: Some(Writer::new_with_indent(BufWriter::new(file), b' ', 2)),
+            tests: 0,
+            failures: 0,
+            skipped: 0,
+        })
+    }
+
+    fn write_case(
+        xml: &mut Writer<BufWriter<File>>,
+        case: &Case,
+        result: &CaseResult,
+    ) -> io::Result<()> {
+        let id = xml_safe(&result.id);
+        let (class, name) = junit_names(&id);
+        let time = format!("{:.6}", result.duration.as_secs_f64());
+        let start = BytesStart::new("testcase").with_attributes([
+            ("classname", class),
+            ("name", name),
+            ("time", time.as_str()),
+        ]);
+        xml.write_event(Event::Start(start))?;
+
+        xml.write_event(Event::Start(BytesStart::new("properties")))?;
+        let mut property = |name: &str, value: &str| {
+            let value = one_line(value);
+            xml.write_event(Event::Empty(
+                BytesStart::new("property").with_attributes([("name", name), ("value", &*value)]),
+            ))
+        };
+        property("verdict", result.verdict.label())?;
+        if let Some((was, why)) = &result.expected_deviation {
+            property(
+                "expected_deviation",
+                &format!("{} by the expectations file: {why}", was.label()),
+            )?;
+        }
+        property("reference", &case.reference)?;
+        property("level", &format!("{:?}", case.level).to_uppercase())?;
+        xml.write_event(Event::End(BytesEnd::new("properties")))?;
+
+        match result.verdict {
+            Verdict::Fail => {
+                let body = findings_text(result);
+                let message = result
+                    .findings()
+                    .next()
+                    .or(result.reason.as_ref())
+                    .map_or_else(|| "FAIL".to_string(), |m| one_line(m));
+                xml.create_element("failure")
+                    .with_attributes([("message", message.as_str()), ("type", "FAIL")])
+                    .write_text_content(BytesText::new(&xml_safe(&body)))?;
+            }
+            Verdict::Skipped => {
+                let message = one_line(result.reason.as_deref().unwrap_or("skipped"));
+                xml.create_element("skipped")
+                    .with_attribute(("message", message.as_str()))
+                    .write_empty()?;
+            }
+            _ => {}
+        }
+
+        xml.create_element("system-out")
+            .write_text_content(BytesText::new(&xml_safe(&system_out(case, result))))?;
+        xml.write_event(Event::End(BytesEnd::new("testcase")))
+    }
+
+    fn assemble(&self, summary: &Summary) -> io::Result<()> {
+        let tmp = self.dir.join(format!("{JUNIT_FILE}.tmp"));
+        let file = File::create(&tmp).map_err(with_path("cannot create", &tmp))?;
+        let mut xml = Writer::new_with_indent(BufWriter::new(file), b' ', 2);
+        let tests = self.tests.to_string();
+        let failures = self.failures.to_string();
+        let skipped = self.skipped.to_string();
+        let time = format!("{:.3}", summary.duration.as_secs_f64());
+        let stamp = iso8601_utc(self.info.started_unix_ms);
+        let timestamp = &stamp[..19];
+        let suite_name = xml_safe(&format!(
+            "modbus-harness {} {}",
+            self.info.profile, self.info.target
+        ))
+        .into_owned();
+        let counts: [(&str, &str); 5] = [
+            ("tests", &tests),
+            ("failures", &failures),
+            ("errors", "0"),
+            ("skipped", &skipped),
+            ("time", &time),
+        ];
+        let write = |xml: &mut Writer<BufWriter<File>>| -> io::Result<()> {
+            xml.write_event(Event::Decl(BytesDecl::new("1.0", Some("UTF-8"), None)))?;
+            xml.write_event(Event::Start(
+                BytesStart::new("testsuites")
+                    .with_attributes([("name", "modbus-harness")])
+                    .with_attributes(counts),
+            ))?;
+            xml.write_event(Event::Start(
+                BytesStart::new("testsuite")
+                    .with_attributes([("name", suite_name.as_str())])
+                    .with_attributes(counts)
+                    .with_attributes([("timestamp", timestamp), ("hostname", "localhost")]),
+            ))?;
+            xml.write_event(Event::Start(BytesStart::new("properties")))?;
+            let seed = self.info.seed.map(|s| s.to_string()).unwrap_or_default();
+            let port = self.info.server_port.to_string();
+            let interrupted = summary.interrupted.to_string();
+            for (name, value) in [
+                ("target", self.info.target.as_str()),
+                ("profile", &self.info.profile),
+                ("transport", self.info.transport.label()),
+                ("server_port", &port),
+                ("command_line", &self.info.command_line),
+                ("seed", &seed),
+                ("harness_version", &self.info.harness_version),
+                ("interrupted", &interrupted),
+                ("result", summary.result_label()),
+            ] {
+                let value = one_line(value);
+                xml.write_event(Event::Empty(
+                    BytesStart::new("property")
+                        .with_attributes([("name", name), ("value", &*value)]),
+                ))?;
+            }
+            xml.write_event(Event::End(BytesEnd::new("properties")))?;
+            xml.get_mut().write_all(b"\n")?;
+            let mut cases = File::open(&self.partial)?;
+            io::copy(&mut cases, xml.get_mut())?;
+            xml.write_event(Event::End(BytesEnd::new("testsuite")))?;
+            xml.write_event(Event::End(BytesEnd::new("testsuites")))?;
+            xml.get_mut().write_all(b"\n")?;
+            xml.get_mut().flush()
+        };
+        write(&mut xml).map_err(with_path("cannot write", &tmp))?;
+        drop(xml);
+        promote(&tmp, &self.dir.join(JUNIT_FILE))?;
+        fs::remove_file(&self.partial).map_err(with_path("cannot remove", &self.partial))
+    }
+}
+
+impl Sink for JunitSink {
+    fn case(&mut self, case: &Case, result: &CaseResult) -> io::Result<()> {
+        let partial = self.partial.clone();
+        let xml = self.xml.as_mut().ok_or_else(|| {
+            io::Error::other(format!("{}: report already finished", partial.display()))
+        })?;
+        Self::write_case(xml, case, result).map_err(with_path("cannot write", &partial))?;
+        self.tests += 1;
+        match result.verdict {
+            Verdict::Fail => self.failures += 1,
+            Verdict::Skipped => self.skipped += 1,
+            _ => {}
+        }
+        Ok(())
+    }
+
+    fn flush(&mut self) -> io::Result<()> {
+        match self.xml.as_mut() {
+            Some(xml) => xml
+                .get_mut()
+                .flush()
+                .map_err(with_path("cannot write", &self.partial)),
+            None => Ok(()),
+        }
+    }
+
+    fn finish(&mut self, summary: &Summary) -> io::Result<()> {
+        let mut xml = self.xml.take().ok_or_else(|| {
+            io::Error::other(format!(
+                "{}: report already finished",
+                self.partial.display()
+            ))
+        })?;
+        xml.get_mut()
+            .flush()
+            .map_err(with_path("cannot write", &self.partial))?;
+        drop(xml);
+        self.assemble(summary)
+    }
+}
+
+/// An attribute value on one line (parsers turn newlines in attributes into spaces anyway).
+fn one_line(s: &str) -> String {
+    xml_safe(s).replace(['\r', '\n'], " ")
+}
+
+/// Every finding, with its step, one per line; and the reason, if any.
+fn findings_text(result: &CaseResult) -> String {
+    let mut s = String::new();
+    for (i, step) in result.steps.iter().enumerate() {
+        for f in &step.findings {
+            let _ = writeln!(s, "step {} ({}): {f}", i + 1, step.note);
+        }
+    }
+    if let Some(reason) = &result.reason {
+        let _ = writeln!(s, "{reason}");
+    }
+    s
+}
+
+/// The verdict, the requirement, each step's sent/expected/observed bytes, and the wire log.
+fn system_out(case: &Case, result: &CaseResult) -> String {
+    let mut s = String::new();
+    let _ = writeln!(s, "verdict: {}", result.verdict);
+    if let Some((was, why)) = &result.expected_deviation {
+        let _ = writeln!(s, "verdict before the expectations file: {was} ({why})");
+    }
+    let _ = writeln!(s, "title: {}", case.title);
+    let _ = writeln!(s, "requirement: {}", case.requirement);
+    let _ = writeln!(s, "reference: {}", case.reference);
+    if let Some(reason) = &result.reason {
+        let _ = writeln!(s, "reason: {reason}");
+    }
+    for (i, step) in result.steps.iter().enumerate() {
+        let _ = writeln!(s, "step {}: {} [{}]", i + 1, step.note, step.verdict);
+        if let Some(sent) = &step.sent {
+            let _ = writeln!(s, "  sent:     {}", hex_spaced(sent));
+        }
+        let expected = step
+            .expected
+            .as_deref()
+            .map_or_else(|| "(silence)".to_string(), hex_spaced);
+        let _ = writeln!(s, "  expected: {expected}");
+        for o in &step.observed {
+            let _ = writeln!(s, "  observed: {}", outcome_text(o));
+        }
+        for f in &step.findings {
+            let _ = writeln!(s, "  finding:  {f}");
+        }
+    }
+    if !result.wire.is_empty() {
+        let _ = writeln!(s, "wire log:");
+        for e in &result.wire {
+            let _ = writeln!(s, "  {}", wire_line(e));
+        }
+    }
+    s
+}

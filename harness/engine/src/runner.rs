@@ -1,0 +1,527 @@
+//! The runner: applies the safety policy, puts each step's bytes on the wire, feeds the same bytes to the
+//! reference drive in lockstep (the oracle), and judges what came back.
+
+use std::time::{Duration, Instant};
+
+use crate::cases::{Case, Compare, Mutation, Send, Step, Tag, Verdict};
+use crate::expect::Expectations;
+use crate::observe::{CaseResult, Dir, Outcome, StepResult, WireEvent};
+use crate::oracle::{self, Captured, Finding, Sent, Severity};
+use crate::targets::sim::SimTarget;
+use crate::targets::{Received, Target, TargetError};
+use codec::{Framing, Request, rtu, tcp};
+use drives::profile::Profile;
+
+/// How a run behaves.
+#[derive(Clone, Debug)]
+pub struct RunConfig {
+    /// Unit id / slave address of the drive.
+    pub unit: u8,
+    /// How long to wait for an expected answer.
+    pub timeout: Duration,
+    /// How long to listen to confirm that nothing comes.
+    pub silence: Duration,
+    pub allow_motion: bool,
+    pub allow_destructive: bool,
+    pub read_only: bool,
+    /// Requests per second at most (real targets).
+    pub max_rate: Option<f64>,
+    /// The target is the in-process simulator: the safety policy does not apply.
+    pub is_sim: bool,
+}
+
+/// Why a case is skipped by the safety policy or the transport, if it is.
+pub fn skip_reason(case: &Case, cfg: &RunConfig, framing: Framing) -> Option<String> {
+    if case.has(Tag::TcpOnly) && framing != Framing::Tcp {
+        return Some("needs Modbus/TCP framing".into());
+    }
+    if case.has(Tag::RtuOnly) && framing != Framing::Rtu {
+        return Some("needs RTU framing".into());
+    }
+    if cfg.read_only && case.has(Tag::Write) {
+        return Some("writes, and --read-only is set".into());
+    }
+    if !cfg.is_sim {
+        if case.has(Tag::Motion) && !cfg.allow_motion {
+            return Some(
+                "can move the motor or enable the power stage: pass --allow-motion to run it"
+                    .into(),
+            );
+        }
+        if case.has(Tag::Destructive) && !cfg.allow_destructive {
+            return Some("changes non-volatile state or leaves the drive faulted: pass --allow-destructive to run it".into());
+        }
+    }
+    None
+}
+
+/// A framed request ready to send.
+struct Framed {
+    bytes: Vec<u8>,
+    sent: Sent,
+    malformed: bool,
+}
+
+/// Drives cases against a target with the reference drive in lockstep.
+pub struct Runner {
+    target: Box<dyn Target>,
+    shadow: SimTarget,
+    cfg: RunConfig,
+    profile: Profile,
+    next_tid: u16,
+    slots: Vec<Option<Captured>>,
+    last_send: Option<Instant>,
+    expectations: Expectations,
+}
+
+impl Runner {
+    /// A runner for `target`, judged by `shadow` (a fault-free reference drive of the same profile).
+    pub fn new(
+        target: Box<dyn Target>,
+        shadow: SimTarget,
+        profile: Profile,
+        cfg: RunConfig,
+        expectations: Expectations,
+    ) -> Self {
+        Self {
+            target,
+            shadow,
+            cfg,
+            profile,
+            next_tid: 1,
+            slots: vec![None; 4],
+            last_send: None,
+            expectations,
+        }
+    }
+
+    /// How frames are delimited on the target.
+    pub fn framing(&self) -> Framing {
+        self.target.framing()
+    }
+
+    /// The target (for reports).
+    pub fn target(&self) -> &dyn Target {
+        self.target.as_ref()
+    }
+
+    fn frame(&mut self, pdu: &[u8], unit: u8, mutation: Option<&Mutation>) -> Framed {
+        // PDU-level mutations alter the PDU, which is then framed correctly (header and CRC match it).
+        let altered = mutation.and_then(|m| m.apply_to_pdu(pdu));
+        let pdu = altered.as_deref().unwrap_or(pdu);
+        let framing = self.target.framing();
+        let tid = (framing == Framing::Tcp).then(|| {
+            let t = self.next_tid;
+            self.next_tid = self.next_tid.wrapping_add(1);
+            t
+        });
+        let mut bytes = Vec::with_capacity(pdu.len() + 7);
+        // Anything the strict codec refuses as a request was sent malformed on purpose.
+        let mut malformed =
+            pdu.len() > codec::MAX_PDU_LEN || altered.is_some() || Request::decode(pdu).is_err();
+        match framing {
+            Framing::Tcp => {
+                if tcp::encode_adu(tid.unwrap_or(0), unit, pdu, &mut bytes).is_err() {
+                    // Over-long on purpose: frame it by hand with the length it really has.
+                    bytes.extend_from_slice(&tid.unwrap_or(0).to_be_bytes());
+                    bytes.extend_from_slice(&[0, 0]);
+                    bytes.extend_from_slice(&((pdu.len() + 1) as u16).to_be_bytes());
+                    bytes.push(unit);
+                    bytes.extend_from_slice(pdu);
+                }
+            }
+            _ => {
+                if rtu::encode_adu(unit, pdu, &mut bytes).is_err() {
+                    bytes.push(unit);
+                    bytes.extend_from_slice(pdu);
+                    let c = rtu::crc16(&bytes);
+                    bytes.extend_from_slice(&c.to_le_bytes());
+                }
+            }
+        }
+        match mutation {
+            Some(Mutation::ProtocolId(p)) if bytes.len() >= 4 && framing == Framing::Tcp => {
+                bytes[2..4].copy_from_slice(&p.to_be_bytes());
+                malformed = true;
+            }
+            Some(Mutation::LengthDelta(d)) if bytes.len() >= 6 && framing == Framing::Tcp => {
+                let l = u16::from_be_bytes([bytes[4], bytes[5]]).wrapping_add_signed(*d);
+                bytes[4..6].copy_from_slice(&l.to_be_bytes());
+                malformed = true;
+            }
+            Some(Mutation::BadCrc) if bytes.len() >= 2 && framing != Framing::Tcp => {
+                let n = bytes.len();
+                bytes[n - 2] ^= 0xFF;
+                bytes[n - 1] ^= 0xFF;
+                malformed = true;
+            }
+            _ => {}
+        }
+        Framed {
+            bytes,
+            sent: Sent {
+                tid,
+                unit,
+                pdu: pdu.to_vec(),
+            },
+            malformed,
+        }
+    }
+
+    fn pace(&mut self) {
+        if self.cfg.is_sim {
+            return;
+        }
+        if let (Some(rate), Some(last)) = (self.cfg.max_rate, self.last_send) {
+            let gap = Duration::from_secs_f64(1.0 / rate.max(0.001));
+            let since = last.elapsed();
+            if since < gap {
+                std::thread::sleep(gap - since);
+            }
+        }
+        self.last_send = Some(Instant::now());
+    }
+
+    fn sync_shadow(&mut self) {
+        let t = self.target.now();
+        let s = self.shadow.now();
+        if t > s {
+            self.shadow.idle(t - s);
+        }
+    }
+
+    fn restore_pdu(&self, address: u16, slot: usize) -> Option<Vec<u8>> {
+        let req = match self.slots.get(slot)?.as_ref()? {
+            Captured::Registers(values) => {
+                if values.len() == 1 && self.profile.function(0x10).is_none() {
+                    Request::WriteSingleRegister {
+                        address,
+                        value: values[0],
+                    }
+                } else {
+                    Request::WriteMultipleRegisters {
+                        address,
+                        values: values.clone(),
+                    }
+                }
+            }
+            Captured::Bit(on) => Request::WriteSingleCoil {
+                address,
+                value: if *on { 0xFF00 } else { 0 },
+            },
+            Captured::Object(_) => return None,
+        };
+        req.to_bytes().ok()
+    }
+
+    /// Run one case (already selected and allowed by the policy).
+    pub fn run_case(&mut self, case: &Case) -> Result<CaseResult, TargetError> {
+        let started = self.target.now();
+        let mut wire = Vec::new();
+        let mut steps = Vec::new();
+        self.target.drain();
+        self.slots.iter_mut().for_each(|s| *s = None);
+        for step in &case.steps {
+            match step {
+                Step::Wait(d) => {
+                    self.target.idle(*d);
+                    self.sync_shadow();
+                }
+                Step::Reconnect => {
+                    self.target.reconnect()?;
+                    self.shadow.reconnect()?;
+                }
+                Step::Agree {
+                    registers,
+                    object,
+                    note,
+                } => steps.push(self.agree(*registers, *object, note)),
+                Step::Exchange {
+                    send,
+                    compare,
+                    capture,
+                    note,
+                } => {
+                    let r = self.exchange(send, compare, *capture, note, &mut wire)?;
+                    steps.push(r);
+                }
+            }
+        }
+        let mut verdict = Verdict::Pass;
+        for s in &steps {
+            verdict = worse(verdict, s.verdict);
+        }
+        let verdict = match case.level {
+            crate::cases::Level::Info if verdict != Verdict::Pass => Verdict::Informational,
+            _ => verdict,
+        };
+        let mut result = CaseResult {
+            id: case.id.clone(),
+            verdict,
+            expected_deviation: None,
+            steps,
+            wire,
+            duration: self.target.now().saturating_sub(started),
+            reason: None,
+        };
+        if verdict != Verdict::Pass
+            && let Some((v, reason)) = self.expectations.lookup(&case.id)
+        {
+            result.expected_deviation = Some((verdict, reason.to_string()));
+            result.verdict = v;
+        }
+        Ok(result)
+    }
+
+    /// A register pair and its mirroring object must hold the same value.
+    fn agree(&self, registers: usize, object: usize, note: &str) -> StepResult {
+        let order = self.profile.device.word_order;
+        let regs = self.slots.get(registers).cloned().flatten();
+        let obj = self.slots.get(object).cloned().flatten();
+        let findings = match (regs, obj) {
+            (Some(Captured::Registers(r)), Some(Captured::Object(o))) => {
+                let v = match r.as_slice() {
+                    [a, b] => order.join(*a, *b),
+                    [a] => u32::from(*a),
+                    _ => u32::MAX,
+                };
+                if v == o {
+                    vec![]
+                } else {
+                    let swapped = matches!(r.as_slice(), [a, b] if order.join(*b, *a) == o);
+                    vec![format!(
+                        "the registers read 0x{v:08X} ({order:?}) but the object reads 0x{o:08X}{}",
+                        if swapped {
+                            ": the two views disagree on the word order"
+                        } else {
+                            ""
+                        }
+                    )]
+                }
+            }
+            _ => vec!["one of the two reads gave no value to compare".into()],
+        };
+        let verdict = if findings.is_empty() {
+            Verdict::Pass
+        } else {
+            Verdict::Fail
+        };
+        StepResult {
+            note: note.to_string(),
+            sent: None,
+            expected: None,
+            observed: vec![],
+            verdict,
+            findings,
+        }
+    }
+
+    fn exchange(
+        &mut self,
+        send: &Send,
+        compare: &Compare,
+        capture: Option<usize>,
+        note: &str,
+        wire: &mut Vec<WireEvent>,
+    ) -> Result<StepResult, TargetError> {
+        let unit = self.cfg.unit;
+        // What goes on the wire: the frames, and the writes (pieces with a gap after each).
+        let (frames, pieces): (Vec<Framed>, Vec<(Vec<u8>, Duration)>) = match send {
+            Send::Pdu(p) => {
+                let f = self.frame(p, unit, None);
+                let piece = vec![(f.bytes.clone(), Duration::ZERO)];
+                (vec![f], piece)
+            }
+            Send::PduToUnit { pdu, unit } => {
+                let f = self.frame(pdu, *unit, None);
+                let piece = vec![(f.bytes.clone(), Duration::ZERO)];
+                (vec![f], piece)
+            }
+            Send::Mutated { pdu, mutation } => {
+                let f = self.frame(pdu, unit, Some(mutation));
+                let pieces = match mutation {
+                    Mutation::Split { at, gap_us } if *at < f.bytes.len() => vec![
+                        (f.bytes[..*at].to_vec(), Duration::from_micros(*gap_us)),
+                        (f.bytes[*at..].to_vec(), Duration::ZERO),
+                    ],
+                    _ => vec![(f.bytes.clone(), Duration::ZERO)],
+                };
+                (vec![f], pieces)
+            }
+            Send::Batch(pdus) => {
+                let frames: Vec<Framed> = pdus.iter().map(|p| self.frame(p, unit, None)).collect();
+                let all = frames
+                    .iter()
+                    .flat_map(|f| f.bytes.iter().copied())
+                    .collect();
+                (frames, vec![(all, Duration::ZERO)])
+            }
+            Send::Restore { address, slot } => match self.restore_pdu(*address, *slot) {
+                Some(p) => {
+                    let f = self.frame(&p, unit, None);
+                    let piece = vec![(f.bytes.clone(), Duration::ZERO)];
+                    (vec![f], piece)
+                }
+                None => {
+                    return Ok(StepResult {
+                        note: note.to_string(),
+                        sent: None,
+                        expected: None,
+                        observed: vec![],
+                        verdict: Verdict::Skipped,
+                        findings: vec!["nothing was captured to restore".into()],
+                    });
+                }
+            },
+        };
+        let malformed = frames.iter().any(|f| f.malformed);
+        self.sync_shadow();
+        let mut precondition = Vec::new();
+        let mut last_write: Option<Instant> = None;
+        let mut before_last_write = self.target.now();
+        for (bytes, gap) in &pieces {
+            // On a real line, pieces meant to be one frame must follow within t1.5: check the harness did.
+            if let (Some(t), Some(prev)) = (self.target.rtu_timing(), last_write) {
+                let took = prev.elapsed();
+                if took > t.t1_5 {
+                    precondition.push(Finding {
+                        severity: Severity::Inconclusive,
+                        text: format!(
+                            "inconclusive: the harness paused {} µs between the pieces of one frame (t1.5 = {} µs); the machine is too busy for this step",
+                            took.as_micros(),
+                            t.t1_5.as_micros()
+                        ),
+                    });
+                }
+            }
+            self.pace();
+            wire.push(WireEvent {
+                dir: Dir::Tx,
+                at: self.target.now(),
+                bytes: bytes.clone(),
+                intended_malformed: malformed,
+            });
+            // Taken before the write: a stall of the harness can then only make the early-answer check
+            // more lenient, never blame the drive.
+            before_last_write = self.target.now();
+            self.target.send(bytes)?;
+            last_write = Some(Instant::now());
+            self.shadow.send(bytes)?;
+            if !gap.is_zero() {
+                self.target.idle(*gap);
+                self.shadow.idle(*gap);
+            }
+        }
+        // The reference answers: every frame it sends before it falls silent.
+        let (expected, reference_closed) = self.shadow.settle();
+        let mut observed = Vec::new();
+        let mut findings: Vec<Finding> = precondition;
+        let framing = self.target.framing();
+        let sent_at = before_last_write;
+        let n = expected.len().max(1);
+        for i in 0..n {
+            let wait = if expected.is_empty() {
+                self.cfg.silence
+            } else {
+                self.cfg.timeout
+            };
+            let got = self.target.recv(wait)?;
+            let stop = !matches!(got, Received::Frame { .. } | Received::Garbage { .. });
+            record(&got, wire);
+            let sent = frames
+                .get(i)
+                .or(frames.last())
+                .map(|f| f.sent.clone())
+                .unwrap_or(Sent {
+                    tid: None,
+                    unit,
+                    pdu: vec![],
+                });
+            findings.extend(oracle::judge(
+                framing,
+                &sent,
+                expected.get(i).map(|v| v.as_slice()),
+                &got,
+                compare,
+                &self.profile,
+                reference_closed,
+            ));
+            // Only an answer that starts too early is judged: user space cannot see the line's gaps
+            // (USB adapters and the scheduler add their own), but it never sees an answer earlier than it was.
+            if let (Some(t), Received::Frame { first_at, .. }) = (self.target.rtu_timing(), &got) {
+                let lead = first_at.saturating_sub(sent_at);
+                if lead < t.t3_5 / 2 {
+                    findings.push(Finding {
+                        severity: Severity::Should,
+                        text: format!("the answer began {} µs after the request, inside the 3.5-character silence ({} µs)", lead.as_micros(), t.t3_5.as_micros()),
+                    });
+                }
+            }
+            if let (Some(slot), Received::Frame { bytes, .. }) = (capture, &got)
+                && let Some(c) = oracle::captured(framing, bytes)
+                && let Some(s) = self.slots.get_mut(slot)
+            {
+                *s = Some(c);
+            }
+            observed.push(outcome(got));
+            if stop {
+                break;
+            }
+        }
+        let verdict = oracle::verdict(&findings, crate::cases::Level::Must);
+        Ok(StepResult {
+            note: note.to_string(),
+            sent: Some(pieces.iter().flat_map(|p| p.0.iter().copied()).collect()),
+            expected: if expected.is_empty() {
+                None
+            } else {
+                Some(expected.concat())
+            },
+            observed,
+            verdict,
+            findings: findings.into_iter().map(|f| f.text).collect(),
+        })
+    }
+}
+
+fn record(r: &Received, wire: &mut Vec<WireEvent>) {
+    let (bytes, at) = match r {
+        Received::Frame {
+            bytes, first_at, ..
+        } => (bytes, *first_at),
+        Received::Garbage { bytes, at, .. } => (bytes, *at),
+        Received::Silence { partial, at } | Received::Closed { partial, at } => (partial, *at),
+    };
+    if !bytes.is_empty() {
+        wire.push(WireEvent {
+            dir: Dir::Rx,
+            at,
+            bytes: bytes.clone(),
+            intended_malformed: false,
+        });
+    }
+}
+
+fn outcome(r: Received) -> Outcome {
+    match r {
+        Received::Frame { bytes, .. } => Outcome::Frame { bytes },
+        Received::Silence { .. } => Outcome::Silence,
+        Received::Closed { .. } => Outcome::Closed,
+        Received::Garbage { bytes, reason, .. } => Outcome::Garbage { bytes, reason },
+    }
+}
+
+fn rank(v: Verdict) -> u8 {
+    match v {
+        Verdict::Pass | Verdict::Skipped => 0,
+        Verdict::Informational => 1,
+        Verdict::NonStrict => 2,
+        Verdict::Unimplemented => 3,
+        Verdict::Fail => 4,
+    }
+}
+
+/// The worse of two verdicts.
+pub fn worse(a: Verdict, b: Verdict) -> Verdict {
+    if rank(b) > rank(a) { b } else { a }
+}

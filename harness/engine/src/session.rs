@@ -1,0 +1,879 @@
+//! One conformance run from start to end: profile, catalog, selection, target, runner, reports.
+//! The command line is a thin layer over this, and tests drive it directly.
+
+use std::io::Write;
+use std::path::PathBuf;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::{Duration, Instant};
+
+use crate::cases::generated::{self, Generator};
+use crate::cases::shrink::{self, Origin, ShrinkLimits, Shrunk};
+use crate::cases::{Case, Tag, Verdict};
+use crate::expect::Expectations;
+use crate::observe::CaseResult;
+use crate::reports::snapshot::{self, Drift, SnapshotHeader, SnapshotWriter};
+use crate::reports::{Reports, RunInfo, Summary, Tally};
+use crate::runner::{RunConfig, Runner, skip_reason};
+use crate::targets::sim::SimTarget;
+use crate::targets::{self, Received, TargetError, TargetUrl};
+use codec::{Direction, Framing, Pdu, Request, Response, decode_any, rtu, tcp};
+use drives::corpus::Corpus;
+use drives::golden::GoldenFile;
+use drives::profile::{Profile, Transport};
+use drives::{self, FaultSet, Station};
+
+/// Everything a run needs to know.
+#[derive(Clone, Debug)]
+pub struct Options {
+    pub target: TargetUrl,
+    /// A profile name, or `auto` to pick one from device identification.
+    pub profile: Option<String>,
+    pub corpus: Corpus,
+    pub unit: Option<u8>,
+    pub timeout: Duration,
+    pub silence: Duration,
+    pub connect_timeout: Duration,
+    pub allow_motion: bool,
+    pub allow_destructive: bool,
+    pub read_only: bool,
+    pub max_rate: Option<f64>,
+    pub include: Vec<String>,
+    pub exclude: Vec<String>,
+    pub expect: Option<PathBuf>,
+    /// Faults of the in-process simulator (`sim:` targets only).
+    pub faults: FaultSet,
+    pub report_dir: Option<PathBuf>,
+    /// The command line, for the report header.
+    pub command_line: String,
+    /// Keep every case's verdict in the outcome (tests); off for huge runs.
+    pub keep_verdicts: bool,
+    /// Generated cases to run (`--generated N`); 0 runs none.
+    pub generated: u64,
+    /// Seed of the generated cases; `None` takes one from the clock (logged and put in the reports).
+    pub seed: Option<u64>,
+    /// With generated cases, run the catalog (and the regressions) too; without them the catalog always runs.
+    pub with_catalog: bool,
+    /// Shrink failing generated cases against the target within these bounds; `None` does not shrink.
+    pub shrink: Option<ShrinkLimits>,
+    /// Failing generated cases shrunk at most in one run (the first ones).
+    pub max_shrinks: usize,
+    /// Write each shrunk reproducer to `<dir>/<profile>/<name>.toml` (`corpus/regressions` for the catalog).
+    pub regressions_dir: Option<PathBuf>,
+    /// Compare the run's observations with a snapshot file, or write it.
+    pub snapshot: Option<SnapshotOptions>,
+    /// Apply the safety policy to the in-process simulator as to a real drive, so that a `sim:` run selects
+    /// the same cases as a run against a server (for comparing their snapshots).
+    pub policy_on_sim: bool,
+}
+
+/// Where the run's snapshot goes.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct SnapshotOptions {
+    /// The snapshot file.
+    pub path: PathBuf,
+    /// Write the file instead of comparing with it.
+    pub update: bool,
+}
+
+impl Options {
+    /// Defaults for a target: 1 s timeout, 300 ms silence window, nothing allowed beyond reads and safe writes.
+    pub fn new(target: TargetUrl) -> Self {
+        Self {
+            target,
+            profile: None,
+            corpus: Corpus::Embedded,
+            unit: None,
+            timeout: Duration::from_millis(1000),
+            silence: Duration::from_millis(300),
+            connect_timeout: Duration::from_secs(3),
+            allow_motion: false,
+            allow_destructive: false,
+            read_only: false,
+            max_rate: None,
+            include: Vec::new(),
+            exclude: Vec::new(),
+            expect: None,
+            faults: FaultSet::none(),
+            report_dir: None,
+            command_line: String::new(),
+            keep_verdicts: false,
+            generated: 0,
+            seed: None,
+            with_catalog: false,
+            shrink: Some(ShrinkLimits::default()),
+            max_shrinks: 3,
+            regressions_dir: None,
+            snapshot: None,
+            policy_on_sim: false,
+        }
+    }
+}
+
+/// Why a run could not start or complete (exit code 2).
+#[derive(Debug, thiserror::Error)]
+pub enum SessionError {
+    #[error("{0}")]
+    Setup(String),
+    #[error(transparent)]
+    Target(#[from] TargetError),
+    #[error("writing the report: {0}")]
+    Report(#[from] std::io::Error),
+}
+
+/// What a run produced.
+#[derive(Debug)]
+pub struct Outcome {
+    pub summary: Summary,
+    pub info: RunInfo,
+    /// (case id, verdict), when `keep_verdicts` was set.
+    pub verdicts: Vec<(String, Verdict)>,
+    /// Full results of FAIL cases (capped), for tests and the terminal.
+    pub failures: Vec<CaseResult>,
+    /// The failing generated cases that were shrunk (or could not be), in run order.
+    pub shrunk: Vec<ShrinkReport>,
+    /// The snapshot written or compared, if `--snapshot` was given.
+    pub snapshot: Option<SnapshotOutcome>,
+}
+
+/// What became of one failing generated case.
+#[derive(Clone, Debug)]
+pub struct ShrinkReport {
+    /// The generated case that failed.
+    pub id: String,
+    /// The shrink, when the case failed again when re-run alone.
+    pub shrunk: Option<Shrunk>,
+    /// The regression file written.
+    pub file: Option<PathBuf>,
+    /// Why there is no shrink or no file, if so.
+    pub note: Option<String>,
+}
+
+/// The snapshot of a run.
+#[derive(Clone, Debug)]
+pub struct SnapshotOutcome {
+    pub path: PathBuf,
+    /// The file was written (`--update-snapshot`), not compared.
+    pub written: bool,
+    /// The comparison, when compared.
+    pub drift: Option<Drift>,
+}
+
+impl SnapshotOutcome {
+    /// True when the run's observations differ from the file.
+    pub fn drifted(&self) -> bool {
+        self.drift.as_ref().is_some_and(|d| !d.is_clean())
+    }
+}
+
+impl Outcome {
+    /// The verdict of a case, when kept.
+    pub fn verdict(&self, id: &str) -> Option<Verdict> {
+        self.verdicts.iter().find(|(i, _)| i == id).map(|(_, v)| *v)
+    }
+}
+
+/// The names of the profiles in a corpus.
+pub fn profile_names(corpus: &Corpus) -> Vec<String> {
+    corpus
+        .files("profiles")
+        .unwrap_or_default()
+        .iter()
+        .filter_map(|(n, _)| {
+            std::path::Path::new(n.trim_end_matches(" (embedded)"))
+                .file_stem()
+                .map(|s| s.to_string_lossy().into_owned())
+        })
+        .collect()
+}
+
+/// Load a profile by name, listing the known ones when it is not there.
+pub fn load_profile(corpus: &Corpus, name: &str) -> Result<Profile, String> {
+    let (file, text) = corpus.file("profiles", name).map_err(|_| {
+        format!(
+            "no profile `{name}` in the {}; known profiles: {}",
+            corpus.describe(),
+            profile_names(corpus).join(", ")
+        )
+    })?;
+    Profile::parse(&file, &text).map_err(|e| e.to_string())
+}
+
+/// The golden frames of a profile's manual, if the corpus has them.
+pub fn load_golden(corpus: &Corpus, profile: &str) -> Result<Option<GoldenFile>, String> {
+    match corpus.file("golden", profile) {
+        Ok((file, text)) => GoldenFile::parse(&file, &text)
+            .map(Some)
+            .map_err(|e| e.to_string()),
+        Err(_) => Ok(None),
+    }
+}
+
+/// The framing a target URL implies (for `sim:`, the profile's native transport).
+pub fn framing_of(url: &TargetUrl, profile: &Profile) -> Framing {
+    match url {
+        TargetUrl::Tcp { .. } => Framing::Tcp,
+        TargetUrl::RtuOverTcp { .. } | TargetUrl::Serial { .. } => Framing::Rtu,
+        TargetUrl::Sim {
+            rtu: Some(true), ..
+        } => Framing::Rtu,
+        TargetUrl::Sim {
+            rtu: Some(false), ..
+        } => Framing::Tcp,
+        TargetUrl::Sim { rtu: None, .. } => {
+            if profile.device.transports.contains(&Transport::Tcp) {
+                Framing::Tcp
+            } else {
+                Framing::Rtu
+            }
+        }
+    }
+}
+
+fn matches_any(id: &str, globs: &[String]) -> bool {
+    globs.iter().any(|g| {
+        glob::Pattern::new(g).is_ok_and(|p| p.matches(id))
+            || id == g
+            || id.starts_with(&format!("{}/", g.trim_end_matches('/')))
+    })
+}
+
+/// The catalog of a profile on a framing, selected by include/exclude globs.
+pub fn select(cases: Vec<Case>, include: &[String], exclude: &[String]) -> Vec<Case> {
+    cases
+        .into_iter()
+        .filter(|c| include.is_empty() || matches_any(&c.id, include))
+        .filter(|c| !matches_any(&c.id, exclude))
+        .collect()
+}
+
+/// Resolve the profile a run uses: named, the sim's own, or read from the device (`auto`).
+pub fn resolve_profile(opts: &Options, log: &mut dyn Write) -> Result<Profile, SessionError> {
+    let name = match (&opts.profile, &opts.target) {
+        (Some(p), _) if p != "auto" => p.clone(),
+        (None | Some(_), TargetUrl::Sim { profile, .. }) => profile.clone(),
+        (Some(_), _) => return auto_profile(opts, log),
+        (None, _) => {
+            return Err(SessionError::Setup(format!(
+                "--profile is required for {} (one of: {}, or auto to read the device identification)",
+                opts.target,
+                profile_names(&opts.corpus).join(", ")
+            )));
+        }
+    };
+    load_profile(&opts.corpus, &name).map_err(SessionError::Setup)
+}
+
+/// Read FC 2B/0E basic identification from the target and pick the profile whose objects match.
+fn auto_profile(opts: &Options, log: &mut dyn Write) -> Result<Profile, SessionError> {
+    let mut t = targets::open(
+        &opts.target,
+        |_| Err("sim: has its own profile".into()),
+        opts.connect_timeout,
+    )?;
+    let unit = opts.unit.unwrap_or(1);
+    let pdu = Request::ReadDeviceId {
+        read_code: 1,
+        object_id: 0,
+    }
+    .to_bytes()
+    .unwrap_or_default();
+    let mut frame = Vec::new();
+    let framing = t.framing();
+    if framing == Framing::Tcp {
+        let _ = tcp::encode_adu(0x4144, unit, &pdu, &mut frame);
+    } else {
+        let _ = rtu::encode_adu(unit, &pdu, &mut frame);
+    }
+    t.send(&frame)?;
+    let got = t.recv(opts.timeout)?;
+    let Received::Frame { bytes, .. } = got else {
+        return Err(SessionError::Setup(format!(
+            "--profile auto: {} gave no device identification answer ({got:?}); name the profile with --profile",
+            opts.target
+        )));
+    };
+    let objects = match decode_any(&bytes, framing, Direction::Response).map(|d| d.pdu) {
+        Ok(Pdu::Response(Response::ReadDeviceId(d))) => d.objects,
+        other => {
+            return Err(SessionError::Setup(format!(
+                "--profile auto: the identification answer is not usable ({other:?}); name the profile with --profile"
+            )));
+        }
+    };
+    let found: Vec<(u8, String)> = objects
+        .iter()
+        .map(|o| (o.id, String::from_utf8_lossy(&o.value).trim().to_string()))
+        .collect();
+    let _ = writeln!(log, "device identification: {found:?}");
+    let lower = |s: &str| s.to_ascii_lowercase();
+    let mut best: Option<(usize, Profile)> = None;
+    for name in profile_names(&opts.corpus) {
+        let Ok(p) = load_profile(&opts.corpus, &name) else {
+            continue;
+        };
+        let score = p
+            .identification
+            .iter()
+            .filter(|o| o.object_id <= 2)
+            .filter(|o| {
+                found.iter().any(|(id, v)| {
+                    *id == o.object_id
+                        && !v.is_empty()
+                        && (lower(v).contains(&lower(&o.value))
+                            || lower(&o.value).contains(&lower(v)))
+                })
+            })
+            .count();
+        if score > 0 && best.as_ref().is_none_or(|(s, _)| score > *s) {
+            best = Some((score, p));
+        }
+    }
+    match best {
+        Some((score, p)) => {
+            let _ = writeln!(
+                log,
+                "--profile auto: picked `{}` ({score} identification object(s) match)",
+                p.device.id
+            );
+            Ok(p)
+        }
+        None => Err(SessionError::Setup(format!(
+            "--profile auto: no profile matches the identification {found:?}; known profiles: {}",
+            profile_names(&opts.corpus).join(", ")
+        ))),
+    }
+}
+
+/// True when the catalog runs: always, unless only generated cases were asked for.
+fn runs_catalog(opts: &Options) -> bool {
+    opts.generated == 0 || opts.with_catalog
+}
+
+/// The catalog part of a run (catalog and regressions, or nothing for a generated-only run), selected,
+/// with the reason each case would be skipped.
+fn catalog_plan(
+    opts: &Options,
+    profile: &Profile,
+) -> Result<Vec<(Case, Option<String>)>, SessionError> {
+    if !runs_catalog(opts) {
+        return Ok(Vec::new());
+    }
+    let golden = load_golden(&opts.corpus, &profile.device.id).map_err(SessionError::Setup)?;
+    let framing = framing_of(&opts.target, profile);
+    let unit = opts.unit.unwrap_or(profile.device.default_unit);
+    let mut all = crate::cases::catalog::build(profile, golden.as_ref(), framing, unit);
+    all.extend(
+        crate::cases::catalog::regressions(&opts.corpus, profile).map_err(SessionError::Setup)?,
+    );
+    let cases = select(all, &opts.include, &opts.exclude);
+    let cfg = config(opts, profile);
+    Ok(cases
+        .into_iter()
+        .map(|c| {
+            let skip = skip_reason(&c, &cfg, framing);
+            (c, skip)
+        })
+        .collect())
+}
+
+/// The generator of a run's generated cases, if it has any (seed: the options', else the clock's).
+pub fn generator(opts: &Options, profile: &Profile) -> Option<Generator> {
+    (opts.generated > 0).then(|| {
+        Generator::new(
+            profile,
+            opts.unit.unwrap_or(profile.device.default_unit),
+            opts.seed.unwrap_or_else(generated::clock_seed),
+        )
+    })
+}
+
+/// The cases a run would use (catalog and regressions, then generated), with the reason each would be
+/// skipped. Generated cases are all built here: for listing; `run` builds them one at a time.
+pub fn plan(
+    opts: &Options,
+    profile: &Profile,
+) -> Result<Vec<(Case, Option<String>)>, SessionError> {
+    let mut out = catalog_plan(opts, profile)?;
+    if let Some(g) = generator(opts, profile) {
+        let cfg = config(opts, profile);
+        let framing = framing_of(&opts.target, profile);
+        out.extend(
+            g.cases(opts.generated)
+                .filter(|c| selected(c, &opts.include, &opts.exclude))
+                .map(|c| {
+                    let skip = skip_reason(&c, &cfg, framing);
+                    (c, skip)
+                }),
+        );
+    }
+    Ok(out)
+}
+
+/// True when a case passes the include/exclude selection.
+fn selected(c: &Case, include: &[String], exclude: &[String]) -> bool {
+    (include.is_empty() || matches_any(&c.id, include)) && !matches_any(&c.id, exclude)
+}
+
+pub(crate) fn config(opts: &Options, profile: &Profile) -> RunConfig {
+    RunConfig {
+        unit: opts.unit.unwrap_or(profile.device.default_unit),
+        timeout: opts.timeout,
+        silence: opts.silence,
+        allow_motion: opts.allow_motion,
+        allow_destructive: opts.allow_destructive,
+        read_only: opts.read_only,
+        max_rate: opts.max_rate,
+        is_sim: opts.target.is_sim() && !opts.policy_on_sim,
+    }
+}
+
+/// Open the target and its reference drive (fault-free, in lockstep) and put a runner around them.
+pub(crate) fn open_runner(
+    opts: &Options,
+    profile: &Profile,
+    cfg: &RunConfig,
+    expectations: &Expectations,
+) -> Result<Runner, TargetError> {
+    let faults = opts.faults.clone();
+    let unit = cfg.unit;
+    let target = targets::open(
+        &opts.target,
+        |_| {
+            Ok(Station::new(
+                drives::build(profile.clone(), faults.clone()),
+                faults.clone(),
+                unit,
+            ))
+        },
+        opts.connect_timeout,
+    )?;
+    let framing = target.framing();
+    let shadow_station = Station::new(
+        drives::build(profile.clone(), FaultSet::none()),
+        FaultSet::none(),
+        unit,
+    );
+    let shadow = SimTarget::with_framing(shadow_station, framing, target.rtu_timing()).mirror();
+    Ok(Runner::new(
+        target,
+        shadow,
+        profile.clone(),
+        cfg.clone(),
+        expectations.clone(),
+    ))
+}
+
+fn unix_ms() -> u64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| d.as_millis() as u64)
+}
+
+/// Run the selected catalog. `progress` is called after each case with (done, total, id, verdict).
+pub fn run(
+    opts: &Options,
+    log: &mut dyn Write,
+    interrupt: &AtomicBool,
+    progress: &mut dyn FnMut(usize, usize, &str, Verdict),
+) -> Result<Outcome, SessionError> {
+    let profile = resolve_profile(opts, log)?;
+    if !opts.faults.0.is_empty() && !opts.target.is_sim() {
+        return Err(SessionError::Setup(
+            "--fault applies to the in-process simulator only (sim:PROFILE); for a server use `simulate --fault`".into(),
+        ));
+    }
+    let expectations = match &opts.expect {
+        Some(p) => Expectations::load(p).map_err(SessionError::Setup)?,
+        None => Expectations::default(),
+    };
+    let cfg = config(opts, &profile);
+    let [lo, hi] = profile.device.unit_ids;
+    let broadcast = profile.device.broadcast && cfg.unit == 0;
+    if !((lo..=hi).contains(&cfg.unit) || broadcast) {
+        let _ = writeln!(
+            log,
+            "warning: unit {} is outside the profile's unit ids {lo}..={hi}",
+            cfg.unit
+        );
+    }
+    if let Some(snap) = &opts.snapshot
+        && !snap.update
+        && !snap.path.is_file()
+    {
+        return Err(SessionError::Setup(format!(
+            "no snapshot at {}: write it with --update-snapshot",
+            snap.path.display()
+        )));
+    }
+    // One seed for the whole run, chosen before anything is generated.
+    let mut opts = opts.clone();
+    if opts.generated > 0 && opts.seed.is_none() {
+        opts.seed = Some(generated::clock_seed());
+    }
+    let opts = &opts;
+    let planned = catalog_plan(opts, &profile)?;
+    let generator = generator(opts, &profile);
+    let mut runner = open_runner(opts, &profile, &cfg, &expectations)?;
+    let framing = runner.framing();
+    let info = RunInfo {
+        target: opts.target.to_string(),
+        profile: profile.device.id.clone(),
+        transport: match (&opts.target, framing) {
+            (TargetUrl::RtuOverTcp { .. }, _) => crate::reports::Transport::RtuOverTcp,
+            (_, Framing::Rtu) => crate::reports::Transport::Rtu,
+            _ => crate::reports::Transport::Tcp,
+        },
+        server_port: runner.target().server_port(),
+        started_unix_ms: unix_ms(),
+        command_line: opts.command_line.clone(),
+        seed: generator.as_ref().map(Generator::seed).or(opts.seed),
+        harness_version: env!("CARGO_PKG_VERSION").to_string(),
+        report_dir: opts.report_dir.clone(),
+    };
+    let mut reports = match &opts.report_dir {
+        Some(d) => Some(Reports::create(d, &info)?),
+        None => None,
+    };
+    let mut snap = match &opts.snapshot {
+        Some(s) => {
+            let dir = snapshot_dir(&s.path)?;
+            let header = SnapshotHeader {
+                profile: profile.device.id.clone(),
+                framing: if framing == Framing::Rtu {
+                    "rtu"
+                } else {
+                    "tcp"
+                }
+                .into(),
+                unit: cfg.unit,
+                seed: info.seed,
+            };
+            Some(SnapshotWriter::new(&header, &dir))
+        }
+        None => None,
+    };
+    let total = planned.len() + usize::try_from(opts.generated).unwrap_or(usize::MAX);
+    let _ = writeln!(
+        log,
+        "modbus-harness: {} with profile `{}` (unit {}), {} cases",
+        runner.target().describe(),
+        profile.device.id,
+        cfg.unit,
+        total
+    );
+    if let Some(g) = &generator {
+        let _ = writeln!(
+            log,
+            "generated: {} case(s), seed {} (replay with --seed {})",
+            opts.generated,
+            g.seed(),
+            g.seed()
+        );
+    }
+    let mut tally = Tally::new();
+    let mut verdicts = Vec::new();
+    let mut failures = Vec::new();
+    // Failing generated cases to shrink after the run (the first `max_shrinks`).
+    let mut to_shrink: Vec<(u64, String)> = Vec::new();
+    let started = Instant::now();
+    let mut banner_done = cfg.is_sim;
+    let mut interrupted = false;
+    let policy = &cfg;
+    let generated_cases = generator.iter().flat_map(|g| {
+        (0..opts.generated).filter_map(move |i| {
+            let c = g.case(i);
+            selected(&c, &opts.include, &opts.exclude).then(|| {
+                let skip = skip_reason(&c, policy, framing);
+                (c, skip, Some(i))
+            })
+        })
+    });
+    let cases = planned
+        .iter()
+        .map(|(c, s)| (c.clone(), s.clone(), None))
+        .chain(generated_cases);
+    for (i, (case, skip, gen_index)) in cases.enumerate() {
+        if interrupt.load(Ordering::SeqCst) {
+            interrupted = true;
+            break;
+        }
+        let result = match &skip {
+            Some(reason) => CaseResult {
+                id: case.id.clone(),
+                verdict: Verdict::Skipped,
+                expected_deviation: None,
+                steps: vec![],
+                wire: vec![],
+                duration: Duration::ZERO,
+                reason: Some(reason.clone()),
+            },
+            None => {
+                if !banner_done && case.has(Tag::Write) {
+                    banner_done = true;
+                    write_banner(log, &planned, &profile, opts.generated);
+                }
+                runner.run_case(&case)?
+            }
+        };
+        tally.record(&result);
+        if let Some(r) = reports.as_mut() {
+            r.case(&case, &result)?;
+        }
+        if let Some(w) = snap.as_mut() {
+            w.add(&result)?;
+        }
+        progress(i + 1, total, &case.id, result.verdict);
+        if opts.keep_verdicts {
+            verdicts.push((case.id.clone(), result.verdict));
+        }
+        if result.verdict == Verdict::Fail {
+            if let Some(index) = gen_index
+                && to_shrink.len() < opts.max_shrinks
+            {
+                to_shrink.push((index, case.id.clone()));
+            }
+            if failures.len() < 200 {
+                failures.push(result);
+            }
+        }
+    }
+    let mut shrunk = Vec::new();
+    if let (Some(limits), Some(g), false) = (&opts.shrink, &generator, interrupted) {
+        for (index, id) in to_shrink {
+            if interrupt.load(Ordering::SeqCst) {
+                break;
+            }
+            let report = shrink_one(
+                opts,
+                &profile,
+                &cfg,
+                &expectations,
+                &mut runner,
+                g,
+                index,
+                id,
+                limits,
+            );
+            log_shrink(log, &report);
+            shrunk.push(report);
+        }
+    }
+    let summary = tally.summary(interrupted, started.elapsed());
+    if let Some(r) = reports {
+        r.finish(&summary)?;
+    }
+    let snapshot = match (snap, &opts.snapshot) {
+        (Some(w), Some(s)) => Some(finish_snapshot(w, s)?),
+        _ => None,
+    };
+    Ok(Outcome {
+        summary,
+        info,
+        verdicts,
+        failures,
+        shrunk,
+        snapshot,
+    })
+}
+
+/// The directory of a snapshot file (created when the file is to be written).
+fn snapshot_dir(path: &std::path::Path) -> Result<PathBuf, SessionError> {
+    let dir = match path.parent() {
+        Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
+        _ => PathBuf::from("."),
+    };
+    std::fs::create_dir_all(&dir).map_err(|e| {
+        SessionError::Setup(format!("cannot create directory {}: {e}", dir.display()))
+    })?;
+    Ok(dir)
+}
+
+/// Write the snapshot, or write it aside and compare it with the file.
+fn finish_snapshot(
+    w: SnapshotWriter,
+    s: &SnapshotOptions,
+) -> Result<SnapshotOutcome, SessionError> {
+    if s.update {
+        w.finish(&s.path)?;
+        return Ok(SnapshotOutcome {
+            path: s.path.clone(),
+            written: true,
+            drift: None,
+        });
+    }
+    let dir = snapshot_dir(&s.path)?;
+    let fresh = dir.join(format!(
+        ".{}.{}.new",
+        s.path
+            .file_name()
+            .map_or_else(|| "snapshot".into(), |n| n.to_string_lossy()),
+        std::process::id()
+    ));
+    w.finish(&fresh)?;
+    let drift = snapshot::compare(&s.path, &fresh);
+    let _ = std::fs::remove_file(&fresh);
+    Ok(SnapshotOutcome {
+        path: s.path.clone(),
+        written: false,
+        drift: Some(drift?),
+    })
+}
+
+/// Shrink one failing generated case: against a fresh in-process drive per candidate on `sim:`, against
+/// the run's own connection otherwise; write the reproducer when a directory is set.
+#[allow(clippy::too_many_arguments)]
+fn shrink_one(
+    opts: &Options,
+    profile: &Profile,
+    cfg: &RunConfig,
+    expectations: &Expectations,
+    runner: &mut Runner,
+    g: &Generator,
+    index: u64,
+    id: String,
+    limits: &ShrinkLimits,
+) -> ShrinkReport {
+    let framing = runner.framing();
+    // A candidate the safety policy would skip is not run: it counts as not failing.
+    let skipped = |case: &Case, reason: String| CaseResult {
+        id: case.id.clone(),
+        verdict: Verdict::Skipped,
+        expected_deviation: None,
+        steps: vec![],
+        wire: vec![],
+        duration: Duration::ZERO,
+        reason: Some(reason),
+    };
+    let result = if opts.target.is_sim() {
+        shrink::shrink(g, index, limits, |case| {
+            if let Some(reason) = skip_reason(case, cfg, framing) {
+                return Ok(skipped(case, reason));
+            }
+            open_runner(opts, profile, cfg, expectations)?.run_case(case)
+        })
+    } else {
+        shrink::shrink(g, index, limits, |case| {
+            if let Some(reason) = skip_reason(case, cfg, framing) {
+                return Ok(skipped(case, reason));
+            }
+            runner.run_case(case)
+        })
+    };
+    let mut report = ShrinkReport {
+        id,
+        shrunk: None,
+        file: None,
+        note: None,
+    };
+    match result {
+        Err(e) => report.note = Some(format!("shrinking stopped: {e}")),
+        Ok(None) => {
+            report.note = Some(
+                "does not FAIL when run again alone (it needs the state earlier cases left): not shrunk"
+                    .into(),
+            )
+        }
+        Ok(Some(s)) => {
+            if let Some(dir) = &opts.regressions_dir {
+                let origin = Origin {
+                    case: report.id.clone(),
+                    seed: g.seed(),
+                    index,
+                    target: opts.target.to_string(),
+                    faults: opts.faults.0.iter().map(|f| f.name().to_string()).collect(),
+                    harness: env!("CARGO_PKG_VERSION").to_string(),
+                    original_steps: s.original.steps.len(),
+                    shrink_steps: s.steps,
+                    findings: s.findings.clone(),
+                };
+                match shrink::write_regression(dir, &profile.device.id, &s, origin) {
+                    Ok(p) => report.file = Some(p),
+                    Err(e) => report.note = Some(format!("cannot write the reproducer: {e}")),
+                }
+            }
+            report.shrunk = Some(s);
+        }
+    }
+    report
+}
+
+fn log_shrink(log: &mut dyn Write, r: &ShrinkReport) {
+    match &r.shrunk {
+        Some(s) => {
+            let (exchanges, largest) = shrink::case_size(&s.case);
+            let _ = writeln!(
+                log,
+                "shrunk {} -> {}: {} step(s), {exchanges} exchange(s), largest PDU {largest} bytes ({} candidates run, {:.1} s, {:?})",
+                r.id,
+                s.case.id,
+                s.case.steps.len(),
+                s.steps,
+                s.elapsed.as_secs_f64(),
+                s.stop
+            );
+            for f in s.findings.iter().take(3) {
+                let _ = writeln!(log, "     {f}");
+            }
+        }
+        None => {
+            let _ = writeln!(log, "not shrunk {}", r.id);
+        }
+    }
+    if let Some(p) = &r.file {
+        let _ = writeln!(log, "     reproducer: {}", p.display());
+    }
+    if let Some(n) = &r.note {
+        let _ = writeln!(log, "     {n}");
+    }
+}
+
+/// Before the first write on real hardware: say what will be written.
+fn write_banner(
+    log: &mut dyn Write,
+    planned: &[(Case, Option<String>)],
+    profile: &Profile,
+    generated: u64,
+) {
+    let writes: Vec<&Case> = planned
+        .iter()
+        .filter(|(c, s)| s.is_none() && c.has(Tag::Write))
+        .map(|(c, _)| c)
+        .collect();
+    let _ = writeln!(
+        log,
+        "\n*** WRITES AHEAD: {} case(s) will write to this {} ***",
+        writes.len(),
+        profile.device.name
+    );
+    for c in writes.iter().take(30) {
+        let kinds: Vec<&str> = [(Tag::Motion, "motion"), (Tag::Destructive, "destructive")]
+            .iter()
+            .filter(|(t, _)| c.has(*t))
+            .map(|(_, n)| *n)
+            .collect();
+        let _ = writeln!(
+            log,
+            "  {}  {}{}",
+            c.id,
+            c.title,
+            if kinds.is_empty() {
+                String::new()
+            } else {
+                format!("  [{}]", kinds.join(", "))
+            }
+        );
+    }
+    if writes.len() > 30 {
+        let _ = writeln!(log, "  ... and {} more (see --dry-run)", writes.len() - 30);
+    }
+    if generated > 0 {
+        let _ = writeln!(
+            log,
+            "  plus the generated cases that write, tagged by the same policy (list them with --dry-run)"
+        );
+    }
+    let _ = writeln!(
+        log,
+        "Values changed are read first and written back where the case can (read, write, restore).\n"
+    );
+}

@@ -1,0 +1,120 @@
+//! Targets: raw bytes in and out with timestamps. TCP, RTU over TCP, RTU on a serial line, and the
+//! in-process reference drive. Blocking I/O with deadlines: the runner exchanges one step at a time.
+
+pub mod net;
+mod reader;
+pub mod serial;
+pub mod sim;
+pub mod url;
+
+use std::time::Duration;
+
+use codec::Framing;
+
+pub use url::{TargetUrl, UrlError};
+
+/// What one receive produced.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum Received {
+    /// A complete frame (by MBAP length, or by RTU length rules + CRC, or by silence).
+    Frame {
+        bytes: Vec<u8>,
+        first_at: Duration,
+        last_at: Duration,
+        /// Largest silence between two bytes of the frame.
+        max_gap: Duration,
+    },
+    /// Nothing complete before the deadline; `partial` holds bytes of an incomplete frame.
+    Silence { partial: Vec<u8>, at: Duration },
+    /// The peer closed the connection.
+    Closed { partial: Vec<u8>, at: Duration },
+    /// Bytes that cannot be a frame (bad CRC after silence, impossible MBAP length).
+    Garbage {
+        bytes: Vec<u8>,
+        at: Duration,
+        reason: String,
+    },
+}
+
+/// Why a target could not be used.
+#[derive(Debug, thiserror::Error)]
+pub enum TargetError {
+    #[error(transparent)]
+    Url(#[from] UrlError),
+    #[error("cannot connect to {addr}: {source}")]
+    Connect {
+        addr: String,
+        source: std::io::Error,
+    },
+    #[error("cannot resolve {addr}: {reason}")]
+    Resolve { addr: String, reason: String },
+    #[error("cannot open serial port {path}: {reason}")]
+    Serial { path: String, reason: String },
+    #[error("{0}")]
+    Profile(String),
+    #[error("I/O error on {target}: {source}")]
+    Io {
+        target: String,
+        source: std::io::Error,
+    },
+}
+
+/// A Modbus endpoint the runner talks to.
+pub trait Target {
+    /// How frames are delimited on this target.
+    fn framing(&self) -> Framing;
+    /// Time since the target was opened (virtual on `sim:`).
+    fn now(&self) -> Duration;
+    /// Send bytes in one write.
+    fn send(&mut self, bytes: &[u8]) -> Result<(), TargetError>;
+    /// Wait up to `timeout` for one frame.
+    fn recv(&mut self, timeout: Duration) -> Result<Received, TargetError>;
+    /// Let `d` pass with the line idle.
+    fn idle(&mut self, d: Duration);
+    /// Close and reopen the connection (no-op on a serial line).
+    fn reconnect(&mut self) -> Result<(), TargetError>;
+    /// Discard whatever arrived unasked (late answers of an earlier case).
+    fn drain(&mut self);
+    /// A description for reports.
+    fn describe(&self) -> String;
+    /// The server port for the pcap (502 when there is none).
+    fn server_port(&self) -> u16 {
+        502
+    }
+    /// The RTU line timing, when the target has one that is real (serial lines).
+    fn rtu_timing(&self) -> Option<codec::RtuTiming> {
+        None
+    }
+}
+
+/// Open the target a URL names; `sim:` needs the run's profile and unit.
+pub fn open(
+    url: &TargetUrl,
+    sim_station: impl FnOnce(&str) -> Result<drives::Station, String>,
+    connect_timeout: Duration,
+) -> Result<Box<dyn Target>, TargetError> {
+    Ok(match url {
+        TargetUrl::Tcp { host, port } => Box::new(net::TcpTarget::connect(
+            host,
+            *port,
+            connect_timeout,
+            false,
+        )?),
+        TargetUrl::RtuOverTcp { host, port } => {
+            Box::new(net::TcpTarget::connect(host, *port, connect_timeout, true)?)
+        }
+        TargetUrl::Serial { path, baud, format } => {
+            Box::new(serial::SerialTarget::open(path, *baud, *format)?)
+        }
+        TargetUrl::Sim { profile, rtu } => {
+            let station = sim_station(profile).map_err(TargetError::Profile)?;
+            match rtu {
+                None => Box::new(sim::SimTarget::new(station)),
+                Some(r) => {
+                    let framing = if *r { Framing::Rtu } else { Framing::Tcp };
+                    Box::new(sim::SimTarget::with_framing(station, framing, None))
+                }
+            }
+        }
+    })
+}

@@ -1,0 +1,253 @@
+//! Modbus/TCP and RTU-over-TCP targets on a blocking socket with deadlines.
+
+use std::io::{ErrorKind, Read, Write};
+use std::mem::MaybeUninit;
+use std::net::{SocketAddr, TcpStream, ToSocketAddrs};
+use std::time::{Duration, Instant};
+
+use super::reader::FrameReader;
+use super::{Received, Target, TargetError};
+use codec::{Framing, RtuTiming};
+
+/// A TCP connection carrying Modbus/TCP ADUs or RTU frames.
+pub struct TcpTarget {
+    addr: SocketAddr,
+    label: String,
+    stream: Option<TcpStream>,
+    connect_timeout: Duration,
+    start: Instant,
+    reader: FrameReader,
+    rtu: bool,
+    closed: bool,
+    /// The read timeout set on the socket, if any (each change is a system call).
+    read_timeout: Option<Duration>,
+}
+
+fn resolve(host: &str, port: u16) -> Result<SocketAddr, TargetError> {
+    let addr = format!("{host}:{port}");
+    (host, port)
+        .to_socket_addrs()
+        .map_err(|e| TargetError::Resolve {
+            addr: addr.clone(),
+            reason: e.to_string(),
+        })?
+        .next()
+        .ok_or(TargetError::Resolve {
+            addr,
+            reason: "no address".into(),
+        })
+}
+
+/// Nominal timing for RTU over TCP: frames are cut by length rules and CRC; silence only ends unknown ones.
+fn rtu_over_tcp_timing() -> RtuTiming {
+    RtuTiming::tcp_carrier()
+}
+
+impl TcpTarget {
+    /// Connect within `timeout`; `rtu` selects RTU-over-TCP framing.
+    pub fn connect(
+        host: &str,
+        port: u16,
+        timeout: Duration,
+        rtu: bool,
+    ) -> Result<Self, TargetError> {
+        let addr = resolve(host, port)?;
+        let mut t = Self {
+            addr,
+            label: format!("{}://{addr}", if rtu { "rtu+tcp" } else { "tcp" }),
+            stream: None,
+            connect_timeout: timeout,
+            start: Instant::now(),
+            reader: if rtu {
+                FrameReader::rtu(rtu_over_tcp_timing())
+            } else {
+                FrameReader::mbap()
+            },
+            rtu,
+            closed: false,
+            read_timeout: None,
+        };
+        t.open()?;
+        Ok(t)
+    }
+
+    fn open(&mut self) -> Result<(), TargetError> {
+        let s = TcpStream::connect_timeout(&self.addr, self.connect_timeout).map_err(|source| {
+            TargetError::Connect {
+                addr: self.addr.to_string(),
+                source,
+            }
+        })?;
+        s.set_nodelay(true).ok();
+        self.stream = Some(s);
+        self.reader.clear();
+        self.closed = false;
+        self.read_timeout = None;
+        Ok(())
+    }
+
+    fn io(&self, source: std::io::Error) -> TargetError {
+        TargetError::Io {
+            target: self.label.clone(),
+            source,
+        }
+    }
+
+    /// Read once, waiting at most until `until`; returns false when the peer has closed.
+    fn read_once(&mut self, until: Instant) -> Result<bool, TargetError> {
+        let left = until
+            .saturating_duration_since(Instant::now())
+            .max(Duration::from_micros(50));
+        let Some(s) = self.stream.as_mut() else {
+            return Ok(false);
+        };
+        // Keep the timeout already set while it ends the read no later than `until` and not much before
+        // (at least half of what is left): successive exchanges with the same timeout set it once.
+        if self.read_timeout.is_none_or(|t| t > left || t < left / 2) {
+            s.set_read_timeout(Some(left))
+                .map_err(|e| TargetError::Io {
+                    target: String::new(),
+                    source: e,
+                })?;
+            self.read_timeout = Some(left);
+        }
+        let mut chunk = [0u8; 1024];
+        match s.read(&mut chunk) {
+            Ok(0) => Ok(false),
+            Ok(n) => {
+                let now = self.start.elapsed();
+                self.reader.push(now, &chunk[..n]);
+                Ok(true)
+            }
+            Err(e)
+                if matches!(
+                    e.kind(),
+                    ErrorKind::WouldBlock | ErrorKind::TimedOut | ErrorKind::Interrupted
+                ) =>
+            {
+                Ok(true)
+            }
+            Err(e)
+                if matches!(
+                    e.kind(),
+                    ErrorKind::ConnectionReset
+                        | ErrorKind::ConnectionAborted
+                        | ErrorKind::BrokenPipe
+                ) =>
+            {
+                Ok(false)
+            }
+            Err(e) => Err(self.io(e)),
+        }
+    }
+}
+
+impl Target for TcpTarget {
+    fn framing(&self) -> Framing {
+        if self.rtu { Framing::Rtu } else { Framing::Tcp }
+    }
+
+    fn now(&self) -> Duration {
+        self.start.elapsed()
+    }
+
+    fn send(&mut self, bytes: &[u8]) -> Result<(), TargetError> {
+        if self.closed {
+            self.open()?;
+        }
+        let Some(s) = self.stream.as_mut() else {
+            return Err(self.io(ErrorKind::NotConnected.into()));
+        };
+        match s.write_all(bytes) {
+            Ok(()) => Ok(()),
+            Err(e) if matches!(e.kind(), ErrorKind::BrokenPipe | ErrorKind::ConnectionReset) => {
+                // The peer closed since the last exchange: the step observes the close on receive.
+                self.closed = true;
+                Ok(())
+            }
+            Err(e) => Err(self.io(e)),
+        }
+    }
+
+    fn recv(&mut self, timeout: Duration) -> Result<Received, TargetError> {
+        let deadline = Instant::now() + timeout;
+        loop {
+            if let Some(r) = self.reader.next() {
+                return Ok(r);
+            }
+            if self.closed {
+                return Ok(Received::Closed {
+                    partial: self.reader.partial(),
+                    at: self.now(),
+                });
+            }
+            let now = Instant::now();
+            // RTU over TCP: wake at the silence deadline so silence-delimited frames complete.
+            let silence = self
+                .reader
+                .deadline()
+                .map(|d| self.start + d)
+                .filter(|d| *d < deadline);
+            if now >= deadline && silence.is_none() {
+                self.reader.poll(self.now());
+                if let Some(r) = self.reader.next() {
+                    return Ok(r);
+                }
+                return Ok(Received::Silence {
+                    partial: self.reader.partial(),
+                    at: self.now(),
+                });
+            }
+            if let Some(s) = silence
+                && now >= s
+            {
+                self.reader.poll(self.now());
+                continue;
+            }
+            if !self.read_once(silence.unwrap_or(deadline))? {
+                self.closed = true;
+                self.stream = None;
+            }
+        }
+    }
+
+    fn idle(&mut self, d: Duration) {
+        std::thread::sleep(d);
+    }
+
+    fn reconnect(&mut self) -> Result<(), TargetError> {
+        if let Some(s) = self.stream.take() {
+            let _ = s.shutdown(std::net::Shutdown::Both);
+        }
+        self.open()
+    }
+
+    fn drain(&mut self) {
+        if let Some(s) = self.stream.as_ref() {
+            // Non-blocking receives (MSG_DONTWAIT) on the blocking socket: one system call when nothing is
+            // stale, where switching the socket to non-blocking mode and back took two more.
+            let sock = socket2::SockRef::from(s);
+            let mut chunk = [MaybeUninit::<u8>::uninit(); 1024];
+            // Bounded: at most 64 KiB of stale bytes are discarded.
+            for _ in 0..64 {
+                match sock.recv_with_flags(&mut chunk, libc::MSG_DONTWAIT) {
+                    Ok(0) => {
+                        self.closed = true;
+                        break;
+                    }
+                    Ok(_) => continue,
+                    Err(_) => break,
+                }
+            }
+        }
+        self.reader.clear();
+    }
+
+    fn describe(&self) -> String {
+        self.label.clone()
+    }
+
+    fn server_port(&self) -> u16 {
+        self.addr.port()
+    }
+}

@@ -1,0 +1,212 @@
+//! Target URLs: `tcp://host:port`, `rtu+tcp://host:port`, `rtu:///dev/ttyX?baud=..&parity=..&stop=..`, `sim:PROFILE`.
+
+use std::fmt;
+
+use codec::{CharFormat, Parity};
+
+/// A parsed target address.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum TargetUrl {
+    /// Modbus/TCP.
+    Tcp { host: String, port: u16 },
+    /// RTU frames over a TCP connection (serial gateways, `simulate --rtu-over-tcp`).
+    RtuOverTcp { host: String, port: u16 },
+    /// RTU on a serial device.
+    Serial {
+        path: String,
+        baud: u32,
+        format: CharFormat,
+    },
+    /// The in-process reference drive of a profile (no sockets, virtual clock); `rtu` overrides the
+    /// profile's native framing (`sim:generic?transport=rtu`).
+    Sim { profile: String, rtu: Option<bool> },
+}
+
+/// Why a target URL was rejected.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[error(
+    "bad target `{url}`: {reason}\n  expected one of: tcp://HOST:PORT, rtu+tcp://HOST:PORT, rtu:///dev/ttyUSB0?baud=19200&parity=even&stop=1, sim:PROFILE"
+)]
+pub struct UrlError {
+    pub url: String,
+    pub reason: String,
+}
+
+fn host_port(url: &str, rest: &str) -> Result<(String, u16), UrlError> {
+    let err = |reason: String| UrlError {
+        url: url.to_string(),
+        reason,
+    };
+    let rest = rest.trim_end_matches('/');
+    if rest.is_empty() {
+        return Err(err("no host".into()));
+    }
+    // [v6]:port, host:port, or host (port 502).
+    let (host, port) = if let Some(r) = rest.strip_prefix('[') {
+        let (h, after) = r
+            .split_once(']')
+            .ok_or_else(|| err("unclosed `[` in an IPv6 address".into()))?;
+        match after.strip_prefix(':') {
+            Some(p) => (h.to_string(), Some(p)),
+            None if after.is_empty() => (h.to_string(), None),
+            None => return Err(err(format!("unexpected `{after}` after the IPv6 address"))),
+        }
+    } else {
+        match rest.rsplit_once(':') {
+            Some((h, p)) if !h.contains(':') => (h.to_string(), Some(p)),
+            Some(_) => {
+                return Err(err(
+                    "an IPv6 address must be written in brackets: tcp://[::1]:502".into(),
+                ));
+            }
+            None => (rest.to_string(), None),
+        }
+    };
+    if host.is_empty() {
+        return Err(err("no host".into()));
+    }
+    let port = match port {
+        None => 502,
+        Some(p) => p
+            .parse::<u16>()
+            .ok()
+            .filter(|p| *p != 0)
+            .ok_or_else(|| err(format!("port `{p}` is not a number from 1 to 65535")))?,
+    };
+    Ok((host, port))
+}
+
+impl TargetUrl {
+    /// Parse a target URL, naming precisely what is wrong.
+    pub fn parse(url: &str) -> Result<Self, UrlError> {
+        let err = |reason: String| UrlError {
+            url: url.to_string(),
+            reason,
+        };
+        if let Some(p) = url.strip_prefix("sim:") {
+            let p = p.trim_start_matches("//");
+            let (profile, query) = p.split_once('?').unwrap_or((p, ""));
+            if profile.is_empty() {
+                return Err(err("no profile after `sim:` (e.g. sim:sd2x)".into()));
+            }
+            let rtu = match query {
+                "" => None,
+                "transport=rtu" => Some(true),
+                "transport=tcp" => Some(false),
+                q => {
+                    return Err(err(format!(
+                        "unknown sim option `{q}` (transport=rtu or transport=tcp)"
+                    )));
+                }
+            };
+            return Ok(TargetUrl::Sim {
+                profile: profile.to_string(),
+                rtu,
+            });
+        }
+        if let Some(rest) = url.strip_prefix("tcp://") {
+            let (host, port) = host_port(url, rest)?;
+            return Ok(TargetUrl::Tcp { host, port });
+        }
+        if let Some(rest) = url.strip_prefix("rtu+tcp://") {
+            let (host, port) = host_port(url, rest)?;
+            return Ok(TargetUrl::RtuOverTcp { host, port });
+        }
+        if let Some(rest) = url.strip_prefix("rtu://") {
+            let (path, query) = rest.split_once('?').unwrap_or((rest, ""));
+            if path.is_empty() || !path.starts_with('/') {
+                return Err(err(
+                    "the serial device must be an absolute path: rtu:///dev/ttyUSB0".into(),
+                ));
+            }
+            let (mut baud, mut parity, mut stop) = (19_200u32, Parity::Even, 1u8);
+            for kv in query.split('&').filter(|s| !s.is_empty()) {
+                let (k, v) = kv
+                    .split_once('=')
+                    .ok_or_else(|| err(format!("`{kv}` is not key=value")))?;
+                match k {
+                    "baud" => {
+                        baud = v
+                            .parse()
+                            .ok()
+                            .filter(|b| (50..=4_000_000).contains(b))
+                            .ok_or_else(|| {
+                                err(format!("baud `{v}` is not a rate from 50 to 4000000"))
+                            })?
+                    }
+                    "parity" => {
+                        parity = match v {
+                            "none" | "n" | "N" => Parity::None,
+                            "even" | "e" | "E" => Parity::Even,
+                            "odd" | "o" | "O" => Parity::Odd,
+                            _ => return Err(err(format!("parity `{v}` is not none, even or odd"))),
+                        }
+                    }
+                    "stop" => {
+                        stop = match v {
+                            "1" => 1,
+                            "2" => 2,
+                            _ => return Err(err(format!("stop bits `{v}` is not 1 or 2"))),
+                        }
+                    }
+                    _ => return Err(err(format!("unknown option `{k}` (baud, parity, stop)"))),
+                }
+            }
+            return Ok(TargetUrl::Serial {
+                path: path.to_string(),
+                baud,
+                format: CharFormat {
+                    parity,
+                    stop_bits: stop,
+                },
+            });
+        }
+        Err(err(match url.split_once("://") {
+            Some((scheme, _)) => format!("unknown scheme `{scheme}`"),
+            None => "no scheme".into(),
+        }))
+    }
+
+    /// True for the in-process simulator (the safety policy does not apply to it).
+    pub fn is_sim(&self) -> bool {
+        matches!(self, TargetUrl::Sim { .. })
+    }
+}
+
+impl fmt::Display for TargetUrl {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            TargetUrl::Tcp { host, port } if host.contains(':') => {
+                write!(f, "tcp://[{host}]:{port}")
+            }
+            TargetUrl::Tcp { host, port } => write!(f, "tcp://{host}:{port}"),
+            TargetUrl::RtuOverTcp { host, port } if host.contains(':') => {
+                write!(f, "rtu+tcp://[{host}]:{port}")
+            }
+            TargetUrl::RtuOverTcp { host, port } => write!(f, "rtu+tcp://{host}:{port}"),
+            TargetUrl::Serial { path, baud, format } => {
+                let p = match format.parity {
+                    Parity::None => "none",
+                    Parity::Even => "even",
+                    Parity::Odd => "odd",
+                };
+                write!(
+                    f,
+                    "rtu://{path}?baud={baud}&parity={p}&stop={}",
+                    format.stop_bits
+                )
+            }
+            TargetUrl::Sim { profile, rtu: None } => write!(f, "sim:{profile}"),
+            TargetUrl::Sim {
+                profile,
+                rtu: Some(r),
+            } => {
+                write!(
+                    f,
+                    "sim:{profile}?transport={}",
+                    if *r { "rtu" } else { "tcp" }
+                )
+            }
+        }
+    }
+}

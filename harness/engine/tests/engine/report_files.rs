@@ -1,0 +1,563 @@
+//! The report files: index.json, cases/, junit.xml, report.html, session.pcapng (checked with tshark when
+//! installed), the terminal summary, and what an interrupted or killed run leaves.
+
+use std::path::Path;
+use std::process::Command;
+use std::time::Duration;
+
+use engine::Verdict;
+use engine::reports::{
+    self, FAILING_CAP, Reports, Summary, Tally, Transport, case_file_name, pcap_decode_args,
+    terminal_summary,
+};
+use quick_xml::events::Event;
+use test_support::reports::{IDS, INJECTED, run_info, sample};
+
+/// Write the sample run for `transport` into `dir` and return its summary.
+fn write_sample(dir: &Path, transport: Transport, port: u16) -> Summary {
+    let info = run_info(transport, port);
+    let mut reports = Reports::create(dir, &info).expect("create reports");
+    for (case, result) in sample(transport) {
+        reports.case(&case, &result).expect("write case");
+    }
+    let summary = reports.summary(false, Duration::from_millis(1234));
+    reports.finish(&summary).expect("finish reports");
+    summary
+}
+
+fn read(path: &Path) -> String {
+    std::fs::read_to_string(path).unwrap_or_else(|e| panic!("{}: {e}", path.display()))
+}
+
+#[test]
+fn index_json_has_every_case_and_the_counts() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    write_sample(dir.path(), Transport::Tcp, 502);
+    let index: serde_json::Value =
+        serde_json::from_str(&read(&dir.path().join("index.json"))).expect("index.json parses");
+    assert_eq!(index["format"], "modbus-harness-report/1");
+    assert_eq!(index["run"]["profile"], "mdrive");
+    assert_eq!(index["run"]["transport"], "tcp");
+    let cases = index["cases"].as_array().expect("cases array");
+    assert_eq!(cases.len(), IDS.len());
+    for (entry, id) in cases.iter().zip(IDS) {
+        assert_eq!(entry["id"], id);
+        let file = entry["file"].as_str().expect("file name");
+        assert_eq!(file, format!("cases/{}", case_file_name(id)));
+        let case: serde_json::Value =
+            serde_json::from_str(&read(&dir.path().join(file))).expect("case file parses");
+        assert_eq!(case["result"]["id"], id);
+        assert_eq!(case["case"]["id"], id);
+        assert!(case["case"]["requirement"].is_string());
+        assert!(case["case"]["steps"].is_array());
+    }
+    assert_eq!(cases[1]["verdict"], "FAIL");
+    assert_eq!(cases[4]["verdict_before_expectations"], "FAIL");
+    let s = &index["summary"];
+    assert_eq!(s["cases"], 6);
+    assert_eq!(s["counts"]["PASS"], 2);
+    assert_eq!(s["counts"]["FAIL"], 1);
+    assert_eq!(s["counts"]["SKIPPED"], 1);
+    assert_eq!(s["counts"]["NON-STRICT"], 1);
+    assert_eq!(s["counts"]["INFORMATIONAL"], 1);
+    assert_eq!(s["counts"]["UNIMPLEMENTED"], 0);
+    assert_eq!(s["failing"], serde_json::json!([IDS[1]]));
+    assert_eq!(s["interrupted"], false);
+    assert_eq!(s["result"], "FAIL");
+    // Nothing partial is left behind by a finished run.
+    for entry in std::fs::read_dir(dir.path()).expect("list") {
+        let name = entry
+            .expect("entry")
+            .file_name()
+            .to_string_lossy()
+            .into_owned();
+        assert!(
+            !name.ends_with(".partial") && !name.ends_with(".tmp"),
+            "left over: {name}"
+        );
+    }
+}
+
+/// Attributes of an XML start tag as (name, unescaped value).
+fn attrs(e: &quick_xml::events::BytesStart) -> Vec<(String, String)> {
+    e.attributes()
+        .map(|a| {
+            let a = a.expect("attribute");
+            (
+                String::from_utf8_lossy(a.key.as_ref()).into_owned(),
+                a.normalized_value(quick_xml::XmlVersion::Implicit1_0)
+                    .expect("attribute value")
+                    .into_owned(),
+            )
+        })
+        .collect()
+}
+
+fn attr(list: &[(String, String)], name: &str) -> Option<String> {
+    list.iter().find(|(k, _)| k == name).map(|(_, v)| v.clone())
+}
+
+#[test]
+fn junit_is_well_formed_with_one_failure_and_one_skip() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    write_sample(dir.path(), Transport::RtuOverTcp, 15020);
+    let xml = read(&dir.path().join("junit.xml"));
+    let mut reader = quick_xml::Reader::from_str(&xml);
+    reader.config_mut().check_end_names = true;
+    let mut stack: Vec<String> = Vec::new();
+    let mut suites = Vec::new();
+    let mut testcases = Vec::new();
+    let (mut failures, mut skipped) = (0, 0);
+    let mut failure_text = String::new();
+    let mut verdict_properties = Vec::new();
+    let mut system_out = Vec::new();
+    loop {
+        let event = reader.read_event().expect("junit.xml is well-formed XML");
+        match event {
+            Event::Start(ref e) | Event::Empty(ref e) => {
+                let name = String::from_utf8_lossy(e.name().as_ref()).into_owned();
+                let a = attrs(e);
+                match name.as_str() {
+                    "testsuite" => suites.push(a.clone()),
+                    "testcase" => testcases.push(a.clone()),
+                    "failure" => failures += 1,
+                    "skipped" => skipped += 1,
+                    "property"
+                        if stack.last().map(String::as_str) == Some("properties")
+                            && attr(&a, "name").as_deref() == Some("verdict") =>
+                    {
+                        verdict_properties.push(attr(&a, "value").unwrap_or_default());
+                    }
+                    _ => {}
+                }
+                if matches!(event, Event::Start(_)) {
+                    stack.push(name);
+                }
+            }
+            Event::End(_) => {
+                stack.pop();
+            }
+            Event::Text(t) => {
+                let text = t.decode().expect("text").into_owned();
+                let text = quick_xml::escape::unescape(&text)
+                    .expect("unescape")
+                    .into_owned();
+                match stack.last().map(String::as_str) {
+                    Some("failure") => failure_text.push_str(&text),
+                    Some("system-out") => system_out.push(text),
+                    _ => {}
+                }
+            }
+            Event::GeneralRef(r) => {
+                // quick-xml 0.38+ reports entity references apart from the text around them.
+                let name = String::from_utf8_lossy(&r).into_owned();
+                let ch = match name.as_str() {
+                    "lt" => "<",
+                    "gt" => ">",
+                    "amp" => "&",
+                    "quot" => "\"",
+                    "apos" => "'",
+                    other => panic!("unexpected entity &{other};"),
+                };
+                match stack.last().map(String::as_str) {
+                    Some("failure") => failure_text.push_str(ch),
+                    Some("system-out") => {
+                        if let Some(last) = system_out.last_mut() {
+                            last.push_str(ch);
+                        }
+                    }
+                    _ => {}
+                }
+            }
+            Event::Eof => break,
+            _ => {}
+        }
+    }
+    assert!(stack.is_empty(), "unclosed elements: {stack:?}");
+    assert_eq!(suites.len(), 1, "one testsuite");
+    let suite = &suites[0];
+    assert_eq!(attr(suite, "tests").as_deref(), Some("6"));
+    assert_eq!(attr(suite, "failures").as_deref(), Some("1"));
+    assert_eq!(attr(suite, "skipped").as_deref(), Some("1"));
+    assert_eq!(attr(suite, "errors").as_deref(), Some("0"));
+    assert_eq!((failures, skipped), (1, 1));
+    assert_eq!(testcases.len(), 6);
+    for (tc, id) in testcases.iter().zip(IDS) {
+        let (class, name) = id.rsplit_once('/').expect("ids have a /");
+        assert_eq!(attr(tc, "classname").as_deref(), Some(class));
+        assert_eq!(attr(tc, "name").as_deref(), Some(name));
+    }
+    assert_eq!(
+        verdict_properties,
+        [
+            "PASS",
+            "FAIL",
+            "SKIPPED",
+            "PASS",
+            "NON-STRICT",
+            "INFORMATIONAL"
+        ]
+    );
+    assert!(
+        failure_text.contains(INJECTED),
+        "failure body: {failure_text}"
+    );
+    assert!(xml.contains("&lt;script&gt;"), "markup is escaped");
+    assert!(!xml.contains("<script>"), "no raw markup in the XML");
+    assert!(!xml.contains('\u{7}'), "control characters are replaced");
+}
+
+#[test]
+fn html_has_every_case_and_escapes_findings() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    write_sample(dir.path(), Transport::Tcp, 502);
+    let html = read(&dir.path().join("report.html"));
+    assert!(html.starts_with("<!DOCTYPE html>"));
+    assert!(html.trim_end().ends_with("</html>"));
+    for id in IDS {
+        assert!(html.contains(id), "{id} missing");
+    }
+    assert!(
+        !html.contains("<script>alert(1)"),
+        "finding injected markup"
+    );
+    assert!(html.contains("&lt;script&gt;alert(1)&lt;/script&gt; &amp; &quot;quoted&quot;"));
+    // Self-contained: no external resources.
+    for needle in ["src=\"http", "href=\"http", "<link ", "@import", "url("] {
+        assert!(!html.contains(needle), "external resource: {needle}");
+    }
+    // Filter controls, one per verdict, with the counts.
+    for v in Verdict::ALL {
+        assert!(html.contains(&format!("data-verdict=\"{}\"", v.label())));
+    }
+    assert!(html.contains("malformed on purpose"));
+    assert_eq!(html.matches("<details class=\"case").count(), 6);
+}
+
+#[test]
+fn terminal_summary_ends_with_the_result_line() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let summary = write_sample(dir.path(), Transport::Tcp, 502);
+    let mut info = run_info(Transport::Tcp, 502);
+    info.report_dir = Some(dir.path().to_path_buf());
+    let text = terminal_summary(&summary, &info);
+    assert!(text.contains(IDS[1]));
+    assert!(text.contains(&dir.path().display().to_string()));
+    assert_eq!(
+        text.lines().last(),
+        Some("RESULT: FAIL (1 FAIL, 2 PASS, 1 NON-STRICT, 1 INFORMATIONAL, 1 SKIPPED)")
+    );
+}
+
+#[test]
+fn terminal_summary_caps_failing_ids() {
+    let mut tally = Tally::new();
+    let (_, mut result) = test_support::reports::numbered_pass(Transport::Tcp, 0);
+    result.verdict = Verdict::Fail;
+    for n in 0..500 {
+        result.id = format!("x/fail-{n}");
+        tally.record(&result);
+    }
+    let summary = tally.summary(true, Duration::from_secs(1));
+    assert_eq!(summary.failing.len(), FAILING_CAP);
+    assert_eq!(summary.failing_omitted(), 500 - FAILING_CAP);
+    let text = terminal_summary(&summary, &run_info(Transport::Tcp, 502));
+    assert!(text.contains("x/fail-49\n"));
+    assert!(!text.contains("x/fail-50\n"));
+    assert!(text.contains("... and 450 more"));
+    assert_eq!(
+        text.lines().last(),
+        Some("RESULT: FAIL (500 FAIL; interrupted)")
+    );
+}
+
+#[test]
+fn interrupted_and_killed_runs() {
+    let info = run_info(Transport::Tcp, 502);
+    let cases = sample(Transport::Tcp);
+
+    // Killed: no finish. Only .partial files, the index prefix has one complete entry per line.
+    let dir = tempfile::tempdir().expect("tempdir");
+    let mut reports = Reports::create(dir.path(), &info).expect("create");
+    for (case, result) in &cases[..3] {
+        reports.case(case, result).expect("case");
+    }
+    reports.flush().expect("flush");
+    drop(reports);
+    for name in ["index.json", "junit.xml", "report.html", "session.pcapng"] {
+        assert!(!dir.path().join(name).exists(), "{name} must not exist");
+        assert!(dir.path().join(format!("{name}.partial")).exists());
+    }
+    let partial = read(&dir.path().join("index.json.partial"));
+    let entries: Vec<serde_json::Value> = partial
+        .lines()
+        .skip_while(|l| !l.starts_with("\"cases\":["))
+        .skip(1)
+        .map(|l| serde_json::from_str(l.trim_end_matches(',')).expect("entry line parses"))
+        .collect();
+    assert_eq!(entries.len(), 3);
+    assert_eq!(entries[2]["id"], IDS[2]);
+
+    // Interrupted: finish with interrupted = true completes every file.
+    let mut reports = Reports::create(dir.path(), &info).expect("create again");
+    assert!(
+        !dir.path().join("index.json.partial").exists() || {
+            // The new run's own partial index holds no case yet.
+            read(&dir.path().join("index.json.partial")).lines().count() <= 3
+        }
+    );
+    for (case, result) in &cases[..2] {
+        reports.case(case, result).expect("case");
+    }
+    let summary = reports.summary(true, Duration::from_millis(5));
+    reports.finish(&summary).expect("finish");
+    let index: serde_json::Value =
+        serde_json::from_str(&read(&dir.path().join("index.json"))).expect("index parses");
+    assert_eq!(index["summary"]["interrupted"], true);
+    assert_eq!(index["cases"].as_array().map(Vec::len), Some(2));
+    assert!(read(&dir.path().join("report.html")).contains("interrupted"));
+    // Case files of the killed run were removed when the new run started.
+    let case_files = std::fs::read_dir(dir.path().join("cases"))
+        .expect("cases")
+        .count();
+    assert_eq!(case_files, 2);
+}
+
+#[test]
+fn io_errors_name_the_file() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let blocker = dir.path().join("not-a-dir");
+    std::fs::write(&blocker, b"x").expect("write");
+    let err = match Reports::create(&blocker.join("out"), &run_info(Transport::Tcp, 502)) {
+        Err(e) => e,
+        Ok(_) => panic!("a report dir under a file cannot be created"),
+    };
+    assert!(err.to_string().contains("not-a-dir"), "{err}");
+}
+
+// ---- pcapng through tshark ----
+
+fn tshark_available() -> bool {
+    match Command::new("tshark").arg("--version").output() {
+        Ok(o) if o.status.success() => true,
+        _ => {
+            eprintln!(
+                "tshark is not installed: skipping the pcapng decode check (apt-get install -y tshark)"
+            );
+            false
+        }
+    }
+}
+
+/// tshark fields, one line per packet, tab-separated.
+fn tshark(pcap: &Path, decode: &[String], filter: &str, fields: &[&str]) -> Vec<Vec<String>> {
+    let mut cmd = Command::new("tshark");
+    cmd.arg("-r")
+        .arg(pcap)
+        .args(decode)
+        .args(["-Y", filter, "-T", "fields"]);
+    for f in fields {
+        cmd.args(["-e", f]);
+    }
+    cmd.args(["-E", "separator=\t"]);
+    let out = cmd.output().expect("run tshark");
+    assert!(
+        out.status.success(),
+        "tshark failed: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    String::from_utf8_lossy(&out.stdout)
+        .lines()
+        .map(|l| l.split('\t').map(str::to_string).collect())
+        .collect()
+}
+
+fn check_pcap(transport: Transport, port: u16) {
+    if !tshark_available() {
+        return;
+    }
+    let dir = tempfile::tempdir().expect("tempdir");
+    write_sample(dir.path(), transport, port);
+    let info = run_info(transport, port);
+    let pcap = dir.path().join("session.pcapng");
+    let decode = pcap_decode_args(&info);
+    let modbus = match transport {
+        Transport::Tcp => "mbtcp",
+        Transport::Rtu | Transport::RtuOverTcp => "mbrtu",
+    };
+
+    // Every packet is there: 5 cases with traffic, 3 handshake + 3 closing packets each, 9 payload packets.
+    let all = tshark(&pcap, &decode, "frame", &["frame.number"]);
+    assert_eq!(all.len(), 5 * 6 + 9, "packet count");
+
+    // Every payload is decoded as Modbus, except packets the harness commented on.
+    let undecoded = tshark(
+        &pcap,
+        &decode,
+        &format!("tcp.len > 0 && !{modbus}"),
+        &["frame.number", "frame.comment"],
+    );
+    for row in &undecoded {
+        assert!(
+            row.get(1).is_some_and(|c| !c.is_empty()),
+            "packet {} is not decoded as {modbus} and has no comment",
+            row[0]
+        );
+    }
+    let decoded = tshark(&pcap, &decode, modbus, &["frame.number"]);
+    // At most the two frames broken on purpose or by the target stay undecoded.
+    assert!(
+        decoded.len() + undecoded.len() == 9 && decoded.len() >= 7,
+        "decoded {}",
+        decoded.len()
+    );
+
+    // No malformed Modbus frame but those with a comment (the intended one and the FAIL's bad answer).
+    let malformed = tshark(
+        &pcap,
+        &decode,
+        &format!("{modbus} && (_ws.malformed || _ws.expert.severity >= warning)"),
+        &["frame.number", "frame.comment"],
+    );
+    for row in &malformed {
+        assert!(
+            row.get(1).is_some_and(|c| !c.is_empty()),
+            "packet {} is malformed Modbus without a comment",
+            row[0]
+        );
+    }
+    let on_purpose = tshark(
+        &pcap,
+        &decode,
+        "frame.comment contains \"malformed on purpose\"",
+        &["frame.comment"],
+    );
+    assert_eq!(on_purpose.len(), 1);
+    assert!(on_purpose[0][0].contains(&format!("malformed on purpose: {}", IDS[3])));
+
+    // The synthetic TCP is coherent: no analysis complaint (lost segments, unseen ACKs, retransmissions).
+    let tcp_problems = tshark(
+        &pcap,
+        &decode,
+        "tcp.analysis.flags && !tcp.analysis.window_update",
+        &["frame.number", "_ws.col.Info"],
+    );
+    assert!(tcp_problems.is_empty(), "TCP analysis: {tcp_problems:?}");
+    let handshakes = tshark(
+        &pcap,
+        &decode,
+        "tcp.flags.syn == 1 && tcp.flags.ack == 0",
+        &["tcp.srcport", "tcp.dstport"],
+    );
+    assert_eq!(handshakes.len(), 5);
+    for row in &handshakes {
+        assert!(row[0].parse::<u16>().is_ok_and(|p| p >= 40_000));
+        assert_eq!(row[1], reports::pcap_server_port(&info).to_string());
+    }
+
+    // Timestamps: run start + event time (the first request is at +10 ms).
+    let first = tshark(&pcap, &decode, "tcp.len > 0", &["frame.time_epoch"]);
+    let t: f64 = first[0][0].parse().expect("time");
+    let want = info.started_unix_ms as f64 / 1000.0 + 0.010;
+    assert!((t - want).abs() < 1e-5, "first payload at {t}, want {want}");
+}
+
+#[test]
+fn pcap_decodes_as_modbus_tcp() {
+    check_pcap(Transport::Tcp, 502);
+}
+
+#[test]
+fn pcap_decodes_as_modbus_tcp_on_another_port() {
+    check_pcap(Transport::Tcp, 45_678);
+}
+
+#[test]
+fn pcap_decodes_as_modbus_rtu_over_tcp() {
+    check_pcap(Transport::RtuOverTcp, 15_020);
+}
+
+#[test]
+fn pcap_decodes_serial_rtu() {
+    check_pcap(Transport::Rtu, 0);
+}
+
+#[test]
+fn case_file_names_are_readable_and_distinct() {
+    assert_eq!(
+        case_file_name("golden/sd2x/3.2-read"),
+        "golden__sd2x__3.2-read.json"
+    );
+    let names = ["a/b", "a__b", "a b", "a_b", "../x", ".x", ""].map(case_file_name);
+    for (i, a) in names.iter().enumerate() {
+        assert!(!a.starts_with('.'), "{a} is hidden");
+        assert!(!a.contains('/'), "{a}");
+        for b in &names[i + 1..] {
+            assert_ne!(a, b);
+        }
+    }
+    assert!(case_file_name(&"x".repeat(500)).len() < 160);
+}
+
+#[test]
+fn iso_dates() {
+    assert_eq!(reports::iso8601_utc(0), "1970-01-01T00:00:00.000Z");
+    assert_eq!(
+        reports::iso8601_utc(951_782_400_000),
+        "2000-02-29T00:00:00.000Z"
+    );
+    assert_eq!(
+        reports::iso8601_utc(1_795_315_813_123),
+        "2026-11-22T02:50:13.123Z"
+    );
+}
+
+#[test]
+fn pcap_reassembles_a_response_read_in_pieces() {
+    if !tshark_available() {
+        return;
+    }
+    let transport = Transport::RtuOverTcp;
+    let (case, mut result) = test_support::reports::numbered_pass(transport, 1);
+    let rx = result.wire.pop().expect("response event");
+    let (a, b) = rx.bytes.split_at(3);
+    for (k, part) in [a, b].into_iter().enumerate() {
+        result.wire.push(engine::WireEvent {
+            bytes: part.to_vec(),
+            at: rx.at + Duration::from_micros(400 * k as u64),
+            ..rx.clone()
+        });
+    }
+    let dir = tempfile::tempdir().expect("tempdir");
+    let info = run_info(transport, 15_020);
+    let mut reports = Reports::create(dir.path(), &info).expect("create");
+    reports.case(&case, &result).expect("case");
+    let summary = reports.summary(false, Duration::ZERO);
+    reports.finish(&summary).expect("finish");
+    let pcap = dir.path().join("session.pcapng");
+    let decode = pcap_decode_args(&info);
+    let responses = tshark(
+        &pcap,
+        &decode,
+        "mbrtu && tcp.srcport == 15020",
+        &["frame.number"],
+    );
+    assert_eq!(responses.len(), 1, "one reassembled response");
+    let bad = tshark(
+        &pcap,
+        &decode,
+        "_ws.malformed || _ws.expert.severity >= warning",
+        &["frame.number"],
+    );
+    assert!(bad.is_empty(), "malformed: {bad:?}");
+    // Only the case label: the two reads are one segment and the codec check sees them together.
+    let comments = tshark(&pcap, &decode, "frame.comment", &["frame.comment"]);
+    assert_eq!(comments.len(), 1, "{comments:?}");
+    assert!(comments[0][0].starts_with("case bulk/pass/"));
+}
+
+#[test]
+fn reports_can_move_to_another_thread() {
+    fn send<T: Send>() {}
+    send::<Reports>();
+}

@@ -1,0 +1,124 @@
+//! The conformance run over real transports against `simulate`'s servers: every drive passes over
+//! Modbus/TCP, RTU over TCP and RTU on a pty, and the transport-independent cases give the same verdicts
+//! as the in-process run.
+
+use std::collections::BTreeMap;
+use std::sync::atomic::AtomicBool;
+use std::time::Duration;
+
+use engine::Verdict;
+use engine::servers::ServerConfig;
+use engine::session::{Options, run};
+use engine::targets::TargetUrl;
+use test_support::{PtyPair, have_socat, loopback_tcp_and_rtu, serve, skip};
+
+fn verdicts(url: &str, profile: &str) -> BTreeMap<String, Verdict> {
+    let mut o = Options::new(TargetUrl::parse(url).expect("url"));
+    o.profile = Some(profile.to_string());
+    o.keep_verdicts = true;
+    // Equivalence needs every case on every transport; these are simulators, nothing moves.
+    o.allow_motion = true;
+    o.allow_destructive = true;
+    o.timeout = Duration::from_millis(1000);
+    o.silence = Duration::from_millis(150);
+    let out = run(
+        &o,
+        &mut std::io::sink(),
+        &AtomicBool::new(false),
+        &mut |_, _, _, _| {},
+    )
+    .unwrap_or_else(|e| panic!("{url}: {e}"));
+    let fails: Vec<String> = out
+        .failures
+        .iter()
+        .map(|f| format!("{}: {:?}", f.id, f.findings().collect::<Vec<_>>()))
+        .collect();
+    assert!(fails.is_empty(), "{url} ({profile}) has FAILs: {fails:#?}");
+    out.verdicts.into_iter().collect()
+}
+
+/// Both runs have the same cases with the same verdicts.
+fn same_all(a: &BTreeMap<String, Verdict>, b: &BTreeMap<String, Verdict>, what: &str) {
+    let diff: Vec<String> = a
+        .iter()
+        .filter(|(id, v)| b.get(*id) != Some(*v))
+        .map(|(id, v)| format!("{id}: {v} vs {:?}", b.get(id)))
+        .chain(
+            b.keys()
+                .filter(|id| !a.contains_key(*id))
+                .map(|id| format!("{id}: only in the second run")),
+        )
+        .collect();
+    assert!(diff.is_empty(), "{what}: {diff:#?}");
+}
+
+/// Cases whose meaning does not depend on the transport carry the same verdict on both runs.
+fn same_independent(a: &BTreeMap<String, Verdict>, b: &BTreeMap<String, Verdict>, what: &str) {
+    let mut compared = 0;
+    for (id, va) in a {
+        if id.starts_with("tcp/") || id.starts_with("rtu/") {
+            continue;
+        }
+        if let Some(vb) = b.get(id) {
+            compared += 1;
+            assert!(va == vb, "{what}: {id}: {va} vs {vb}");
+        }
+    }
+    assert!(compared > 50, "{what}: only {compared} cases in common");
+}
+
+#[test]
+fn tcp_profiles_over_tcp_and_rtu_over_tcp() {
+    let rt = tokio::runtime::Runtime::new().expect("runtime");
+    for profile in ["mdrive", "lmd", "generic"] {
+        let inproc = verdicts(&format!("sim:{profile}"), profile);
+        // A fresh server per run: the catalog writes, and each run starts from power-on state.
+        let h = rt.block_on(serve(profile, &[], loopback_tcp_and_rtu()));
+        let tcp = verdicts(&format!("tcp://{}", h.tcp_addr().expect("tcp")), profile);
+        same_all(&inproc, &tcp, &format!("{profile} tcp vs sim"));
+        drop(h);
+        let h = rt.block_on(serve(profile, &[], loopback_tcp_and_rtu()));
+        let rtu = verdicts(
+            &format!("rtu+tcp://{}", h.rtu_over_tcp_addr().expect("rtu")),
+            profile,
+        );
+        same_independent(&inproc, &rtu, &format!("{profile} rtu+tcp vs sim"));
+        drop(h);
+    }
+}
+
+#[test]
+fn sd2x_over_rtu_over_tcp_and_a_pty() {
+    let rt = tokio::runtime::Runtime::new().expect("runtime");
+    let inproc = verdicts("sim:sd2x", "sd2x");
+    let h = rt.block_on(serve("sd2x", &[], loopback_tcp_and_rtu()));
+    let rtu = verdicts(
+        &format!("rtu+tcp://{}", h.rtu_over_tcp_addr().expect("rtu")),
+        "sd2x",
+    );
+    same_all(&inproc, &rtu, "sd2x rtu+tcp vs sim");
+    drop(h);
+    if !have_socat() {
+        skip(
+            "sd2x_over_rtu_over_tcp_and_a_pty (pty part)",
+            "socat is not installed",
+        );
+        return;
+    }
+    let pty = PtyPair::start();
+    let config = ServerConfig {
+        serial: Some(test_support::serial_run_8n1(&pty.a)),
+        ..ServerConfig::default()
+    };
+    let h = rt.block_on(serve("sd2x", &[], config));
+    let serial = verdicts(
+        &format!(
+            "rtu://{}?baud={}&parity=none",
+            pty.b.display(),
+            test_support::PTY_RUN_BAUD
+        ),
+        "sd2x",
+    );
+    same_independent(&inproc, &serial, "sd2x pty vs sim");
+    drop(h);
+}

@@ -1,0 +1,68 @@
+//! The report layer keeps no per-case data: 100,000 cases go through `Reports` while the live heap stays
+//! flat and the summary's failing list stays capped. (No timing is measured.)
+
+use std::sync::atomic::Ordering;
+use std::time::Duration;
+
+use engine::Verdict;
+use engine::reports::{FAILING_CAP, Reports, Transport};
+use test_support::reports::{numbered_pass, run_info};
+
+use crate::{LIVE, alone};
+
+const CASES: usize = 100_000;
+/// Every this many cases is a FAIL, so the failing list would grow past its cap if it were not capped.
+const FAIL_EVERY: usize = 40;
+
+#[test]
+fn memory_does_not_grow_with_the_number_of_cases() {
+    let _alone = alone();
+    let dir = tempfile::tempdir().expect("tempdir");
+    let info = run_info(Transport::Tcp, 502);
+    let mut reports = Reports::create(dir.path(), &info).expect("create reports");
+    let mut baseline = None;
+    let mut peak_after_warmup = 0isize;
+    for n in 0..CASES {
+        let (case, mut result) = numbered_pass(Transport::Tcp, n);
+        if n % FAIL_EVERY == 0 {
+            result.verdict = Verdict::Fail;
+        }
+        reports.case(&case, &result).expect("write case");
+        drop((case, result));
+        if n == 2_000 {
+            baseline = Some(LIVE.load(Ordering::Relaxed));
+        } else if n > 2_000 {
+            peak_after_warmup = peak_after_warmup.max(LIVE.load(Ordering::Relaxed));
+        }
+    }
+    let baseline = baseline.expect("baseline taken");
+    let growth = peak_after_warmup - baseline;
+    eprintln!(
+        "live heap after 2,000 cases: {baseline} B; highest after that: {peak_after_warmup} B"
+    );
+    // A per-case leak of even 1 byte would show up as 98,000 bytes here.
+    assert!(
+        growth < 16 * 1024,
+        "the live heap grew by {growth} bytes over {} cases",
+        CASES - 2_000
+    );
+
+    let summary = reports.summary(false, Duration::from_secs(1));
+    assert_eq!(summary.cases, CASES);
+    assert_eq!(summary.count(Verdict::Fail), CASES / FAIL_EVERY);
+    assert_eq!(summary.count(Verdict::Pass), CASES - CASES / FAIL_EVERY);
+    assert_eq!(summary.failing.len(), FAILING_CAP);
+    assert_eq!(summary.failing_omitted(), CASES / FAIL_EVERY - FAILING_CAP);
+    assert_eq!(reports.tally().failing().len(), FAILING_CAP);
+    reports.finish(&summary).expect("finish");
+
+    // The files hold every case even though memory held none of them.
+    let index: serde_json::Value = serde_json::from_reader(std::io::BufReader::new(
+        std::fs::File::open(dir.path().join("index.json")).expect("index.json"),
+    ))
+    .expect("index.json parses");
+    assert_eq!(index["cases"].as_array().map(Vec::len), Some(CASES));
+    assert_eq!(index["summary"]["counts"]["FAIL"], CASES / FAIL_EVERY);
+    let junit = std::fs::read_to_string(dir.path().join("junit.xml")).expect("junit.xml");
+    assert_eq!(junit.matches("<testcase ").count(), CASES);
+}

@@ -1,0 +1,524 @@
+//! Shared pieces of the modbus-harness tests: tool detection with visible skips, a socat pty pair, the
+//! simulator as a child process, in-process servers, third-party peers, report fixtures and raw frame
+//! helpers. Every wait is bounded.
+
+pub mod peer_servers;
+pub mod reports;
+use std::io::{BufRead, BufReader, Write};
+use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::sync::atomic::{AtomicU32, Ordering};
+use std::sync::mpsc;
+use std::time::Duration;
+
+use codec::rtu;
+use drives::corpus::Corpus;
+use drives::profile::Profile;
+use drives::{self, Fault, FaultSet, Station};
+use engine::servers::{self, SerialConfig, ServerConfig, ServerHandle};
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
+use tokio::net::TcpStream;
+
+pub mod peers;
+
+/// The `modbus-harness` binary of this build (`target/<profile>/modbus-harness`, beside the test executable's
+/// `deps/` folder). Tests of the `modbus-harness` package have it built by cargo before they run.
+pub fn harness_bin() -> PathBuf {
+    let exe = std::env::current_exe().expect("the test executable's path");
+    let dir = exe
+        .parent()
+        .and_then(|deps| deps.parent())
+        .expect("the test executable lives in target/<profile>/deps");
+    dir.join(format!("modbus-harness{}", std::env::consts::EXE_SUFFIX))
+}
+
+/// `target/tmp`: scratch space shared by the test binaries of this build (what cargo names
+/// `CARGO_TARGET_TMPDIR` for integration tests), created when missing.
+pub fn target_tmpdir() -> PathBuf {
+    let exe = std::env::current_exe().expect("the test executable's path");
+    let dir = exe
+        .ancestors()
+        .nth(3)
+        .expect("the test executable lives in target/<profile>/deps")
+        .join("tmp");
+    let _ = std::fs::create_dir_all(&dir);
+    dir
+}
+
+/// Bound on any single step of a test (connect, one request, a child process start).
+pub const STEP: Duration = Duration::from_secs(5);
+/// Bound on a whole child-process client run.
+pub const CHILD: Duration = Duration::from_secs(30);
+
+/// Say that a test is skipped, visibly: the test harness captures `eprintln!`, so write to fd 2 directly.
+pub fn skip(test: &str, why: &str) {
+    let _ = writeln!(std::io::stderr().lock(), "SKIPPED {test}: {why}");
+}
+
+/// True when `cmd args...` runs and exits 0.
+pub fn runs(cmd: &str, args: &[&str]) -> bool {
+    Command::new(cmd)
+        .args(args)
+        .stdin(Stdio::null())
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .status()
+        .is_ok_and(|s| s.success())
+}
+
+pub fn have_socat() -> bool {
+    runs("socat", &["-V"])
+}
+
+pub fn have_mbpoll() -> bool {
+    runs("mbpoll", &["-V"])
+}
+
+pub fn have_libmodbus() -> bool {
+    runs("gcc", &["--version"]) && runs("pkg-config", &["--exists", "libmodbus"])
+}
+
+pub fn have_pymodbus() -> bool {
+    runs("python3", &["-c", "import pymodbus, serial"])
+}
+
+/// A fresh temporary directory, removed on drop.
+pub struct TempDir(PathBuf);
+
+impl TempDir {
+    pub fn new(tag: &str) -> Self {
+        static N: AtomicU32 = AtomicU32::new(0);
+        let p = std::env::temp_dir().join(format!(
+            "mbh-{tag}-{}-{}",
+            std::process::id(),
+            N.fetch_add(1, Ordering::Relaxed)
+        ));
+        let _ = std::fs::remove_dir_all(&p);
+        std::fs::create_dir_all(&p).expect("create temp dir");
+        Self(p)
+    }
+
+    pub fn path(&self) -> &Path {
+        &self.0
+    }
+}
+
+impl Drop for TempDir {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_dir_all(&self.0);
+    }
+}
+
+/// Read a child's pipe line by line on a thread, so waits on it can time out.
+fn line_reader(pipe: impl std::io::Read + Send + 'static) -> mpsc::Receiver<String> {
+    let (tx, rx) = mpsc::channel();
+    std::thread::spawn(move || {
+        for line in BufReader::new(pipe).lines() {
+            let Ok(line) = line else { break };
+            if tx.send(line).is_err() {
+                break;
+            }
+        }
+    });
+    rx
+}
+
+/// Kills (by pid) and reaps a child when dropped, also when the test panics.
+pub struct ChildGuard(pub Child);
+
+impl Drop for ChildGuard {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+/// A virtual serial line: two linked ptys made by socat. The simulator opens `a`, the client `b`.
+pub struct PtyPair {
+    pub a: PathBuf,
+    pub b: PathBuf,
+    // Field order: socat is killed before its directory goes.
+    socat: ChildGuard,
+    _dir: TempDir,
+}
+
+impl PtyPair {
+    /// Start socat and wait (bounded) until it runs its transfer loop and both links exist.
+    pub fn start() -> Self {
+        let dir = TempDir::new("pty");
+        let a = dir.path().join("ttyA");
+        let b = dir.path().join("ttyB");
+        let mut child = Command::new("socat")
+            .arg("-d")
+            .arg("-d")
+            .arg(format!("pty,raw,echo=0,link={}", a.display()))
+            .arg(format!("pty,raw,echo=0,link={}", b.display()))
+            .stdin(Stdio::null())
+            .stdout(Stdio::null())
+            .stderr(Stdio::piped())
+            .spawn()
+            .expect("spawn socat");
+        let stderr = child.stderr.take().expect("socat stderr");
+        let guard = ChildGuard(child);
+        // socat logs "starting data transfer loop" once both ptys and links are set up; the reader thread
+        // keeps draining its stderr afterwards so it never blocks on a full pipe.
+        let log = wait_socat_ready(stderr, "socat");
+        assert!(a.exists() && b.exists(), "socat links missing: {log:#?}");
+        Self {
+            a,
+            b,
+            socat: guard,
+            _dir: dir,
+        }
+    }
+
+    /// Take the line away (kill socat now): both ends see the ptys close.
+    pub fn cut(&mut self) {
+        let _ = self.socat.0.kill();
+        let _ = self.socat.0.wait();
+    }
+}
+
+/// The `modbus-harness simulate` binary running as a child, killed on drop.
+pub struct SimProcess {
+    pub child: ChildGuard,
+    pub tcp: Option<SocketAddr>,
+    pub rtu_over_tcp: Option<SocketAddr>,
+    pub serial: Option<PathBuf>,
+    pub stderr: mpsc::Receiver<String>,
+}
+
+impl SimProcess {
+    /// Run `simulate ARGS` and wait (bounded) for one `listening` line per endpoint asked for.
+    pub fn start(args: &[&str]) -> Self {
+        let want = args
+            .iter()
+            .filter(|a| ["--listen", "--rtu-over-tcp", "--serial"].contains(a))
+            .count();
+        assert!(want > 0, "no endpoint in {args:?}");
+        let mut child = Command::new(harness_bin())
+            .arg("simulate")
+            .args(args)
+            .stdin(Stdio::null())
+            .stdout(Stdio::piped())
+            .stderr(Stdio::piped())
+            .spawn()
+            .expect("spawn modbus-harness simulate");
+        let out = line_reader(child.stdout.take().expect("stdout"));
+        let stderr = line_reader(child.stderr.take().expect("stderr"));
+        let mut sim = Self {
+            child: ChildGuard(child),
+            tcp: None,
+            rtu_over_tcp: None,
+            serial: None,
+            stderr,
+        };
+        for _ in 0..want {
+            let line = match out.recv_timeout(STEP) {
+                Ok(l) => l,
+                Err(_) => panic!(
+                    "simulate {args:?} printed no listening line within {STEP:?}; stderr: {:?}",
+                    sim.stderr.try_iter().collect::<Vec<_>>()
+                ),
+            };
+            let parts: Vec<&str> = line.split_whitespace().collect();
+            match parts.as_slice() {
+                ["listening", "tcp", a] => sim.tcp = Some(a.parse().expect("tcp address")),
+                ["listening", "rtu-over-tcp", a] => {
+                    sim.rtu_over_tcp = Some(a.parse().expect("rtu-over-tcp address"))
+                }
+                ["listening", "serial", p, ..] => sim.serial = Some(PathBuf::from(p)),
+                _ => panic!("unexpected line from simulate: {line:?}"),
+            }
+        }
+        sim
+    }
+
+    pub fn pid(&self) -> u32 {
+        self.child.0.id()
+    }
+}
+
+/// A profile from the embedded corpus.
+pub fn profile(name: &str) -> Profile {
+    let (file, text) = Corpus::Embedded
+        .file("profiles", name)
+        .unwrap_or_else(|e| panic!("profile {name}: {e}"));
+    Profile::parse(&file, &text).unwrap_or_else(|e| panic!("profile {name}: {e}"))
+}
+
+/// A station for a corpus profile, answering as the profile's default unit.
+pub fn station(name: &str, faults: &[Fault]) -> Station {
+    let p = profile(name);
+    let unit = p.device.default_unit;
+    let faults = FaultSet::of(faults);
+    Station::new(drives::build(p, faults.clone()), faults, unit)
+}
+
+/// An in-process server for a corpus profile; set the endpoints in `config` (port 0).
+pub async fn serve(name: &str, faults: &[Fault], config: ServerConfig) -> ServerHandle {
+    tokio::time::timeout(STEP, servers::start(station(name, faults), &config))
+        .await
+        .expect("server start timed out")
+        .expect("server start")
+}
+
+/// Server config with Modbus/TCP and RTU over TCP on loopback, any port.
+pub fn loopback_tcp_and_rtu() -> ServerConfig {
+    ServerConfig {
+        tcp: Some("127.0.0.1:0".parse().unwrap()),
+        rtu_over_tcp: Some("127.0.0.1:0".parse().unwrap()),
+        ..ServerConfig::default()
+    }
+}
+
+/// A serial endpoint at 19200 8N1 on `path`.
+/// The harness's conformance runs over a pty use 2400 baud: a pty has no line, and socat relays bytes in
+/// pieces; at 2400 baud t3.5 is 16 ms, so a busy machine's stalls do not cut a request in two, while the
+/// framing is still the real RTU silence framing.
+pub const PTY_RUN_BAUD: u32 = 2400;
+
+/// A serial endpoint at `PTY_RUN_BAUD` 8N1 on `path`.
+pub fn serial_run_8n1(path: &Path) -> SerialConfig {
+    SerialConfig {
+        baud: PTY_RUN_BAUD,
+        ..serial_19200_8n1(path)
+    }
+}
+
+pub fn serial_19200_8n1(path: &Path) -> SerialConfig {
+    SerialConfig {
+        path: path.to_path_buf(),
+        baud: 19_200,
+        parity: codec::framer::Parity::None,
+        stop_bits: 1,
+    }
+}
+
+/// An RTU ADU: address + PDU + CRC.
+pub fn rtu_adu(address: u8, pdu: &[u8]) -> Vec<u8> {
+    let mut out = Vec::new();
+    rtu::encode_adu(address, pdu, &mut out).expect("encode RTU ADU");
+    out
+}
+
+/// A Modbus/TCP ADU.
+pub fn tcp_adu(tid: u16, unit: u8, pdu: &[u8]) -> Vec<u8> {
+    let mut out = tid.to_be_bytes().to_vec();
+    out.extend_from_slice(&[0, 0]);
+    out.extend_from_slice(&((pdu.len() + 1) as u16).to_be_bytes());
+    out.push(unit);
+    out.extend_from_slice(pdu);
+    out
+}
+
+/// Read one Modbus/TCP ADU (by its MBAP length), bounded in time.
+pub async fn read_tcp_adu(s: &mut TcpStream) -> Vec<u8> {
+    let mut head = [0u8; 6];
+    tokio::time::timeout(STEP, s.read_exact(&mut head))
+        .await
+        .expect("MBAP header timed out")
+        .expect("read MBAP header");
+    let len = u16::from_be_bytes([head[4], head[5]]) as usize;
+    let mut rest = vec![0u8; len];
+    tokio::time::timeout(STEP, s.read_exact(&mut rest))
+        .await
+        .expect("ADU body timed out")
+        .expect("read ADU body");
+    let mut adu = head.to_vec();
+    adu.extend_from_slice(&rest);
+    adu
+}
+
+/// Send one Modbus/TCP request and return the response ADU.
+pub async fn tcp_exchange(addr: SocketAddr, adu: &[u8]) -> Vec<u8> {
+    let mut s = tokio::time::timeout(STEP, TcpStream::connect(addr))
+        .await
+        .expect("connect timed out")
+        .expect("connect");
+    tokio::time::timeout(STEP, s.write_all(adu))
+        .await
+        .expect("write timed out")
+        .expect("write");
+    read_tcp_adu(&mut s).await
+}
+
+/// Read from `r` until `n` bytes have arrived, bounded in time.
+pub async fn read_n<R: tokio::io::AsyncRead + Unpin>(r: &mut R, n: usize) -> Vec<u8> {
+    let mut buf = vec![0u8; n];
+    tokio::time::timeout(STEP, r.read_exact(&mut buf))
+        .await
+        .unwrap_or_else(|_| panic!("no {n}-byte reply within {STEP:?}"))
+        .expect("read reply");
+    buf
+}
+
+/// Run a client child process to completion, bounded; returns (exit ok, stdout, stderr).
+pub async fn run_client(cmd: &mut tokio::process::Command) -> (bool, String, String) {
+    cmd.stdin(Stdio::null())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .kill_on_drop(true);
+    let child = cmd.spawn().expect("spawn client");
+    let out = tokio::time::timeout(CHILD, child.wait_with_output())
+        .await
+        .unwrap_or_else(|_| panic!("client {cmd:?} did not finish within {CHILD:?}"))
+        .expect("client output");
+    (
+        out.status.success(),
+        String::from_utf8_lossy(&out.stdout).into_owned(),
+        String::from_utf8_lossy(&out.stderr).into_owned(),
+    )
+}
+
+/// The path of a file under the repository's tests/peers/.
+pub fn peer_file(name: &str) -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../../tests/peers")
+        .join(name)
+}
+
+/// A writable 16-bit holding register of a profile with a value in its range (not its default) to write,
+/// and a writable coil: what a read/write round trip can use without moving a motor.
+pub fn rw_holding_and_coil(p: &Profile) -> (Option<(u16, u16)>, Option<u16>) {
+    use drives::profile::{Access, Table};
+    let reg = p
+        .registers
+        .iter()
+        .map(|r| r.get_ref())
+        .find(|r| {
+            r.access == Access::Rw
+                && r.width == 1
+                && r.table != Table::Input
+                && !r.motion
+                && !r.destructive
+        })
+        .map(|r| {
+            let (lo, hi) = r.range();
+            let mut v = 0x1234i64.clamp(lo, hi);
+            if Some(v) == r.default {
+                v = if v < hi { v + 1 } else { v - 1 };
+            }
+            (r.address, v as u16)
+        });
+    let coil = p
+        .coils
+        .iter()
+        .map(|c| c.get_ref())
+        .find(|c| c.access == Access::Rw && !c.motion)
+        .map(|c| c.address);
+    (reg, coil)
+}
+
+/// Read up to `n` bytes: stops at `n`, after 300 ms without a byte once something arrived, or after
+/// `STEP` of nothing. Returns what arrived, so a wrong reply shows its bytes instead of a timeout.
+pub async fn read_upto<R: tokio::io::AsyncRead + Unpin>(r: &mut R, n: usize) -> Vec<u8> {
+    let mut got = Vec::new();
+    let mut buf = [0u8; 512];
+    while got.len() < n {
+        let wait = if got.is_empty() {
+            STEP
+        } else {
+            Duration::from_millis(300)
+        };
+        match tokio::time::timeout(wait, r.read(&mut buf)).await {
+            Ok(Ok(0)) | Err(_) => break,
+            Ok(Ok(k)) => got.extend_from_slice(&buf[..k]),
+            Ok(Err(e)) => panic!("read failed: {e}"),
+        }
+    }
+    got
+}
+
+/// SD2x manual 6.1 "shutdown" (golden sd2x/6.1/shutdown): RxPDO 3000..3003 = control word 0x0006, target
+/// speed 1000 (100 Hz), torque limit 100 (10 A), watchdog 500 ms.
+pub const SD2X_SHUTDOWN: [u16; 4] = [0x0006, 1000, 100, 500];
+/// SD2x manual 6.1 "enable operation" (golden sd2x/6.1/enable-operation): control word 0x000F.
+pub const SD2X_ENABLE: [u16; 4] = [0x000F, 1000, 100, 500];
+/// The status word the manual's 6.3 read returns (golden sd2x/6.3/status-read/response): a fault state,
+/// which the model reaches after the 6.1 telegrams stop and their 500 ms watchdog trips.
+pub const SD2X_STATUS_AFTER_61: u16 = 0x7038;
+/// Bound on reaching that state: the watchdog (500 ms) plus the fault reaction's ramp down, with margin.
+pub const SD2X_WATCHDOG_BOUND: Duration = Duration::from_secs(5);
+/// How often a test looks at the status word while waiting for the watchdog.
+pub const STATUS_POLL: Duration = Duration::from_millis(50);
+
+/// The SD2x status word (register 2000) as the in-process station answers it now.
+pub fn sd2x_status_in_process(server: &ServerHandle) -> Option<u16> {
+    let shared = server.station();
+    let req = tcp_adu(1, 1, &[0x04, 0x07, 0xD0, 0x00, 0x01]);
+    let reply = shared.lock().tcp_adu(shared.now(), &req)?;
+    // MBAP (7) + FC 04 + byte count 2 + the word.
+    (reply.bytes.len() == 11 && reply.bytes[7] == 0x04)
+        .then(|| u16::from_be_bytes([reply.bytes[9], reply.bytes[10]]))
+}
+
+/// Wait (bounded) until the in-process SD2x shows `want`; the last status seen otherwise.
+pub async fn wait_sd2x_status(server: &ServerHandle, want: u16) -> Result<(), Option<u16>> {
+    let give_up = tokio::time::Instant::now() + SD2X_WATCHDOG_BOUND;
+    loop {
+        let now = sd2x_status_in_process(server);
+        if now == Some(want) {
+            return Ok(());
+        }
+        if tokio::time::Instant::now() >= give_up {
+            return Err(now);
+        }
+        tokio::time::sleep(STATUS_POLL).await;
+    }
+}
+
+/// Compile a libmodbus peer of tests/peers/ (`source`) into cargo's test scratch directory as `exe_name`.
+/// Built under a name of this process and renamed into place: test processes running at once never see a
+/// half-written file. `Err` says what is missing or failed.
+pub fn compile_libmodbus_peer(source: &str, exe_name: &str) -> Result<PathBuf, String> {
+    let flags = Command::new("pkg-config")
+        .args(["--cflags", "--libs", "libmodbus"])
+        .output()
+        .map_err(|e| format!("pkg-config: {e}"))?;
+    if !flags.status.success() {
+        return Err("pkg-config does not know libmodbus".into());
+    }
+    let flags = String::from_utf8_lossy(&flags.stdout).into_owned();
+    let dir = target_tmpdir();
+    let dir = dir.as_path();
+    let exe = dir.join(exe_name);
+    let tmp = dir.join(format!("{exe_name}.{}", std::process::id()));
+    let out = Command::new("gcc")
+        .args(["-O2", "-Wall", "-Wextra", "-Werror"])
+        .arg(peer_file(source))
+        .arg("-o")
+        .arg(&tmp)
+        .args(flags.split_whitespace())
+        .output()
+        .map_err(|e| format!("gcc: {e}"))?;
+    if !out.status.success() {
+        return Err(format!(
+            "gcc {source} failed:\n{}",
+            String::from_utf8_lossy(&out.stderr)
+        ));
+    }
+    std::fs::rename(&tmp, &exe).map_err(|e| format!("rename {}: {e}", tmp.display()))?;
+    Ok(exe)
+}
+
+/// Drain socat's log (stderr, run with `-d -d`) on a thread so it never blocks on a full pipe, and wait,
+/// bounded by `STEP`, until it logs "starting data transfer loop" (ptys and links made, peers connected).
+/// Returns the log so far; panics with it, naming `what`, when socat does not get there in time.
+pub fn wait_socat_ready(stderr: impl std::io::Read + Send + 'static, what: &str) -> Vec<String> {
+    let lines = line_reader(stderr);
+    let mut log = Vec::new();
+    loop {
+        match lines.recv_timeout(STEP) {
+            Ok(l) => {
+                let ready = l.contains("starting data transfer loop");
+                log.push(l);
+                if ready {
+                    return log;
+                }
+            }
+            Err(_) => panic!("{what} did not start within {STEP:?}: {log:#?}"),
+        }
+    }
+}

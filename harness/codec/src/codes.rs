@@ -5,6 +5,11 @@ use std::fmt;
 /// A Modbus function code byte (the high bit set marks an exception response).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
 #[cfg_attr(feature = "arbitrary", derive(arbitrary::Arbitrary))]
+#[cfg_attr(
+    feature = "serde",
+    derive(serde::Serialize, serde::Deserialize),
+    serde(transparent)
+)]
 pub struct FunctionCode(pub u8);
 
 impl FunctionCode {
@@ -47,6 +52,23 @@ impl FunctionCode {
         Self(self.0 & 0x7F)
     }
 
+    /// The largest quantity the MODBUS Application Protocol v1.1b3 allows in a request of this function
+    /// (section 6: FC 01/02 2000 bits, FC 03/04 125 registers, FC 0F 1968 coils, FC 10 123 registers, the read
+    /// part of FC 17 125 registers); `None` for functions without a quantity.
+    pub fn max_quantity(self) -> Option<u16> {
+        Some(match self {
+            Self::READ_COILS | Self::READ_DISCRETE_INPUTS => 2000,
+            Self::READ_HOLDING_REGISTERS | Self::READ_INPUT_REGISTERS => 125,
+            Self::WRITE_MULTIPLE_COILS => 0x7B0,
+            Self::WRITE_MULTIPLE_REGISTERS => 123,
+            Self::READ_WRITE_MULTIPLE_REGISTERS => 125,
+            _ => return None,
+        })
+    }
+
+    /// The largest write quantity of FC 17 (section 6.17: 121 registers).
+    pub const MAX_READ_WRITE_WRITE_QUANTITY: u16 = 121;
+
     /// The name of a known function code.
     pub fn name(self) -> Option<&'static str> {
         Some(match self.without_exception_bit().0 {
@@ -76,6 +98,18 @@ impl FunctionCode {
     }
 }
 
+impl From<u8> for FunctionCode {
+    fn from(b: u8) -> Self {
+        Self(b)
+    }
+}
+
+impl From<FunctionCode> for u8 {
+    fn from(c: FunctionCode) -> Self {
+        c.0
+    }
+}
+
 impl fmt::Display for FunctionCode {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         match self.name() {
@@ -89,6 +123,11 @@ impl fmt::Display for FunctionCode {
 /// A Modbus exception code byte.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
 #[cfg_attr(feature = "arbitrary", derive(arbitrary::Arbitrary))]
+#[cfg_attr(
+    feature = "serde",
+    derive(serde::Serialize, serde::Deserialize),
+    serde(transparent)
+)]
 pub struct ExceptionCode(pub u8);
 
 impl ExceptionCode {
@@ -119,6 +158,18 @@ impl ExceptionCode {
             0xFF => "Extended Exception",
             _ => return None,
         })
+    }
+}
+
+impl From<u8> for ExceptionCode {
+    fn from(b: u8) -> Self {
+        Self(b)
+    }
+}
+
+impl From<ExceptionCode> for u8 {
+    fn from(c: ExceptionCode) -> Self {
+        c.0
     }
 }
 

@@ -3,6 +3,7 @@
 //! No sockets, no tokio, no clock: callers hand in bytes (and, for the framer, arrival times).
 //! Decoding never panics and allocates at most the size of its input.
 
+pub mod bits;
 pub mod codes;
 pub mod error;
 pub mod fields;

@@ -160,7 +160,7 @@ pub enum Response {
 }
 
 fn bits_len(quantity: u16) -> usize {
-    (quantity as usize).div_ceil(8)
+    super::bits::byte_count(quantity)
 }
 
 fn put_u16(out: &mut Vec<u8>, v: u16) {

@@ -2,8 +2,31 @@
 
 use std::path::Path;
 
+use crate::golden::{GoldenFile, LoadError};
+use crate::profile::{Profile, ProfileError};
+
 mod embedded {
     include!(concat!(env!("OUT_DIR"), "/corpus_files.rs"));
+}
+
+/// Why a profile or a golden file could not be had from a corpus.
+#[derive(Debug, thiserror::Error)]
+pub enum CorpusError {
+    #[error("no profile `{name}` in the {corpus}; known profiles: {}", known.join(", "))]
+    UnknownProfile {
+        name: String,
+        corpus: String,
+        known: Vec<String>,
+    },
+    #[error("reading the {corpus}: {source}")]
+    Read {
+        corpus: String,
+        source: std::io::Error,
+    },
+    #[error(transparent)]
+    Profile(#[from] ProfileError),
+    #[error(transparent)]
+    Golden(#[from] LoadError),
 }
 
 /// Where corpus files come from.
@@ -70,6 +93,46 @@ impl Corpus {
         match self {
             Corpus::Embedded => "embedded corpus".into(),
             Corpus::Dir(d) => format!("corpus at {}", d.display()),
+        }
+    }
+}
+
+impl Corpus {
+    /// The names of the profiles (file stems of `profiles/*.toml`).
+    pub fn profile_names(&self) -> Vec<String> {
+        self.files("profiles")
+            .unwrap_or_default()
+            .iter()
+            .filter_map(|(n, _)| {
+                Path::new(n.trim_end_matches(" (embedded)"))
+                    .file_stem()
+                    .map(|s| s.to_string_lossy().into_owned())
+            })
+            .collect()
+    }
+
+    /// Load and validate the profile `name`; an unknown name lists the known ones.
+    pub fn profile(&self, name: &str) -> Result<Profile, CorpusError> {
+        // Read the directory first: a corpus that cannot be read is not an unknown profile.
+        self.files("profiles").map_err(|source| CorpusError::Read {
+            corpus: self.describe(),
+            source,
+        })?;
+        let (file, text) =
+            self.file("profiles", name)
+                .map_err(|_| CorpusError::UnknownProfile {
+                    name: name.to_string(),
+                    corpus: self.describe(),
+                    known: self.profile_names(),
+                })?;
+        Ok(Profile::parse(&file, &text)?)
+    }
+
+    /// The golden frames of a profile's manual, if the corpus has them.
+    pub fn golden(&self, profile: &str) -> Result<Option<GoldenFile>, CorpusError> {
+        match self.file("golden", profile) {
+            Ok((file, text)) => Ok(Some(GoldenFile::parse(&file, &text)?)),
+            Err(_) => Ok(None),
         }
     }
 }

@@ -338,7 +338,9 @@ pub fn check_frame(frame: &GoldenFrame, order: WordOrder) -> FrameCheck {
 
 /// The errata index of a corpus as Markdown: every frame whose printed bytes the project corrects or
 /// reads one of two ways, per manual, with the evidence. corpus/golden/README.md is this text.
-pub fn errata_markdown(corpus: &crate::corpus::Corpus) -> Result<String, String> {
+pub fn errata_markdown(
+    corpus: &crate::corpus::Corpus,
+) -> Result<String, crate::corpus::CorpusError> {
     use std::fmt::Write;
     let mut md = String::from(
         "# Golden frames and the errata of the manuals\n\n\
@@ -350,9 +352,14 @@ pub fn errata_markdown(corpus: &crate::corpus::Corpus) -> Result<String, String>
          tables and register maps (not only in frames) are in `ERRATA-mdrive.md`, `ERRATA-lmd.md` and\n\
          `ERRATA-sd2x.md`, with line numbers. Check any frame yourself with `modbus-harness decode --rtu|--pdu HEX`.\n\n",
     );
-    let files = corpus.files("golden").map_err(|e| e.to_string())?;
+    let files = corpus
+        .files("golden")
+        .map_err(|source| crate::corpus::CorpusError::Read {
+            corpus: corpus.describe(),
+            source,
+        })?;
     for (name, text) in files {
-        let g = GoldenFile::parse(&name, &text).map_err(|e| e.to_string())?;
+        let g = GoldenFile::parse(&name, &text)?;
         let errata: Vec<&GoldenFrame> = g
             .frames
             .iter()

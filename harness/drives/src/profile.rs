@@ -5,6 +5,7 @@
 use std::collections::BTreeMap;
 use std::path::Path;
 
+use codec::{ExceptionCode, FunctionCode};
 use serde::Deserialize;
 use toml::Spanned;
 
@@ -103,7 +104,7 @@ pub enum ParityName {
 #[derive(Clone, Debug, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Function {
-    pub code: u8,
+    pub code: FunctionCode,
     pub name: String,
     pub max_quantity: Option<u16>,
     pub max_write_quantity: Option<u16>,
@@ -115,7 +116,7 @@ pub struct Function {
 #[derive(Clone, Debug, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct NamedCode {
-    pub code: u8,
+    pub code: ExceptionCode,
     pub name: String,
     pub note: Option<String>,
     pub line: Option<u32>,
@@ -628,7 +629,8 @@ impl Profile {
     }
 
     /// The function entry for `code`, if supported.
-    pub fn function(&self, code: u8) -> Option<&Function> {
+    pub fn function(&self, code: impl Into<FunctionCode>) -> Option<&Function> {
+        let code = code.into();
         self.functions.iter().find(|f| f.code == code)
     }
 

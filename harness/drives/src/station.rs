@@ -86,17 +86,6 @@ pub struct Station {
     dead: bool,
 }
 
-fn spec_max_quantity(fc: u8) -> u16 {
-    match fc {
-        0x01 | 0x02 => 2000,
-        0x03 | 0x04 => 125,
-        0x0F => 0x7B0,
-        0x10 => 123,
-        0x17 => 125,
-        _ => u16::MAX,
-    }
-}
-
 impl Station {
     /// A station answering as unit `unit` (RTU slave address; on TCP the unit ids of the profile are answered too).
     pub fn new(model: Box<dyn DriveModel>, faults: FaultSet, unit: u8) -> Self {
@@ -354,9 +343,8 @@ impl Station {
 
     /// The spec-level checks every server makes, then the model. `None`: the drive stays silent.
     fn answer(&mut self, now: Duration, unit: u8, pdu: &[u8]) -> Option<Response> {
-        let &fc_byte = pdu.first()?;
-        let fc = FunctionCode(fc_byte);
-        let supported = !fc.is_exception() && self.profile().function(fc_byte).is_some();
+        let fc = FunctionCode(*pdu.first()?);
+        let supported = !fc.is_exception() && self.profile().function(fc).is_some();
         let resp = if !supported {
             Some(Response::exception(fc, ExceptionCode::ILLEGAL_FUNCTION))
         } else {
@@ -386,11 +374,12 @@ impl Station {
 
     /// Quantity limits and FC 05 values, per the application protocol spec's state diagrams.
     fn spec_checks(&self, req: &Request) -> Option<ExceptionCode> {
-        let limit = |fc: u8| {
+        let limit = |fc: FunctionCode| {
             self.profile()
                 .function(fc)
                 .and_then(|f| f.max_quantity)
-                .unwrap_or_else(|| spec_max_quantity(fc))
+                .or(fc.max_quantity())
+                .unwrap_or(u16::MAX)
         };
         let bad =
             |q: u16, max: u16| (q == 0 || q > max) && !self.faults.has(Fault::QuantityUnchecked);
@@ -400,8 +389,11 @@ impl Station {
             | ReadDiscreteInputs { quantity, .. }
             | ReadHoldingRegisters { quantity, .. }
             | ReadInputRegisters { quantity, .. }
-            | WriteMultipleCoils { quantity, .. } => bad(*quantity, limit(req.function().0)),
-            WriteMultipleRegisters { values, .. } => bad(values.len() as u16, limit(0x10)),
+            | WriteMultipleCoils { quantity, .. } => bad(*quantity, limit(req.function())),
+            WriteMultipleRegisters { values, .. } => bad(
+                values.len() as u16,
+                limit(FunctionCode::WRITE_MULTIPLE_REGISTERS),
+            ),
             ReadWriteMultipleRegisters {
                 read_quantity,
                 values,
@@ -409,10 +401,13 @@ impl Station {
             } => {
                 let wmax = self
                     .profile()
-                    .function(0x17)
+                    .function(FunctionCode::READ_WRITE_MULTIPLE_REGISTERS)
                     .and_then(|f| f.max_write_quantity)
-                    .unwrap_or(121);
-                bad(*read_quantity, limit(0x17)) || bad(values.len() as u16, wmax)
+                    .unwrap_or(FunctionCode::MAX_READ_WRITE_WRITE_QUANTITY);
+                bad(
+                    *read_quantity,
+                    limit(FunctionCode::READ_WRITE_MULTIPLE_REGISTERS),
+                ) || bad(values.len() as u16, wmax)
             }
             WriteSingleCoil { value, .. } => {
                 *value != 0xFF00 && *value != 0 && !self.faults.has(Fault::IllegalCoilValueAccepted)

@@ -174,38 +174,17 @@ impl Outcome {
 
 /// The names of the profiles in a corpus.
 pub fn profile_names(corpus: &Corpus) -> Vec<String> {
-    corpus
-        .files("profiles")
-        .unwrap_or_default()
-        .iter()
-        .filter_map(|(n, _)| {
-            std::path::Path::new(n.trim_end_matches(" (embedded)"))
-                .file_stem()
-                .map(|s| s.to_string_lossy().into_owned())
-        })
-        .collect()
+    corpus.profile_names()
 }
 
 /// Load a profile by name, listing the known ones when it is not there.
 pub fn load_profile(corpus: &Corpus, name: &str) -> Result<Profile, String> {
-    let (file, text) = corpus.file("profiles", name).map_err(|_| {
-        format!(
-            "no profile `{name}` in the {}; known profiles: {}",
-            corpus.describe(),
-            profile_names(corpus).join(", ")
-        )
-    })?;
-    Profile::parse(&file, &text).map_err(|e| e.to_string())
+    corpus.profile(name).map_err(|e| e.to_string())
 }
 
 /// The golden frames of a profile's manual, if the corpus has them.
 pub fn load_golden(corpus: &Corpus, profile: &str) -> Result<Option<GoldenFile>, String> {
-    match corpus.file("golden", profile) {
-        Ok((file, text)) => GoldenFile::parse(&file, &text)
-            .map(Some)
-            .map_err(|e| e.to_string()),
-        Err(_) => Ok(None),
-    }
+    corpus.golden(profile).map_err(|e| e.to_string())
 }
 
 /// The framing a target URL implies (for `sim:`, the profile's native transport).

@@ -269,27 +269,5 @@ fn load_profile(corpus: &Corpus, name: &str) -> Result<Profile, String> {
     if path.extension().is_some_and(|e| e == "toml") && path.is_file() {
         return Profile::load(path).map_err(|e| e.to_string());
     }
-    // Read the directory first: a corpus that cannot be read is not an unknown profile.
-    let files = corpus
-        .files("profiles")
-        .map_err(|e| format!("reading the {}: {e}", corpus.describe()))?;
-    match corpus.file("profiles", name) {
-        Ok((file, text)) => Profile::parse(&file, &text).map_err(|e| e.to_string()),
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
-            let known: Vec<String> = files
-                .iter()
-                .filter_map(|(n, _)| {
-                    Path::new(n.trim_end_matches(" (embedded)"))
-                        .file_stem()
-                        .map(|s| s.to_string_lossy().into_owned())
-                })
-                .collect();
-            Err(format!(
-                "unknown profile `{name}` in the {}; known: {}",
-                corpus.describe(),
-                known.join(", ")
-            ))
-        }
-        Err(e) => Err(format!("reading the {}: {e}", corpus.describe())),
-    }
+    corpus.profile(name).map_err(|e| e.to_string())
 }

@@ -26,27 +26,11 @@
 
 use std::collections::BTreeMap;
 
+use super::data_model::DataModel;
+pub use super::data_model::{BitTable, RegTable};
 use crate::faults::{Fault, FaultSet};
 use crate::profile::{Access, Profile, Register, Table, WordOrder};
 use codec::ExceptionCode;
-
-/// Which register table an access goes to.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum RegTable {
-    /// FC 03/06/10/17.
-    Holding,
-    /// FC 04.
-    Input,
-}
-
-/// Which single-bit table an access goes to.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum BitTable {
-    /// FC 01/05/0F.
-    Coils,
-    /// FC 02.
-    DiscreteInputs,
-}
 
 /// One register value a validated write will store.
 #[derive(Clone, Debug, PartialEq, Eq)]
@@ -428,9 +412,36 @@ impl RegisterBank {
     }
 }
 
-/// Unpack `quantity` LSB-first bits of an FC 0F request.
-pub fn unpack_bits(data: &[u8], quantity: u16) -> Vec<bool> {
-    (0..usize::from(quantity))
-        .map(|i| data.get(i / 8).is_some_and(|b| b & (1 << (i % 8)) != 0))
-        .collect()
+impl DataModel for RegisterBank {
+    type Plan = Vec<Change>;
+
+    fn read_registers(
+        &self,
+        table: RegTable,
+        address: u16,
+        quantity: u16,
+    ) -> Result<Vec<u16>, ExceptionCode> {
+        self.read(table, address, quantity)
+    }
+
+    fn plan_write(&self, address: u16, words: &[u16]) -> Result<Vec<Change>, ExceptionCode> {
+        RegisterBank::plan_write(self, address, words)
+    }
+
+    fn commit(&mut self, plan: Vec<Change>) {
+        RegisterBank::commit(self, &plan);
+    }
+
+    fn read_bits(
+        &self,
+        table: BitTable,
+        address: u16,
+        quantity: u16,
+    ) -> Result<Vec<u8>, ExceptionCode> {
+        RegisterBank::read_bits(self, table, address, quantity)
+    }
+
+    fn write_coils(&mut self, address: u16, states: &[bool]) -> Result<(), ExceptionCode> {
+        RegisterBank::write_coils(self, address, states)
+    }
 }

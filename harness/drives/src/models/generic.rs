@@ -9,7 +9,8 @@
 use std::time::Duration;
 
 use super::DriveModel;
-use super::bank::{BitTable, RegTable, RegisterBank, unpack_bits};
+use super::bank::RegisterBank;
+use super::data_model;
 use crate::faults::FaultSet;
 use crate::profile::Profile;
 use codec::mei::read_code;
@@ -40,83 +41,6 @@ impl Generic {
     pub fn bank_mut(&mut self) -> &mut RegisterBank {
         &mut self.bank
     }
-}
-
-/// Answer the data-model function codes (FC 01-06, 0F, 10, 17) from a bank; `None` for any other request.
-pub fn serve_data_model(bank: &mut RegisterBank, request: &Request) -> Option<Response> {
-    let fc = request.function();
-    let exc = |e: ExceptionCode| Response::exception(fc, e);
-    Some(match request {
-        Request::ReadCoils { address, quantity } => bank
-            .read_bits(BitTable::Coils, *address, *quantity)
-            .map_or_else(exc, |data| Response::ReadCoils { data }),
-        Request::ReadDiscreteInputs { address, quantity } => bank
-            .read_bits(BitTable::DiscreteInputs, *address, *quantity)
-            .map_or_else(exc, |data| Response::ReadDiscreteInputs { data }),
-        Request::ReadHoldingRegisters { address, quantity } => bank
-            .read(RegTable::Holding, *address, *quantity)
-            .map_or_else(exc, |values| Response::ReadHoldingRegisters { values }),
-        Request::ReadInputRegisters { address, quantity } => bank
-            .read(RegTable::Input, *address, *quantity)
-            .map_or_else(exc, |values| Response::ReadInputRegisters { values }),
-        Request::WriteSingleCoil { address, value } => {
-            // Only 0xFF00/0x0000 get here unless the station's value check is faulted off; then any
-            // non-zero value switches the coil on.
-            match bank.write_coils(*address, &[*value != 0]) {
-                Ok(()) => Response::WriteSingleCoil {
-                    address: *address,
-                    value: *value,
-                },
-                Err(e) => exc(e),
-            }
-        }
-        Request::WriteSingleRegister { address, value } => match bank.write(*address, &[*value]) {
-            Ok(_) => Response::WriteSingleRegister {
-                address: *address,
-                value: *value,
-            },
-            Err(e) => exc(e),
-        },
-        Request::WriteMultipleCoils {
-            address,
-            quantity,
-            data,
-        } => match bank.write_coils(*address, &unpack_bits(data, *quantity)) {
-            Ok(()) => Response::WriteMultipleCoils {
-                address: *address,
-                quantity: *quantity,
-            },
-            Err(e) => exc(e),
-        },
-        Request::WriteMultipleRegisters { address, values } => match bank.write(*address, values) {
-            Ok(_) => Response::WriteMultipleRegisters {
-                address: *address,
-                // Echo the count written; the station caps it at 123, so it fits.
-                quantity: u16::try_from(values.len()).unwrap_or(u16::MAX),
-            },
-            Err(e) => exc(e),
-        },
-        Request::ReadWriteMultipleRegisters {
-            read_address,
-            read_quantity,
-            write_address,
-            values,
-        } => {
-            // Spec 6.17: both address ranges are checked before anything happens, the write is done before the
-            // read, and the read returns the registers as they are after the write.
-            if let Err(e) = bank.read(RegTable::Holding, *read_address, *read_quantity) {
-                return Some(exc(e));
-            }
-            if let Err(e) = bank.write(*write_address, values) {
-                return Some(exc(e));
-            }
-            bank.read(RegTable::Holding, *read_address, *read_quantity)
-                .map_or_else(exc, |values| Response::ReadWriteMultipleRegisters {
-                    values,
-                })
-        }
-        _ => return None,
-    })
 }
 
 /// FC 2B/0E header bytes before the first object: FC, MEI, read code, conformity, more follows, next id, count.
@@ -226,7 +150,7 @@ impl DriveModel for Generic {
     fn advance(&mut self, _now: Duration) {}
 
     fn handle(&mut self, _now: Duration, _unit: u8, request: &Request) -> Option<Response> {
-        if let Some(r) = serve_data_model(&mut self.bank, request) {
+        if let Some(r) = data_model::serve(&mut self.bank, request) {
             return Some(r);
         }
         Some(match request {

@@ -57,8 +57,9 @@ use std::collections::BTreeMap;
 use std::time::Duration;
 
 use super::DriveModel;
-use super::bank::{BitTable, Change, RegTable, RegisterBank};
-use super::generic::{read_device_id, serve_data_model};
+use super::bank::{Change, RegisterBank};
+use super::data_model::{self, BitTable, DataModel, RegTable};
+use super::generic::read_device_id;
 use crate::faults::FaultSet;
 use crate::profile::{Profile, VendorMnemonic};
 use codec::{ExceptionCode, FunctionCode, Mnemonic, Request, Response};
@@ -741,19 +742,6 @@ impl Mdrive {
         Ok(())
     }
 
-    /// Validate and apply a holding-register write, then react to what changed.
-    fn write_registers(&mut self, address: u16, words: &[u16]) -> Result<(), ExceptionCode> {
-        let changes = self.bank.plan_write(address, words)?;
-        self.check_limits(&changes)?;
-        self.check_motion(&changes)?;
-        self.bank.commit(&changes);
-        for c in &changes {
-            self.apply(c);
-        }
-        self.refresh();
-        Ok(())
-    }
-
     /// What a stored register write does besides storing.
     fn apply(&mut self, c: &Change) {
         let a = Some(c.address);
@@ -979,6 +967,49 @@ impl Mdrive {
     }
 }
 
+/// Registers go through the bank, with the dependent limits (03) and the motion preconditions (04) checked
+/// before anything is stored, and each stored change applied (moves, counters, outputs) after.
+impl DataModel for Mdrive {
+    type Plan = Vec<Change>;
+
+    fn read_registers(
+        &self,
+        table: RegTable,
+        address: u16,
+        quantity: u16,
+    ) -> Result<Vec<u16>, ExceptionCode> {
+        self.bank.read(table, address, quantity)
+    }
+
+    fn plan_write(&self, address: u16, words: &[u16]) -> Result<Vec<Change>, ExceptionCode> {
+        let changes = self.bank.plan_write(address, words)?;
+        self.check_limits(&changes)?;
+        self.check_motion(&changes)?;
+        Ok(changes)
+    }
+
+    fn commit(&mut self, changes: Vec<Change>) {
+        self.bank.commit(&changes);
+        for c in &changes {
+            self.apply(c);
+        }
+        self.refresh();
+    }
+
+    fn read_bits(
+        &self,
+        table: BitTable,
+        address: u16,
+        quantity: u16,
+    ) -> Result<Vec<u8>, ExceptionCode> {
+        self.bank.read_bits(table, address, quantity)
+    }
+
+    fn write_coils(&mut self, address: u16, states: &[bool]) -> Result<(), ExceptionCode> {
+        self.bank.write_coils(address, states)
+    }
+}
+
 impl DriveModel for Mdrive {
     fn profile(&self) -> &Profile {
         &self.profile
@@ -1001,54 +1032,15 @@ impl DriveModel for Mdrive {
         let fc = request.function();
         let exc = |e| Response::exception(fc, e);
         let resp = match request {
-            Request::WriteSingleRegister { address, value } => {
-                match self.write_registers(*address, &[*value]) {
-                    Ok(()) => Response::WriteSingleRegister {
-                        address: *address,
-                        value: *value,
-                    },
-                    Err(e) => exc(e),
-                }
-            }
-            Request::WriteMultipleRegisters { address, values } => {
-                match self.write_registers(*address, values) {
-                    Ok(()) => Response::WriteMultipleRegisters {
-                        address: *address,
-                        quantity: u16::try_from(values.len()).unwrap_or(u16::MAX),
-                    },
-                    Err(e) => exc(e),
-                }
-            }
-            Request::ReadWriteMultipleRegisters {
-                read_address,
-                read_quantity,
-                write_address,
-                values,
-            } => {
-                // Spec 6.17: check both ranges, write, then read what the write left.
-                match self
-                    .bank
-                    .read(RegTable::Holding, *read_address, *read_quantity)
-                    .and_then(|_| self.write_registers(*write_address, values))
-                    .and_then(|()| {
-                        self.bank
-                            .read(RegTable::Holding, *read_address, *read_quantity)
-                    }) {
-                    Ok(values) => Response::ReadWriteMultipleRegisters { values },
-                    Err(e) => exc(e),
-                }
-            }
             Request::ReadDeviceId {
                 read_code,
                 object_id,
             } => read_device_id(&self.profile, *read_code, *object_id),
             Request::VendorRead { mnemonic } => self.vendor_read(mnemonic),
             Request::VendorWrite { mnemonic, params } => self.vendor_write(mnemonic, params),
-            other => match serve_data_model(&mut self.bank, other) {
-                // Reads and coil writes; a coil write shows in O1-O4/OT at the refresh below.
-                Some(r) => r,
-                None => exc(ExceptionCode::ILLEGAL_FUNCTION),
-            },
+            // Registers, coils and inputs; a coil write shows in O1-O4/OT at the refresh below.
+            other => data_model::serve(self, other)
+                .unwrap_or_else(|| exc(ExceptionCode::ILLEGAL_FUNCTION)),
         };
         self.refresh();
         Some(resp)

@@ -5,6 +5,7 @@
 //! FC 08, and the injected faults that act on bytes.
 
 pub mod bank;
+pub mod data_model;
 pub mod generic;
 pub mod mdrive;
 pub mod sd2x;

@@ -45,6 +45,7 @@ use std::collections::BTreeMap;
 use std::time::Duration;
 
 use super::DriveModel;
+use super::data_model::{self, DataModel, RegTable};
 use crate::faults::Fault;
 use crate::faults::FaultSet;
 use crate::profile::{Access, ObjectType, Profile, WordOrder};
@@ -733,12 +734,6 @@ impl Sd2x {
         self.settle();
     }
 
-    fn write_block(&mut self, address: u16, values: &[u16]) -> Result<(), ExceptionCode> {
-        let staged = self.stage_write(address, values)?;
-        self.commit(staged);
-        Ok(())
-    }
-
     // -----------------------------------------------------------------------------------------------------
     // FC 43 / MEI 0x0D
     // -----------------------------------------------------------------------------------------------------
@@ -868,6 +863,28 @@ impl Sd2x {
     }
 }
 
+/// One register map for FC 03 and FC 04 (line 327); writes staged whole, then committed with their effects.
+impl DataModel for Sd2x {
+    type Plan = Vec<(u16, u32)>;
+
+    fn read_registers(
+        &self,
+        _table: RegTable,
+        address: u16,
+        quantity: u16,
+    ) -> Result<Vec<u16>, ExceptionCode> {
+        self.read_block(address, quantity)
+    }
+
+    fn plan_write(&self, address: u16, words: &[u16]) -> Result<Self::Plan, ExceptionCode> {
+        self.stage_write(address, words)
+    }
+
+    fn commit(&mut self, plan: Self::Plan) {
+        Sd2x::commit(self, plan);
+    }
+}
+
 impl DriveModel for Sd2x {
     fn profile(&self) -> &Profile {
         &self.profile
@@ -892,39 +909,6 @@ impl DriveModel for Sd2x {
         self.advance(now);
         let fc = request.function();
         let result = match request {
-            Request::ReadHoldingRegisters { address, quantity } => self
-                .read_block(*address, *quantity)
-                .map(|values| Response::ReadHoldingRegisters { values }),
-            Request::ReadInputRegisters { address, quantity } => self
-                .read_block(*address, *quantity)
-                .map(|values| Response::ReadInputRegisters { values }),
-            Request::WriteSingleRegister { address, value } => self
-                .write_block(*address, &[*value])
-                .map(|()| Response::WriteSingleRegister {
-                    address: *address,
-                    value: *value,
-                }),
-            Request::WriteMultipleRegisters { address, values } => self
-                .write_block(*address, values)
-                .map(|()| Response::WriteMultipleRegisters {
-                    address: *address,
-                    quantity: u16::try_from(values.len()).unwrap_or(u16::MAX),
-                }),
-            Request::ReadWriteMultipleRegisters {
-                read_address,
-                read_quantity,
-                write_address,
-                values,
-            } => {
-                // Both parts are checked before anything is written, then write before read (Modbus spec).
-                self.read_block(*read_address, *read_quantity)
-                    .and_then(|_| self.stage_write(*write_address, values))
-                    .and_then(|staged| {
-                        self.commit(staged);
-                        self.read_block(*read_address, *read_quantity)
-                    })
-                    .map(|values| Response::ReadWriteMultipleRegisters { values })
-            }
             Request::CanOpen(a) => {
                 return Some(match self.object_access(unit, a) {
                     Ok(r) => r,
@@ -932,9 +916,13 @@ impl DriveModel for Sd2x {
                     Err(ObjectError::Sdo(sdo_code)) => Response::CanOpenError { sdo_code },
                 });
             }
-            // MEI 0x0E and any other MEI type: only 0Dh is supported (line 603). Anything else the station
-            // let through is not a function this drive implements either.
-            _ => Err(ExceptionCode::ILLEGAL_FUNCTION),
+            // Registers (FC 03/04/06/10/17); FC 03 and FC 04 read the same map (line 327).
+            other => match data_model::serve(self, other) {
+                Some(r) => return Some(r),
+                // MEI 0x0E and any other MEI type: only 0Dh is supported (line 603). Anything else the station
+                // let through is not a function this drive implements either.
+                None => Err(ExceptionCode::ILLEGAL_FUNCTION),
+            },
         };
         Some(result.unwrap_or_else(|code| Response::exception(fc, code)))
     }

@@ -255,7 +255,7 @@ impl GenContext {
             .map(|m| m.get_ref().clone())
             .filter(|m| Mnemonic::from_name(&m.name).is_some())
             .collect();
-        let functions: Vec<u8> = profile.functions.iter().map(|f| f.code).collect();
+        let functions: Vec<u8> = profile.functions.iter().map(|f| f.code.0).collect();
         let unsupported = (0x01u8..=0x7F)
             .filter(|fc| !functions.contains(fc))
             .collect();

@@ -127,9 +127,9 @@ fn every_function_code_boundary_and_alteration_is_generated() {
         }
         for f in &p.functions {
             assert!(
-                fcs.contains(&f.code),
+                fcs.contains(&f.code.0),
                 "{name}: FC 0x{:02X} never generated",
-                f.code
+                f.code.0
             );
         }
         assert!(

@@ -1,0 +1,155 @@
+//! The standard data-model function codes, implemented once for every drive model.
+//!
+//! FC 01/02 (read bits), 03/04 (read registers), 05/0F (write coils) and 06/10/17 (write registers) have the
+//! same shape on every drive: check the address range, validate the whole request, apply it all or nothing,
+//! answer. What differs is the storage behind them and what a write sets off (a move, a watchdog restart, a
+//! DS402 transition). A model implements [`DataModel`]: reading words and bits, planning a register write
+//! without applying it, committing the plan; [`serve`] does the rest, in the order the MODBUS Application
+//! Protocol v1.1b3 (section 6) gives.
+
+use codec::{ExceptionCode, Request, Response, bits};
+
+/// Which register table an access goes to.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum RegTable {
+    /// FC 03/06/10/17.
+    Holding,
+    /// FC 04.
+    Input,
+}
+
+/// Which single-bit table an access goes to.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum BitTable {
+    /// FC 01/05/0F.
+    Coils,
+    /// FC 02.
+    DiscreteInputs,
+}
+
+/// The storage and the write hooks of a drive, as the standard function codes see them.
+pub trait DataModel {
+    /// A validated register write, ready to be applied.
+    type Plan;
+
+    /// Read `quantity` registers of `table` from `address`; any address that cannot be read fails the read.
+    fn read_registers(
+        &self,
+        table: RegTable,
+        address: u16,
+        quantity: u16,
+    ) -> Result<Vec<u16>, ExceptionCode>;
+
+    /// Validate a holding-register write of `words` at `address` without changing anything.
+    fn plan_write(&self, address: u16, words: &[u16]) -> Result<Self::Plan, ExceptionCode>;
+
+    /// Apply a plan made by [`DataModel::plan_write`], with whatever the write sets off.
+    fn commit(&mut self, plan: Self::Plan);
+
+    /// Read `quantity` bits of `table` from `address`, packed LSB-first as FC 01/02 carry them.
+    /// A drive without bits answers "illegal function".
+    fn read_bits(
+        &self,
+        _table: BitTable,
+        _address: u16,
+        _quantity: u16,
+    ) -> Result<Vec<u8>, ExceptionCode> {
+        Err(ExceptionCode::ILLEGAL_FUNCTION)
+    }
+
+    /// Write coils from `address` on (FC 05/0F), all or nothing.
+    fn write_coils(&mut self, _address: u16, _states: &[bool]) -> Result<(), ExceptionCode> {
+        Err(ExceptionCode::ILLEGAL_FUNCTION)
+    }
+
+    /// Validate and apply a register write.
+    fn write_registers(&mut self, address: u16, words: &[u16]) -> Result<(), ExceptionCode> {
+        let plan = self.plan_write(address, words)?;
+        self.commit(plan);
+        Ok(())
+    }
+}
+
+/// Answer a data-model request (FC 01-06, 0F, 10, 17) from `model`; `None` for any other request.
+///
+/// The station has already checked the quantities (exception 03) and the FC 05 value; what is left is the
+/// model's address, access and value rules.
+pub fn serve<M: DataModel + ?Sized>(model: &mut M, request: &Request) -> Option<Response> {
+    let fc = request.function();
+    let exc = |e: ExceptionCode| Response::exception(fc, e);
+    Some(match request {
+        Request::ReadCoils { address, quantity } => model
+            .read_bits(BitTable::Coils, *address, *quantity)
+            .map_or_else(exc, |data| Response::ReadCoils { data }),
+        Request::ReadDiscreteInputs { address, quantity } => model
+            .read_bits(BitTable::DiscreteInputs, *address, *quantity)
+            .map_or_else(exc, |data| Response::ReadDiscreteInputs { data }),
+        Request::ReadHoldingRegisters { address, quantity } => model
+            .read_registers(RegTable::Holding, *address, *quantity)
+            .map_or_else(exc, |values| Response::ReadHoldingRegisters { values }),
+        Request::ReadInputRegisters { address, quantity } => model
+            .read_registers(RegTable::Input, *address, *quantity)
+            .map_or_else(exc, |values| Response::ReadInputRegisters { values }),
+        Request::WriteSingleCoil { address, value } => {
+            // Only 0xFF00/0x0000 get here unless the station's value check is faulted off; then any
+            // non-zero value switches the coil on.
+            match model.write_coils(*address, &[*value != 0]) {
+                Ok(()) => Response::WriteSingleCoil {
+                    address: *address,
+                    value: *value,
+                },
+                Err(e) => exc(e),
+            }
+        }
+        Request::WriteSingleRegister { address, value } => {
+            match model.write_registers(*address, &[*value]) {
+                Ok(()) => Response::WriteSingleRegister {
+                    address: *address,
+                    value: *value,
+                },
+                Err(e) => exc(e),
+            }
+        }
+        Request::WriteMultipleCoils {
+            address,
+            quantity,
+            data,
+        } => match model.write_coils(*address, &bits::unpack(data, *quantity)) {
+            Ok(()) => Response::WriteMultipleCoils {
+                address: *address,
+                quantity: *quantity,
+            },
+            Err(e) => exc(e),
+        },
+        Request::WriteMultipleRegisters { address, values } => {
+            match model.write_registers(*address, values) {
+                Ok(()) => Response::WriteMultipleRegisters {
+                    address: *address,
+                    // Echo the count written; the station caps it at 123, so it fits.
+                    quantity: u16::try_from(values.len()).unwrap_or(u16::MAX),
+                },
+                Err(e) => exc(e),
+            }
+        }
+        Request::ReadWriteMultipleRegisters {
+            read_address,
+            read_quantity,
+            write_address,
+            values,
+        } => {
+            // Spec 6.17: both address ranges are checked before anything happens, the write is done before the
+            // read, and the read returns the registers as they are after the write.
+            let answer = model
+                .read_registers(RegTable::Holding, *read_address, *read_quantity)
+                .and_then(|_| model.plan_write(*write_address, values))
+                .and_then(|plan| {
+                    model.commit(plan);
+                    model.read_registers(RegTable::Holding, *read_address, *read_quantity)
+                });
+            answer.map_or_else(exc, |values| Response::ReadWriteMultipleRegisters {
+                values,
+            })
+        }
+        _ => return None,
+    })
+}

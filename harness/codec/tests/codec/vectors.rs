@@ -105,6 +105,20 @@ fn frames(events: &[FramerEvent]) -> Vec<Vec<u8>> {
         .collect()
 }
 
+/// (start, end, largest gap) of a frame event.
+fn span(event: &FramerEvent) -> (Duration, Duration, Duration) {
+    let FramerEvent::Frame {
+        start,
+        end,
+        max_gap,
+        ..
+    } = event
+    else {
+        panic!("not a frame: {event:?}")
+    };
+    (*start, *end, *max_gap)
+}
+
 #[test]
 fn framer_cuts_two_back_to_back_frames() {
     let second = rtu_frame(
@@ -119,16 +133,7 @@ fn framer_cuts_two_back_to_back_frames() {
     assert_eq!(frames(&ev), vec![STATUS_READ.to_vec(), second.clone()]);
     assert!(f.pending().is_empty());
     assert_eq!(f.deadline(), None);
-    let FramerEvent::Frame {
-        start,
-        end,
-        max_gap,
-        ..
-    } = &ev[0]
-    else {
-        unreachable!()
-    };
-    assert_eq!((*start, *end, *max_gap), (t0, t0, Duration::ZERO));
+    assert_eq!(span(&ev[0]), (t0, t0, Duration::ZERO));
 
     // the same, one byte at a time with gaps just under t1.5
     let mut f = RtuFramer::new(Direction::Request, timing(), Vec::new());
@@ -140,18 +145,10 @@ fn framer_cuts_two_back_to_back_frames() {
         t += gap;
     }
     assert_eq!(frames(&ev), vec![STATUS_READ.to_vec(), second]);
-    let FramerEvent::Frame {
-        start,
-        end,
-        max_gap,
-        ..
-    } = &ev[0]
-    else {
-        unreachable!()
-    };
-    assert_eq!(*start, Duration::ZERO);
-    assert_eq!(*end, gap * 7);
-    assert_eq!(*max_gap, gap);
+    let (start, end, max_gap) = span(&ev[0]);
+    assert_eq!(start, Duration::ZERO);
+    assert_eq!(end, gap * 7);
+    assert_eq!(max_gap, gap);
 }
 
 #[test]

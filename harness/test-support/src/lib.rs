@@ -2,21 +2,23 @@
 //! simulator as a child process, in-process servers, third-party peers, report fixtures and raw frame
 //! helpers. Every wait is bounded.
 
+pub mod mbpoll;
 pub mod peer_servers;
 pub mod reports;
 use std::io::{BufRead, BufReader, Write};
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
+use std::process::{Child, Command, ExitStatus, Stdio};
 use std::sync::atomic::{AtomicU32, Ordering};
 use std::sync::mpsc;
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 use codec::rtu;
 use drives::corpus::Corpus;
 use drives::profile::Profile;
 use drives::{self, Fault, FaultSet, Station};
 use engine::servers::{self, SerialConfig, ServerConfig, ServerHandle};
+use engine::session::{self, Options, Outcome, SessionError};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::TcpStream;
 
@@ -83,6 +85,59 @@ pub fn have_pymodbus() -> bool {
     runs("python3", &["-c", "import pymodbus, serial"])
 }
 
+/// `have`, or else a visible skip of `test` saying `why` (what to install).
+fn have_or_skip(test: &str, have: bool, why: &str) -> bool {
+    if !have {
+        skip(test, why);
+    }
+    have
+}
+
+/// True when socat runs; otherwise says that `test` is skipped and what to install.
+pub fn socat_or_skip(test: &str) -> bool {
+    have_or_skip(
+        test,
+        have_socat(),
+        "socat is not installed (apt-get install socat)",
+    )
+}
+
+/// True when mbpoll runs; otherwise says that `test` is skipped and what to install.
+pub fn mbpoll_or_skip(test: &str) -> bool {
+    have_or_skip(
+        test,
+        have_mbpoll(),
+        "mbpoll is not installed (apt-get install mbpoll)",
+    )
+}
+
+/// True when socat and mbpoll run; otherwise says that `test` is skipped and what to install.
+pub fn socat_and_mbpoll_or_skip(test: &str) -> bool {
+    have_or_skip(
+        test,
+        have_socat() && have_mbpoll(),
+        "needs socat and mbpoll (apt-get install socat mbpoll)",
+    )
+}
+
+/// True when gcc and libmodbus are there; otherwise says that `test` is skipped and what to install.
+pub fn libmodbus_or_skip(test: &str) -> bool {
+    have_or_skip(
+        test,
+        have_libmodbus(),
+        "needs gcc and libmodbus (apt-get install gcc pkg-config libmodbus-dev)",
+    )
+}
+
+/// True when python3 has pymodbus; otherwise says that `test` is skipped and what to install.
+pub fn pymodbus_or_skip(test: &str) -> bool {
+    have_or_skip(
+        test,
+        have_pymodbus(),
+        "needs python3 with pymodbus (pip install 'pymodbus[serial]')",
+    )
+}
+
 /// A fresh temporary directory, removed on drop.
 pub struct TempDir(PathBuf);
 
@@ -111,7 +166,7 @@ impl Drop for TempDir {
 }
 
 /// Read a child's pipe line by line on a thread, so waits on it can time out.
-fn line_reader(pipe: impl std::io::Read + Send + 'static) -> mpsc::Receiver<String> {
+pub(crate) fn line_reader(pipe: impl std::io::Read + Send + 'static) -> mpsc::Receiver<String> {
     let (tx, rx) = mpsc::channel();
     std::thread::spawn(move || {
         for line in BufReader::new(pipe).lines() {
@@ -134,6 +189,42 @@ impl Drop for ChildGuard {
     }
 }
 
+/// Wait for `child` to exit, at most `limit`; kill it and panic, naming `what`, past that.
+pub fn wait_bounded(child: &mut Child, limit: Duration, what: &str) -> ExitStatus {
+    let give_up = Instant::now() + limit;
+    loop {
+        if let Some(status) = child.try_wait().expect("try_wait") {
+            return status;
+        }
+        if Instant::now() >= give_up {
+            let _ = child.kill();
+            let _ = child.wait();
+            panic!("{what} did not exit within {limit:?}");
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
+/// socat run with `-d -d` between `a` and `b` (socat address specs), killed on drop; returns once it runs
+/// its transfer loop (bounded, see `wait_socat_ready`), with its log so far.
+fn start_socat(a: String, b: String, what: &str) -> (ChildGuard, Vec<String>) {
+    let mut child = Command::new("socat")
+        .args(["-d", "-d"])
+        .arg(a)
+        .arg(b)
+        .stdin(Stdio::null())
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("spawn socat");
+    let stderr = child.stderr.take().expect("socat stderr");
+    let guard = ChildGuard(child);
+    // socat logs "starting data transfer loop" once both addresses are set up; the reader thread keeps
+    // draining its stderr afterwards so it never blocks on a full pipe.
+    let log = wait_socat_ready(stderr, what);
+    (guard, log)
+}
+
 /// A virtual serial line: two linked ptys made by socat. The simulator opens `a`, the client `b`.
 pub struct PtyPair {
     pub a: PathBuf,
@@ -149,26 +240,16 @@ impl PtyPair {
         let dir = TempDir::new("pty");
         let a = dir.path().join("ttyA");
         let b = dir.path().join("ttyB");
-        let mut child = Command::new("socat")
-            .arg("-d")
-            .arg("-d")
-            .arg(format!("pty,raw,echo=0,link={}", a.display()))
-            .arg(format!("pty,raw,echo=0,link={}", b.display()))
-            .stdin(Stdio::null())
-            .stdout(Stdio::null())
-            .stderr(Stdio::piped())
-            .spawn()
-            .expect("spawn socat");
-        let stderr = child.stderr.take().expect("socat stderr");
-        let guard = ChildGuard(child);
-        // socat logs "starting data transfer loop" once both ptys and links are set up; the reader thread
-        // keeps draining its stderr afterwards so it never blocks on a full pipe.
-        let log = wait_socat_ready(stderr, "socat");
+        let (socat, log) = start_socat(
+            format!("pty,raw,echo=0,link={}", a.display()),
+            format!("pty,raw,echo=0,link={}", b.display()),
+            "socat",
+        );
         assert!(a.exists() && b.exists(), "socat links missing: {log:#?}");
         Self {
             a,
             b,
-            socat: guard,
+            socat,
             _dir: dir,
         }
     }
@@ -178,6 +259,42 @@ impl PtyPair {
         let _ = self.socat.0.kill();
         let _ = self.socat.0.wait();
     }
+}
+
+/// A pty whose bytes socat carries to a TCP endpoint and back: an RTU client that only speaks serial (the
+/// libmodbus client, mbpoll) reaches an RTU-over-TCP endpoint through it. Killed on drop.
+pub struct PtyTcpBridge {
+    pub tty: PathBuf,
+    // Field order: socat is killed before its directory goes.
+    _socat: ChildGuard,
+    _dir: TempDir,
+}
+
+impl PtyTcpBridge {
+    /// Start socat and wait (bounded) until it runs its transfer loop (pty made, TCP connected).
+    pub fn new(to: SocketAddr) -> Self {
+        let dir = TempDir::new("bridge");
+        let tty = dir.path().join("tty");
+        let (socat, log) = start_socat(
+            format!("pty,raw,echo=0,link={}", tty.display()),
+            format!("tcp:{to}"),
+            &format!("socat bridge to {to}"),
+        );
+        assert!(tty.exists(), "socat link missing: {log:#?}");
+        Self {
+            tty,
+            _socat: socat,
+            _dir: dir,
+        }
+    }
+}
+
+/// The client side of a pty at 19200 baud, 8N1.
+pub fn open_pty_client(path: &Path) -> tokio_serial::SerialStream {
+    use tokio_serial::SerialPortBuilderExt;
+    tokio_serial::new(path.to_string_lossy(), 19_200)
+        .open_native_async()
+        .expect("open the client side of the pty")
 }
 
 /// The `modbus-harness simulate` binary running as a child, killed on drop.
@@ -233,6 +350,24 @@ impl SimProcess {
             }
         }
         sim
+    }
+
+    /// `simulate --profile PROFILE --serial TTY --baud 19200 --parity none EXTRA...`: the simulator on `tty`
+    /// (its end of a pty pair) at 19200 8N1.
+    pub fn serial_19200_8n1(tty: &Path, profile: &str, extra: &[&str]) -> Self {
+        let tty = tty.to_string_lossy();
+        let mut args = vec![
+            "--profile",
+            profile,
+            "--serial",
+            &tty,
+            "--baud",
+            "19200",
+            "--parity",
+            "none",
+        ];
+        args.extend_from_slice(extra);
+        Self::start(&args)
     }
 
     pub fn pid(&self) -> u32 {
@@ -331,12 +466,24 @@ pub async fn read_tcp_adu(s: &mut TcpStream) -> Vec<u8> {
     adu
 }
 
-/// Send one Modbus/TCP request and return the response ADU.
-pub async fn tcp_exchange(addr: SocketAddr, adu: &[u8]) -> Vec<u8> {
-    let mut s = tokio::time::timeout(STEP, TcpStream::connect(addr))
+/// Connect to `addr`, bounded in time.
+pub async fn connect(addr: SocketAddr) -> TcpStream {
+    tokio::time::timeout(STEP, TcpStream::connect(addr))
         .await
         .expect("connect timed out")
-        .expect("connect");
+        .expect("connect")
+}
+
+/// Bound one client call in time, naming it when it times out.
+pub async fn within<T>(what: &str, f: impl std::future::Future<Output = T>) -> T {
+    tokio::time::timeout(STEP, f)
+        .await
+        .unwrap_or_else(|_| panic!("{what}: no answer within {STEP:?}"))
+}
+
+/// Send one Modbus/TCP request and return the response ADU.
+pub async fn tcp_exchange(addr: SocketAddr, adu: &[u8]) -> Vec<u8> {
+    let mut s = connect(addr).await;
     tokio::time::timeout(STEP, s.write_all(adu))
         .await
         .expect("write timed out")
@@ -521,4 +668,27 @@ pub fn wait_socat_ready(stderr: impl std::io::Read + Send + 'static, what: &str)
             Err(_) => panic!("{what} did not start within {STEP:?}: {log:#?}"),
         }
     }
+}
+
+/// A conformance run with no log, no interruption and no progress reports.
+pub fn run_quietly(o: &Options) -> Result<Outcome, SessionError> {
+    session::run(
+        o,
+        &mut std::io::sink(),
+        &std::sync::atomic::AtomicBool::new(false),
+        &mut |_, _, _, _| {},
+    )
+}
+
+/// `run_quietly`, panicking with the target named when the run fails to run.
+pub fn run_ok(o: &Options) -> Outcome {
+    run_quietly(o).unwrap_or_else(|e| panic!("{}: {e}", o.target))
+}
+
+/// The FAILs of a run, each as its case id and findings.
+pub fn failures_of(out: &Outcome) -> Vec<String> {
+    out.failures
+        .iter()
+        .map(|f| format!("{}: {:?}", f.id, f.findings().collect::<Vec<_>>()))
+        .collect()
 }

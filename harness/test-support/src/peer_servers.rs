@@ -1,31 +1,12 @@
 //! The peer servers of tests/peers/ (pymodbus, libmodbus) as children of a test, started with `tcp 127.0.0.1 0`.
 #![allow(dead_code)]
 
-use std::io::{BufRead, BufReader};
 use std::net::SocketAddr;
 use std::path::PathBuf;
 use std::process::{Command, ExitStatus, Stdio};
 use std::sync::OnceLock;
-use std::sync::mpsc;
-use std::time::{Duration, Instant};
 
-use super::{ChildGuard, STEP, peer_file};
-
-/// Wait for a child to exit, at most `limit`; kill it and panic past that.
-fn wait_bounded(child: &mut std::process::Child, limit: Duration, what: &str) -> ExitStatus {
-    let until = Instant::now() + limit;
-    loop {
-        if let Ok(Some(s)) = child.try_wait() {
-            return s;
-        }
-        if Instant::now() >= until {
-            let _ = child.kill();
-            let _ = child.wait();
-            panic!("{what} did not exit within {limit:?}");
-        }
-        std::thread::sleep(Duration::from_millis(20));
-    }
-}
+use super::{ChildGuard, STEP, line_reader, peer_file, wait_bounded};
 
 /// A peer server of tests/peers/ running as a child (killed on drop if a test panics first).
 pub struct PeerServer {
@@ -44,15 +25,7 @@ impl PeerServer {
             .unwrap_or_else(|e| panic!("spawn {cmd:?}: {e}"));
         let stdout = child.stdout.take().expect("stdout");
         let guard = ChildGuard(child);
-        let (tx, rx) = mpsc::channel();
-        std::thread::spawn(move || {
-            for line in BufReader::new(stdout).lines() {
-                let Ok(line) = line else { break };
-                if tx.send(line).is_err() {
-                    break;
-                }
-            }
-        });
+        let rx = line_reader(stdout);
         let line = rx
             .recv_timeout(STEP)
             .unwrap_or_else(|_| panic!("{cmd:?} printed no listening line within {STEP:?}"));

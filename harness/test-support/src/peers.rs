@@ -47,11 +47,7 @@ fn libmodbus_client() -> Result<PathBuf, String> {
 pub fn client_command(peer: Peer, test: &str) -> Option<tokio::process::Command> {
     match peer {
         Peer::Libmodbus => {
-            if !have_libmodbus() {
-                skip(
-                    test,
-                    "needs gcc and libmodbus (apt-get install gcc pkg-config libmodbus-dev)",
-                );
+            if !libmodbus_or_skip(test) {
                 return None;
             }
             // The toolchain is there, so a build failure is a real failure.
@@ -59,11 +55,7 @@ pub fn client_command(peer: Peer, test: &str) -> Option<tokio::process::Command>
             Some(tokio::process::Command::new(exe))
         }
         Peer::Pymodbus => {
-            if !have_pymodbus() {
-                skip(
-                    test,
-                    "needs python3 with pymodbus (pip install 'pymodbus[serial]')",
-                );
+            if !pymodbus_or_skip(test) {
                 return None;
             }
             let mut c = tokio::process::Command::new("python3");
@@ -144,8 +136,7 @@ pub async fn run(peer: Peer, scenario: Scenario, via: Via, test: &str) {
     if client_command(peer, test).is_none() {
         return;
     }
-    if matches!(via, Via::Pty) && !have_socat() {
-        skip(test, "socat is not installed (apt-get install socat)");
+    if matches!(via, Via::Pty) && !socat_or_skip(test) {
         return;
     }
     let plan = plan(scenario);

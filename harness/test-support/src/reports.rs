@@ -3,7 +3,6 @@
 
 use std::time::Duration;
 
-use codec::{rtu, tcp};
 use engine::reports::{RunInfo, Transport};
 use engine::{
     Case, CaseResult, Compare, Dir, Level, Mutation, Outcome, Send, Step, StepResult, Tag, Verdict,
@@ -34,14 +33,10 @@ pub fn run_info(transport: Transport, server_port: u16) -> RunInfo {
 
 /// Frame a PDU for the transport (transaction id `tid` for Modbus/TCP, unit 1).
 pub fn frame(transport: Transport, tid: u16, pdu: &[u8]) -> Vec<u8> {
-    let mut out = Vec::new();
     match transport {
-        Transport::Tcp => tcp::encode_adu(tid, 1, pdu, &mut out).expect("PDU fits"),
-        Transport::Rtu | Transport::RtuOverTcp => {
-            rtu::encode_adu(1, pdu, &mut out).expect("PDU fits")
-        }
+        Transport::Tcp => super::tcp_adu(tid, 1, pdu),
+        Transport::Rtu | Transport::RtuOverTcp => super::rtu_adu(1, pdu),
     }
-    out
 }
 
 fn case(id: &str, title: &str, pdu: &[u8], tags: Vec<Tag>) -> Case {

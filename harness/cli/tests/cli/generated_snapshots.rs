@@ -10,14 +10,13 @@
 use std::io::Write;
 use std::path::Path;
 use std::process::Command;
-use std::sync::atomic::AtomicBool;
 use std::time::Duration;
 
 use drives::{Fault, FaultSet};
 use engine::servers::ServerConfig;
-use engine::session::{self, Options, SnapshotOptions, run};
+use engine::session::{Options, SnapshotOptions};
 use engine::targets::TargetUrl;
-use test_support::{PtyPair, have_socat, loopback_tcp_and_rtu, serve, skip};
+use test_support::{PtyPair, have_socat, loopback_tcp_and_rtu, run_ok, serve, skip};
 
 /// The seed of every committed snapshot.
 const SEED: u64 = 20_240_601;
@@ -37,23 +36,13 @@ fn options(url: &str, profile: &str, seed: u64, faults: &[Fault]) -> Options {
     o
 }
 
-fn go(o: &Options) -> session::Outcome {
-    run(
-        o,
-        &mut std::io::sink(),
-        &AtomicBool::new(false),
-        &mut |_, _, _, _| {},
-    )
-    .unwrap_or_else(|e| panic!("{}: {e}", o.target))
-}
-
 /// Write the snapshot of a run to `path` and return its text.
 fn write_snapshot(mut o: Options, path: &Path) -> String {
     o.snapshot = Some(SnapshotOptions {
         path: path.to_path_buf(),
         update: true,
     });
-    let out = go(&o);
+    let out = run_ok(&o);
     assert!(out.snapshot.as_ref().is_some_and(|s| s.written));
     std::fs::read_to_string(path).expect("snapshot written")
 }
@@ -248,7 +237,7 @@ fn another_seed_or_a_fault_is_drift_naming_the_cases() {
             path: file.clone(),
             update: false,
         });
-        go(&o)
+        run_ok(&o)
     };
     // The same run: no drift.
     let out = compare(SEED, &[]);

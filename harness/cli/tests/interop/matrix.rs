@@ -11,9 +11,9 @@
 use std::io::{BufReader, Read};
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, ExitStatus, Stdio};
+use std::process::{Command, Stdio};
 use std::sync::mpsc;
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 use test_support::peer_servers::PeerServer;
 use test_support::*;
@@ -24,22 +24,6 @@ const RUN_LIMIT: Duration = Duration::from_secs(120);
 /// The repository's top directory.
 fn repo() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("../..")
-}
-
-/// Wait for `child` to exit, bounded; kill it and panic on the bound.
-fn wait_bounded(child: &mut Child, limit: Duration, what: &str) -> ExitStatus {
-    let give_up = Instant::now() + limit;
-    loop {
-        if let Some(status) = child.try_wait().expect("try_wait") {
-            return status;
-        }
-        if Instant::now() >= give_up {
-            let _ = child.kill();
-            let _ = child.wait();
-            panic!("{what} did not finish within {limit:?}");
-        }
-        std::thread::sleep(Duration::from_millis(20));
-    }
 }
 
 /// Drain a pipe on a thread; the text arrives on the channel when the pipe closes.
@@ -102,36 +86,29 @@ async fn serves_the_generic_map(addr: SocketAddr, who: &str) {
     }
 }
 
+/// `server` serves the generic profile's map, then stops on SIGTERM with exit code 0.
+async fn serves_the_generic_map_and_stops_on_sigterm(server: PeerServer, who: &str) {
+    serves_the_generic_map(server.addr, who).await;
+    let status = server.terminate();
+    assert!(status.success(), "{who} server after SIGTERM: {status}");
+}
+
 #[tokio::test]
 async fn pymodbus_server_serves_the_generic_map_and_stops_on_sigterm() {
     let test = "pymodbus_server_serves_the_generic_map_and_stops_on_sigterm";
-    if !have_pymodbus() {
-        skip(
-            test,
-            "needs python3 with pymodbus (pip install 'pymodbus[serial]')",
-        );
+    if !pymodbus_or_skip(test) {
         return;
     }
-    let server = PeerServer::pymodbus();
-    serves_the_generic_map(server.addr, "pymodbus").await;
-    let status = server.terminate();
-    assert!(status.success(), "pymodbus server after SIGTERM: {status}");
+    serves_the_generic_map_and_stops_on_sigterm(PeerServer::pymodbus(), "pymodbus").await;
 }
 
 #[tokio::test]
 async fn libmodbus_server_serves_the_generic_map_and_stops_on_sigterm() {
     let test = "libmodbus_server_serves_the_generic_map_and_stops_on_sigterm";
-    if !have_libmodbus() {
-        skip(
-            test,
-            "needs gcc and libmodbus (apt-get install gcc pkg-config libmodbus-dev)",
-        );
+    if !libmodbus_or_skip(test) {
         return;
     }
-    let server = PeerServer::libmodbus();
-    serves_the_generic_map(server.addr, "libmodbus").await;
-    let status = server.terminate();
-    assert!(status.success(), "libmodbus server after SIGTERM: {status}");
+    serves_the_generic_map_and_stops_on_sigterm(PeerServer::libmodbus(), "libmodbus").await;
 }
 
 /// The expectations entry this test takes out, and the cases both runs select: that entry's case and the
@@ -195,11 +172,7 @@ fn run_pymodbus(expect: &Path) -> (Option<i32>, String, String) {
 #[test]
 fn a_missing_expectation_fails_the_run_against_the_pymodbus_server() {
     let test = "a_missing_expectation_fails_the_run_against_the_pymodbus_server";
-    if !have_pymodbus() {
-        skip(
-            test,
-            "needs python3 with pymodbus (pip install 'pymodbus[serial]')",
-        );
+    if !pymodbus_or_skip(test) {
         return;
     }
     let full = repo().join("tests/expect/pymodbus-tcp.toml");

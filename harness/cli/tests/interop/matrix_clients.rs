@@ -12,10 +12,8 @@
 //!
 //! The README's "Interoperability" table lists which test covers which (client, drive, transport).
 
-use std::path::{Path, PathBuf};
-use std::process::{Command, Stdio};
-
 use engine::servers::{ServerConfig, ServerHandle};
+use test_support::mbpoll::*;
 use test_support::peers::{Peer, client_command};
 use test_support::*;
 use tokio_modbus::prelude::*;
@@ -102,13 +100,6 @@ async fn pymodbus_tcp_lmd_manual_answers() {
     lmd_tcp(Peer::Pymodbus, "pymodbus_tcp_lmd_manual_answers").await;
 }
 
-/// Bound one client call in time.
-async fn within<T>(what: &str, f: impl std::future::Future<Output = T>) -> T {
-    tokio::time::timeout(STEP, f)
-        .await
-        .unwrap_or_else(|_| panic!("{what}: no answer within {STEP:?}"))
-}
-
 /// The same LMD answers through tokio-modbus.
 #[tokio::test]
 async fn tokio_modbus_tcp_lmd_manual_answers() {
@@ -151,45 +142,17 @@ async fn tokio_modbus_tcp_lmd_manual_answers() {
     server.shutdown().await;
 }
 
-/// mbpoll over Modbus/TCP to 127.0.0.1:`port`, references from 0 (`-0`), one poll; `values` make it write.
-fn mbpoll_tcp(port: u16, opts: &[&str], values: &[&str]) -> tokio::process::Command {
-    let mut c = tokio::process::Command::new("mbpoll");
-    c.args(["-m", "tcp", "-a", "1", "-p", &port.to_string()])
-        .args(["-0", "-1", "-o", "1"])
-        .args(opts)
-        .arg("127.0.0.1")
-        .args(values);
-    c
-}
-
-/// The value mbpoll printed for reference `reference` (`[139]: \t768000`).
-fn mbpoll_value(out: &str, reference: u32) -> Option<String> {
-    let tag = format!("[{reference}]:");
-    out.lines()
-        .find_map(|l| l.trim().strip_prefix(&tag))
-        .map(|v| v.split_whitespace().next().unwrap_or_default().to_string())
-}
-
 /// LMD through mbpoll: VM as a 32-bit integer in mbpoll's default word order, which is the LMD's (low word
 /// first): 768000, then 600000 after mbpoll writes it; the three outputs read 1 0 1.
 #[tokio::test]
 async fn mbpoll_tcp_lmd_manual_answers() {
     let test = "mbpoll_tcp_lmd_manual_answers";
-    if !have_mbpoll() {
-        skip(test, "mbpoll is not installed (apt-get install mbpoll)");
+    if !mbpoll_or_skip(test) {
         return;
     }
     let server = serve_on("lmd", false).await;
     let port = server.tcp_addr().expect("tcp addr").port();
-    let vm = ["-t", "4:int", "-r", "139"];
-    let (ok, out, err) = run_client(&mut mbpoll_tcp(port, &vm, &[])).await;
-    assert!(ok, "mbpoll read failed:\n{out}\n{err}");
-    assert_eq!(mbpoll_value(&out, 139).as_deref(), Some("768000"), "{out}");
-    let (ok, out, err) = run_client(&mut mbpoll_tcp(port, &vm, &["600000"])).await;
-    assert!(ok, "mbpoll write failed:\n{out}\n{err}");
-    let (ok, out, err) = run_client(&mut mbpoll_tcp(port, &vm, &[])).await;
-    assert!(ok, "mbpoll read back failed:\n{out}\n{err}");
-    assert_eq!(mbpoll_value(&out, 139).as_deref(), Some("600000"), "{out}");
+    mbpoll_tcp_vm_768000_then_600000(port, &["-t", "4:int", "-r", "139"]).await;
     let (ok, out, err) = run_client(&mut mbpoll_tcp(
         port,
         &["-t", "0", "-r", "0", "-c", "3"],
@@ -207,41 +170,6 @@ async fn mbpoll_tcp_lmd_manual_answers() {
 }
 
 // ---- SD2x over RTU over TCP ------------------------------------------------------------------------------
-
-/// A pty whose bytes socat carries to a TCP endpoint and back: an RTU client that only speaks serial (the
-/// libmodbus client, mbpoll) reaches the simulator's RTU-over-TCP endpoint through it. Killed on drop.
-struct PtyTcpBridge {
-    tty: PathBuf,
-    // Field order: socat is killed before its directory goes.
-    _socat: ChildGuard,
-    _dir: TempDir,
-}
-
-impl PtyTcpBridge {
-    /// Start socat and wait (bounded) until it runs its transfer loop (pty made, TCP connected).
-    fn new(to: std::net::SocketAddr) -> Self {
-        let dir = TempDir::new("bridge");
-        let tty = dir.path().join("tty");
-        let mut child = Command::new("socat")
-            .args(["-d", "-d"])
-            .arg(format!("pty,raw,echo=0,link={}", tty.display()))
-            .arg(format!("tcp:{to}"))
-            .stdin(Stdio::null())
-            .stdout(Stdio::null())
-            .stderr(Stdio::piped())
-            .spawn()
-            .expect("spawn socat");
-        let stderr = child.stderr.take().expect("socat stderr");
-        let guard = ChildGuard(child);
-        let log = wait_socat_ready(stderr, &format!("socat bridge to {to}"));
-        assert!(tty.exists(), "socat link missing: {log:#?}");
-        Self {
-            tty,
-            _socat: guard,
-            _dir: dir,
-        }
-    }
-}
 
 /// How a client reaches the SD2x's RTU-over-TCP endpoint.
 fn sd2x_endpoint(peer: Peer, server: &ServerHandle, bridge: Option<&PtyTcpBridge>) -> Vec<String> {
@@ -274,8 +202,7 @@ async fn sd2x_rtu_over_tcp(peer: Peer, test: &str) {
     if client_command(peer, test).is_none() {
         return;
     }
-    if matches!(peer, Peer::Libmodbus) && !have_socat() {
-        skip(test, "socat is not installed (apt-get install socat)");
+    if matches!(peer, Peer::Libmodbus) && !socat_or_skip(test) {
         return;
     }
     let server = serve_on("sd2x", true).await;
@@ -333,40 +260,17 @@ async fn pymodbus_rtu_over_tcp_sd2x_status_word_and_illegal_function() {
     .await;
 }
 
-/// mbpoll in RTU mode at 19200 8N1 on `tty`, slave 1, one poll; `values` make it write.
-fn mbpoll_rtu(tty: &Path, opts: &[&str], values: &[&str]) -> tokio::process::Command {
-    let mut c = tokio::process::Command::new("mbpoll");
-    c.args([
-        "-m", "rtu", "-a", "1", "-b", "19200", "-P", "none", "-s", "1",
-    ])
-    .args(["-0", "-1", "-o", "1"])
-    .args(opts)
-    .arg(tty)
-    .args(values);
-    c
-}
-
 /// SD2x over RTU over TCP through mbpoll (on a socat pty bridged to the endpoint): 6.1, the watchdog, the
 /// 6.3 status word 28728 = 0x7038; FC 01 (not an SD2x function) fails with libmodbus' "Illegal function".
 #[tokio::test]
 async fn mbpoll_rtu_over_tcp_sd2x_status_word_and_illegal_function() {
     let test = "mbpoll_rtu_over_tcp_sd2x_status_word_and_illegal_function";
-    if !have_socat() || !have_mbpoll() {
-        skip(
-            test,
-            "needs socat and mbpoll (apt-get install socat mbpoll)",
-        );
+    if !socat_and_mbpoll_or_skip(test) {
         return;
     }
     let server = serve_on("sd2x", true).await;
     let bridge = PtyTcpBridge::new(server.rtu_over_tcp_addr().expect("rtu-over-tcp addr"));
-    for words in [SD2X_SHUTDOWN, SD2X_ENABLE] {
-        let values: Vec<String> = words.iter().map(u16::to_string).collect();
-        let values: Vec<&str> = values.iter().map(String::as_str).collect();
-        let mut cmd = mbpoll_rtu(&bridge.tty, &["-t", "4", "-r", "3000"], &values);
-        let (ok, out, err) = run_client(&mut cmd).await;
-        assert!(ok, "mbpoll write of {words:?} failed:\n{out}\n{err}");
-    }
+    mbpoll_sd2x_61(&bridge.tty).await;
     if let Err(last) = wait_sd2x_status(&server, SD2X_STATUS_AFTER_61).await {
         panic!("the SD2x status word did not become 0x7038 (last: {last:04X?})");
     }
@@ -382,13 +286,7 @@ async fn mbpoll_rtu_over_tcp_sd2x_status_word_and_illegal_function() {
         Some(SD2X_STATUS_AFTER_61.to_string()),
         "{out}"
     );
-    let (ok, out, err) =
-        run_client(&mut mbpoll_rtu(&bridge.tty, &["-t", "0", "-r", "0"], &[])).await;
-    assert!(!ok, "FC 01 should fail on an SD2x:\n{out}");
-    assert!(
-        err.contains("Illegal function"),
-        "expected libmodbus' 'Illegal function':\n{out}\n{err}"
-    );
+    mbpoll_sd2x_illegal_function(&bridge.tty).await;
     drop(bridge);
     server.shutdown().await;
 }

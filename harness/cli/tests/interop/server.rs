@@ -28,13 +28,6 @@ fn echo(data: u16) -> Vec<u8> {
     pdu
 }
 
-async fn connect(addr: std::net::SocketAddr) -> TcpStream {
-    tokio::time::timeout(STEP, TcpStream::connect(addr))
-        .await
-        .expect("connect timed out")
-        .expect("connect")
-}
-
 /// Two requests in one write are both answered, in order, each with its own transaction id.
 #[tokio::test]
 async fn tcp_pipelined_requests_answered_in_order() {
@@ -263,52 +256,18 @@ async fn cli_fault_wrong_crc_over_rtu_over_tcp() {
 /// `--fault wrong-crc` on a serial line (socat pty pair): the reply's CRC is wrong.
 #[tokio::test]
 async fn cli_fault_wrong_crc_over_serial_pty() {
-    if !have_socat() {
-        skip(
-            "cli_fault_wrong_crc_over_serial_pty",
-            "socat is not installed (apt-get install socat)",
-        );
+    if !socat_or_skip("cli_fault_wrong_crc_over_serial_pty") {
         return;
     }
     let pty = PtyPair::start();
-    let tty = pty.a.to_string_lossy().into_owned();
-    let sim = SimProcess::start(&[
-        "--profile",
-        "sd2x",
-        "--serial",
-        &tty,
-        "--baud",
-        "19200",
-        "--parity",
-        "none",
-        "--fault",
-        "wrong-crc",
-    ]);
+    let sim = SimProcess::serial_19200_8n1(&pty.a, "sd2x", &["--fault", "wrong-crc"]);
     assert_eq!(sim.serial.as_deref(), Some(pty.a.as_path()));
-    use tokio_serial::SerialPortBuilderExt;
-    let mut port = tokio_serial::new(pty.b.to_string_lossy(), 19_200)
-        .open_native_async()
-        .expect("open the client side of the pty");
+    let mut port = open_pty_client(&pty.b);
     let req = rtu_adu(1, &echo(0x0F0F));
     port.write_all(&req).await.unwrap();
     let reply = read_upto(&mut port, req.len()).await;
     assert_eq!(reply.len(), req.len(), "{reply:02X?}");
     assert!(!crc_ok(&reply), "CRC should be wrong: {reply:02X?}");
-}
-
-/// Wait (bounded) for a child to exit.
-fn wait_exit(child: &mut std::process::Child) -> std::process::ExitStatus {
-    let give_up = Instant::now() + STEP;
-    loop {
-        if let Some(status) = child.try_wait().expect("try_wait") {
-            return status;
-        }
-        assert!(
-            Instant::now() < give_up,
-            "simulate did not exit within {STEP:?}"
-        );
-        std::thread::sleep(Duration::from_millis(20));
-    }
 }
 
 /// SIGTERM and SIGINT stop `simulate` cleanly (exit 0), also with a client connected.
@@ -323,7 +282,7 @@ async fn cli_stops_cleanly_on_sigterm_and_sigint() {
             .status()
             .expect("run kill");
         assert!(killed.success());
-        let status = wait_exit(&mut sim.child.0);
+        let status = wait_bounded(&mut sim.child.0, STEP, "simulate");
         assert!(status.success(), "{signal}: {status:?}");
     }
 }
@@ -331,18 +290,14 @@ async fn cli_stops_cleanly_on_sigterm_and_sigint() {
 /// A simulator whose serial line goes away says so and exits with failure instead of lingering.
 #[tokio::test]
 async fn cli_exits_when_its_serial_line_goes_away() {
-    if !have_socat() {
-        skip(
-            "cli_exits_when_its_serial_line_goes_away",
-            "socat is not installed (apt-get install socat)",
-        );
+    if !socat_or_skip("cli_exits_when_its_serial_line_goes_away") {
         return;
     }
     let mut pty = PtyPair::start();
     let tty = pty.a.to_string_lossy().into_owned();
     let mut sim = SimProcess::start(&["--profile", "sd2x", "--serial", &tty]);
     pty.cut();
-    let status = wait_exit(&mut sim.child.0);
+    let status = wait_bounded(&mut sim.child.0, STEP, "simulate");
     assert_eq!(status.code(), Some(1), "{status:?}");
 }
 
@@ -358,7 +313,7 @@ fn simulate_exits(args: &[&str]) -> (Option<i32>, String, String) {
             .spawn()
             .expect("spawn simulate"),
     );
-    let status = wait_exit(&mut child.0);
+    let status = wait_bounded(&mut child.0, STEP, "simulate");
     let mut out = String::new();
     let mut err = String::new();
     use std::io::Read;

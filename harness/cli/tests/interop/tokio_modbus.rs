@@ -6,10 +6,8 @@
 use engine::servers::{ServerConfig, ServerHandle};
 use test_support::*;
 use tokio::io::AsyncWriteExt;
-use tokio::net::TcpStream;
 use tokio_modbus::client::Context;
 use tokio_modbus::prelude::*;
-use tokio_serial::SerialPortBuilderExt;
 
 /// The transports a fixture can use.
 #[derive(Clone, Copy, Debug)]
@@ -43,11 +41,7 @@ async fn fixture(test: &str, profile_name: &str, via: Via) -> Option<Fixture> {
                 }
                 _ => {
                     let addr = server.rtu_over_tcp_addr().expect("rtu-over-tcp addr");
-                    let stream = tokio::time::timeout(STEP, TcpStream::connect(addr))
-                        .await
-                        .expect("connect timed out")
-                        .expect("connect");
-                    rtu::attach_slave(stream, slave)
+                    rtu::attach_slave(connect(addr).await, slave)
                 }
             };
             Some(Fixture {
@@ -57,17 +51,7 @@ async fn fixture(test: &str, profile_name: &str, via: Via) -> Option<Fixture> {
             })
         }
         Via::Pty => {
-            if !have_socat() {
-                skip(test, "socat is not installed (apt-get install socat)");
-                return None;
-            }
-            let pty = PtyPair::start();
-            let config = ServerConfig {
-                serial: Some(serial_19200_8n1(&pty.a)),
-                ..ServerConfig::default()
-            };
-            let server = serve(profile_name, &[], config).await;
-            let port = open_pty(&pty.b);
+            let (pty, server, port) = on_a_pty(test, profile_name).await?;
             Some(Fixture {
                 ctx: rtu::attach_slave(port, slave),
                 server,
@@ -77,17 +61,44 @@ async fn fixture(test: &str, profile_name: &str, via: Via) -> Option<Fixture> {
     }
 }
 
-fn open_pty(path: &std::path::Path) -> tokio_serial::SerialStream {
-    tokio_serial::new(path.to_string_lossy(), 19_200)
-        .open_native_async()
-        .expect("open client side of the pty")
+/// An in-process server for `profile_name` on one end of a socat pty pair (19200 8N1), and the client side of
+/// the other end; `None` (after a printed skip notice) without socat. In drop order last to first: the pty
+/// outlives the server and the port.
+async fn on_a_pty(
+    test: &str,
+    profile_name: &str,
+) -> Option<(PtyPair, ServerHandle, tokio_serial::SerialStream)> {
+    if !socat_or_skip(test) {
+        return None;
+    }
+    let pty = PtyPair::start();
+    let config = ServerConfig {
+        serial: Some(serial_19200_8n1(&pty.a)),
+        ..ServerConfig::default()
+    };
+    let server = serve(profile_name, &[], config).await;
+    let port = open_pty_client(&pty.b);
+    Some((pty, server, port))
 }
 
-/// Bound one client call in time.
-async fn within<T>(what: &str, f: impl std::future::Future<Output = T>) -> T {
-    tokio::time::timeout(STEP, f)
-        .await
-        .unwrap_or_else(|_| panic!("{what}: no answer within {STEP:?}"))
+/// One test per transport for `scenario(test, via)`, each named as given.
+macro_rules! on_every_transport {
+    ($scenario:ident: $tcp:ident, $rtu_over_tcp:ident, $pty:ident) => {
+        #[tokio::test]
+        async fn $tcp() {
+            $scenario(stringify!($tcp), Via::Tcp).await;
+        }
+
+        #[tokio::test]
+        async fn $rtu_over_tcp() {
+            $scenario(stringify!($rtu_over_tcp), Via::RtuOverTcp).await;
+        }
+
+        #[tokio::test]
+        async fn $pty() {
+            $scenario(stringify!($pty), Via::Pty).await;
+        }
+    };
 }
 
 /// SD2x manual 6.1 then 6.3 through the client: the two RxPDO telegrams (golden sd2x/6.1), then nothing,
@@ -131,20 +142,7 @@ async fn sd2x_status_word(test: &str, via: Via) {
     f.server.shutdown().await;
 }
 
-#[tokio::test]
-async fn tcp_sd2x_status_word() {
-    sd2x_status_word("tcp_sd2x_status_word", Via::Tcp).await;
-}
-
-#[tokio::test]
-async fn rtu_over_tcp_sd2x_status_word() {
-    sd2x_status_word("rtu_over_tcp_sd2x_status_word", Via::RtuOverTcp).await;
-}
-
-#[tokio::test]
-async fn rtu_pty_sd2x_status_word() {
-    sd2x_status_word("rtu_pty_sd2x_status_word", Via::Pty).await;
-}
+on_every_transport!(sd2x_status_word: tcp_sd2x_status_word, rtu_over_tcp_sd2x_status_word, rtu_pty_sd2x_status_word);
 
 /// A function code the profile does not list is refused with exception 01 by every transport
 /// (SD2x has no FC 05). This is the station's own check, so it holds with any model.
@@ -161,20 +159,7 @@ async fn sd2x_illegal_function(test: &str, via: Via) {
     f.server.shutdown().await;
 }
 
-#[tokio::test]
-async fn tcp_illegal_function_exception() {
-    sd2x_illegal_function("tcp_illegal_function_exception", Via::Tcp).await;
-}
-
-#[tokio::test]
-async fn rtu_over_tcp_illegal_function_exception() {
-    sd2x_illegal_function("rtu_over_tcp_illegal_function_exception", Via::RtuOverTcp).await;
-}
-
-#[tokio::test]
-async fn rtu_pty_illegal_function_exception() {
-    sd2x_illegal_function("rtu_pty_illegal_function_exception", Via::Pty).await;
-}
+on_every_transport!(sd2x_illegal_function: tcp_illegal_function_exception, rtu_over_tcp_illegal_function_exception, rtu_pty_illegal_function_exception);
 
 /// SD2x manual 6.2, as corrected in corpus/golden/sd2x.toml: FC 43 / MEI 0x0D read of object 41
 /// (temperature power stage) answers 170 (17.0 degC), data little-endian.
@@ -189,17 +174,9 @@ const FC43_TEMP_RESPONSE: [u8; 17] = [
 #[tokio::test]
 async fn rtu_pty_sd2x_fc43_temperature_golden() {
     let test = "rtu_pty_sd2x_fc43_temperature_golden";
-    if !have_socat() {
-        skip(test, "socat is not installed (apt-get install socat)");
+    let Some((_pty, server, mut port)) = on_a_pty(test, "sd2x").await else {
         return;
-    }
-    let pty = PtyPair::start();
-    let config = ServerConfig {
-        serial: Some(serial_19200_8n1(&pty.a)),
-        ..ServerConfig::default()
     };
-    let server = serve("sd2x", &[], config).await;
-    let mut port = open_pty(&pty.b);
     within("write", port.write_all(&FC43_TEMP_REQUEST))
         .await
         .expect("write");
@@ -211,12 +188,7 @@ async fn rtu_pty_sd2x_fc43_temperature_golden() {
 #[tokio::test]
 async fn rtu_over_tcp_sd2x_fc43_temperature_golden() {
     let server = serve("sd2x", &[], loopback_tcp_and_rtu()).await;
-    let mut s = within(
-        "connect",
-        TcpStream::connect(server.rtu_over_tcp_addr().unwrap()),
-    )
-    .await
-    .expect("connect");
+    let mut s = connect(server.rtu_over_tcp_addr().unwrap()).await;
     within("write", s.write_all(&FC43_TEMP_REQUEST))
         .await
         .expect("write");
@@ -247,17 +219,9 @@ async fn tcp_sd2x_fc43_temperature() {
 #[tokio::test]
 async fn rtu_pty_diagnostics_echo() {
     let test = "rtu_pty_diagnostics_echo";
-    if !have_socat() {
-        skip(test, "socat is not installed (apt-get install socat)");
+    let Some((_pty, server, mut port)) = on_a_pty(test, "sd2x").await else {
         return;
-    }
-    let pty = PtyPair::start();
-    let config = ServerConfig {
-        serial: Some(serial_19200_8n1(&pty.a)),
-        ..ServerConfig::default()
     };
-    let server = serve("sd2x", &[], config).await;
-    let mut port = open_pty(&pty.b);
     let req = rtu_adu(1, &[0x08, 0x00, 0x00, 0xA5, 0x37]);
     within("write", port.write_all(&req)).await.expect("write");
     assert_eq!(read_n(&mut port, req.len()).await, req, "FC 08/00 echo");
@@ -323,17 +287,4 @@ async fn generic_round_trip(test: &str, via: Via) {
     f.server.shutdown().await;
 }
 
-#[tokio::test]
-async fn tcp_generic_round_trip() {
-    generic_round_trip("tcp_generic_round_trip", Via::Tcp).await;
-}
-
-#[tokio::test]
-async fn rtu_over_tcp_generic_round_trip() {
-    generic_round_trip("rtu_over_tcp_generic_round_trip", Via::RtuOverTcp).await;
-}
-
-#[tokio::test]
-async fn rtu_pty_generic_round_trip() {
-    generic_round_trip("rtu_pty_generic_round_trip", Via::Pty).await;
-}
+on_every_transport!(generic_round_trip: tcp_generic_round_trip, rtu_over_tcp_generic_round_trip, rtu_pty_generic_round_trip);

@@ -5,12 +5,9 @@
 //!
 //! Proptest prints the failing seed and persists it under `proptest-regressions/`; rerunning replays it.
 
-use std::sync::OnceLock;
 use std::time::Duration;
 
-use codec::tcp::{self, MBAP_LEN};
-use codec::{Pdu, Request, Response, hex_spaced, parse_hex, rtu};
-use drives::corpus::Corpus;
+use codec::{Request, Response, parse_hex, rtu};
 use drives::models::generic::Generic;
 use drives::profile::Profile;
 use drives::{self, DriveModel, Fault, FaultSet, Station};
@@ -18,147 +15,17 @@ use proptest::collection::vec;
 use proptest::prelude::*;
 use proptest::sample::{select, subsequence};
 
+use crate::support::{MODEL_FAULTS, Sim, ascii_hex, both, profile, run_exchanges};
+
 fn generic_profile() -> Profile {
-    static P: OnceLock<Profile> = OnceLock::new();
-    P.get_or_init(|| {
-        let (name, text) = Corpus::Embedded
-            .file("profiles", "generic")
-            .expect("generic profile in the embedded corpus");
-        Profile::parse(&name, &text).unwrap_or_else(|e| panic!("{e}"))
-    })
-    .clone()
+    profile("generic")
 }
 
-/// A drive the project has no model for: 32-bit registers, low word first, a reserved hole, a read-only
-/// register, ranges, and identification objects too long for one PDU.
-const OTHER: &str = r#"
-[device]
-id = "other"
-name = "Some other drive"
-vendor = "ACME"
-transports = ["tcp"]
-word_order = "low-first"
-default_unit = 7
-unit_ids = [7, 7]
-
-[[function]]
-code = 0x03
-name = "Read Holding Registers"
-
-[[function]]
-code = 0x10
-name = "Write Multiple Registers"
-
-[[function]]
-code = 0x2B
-name = "Read Device Identification"
-
-[[register]]
-address = 0x10
-width = 2
-name = "Speed"
-access = "rw"
-signed = true
-min = -100000
-max = 100000
-default = -2
-
-[[register]]
-address = 0x12
-width = 1
-name = "Status"
-access = "ro"
-default = 0x55AA
-
-[[reserved]]
-start = 0x13
-end = 0x13
-
-[[register]]
-address = 0x14
-width = 1
-name = "Mode"
-access = "rw"
-min = 1
-max = 3
-default = 1
-
-[[identification]]
-object_id = 0x00
-name = "VendorName"
-value = "ACME"
-
-[[identification]]
-object_id = 0x01
-name = "ProductCode"
-value = "X"
-
-[[identification]]
-object_id = 0x02
-name = "MajorMinorRevision"
-value = "1.0"
-
-[[identification]]
-object_id = 0x80
-name = "Private A"
-value = "AAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAA"
-
-[[identification]]
-object_id = 0x81
-name = "Private B"
-value = "BBBBBBBBBBBBBBBBBBBBBBBBBBBBBBBBBBBBBBBBBBBBBBBBBBBBBBBBBBBBBBBBBBBBBBBBBBBBBBBBBBBBBBBBBBBBBBBBBBBBBBBBBBBBBBBBBBBBBBBB"
-
-[[identification]]
-object_id = 0x82
-name = "Private C"
-value = "CCCCCCCCCCCCCCCCCCCCCCCCCCCCCCCCCCCCCCCCCCCCCCCCCCCCCCCCCCCCCCCCCCCCCCCCCCCCCCCCCCCCCCCCCCCCCCCCCCCCCCCCCCCCCCCCCCCCCCCC"
-"#;
-
+/// A drive the project has no model for (tests/data/other_profile.toml): 32-bit registers, low word first, a
+/// reserved hole, a read-only register, ranges, and identification objects too long for one PDU.
 fn other_profile() -> Profile {
-    Profile::parse("other (test)", OTHER).unwrap_or_else(|e| panic!("{e}"))
-}
-
-/// A station with its model, a Modbus/TCP client view and a virtual clock.
-struct Sim {
-    station: Station,
-    unit: u8,
-    tid: u16,
-}
-
-impl Sim {
-    fn with(p: Profile, faults: &[Fault]) -> Self {
-        let unit = p.device.default_unit;
-        let f = FaultSet::of(faults);
-        Self {
-            station: Station::new(drives::build(p, f.clone()), f, unit),
-            unit,
-            tid: 0,
-        }
-    }
-
-    fn new(faults: &[Fault]) -> Self {
-        Self::with(generic_profile(), faults)
-    }
-
-    /// Send a request PDU given as hex; the response PDU as upper-case spaced hex.
-    fn ask(&mut self, pdu_hex: &str) -> String {
-        let pdu = parse_hex(pdu_hex).expect("hex");
-        self.tid = self.tid.wrapping_add(1);
-        let req = Request::decode(&pdu).unwrap_or_else(|e| panic!("test request decodes: {e}"));
-        let adu = tcp::encode(self.tid, self.unit, &Pdu::Request(req)).expect("encodes");
-        let wire = self
-            .station
-            .tcp_adu(Duration::ZERO, &adu)
-            .expect("the server answers");
-        let hdr = tcp::Mbap::parse(&wire.bytes).expect("MBAP header");
-        assert_eq!(hdr.transaction_id, self.tid, "transaction id echoed");
-        assert_eq!(hdr.unit_id, self.unit, "unit id echoed");
-        hex_spaced(&wire.bytes[MBAP_LEN..])
-    }
-}
-
-fn ascii_hex(s: &str) -> String {
-    hex_spaced(s.as_bytes())
+    Profile::parse("other (test)", include_str!("../data/other_profile.toml"))
+        .unwrap_or_else(|e| panic!("{e}"))
 }
 
 fn zeros(n: usize) -> String {
@@ -175,7 +42,7 @@ fn build_picks_the_generic_model() {
 
 #[test]
 fn bits() {
-    let mut s = Sim::new(&[]);
+    let mut s = Sim::new("generic", &[]);
     assert_eq!(s.ask("01 00 00 00 0A"), "01 02 00 00");
     assert_eq!(s.ask("05 00 03 FF 00"), "05 00 03 FF 00");
     assert_eq!(s.ask("01 00 00 00 0A"), "01 02 08 00");
@@ -192,7 +59,7 @@ fn bits() {
 
 #[test]
 fn registers() {
-    let mut s = Sim::new(&[]);
+    let mut s = Sim::new("generic", &[]);
     assert_eq!(s.ask("03 00 00 00 03"), "03 06 00 00 00 00 00 00");
     assert_eq!(s.ask("06 00 01 12 34"), "06 00 01 12 34");
     assert_eq!(s.ask("03 00 00 00 03"), "03 06 00 00 12 34 00 00");
@@ -228,24 +95,8 @@ fn registers() {
 
 #[test]
 fn outside_the_map_gives_02() {
-    let mut s = Sim::new(&[]);
-    for (req, want) in [
-        ("01 00 64 00 01", "81 02"),
-        ("01 00 63 00 02", "81 02"),
-        ("02 00 63 00 02", "82 02"),
-        ("03 00 64 00 01", "83 02"),
-        ("03 00 60 00 05", "83 02"),
-        ("04 00 63 00 02", "84 02"),
-        ("05 00 64 FF 00", "85 02"),
-        ("06 00 64 00 01", "86 02"),
-        ("0F 00 63 00 02 01 03", "8F 02"),
-        ("10 00 63 00 02 04 00 01 00 02", "90 02"),
-        ("17 00 63 00 02 00 00 00 01 02 00 07", "97 02"),
-        ("17 00 00 00 01 00 63 00 02 04 00 07 00 07", "97 02"),
-        ("03 FF FF 00 02", "83 02"),
-    ] {
-        assert_eq!(s.ask(req), want, "{req}");
-    }
+    let mut drives = run_exchanges("outside_the_map_gives_02");
+    let (_, s) = &mut drives[0];
     assert_eq!(
         s.ask("03 00 00 00 01"),
         "03 02 00 00",
@@ -260,27 +111,12 @@ fn outside_the_map_gives_02() {
 
 #[test]
 fn quantities_values_and_functions() {
-    let mut s = Sim::new(&[]);
-    for (req, want) in [
-        ("03 00 00 00 7E", "83 03"),
-        ("03 00 00 00 00", "83 03"),
-        ("04 00 00 00 7E", "84 03"),
-        ("01 00 00 07 D1", "81 03"),
-        ("02 00 00 00 00", "82 03"),
-        ("05 00 00 12 34", "85 03"),
-        ("05 00 00 00 FF", "85 03"),
-        ("41 20 20 31 53", "C1 01"),
-        ("08 00 00 12 34", "88 01"),
-        ("14 00", "94 01"),
-        ("2B 0D 00 00 01 00 29 00 00 00 00 02", "AB 01"),
-    ] {
-        assert_eq!(s.ask(req), want, "{req}");
-    }
+    run_exchanges("quantities_values_and_functions");
 }
 
 #[test]
 fn device_identification() {
-    let mut s = Sim::new(&[]);
+    let mut s = Sim::new("generic", &[]);
     let basic = format!(
         "00 0E {} 01 07 {} 02 03 {}",
         ascii_hex("modbus-harness"),
@@ -376,19 +212,10 @@ fn any_other_profile_is_served() {
 // Model-level faults: the faulted server answers differently.
 // ---------------------------------------------------------------------------------------------------------------
 
-fn both(p: fn() -> Profile, fault: Fault, reqs: &[&str]) -> (Vec<String>, Vec<String>) {
-    let mut ok = Sim::with(p(), &[]);
-    let mut bad = Sim::with(p(), &[fault]);
-    (
-        reqs.iter().map(|r| ok.ask(r)).collect(),
-        reqs.iter().map(|r| bad.ask(r)).collect(),
-    )
-}
-
 #[test]
 fn fault_reserved_readable() {
     let (ok, bad) = both(
-        generic_profile,
+        &generic_profile(),
         Fault::ReservedReadable,
         &["03 00 63 00 02", "01 00 64 00 01", "06 00 64 00 01"],
     );
@@ -399,7 +226,7 @@ fn fault_reserved_readable() {
 #[test]
 fn fault_quantity_unchecked() {
     let (ok, bad) = both(
-        generic_profile,
+        &generic_profile(),
         Fault::QuantityUnchecked,
         &["03 00 00 00 00", "03 00 00 00 7E"],
     );
@@ -409,7 +236,7 @@ fn fault_quantity_unchecked() {
 
 #[test]
 fn fault_word_order() {
-    let (ok, bad) = both(other_profile, Fault::WordOrder, &["03 00 10 00 02"]);
+    let (ok, bad) = both(&other_profile(), Fault::WordOrder, &["03 00 10 00 02"]);
     assert_eq!(ok, ["03 04 FF FE FF FF"]);
     assert_eq!(bad, ["03 04 FF FF FF FE"]);
 }
@@ -417,7 +244,7 @@ fn fault_word_order() {
 #[test]
 fn fault_read_only_writable() {
     let (ok, bad) = both(
-        other_profile,
+        &other_profile(),
         Fault::ReadOnlyWritable,
         &["10 00 12 00 01 02 00 07", "03 00 12 00 01"],
     );
@@ -428,7 +255,7 @@ fn fault_read_only_writable() {
 #[test]
 fn fault_range_unchecked() {
     let (ok, bad) = both(
-        other_profile,
+        &other_profile(),
         Fault::RangeUnchecked,
         &["10 00 14 00 01 02 00 09", "03 00 14 00 01"],
     );
@@ -514,17 +341,6 @@ fn pdu() -> impl Strategy<Value = Vec<u8>> {
     ]
 }
 
-/// The faults that change what the model answers (the wire-level ones are the station's and tested there);
-/// under them too, nothing may panic and every answer must decode.
-const MODEL_FAULTS: &[Fault] = &[
-    Fault::WordOrder,
-    Fault::ReservedReadable,
-    Fault::ReadOnlyWritable,
-    Fault::RangeUnchecked,
-    Fault::QuantityUnchecked,
-    Fault::IllegalCoilValueAccepted,
-];
-
 proptest! {
     #![proptest_config(ProptestConfig::with_cases(256))]
     #[test]
@@ -533,17 +349,9 @@ proptest! {
         faults in subsequence(MODEL_FAULTS.to_vec(), 0..=MODEL_FAULTS.len()),
         pdus in vec(pdu(), 1..12),
     ) {
-        let mut s = if other { Sim::with(other_profile(), &faults) } else { Sim::new(&faults) };
+        let mut s = if other { Sim::with(other_profile(), &faults) } else { Sim::new("generic", &faults) };
         for (i, pdu) in pdus.iter().enumerate() {
-            let mut adu = Vec::new();
-            let Ok(()) = tcp::encode_adu(i as u16, s.unit, pdu, &mut adu) else { continue };
-            let Some(w) = s.station.tcp_adu(Duration::ZERO, &adu) else { continue };
-            let body = &w.bytes[MBAP_LEN..];
-            let resp = Response::decode(body);
-            prop_assert!(resp.is_ok(), "PDU {} answered {}: {:?}", hex_spaced(pdu), hex_spaced(body), resp);
-            if let (Some(&fc), Some(&rfc)) = (pdu.first(), body.first()) {
-                prop_assert_eq!(rfc & 0x7F, fc & 0x7F, "function code echoed");
-            }
+            s.answer_decodes(i, Duration::ZERO, pdu)?;
         }
     }
 }

@@ -76,7 +76,8 @@ fn fail_with(what: &str, problems: Vec<String>) {
     );
 }
 
-fn hex(s: &Option<String>) -> Option<Vec<u8>> {
+/// The bytes of an optional hex field, when it is there and parses.
+fn bytes_of(s: &Option<String>) -> Option<Vec<u8>> {
     s.as_ref().and_then(|h| parse_hex(h).ok())
 }
 
@@ -118,7 +119,7 @@ fn every_golden_frame_is_consistent() {
 fn corrected_bytes_make_the_printed_ones_faulty() {
     let mut problems = Vec::new();
     for (_, f, order) in frames() {
-        let (Some(p), Some(c)) = (hex(&f.printed), hex(&f.corrected)) else {
+        let (Some(p), Some(c)) = (bytes_of(&f.printed), bytes_of(&f.corrected)) else {
             continue;
         };
         if p == c {

@@ -5,89 +5,24 @@
 //!
 //! Proptest prints the failing seed and persists it under `proptest-regressions/`; rerunning replays it.
 
-use std::sync::OnceLock;
 use std::time::Duration;
 
-use codec::tcp::{self, MBAP_LEN};
-use codec::{ExceptionCode, FunctionCode, Mnemonic, Pdu, Request, Response, hex_spaced, parse_hex};
+use codec::{ExceptionCode, FunctionCode, Mnemonic, Request, Response, hex_spaced, parse_hex};
 use drives::corpus::Corpus;
 use drives::golden::GoldenFile;
 use drives::models::mdrive::{Mdrive, Program};
-use drives::profile::{Profile, WordOrder};
-use drives::{self, DriveModel, Fault, FaultSet, Station};
+use drives::profile::WordOrder;
+use drives::{self, DriveModel, Fault, FaultSet};
 use proptest::collection::vec;
 use proptest::prelude::*;
 use proptest::sample::{select, subsequence};
 
-fn load_profile(stem: &str) -> Profile {
-    let (name, text) = Corpus::Embedded
-        .file("profiles", stem)
-        .expect("profile in the embedded corpus");
-    Profile::parse(&name, &text).unwrap_or_else(|e| panic!("{e}"))
-}
+use crate::support::{MODEL_FAULTS, Sim, ascii_hex, both, hex, profile, run_exchanges};
 
-/// Parsed once per test binary: the profiles are large and the property test builds many stations.
-fn profile(stem: &str) -> Profile {
-    static MDRIVE: OnceLock<Profile> = OnceLock::new();
-    static LMD: OnceLock<Profile> = OnceLock::new();
-    match stem {
-        "mdrive" => MDRIVE.get_or_init(|| load_profile("mdrive")).clone(),
-        "lmd" => LMD.get_or_init(|| load_profile("lmd")).clone(),
-        other => load_profile(other),
-    }
-}
-
-/// A station with its model, a Modbus/TCP client view and a virtual clock.
-struct Sim {
-    station: Station,
-    unit: u8,
-    tid: u16,
-    now: Duration,
-}
-
+/// The MDrive/LMD registers and mnemonics through the client view.
 impl Sim {
-    fn new(stem: &str, faults: &[Fault]) -> Self {
-        let p = profile(stem);
-        let unit = p.device.default_unit;
-        let f = FaultSet::of(faults);
-        Self {
-            station: Station::new(drives::build(p, f.clone()), f, unit),
-            unit,
-            tid: 0,
-            now: Duration::ZERO,
-        }
-    }
-
     fn word_order(&self) -> WordOrder {
         self.station.profile().device.word_order
-    }
-
-    /// Move the virtual clock to `ms` milliseconds.
-    fn at_ms(&mut self, ms: u64) -> &mut Self {
-        self.now = Duration::from_millis(ms);
-        self
-    }
-
-    /// Send one request PDU; the response PDU. Checks the MBAP echo on the way.
-    fn pdu(&mut self, pdu: &[u8]) -> Vec<u8> {
-        self.tid = self.tid.wrapping_add(1);
-        let req = Request::decode(pdu).unwrap_or_else(|e| panic!("test request decodes: {e}"));
-        let adu = tcp::encode(self.tid, self.unit, &Pdu::Request(req)).expect("encodes");
-        let wire = self
-            .station
-            .tcp_adu(self.now, &adu)
-            .expect("the drive answers");
-        let hdr = tcp::Mbap::parse(&wire.bytes).expect("MBAP header");
-        assert_eq!(hdr.transaction_id, self.tid, "transaction id echoed");
-        assert_eq!(hdr.unit_id, self.unit, "unit id echoed");
-        assert_eq!(usize::from(hdr.length), wire.bytes.len() - 6, "MBAP length");
-        wire.bytes[MBAP_LEN..].to_vec()
-    }
-
-    /// Send a request PDU given as hex; the response PDU as upper-case spaced hex.
-    fn ask(&mut self, pdu_hex: &str) -> String {
-        let pdu = parse_hex(pdu_hex).expect("hex");
-        hex_spaced(&self.pdu(&pdu))
     }
 
     /// Read a 32-bit register pair at `address` as a signed value, in the profile's word order.
@@ -142,14 +77,6 @@ impl Sim {
             _ => Err(hex_spaced(&r)),
         }
     }
-}
-
-fn hex(s: &str) -> String {
-    hex_spaced(&parse_hex(s).expect("hex"))
-}
-
-fn ascii_hex(s: &str) -> String {
-    hex_spaced(s.as_bytes())
 }
 
 // ---------------------------------------------------------------------------------------------------------------
@@ -248,39 +175,7 @@ fn vm_write_then_read_lmd_low_word_first() {
 
 #[test]
 fn reserved_and_unmapped_addresses_give_02() {
-    for stem in ["mdrive", "lmd"] {
-        let mut s = Sim::new(stem, &[]);
-        assert_eq!(
-            s.ask("03 00 02 00 01"),
-            "83 02",
-            "{stem}: reserved 0x0002 read"
-        );
-        assert_eq!(
-            s.ask("10 00 02 00 01 02 00 01"),
-            "90 02",
-            "{stem}: reserved write"
-        );
-        assert_eq!(s.ask("03 00 B8 00 01"), "83 02", "{stem}: past the map");
-        assert_eq!(
-            s.ask("03 FF FF 00 02"),
-            "83 02",
-            "{stem}: range past 0xFFFF"
-        );
-        let a = if s.word_order() == WordOrder::HighFirst {
-            "03 04 00 0F 42 40"
-        } else {
-            "03 04 42 40 00 0F"
-        };
-        assert_eq!(s.ask("03 00 00 00 02"), a, "{stem}: A = 1000000");
-        // A range that runs from a mapped register into a reserved one fails as a whole.
-        assert_eq!(
-            s.ask("03 00 01 00 02"),
-            "83 02",
-            "{stem}: A's low word + reserved 0x0002"
-        );
-        // Write-only registers (MA) are not readable.
-        assert_eq!(s.ask("03 00 43 00 02"), "83 02", "{stem}: MA is write-only");
-    }
+    run_exchanges("reserved_and_unmapped_addresses_give_02");
 }
 
 #[test]
@@ -781,29 +676,20 @@ fn device_identification() {
 // Each model-level fault makes the drive answer differently from the healthy one.
 // ---------------------------------------------------------------------------------------------------------------
 
-fn both(stem: &str, fault: Fault, pdus: &[&str]) -> (Vec<String>, Vec<String>) {
-    let mut ok = Sim::new(stem, &[]);
-    let mut bad = Sim::new(stem, &[fault]);
-    (
-        pdus.iter().map(|p| ok.ask(p)).collect(),
-        pdus.iter().map(|p| bad.ask(p)).collect(),
-    )
-}
-
 #[test]
 fn fault_word_order() {
-    let (ok, bad) = both("mdrive", Fault::WordOrder, &["03 00 8B 00 02"]);
+    let (ok, bad) = both(&profile("mdrive"), Fault::WordOrder, &["03 00 8B 00 02"]);
     assert_eq!(ok, ["03 04 00 0B B8 00"]);
     assert_eq!(bad, ["03 04 B8 00 00 0B"]);
     // Writes too: the high-first write of 600000 lands as 0x27C00009 (out of range) on the faulted drive.
     let (ok, bad) = both(
-        "mdrive",
+        &profile("mdrive"),
         Fault::WordOrder,
         &["10 00 8B 00 02 04 00 09 27 C0"],
     );
     assert_eq!(ok, ["10 00 8B 00 02"]);
     assert_eq!(bad, ["90 03"]);
-    let (ok, bad) = both("lmd", Fault::WordOrder, &["03 00 8B 00 02"]);
+    let (ok, bad) = both(&profile("lmd"), Fault::WordOrder, &["03 00 8B 00 02"]);
     assert_eq!(ok, ["03 04 B8 00 00 0B"]);
     assert_eq!(bad, ["03 04 00 0B B8 00"]);
 }
@@ -811,7 +697,7 @@ fn fault_word_order() {
 #[test]
 fn fault_reserved_readable() {
     let (ok, bad) = both(
-        "mdrive",
+        &profile("mdrive"),
         Fault::ReservedReadable,
         &[
             "03 00 02 00 01",
@@ -826,7 +712,7 @@ fn fault_reserved_readable() {
 #[test]
 fn fault_read_only_writable() {
     let (ok, bad) = both(
-        "mdrive",
+        &profile("mdrive"),
         Fault::ReadOnlyWritable,
         &["10 00 1F 00 01 02 00 01", "03 00 1F 00 01"],
     );
@@ -842,7 +728,7 @@ fn fault_read_only_writable() {
 #[test]
 fn fault_range_unchecked() {
     let (ok, bad) = both(
-        "mdrive",
+        &profile("mdrive"),
         Fault::RangeUnchecked,
         &[
             "10 00 00 00 02 04 00 00 00 5A",
@@ -864,7 +750,7 @@ fn fault_range_unchecked() {
 #[test]
 fn fault_quantity_unchecked() {
     let (ok, bad) = both(
-        "mdrive",
+        &profile("mdrive"),
         Fault::QuantityUnchecked,
         &["03 00 A5 00 05", "03 00 A5 00 00", "01 00 4B 00 05"],
     );
@@ -916,17 +802,6 @@ fn pdu() -> impl Strategy<Value = Vec<u8>> {
     ]
 }
 
-/// The faults that change what the model answers (the wire-level ones are the station's and tested there);
-/// under them too, nothing may panic and every answer must decode.
-const MODEL_FAULTS: &[Fault] = &[
-    Fault::WordOrder,
-    Fault::ReservedReadable,
-    Fault::ReadOnlyWritable,
-    Fault::RangeUnchecked,
-    Fault::QuantityUnchecked,
-    Fault::IllegalCoilValueAccepted,
-];
-
 proptest! {
     #![proptest_config(ProptestConfig::with_cases(256))]
     #[test]
@@ -939,15 +814,7 @@ proptest! {
         let mut now = Duration::ZERO;
         for (i, (pdu, dt)) in steps.iter().enumerate() {
             now += Duration::from_millis(*dt);
-            let mut adu = Vec::new();
-            let Ok(()) = tcp::encode_adu(i as u16, s.unit, pdu, &mut adu) else { continue };
-            let Some(w) = s.station.tcp_adu(now, &adu) else { continue };
-            let body = &w.bytes[MBAP_LEN..];
-            let resp = Response::decode(body);
-            prop_assert!(resp.is_ok(), "PDU {} answered {}: {:?}", hex_spaced(pdu), hex_spaced(body), resp);
-            if let (Some(&fc), Some(&rfc)) = (pdu.first(), body.first()) {
-                prop_assert_eq!(rfc & 0x7F, fc & 0x7F, "function code echoed");
-            }
+            s.answer_decodes(i, now, pdu)?;
         }
     }
 }

@@ -8,7 +8,8 @@
 use std::time::Duration;
 
 use codec::{
-    CanOpenAccess, Direction, ExceptionCode, FunctionCode, Pdu, Request, Response, parse_hex, rtu,
+    CanOpenAccess, Direction, ExceptionCode, FunctionCode, Pdu, Request, Response, hex_spaced,
+    parse_hex, rtu,
 };
 use drives::corpus::Corpus;
 use drives::golden::{GoldenDirection, GoldenFile};
@@ -18,6 +19,8 @@ use drives::{self, Fault, FaultSet, Station};
 use proptest::collection::vec;
 use proptest::prelude::*;
 use proptest::sample::select;
+
+use crate::support;
 
 // Status words as the model composes them (see sim/sd2x.rs): DS402 state bits | voltage enabled (0x0010)
 // | quick stop not active (0x0020) | bits 12-14 (0x7000) | target reached (0x0400).
@@ -33,10 +36,7 @@ const FAULT: u16 = 0x7038;
 const UNIT: u8 = 1;
 
 fn profile() -> Profile {
-    let (name, text) = Corpus::Embedded
-        .file("profiles", "sd2x")
-        .expect("embedded sd2x profile");
-    Profile::parse(&name, &text).expect("sd2x profile parses")
+    support::profile("sd2x")
 }
 
 fn station_with(profile: Profile, faults: &[Fault]) -> Station {
@@ -53,13 +53,6 @@ fn ms(n: u64) -> Duration {
     Duration::from_millis(n)
 }
 
-fn hex(b: &[u8]) -> String {
-    b.iter()
-        .map(|x| format!("{x:02X}"))
-        .collect::<Vec<_>>()
-        .join(" ")
-}
-
 /// Send `req` to `address` at `t_ms`; the reply, strictly decoded, or `None` for silence.
 fn send_to(st: &mut Station, t_ms: u64, address: u8, req: Request) -> Option<Response> {
     let bytes = rtu::encode(address, &Pdu::Request(req)).expect("request encodes");
@@ -69,7 +62,10 @@ fn send_to(st: &mut Station, t_ms: u64, address: u8, req: Request) -> Option<Res
             assert_eq!(a, address, "reply address");
             Some(r)
         }
-        other => panic!("reply {} does not decode: {other:?}", hex(&wire.bytes)),
+        other => panic!(
+            "reply {} does not decode: {other:?}",
+            hex_spaced(&wire.bytes)
+        ),
     }
 }
 
@@ -173,7 +169,12 @@ fn golden_replay_gives_the_corrected_responses() {
         let got = st
             .rtu_frame(ms(*t), &bytes(req))
             .unwrap_or_else(|| panic!("{}: silence", req.id));
-        assert_eq!(hex(&got.bytes), hex(&bytes(resp)), "{}", req.id);
+        assert_eq!(
+            hex_spaced(&got.bytes),
+            hex_spaced(&bytes(resp)),
+            "{}",
+            req.id
+        );
         replayed += 1;
     }
     assert_eq!(replayed, schedule.len(), "every scheduled request replayed");
@@ -199,7 +200,7 @@ fn golden_replay_gives_the_corrected_responses() {
     ];
     for (t, req, resp) in frames {
         let got = st.rtu_frame(ms(t), &parse_hex(req).unwrap()).expect(req);
-        assert_eq!(hex(&got.bytes), resp, "{req}");
+        assert_eq!(hex_spaced(&got.bytes), resp, "{req}");
     }
 }
 
@@ -222,7 +223,7 @@ fn status_read_is_state_dependent() {
     telegram(&mut st, 0, 0x0006, 1000, 500);
     assert_eq!(status(&mut st, 500), READY_TO_SWITCH_ON);
     let got = st.rtu_frame(ms(501), &req).unwrap();
-    assert_eq!(hex(&got.bytes), "01 03 02 70 38 9C 56");
+    assert_eq!(hex_spaced(&got.bytes), "01 03 02 70 38 9C 56");
 }
 
 // ---------------------------------------------------------------------------------------------------------------
@@ -737,9 +738,9 @@ fn sdo_errors() {
     .unwrap();
     let got = st.rtu_frame(ms(0), &bytes).unwrap();
     assert!(
-        hex(&got.bytes).starts_with("01 AB FF 00 06 0D CE 0B 00 FF FF"),
+        hex_spaced(&got.bytes).starts_with("01 AB FF 00 06 0D CE 0B 00 FF FF"),
         "{}",
-        hex(&got.bytes)
+        hex_spaced(&got.bytes)
     );
 
     let cases = [
@@ -1147,7 +1148,7 @@ proptest! {
             if let Some(w) = st.rtu_frame(ms(t), &bytes) {
                 let decoded = rtu::decode(&w.bytes, Direction::Response);
                 prop_assert!(decoded.is_ok(), "reply {} to {} does not decode: {:?}",
-                    hex(&w.bytes), hex(&bytes), decoded);
+                    hex_spaced(&w.bytes), hex_spaced(&bytes), decoded);
                 if let Ok((address, Pdu::Response(r))) = decoded {
                     prop_assert_eq!(address, bytes[0]);
                     prop_assert_eq!(r.function().without_exception_bit().0, bytes[1] & 0x7F);

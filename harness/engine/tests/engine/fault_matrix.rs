@@ -1,12 +1,11 @@
 //! Every simulator fault makes at least one conformance case FAIL, and the same case PASSes on a healthy
 //! drive: no check is vacuous, no fault goes unnoticed. The witness case of each fault is named here.
 
-use std::sync::atomic::AtomicBool;
-
 use drives::{Fault, FaultSet};
 use engine::Verdict;
-use engine::session::{Options, run};
+use engine::session::Options;
 use engine::targets::TargetUrl;
+use test_support::run_quietly;
 
 /// (fault, target, the case that must FAIL with it).
 const WITNESSES: &[(&str, &str, &str)] = &[
@@ -121,13 +120,7 @@ fn verdict_of(target: &str, case: &str, faults: FaultSet) -> Verdict {
     o.include = vec![case.to_string()];
     o.faults = faults;
     o.keep_verdicts = true;
-    let out = run(
-        &o,
-        &mut std::io::sink(),
-        &AtomicBool::new(false),
-        &mut |_, _, _, _| {},
-    )
-    .unwrap_or_else(|e| panic!("{target} {case}: {e}"));
+    let out = run_quietly(&o).unwrap_or_else(|e| panic!("{target} {case}: {e}"));
     assert_eq!(
         out.verdicts.len(),
         1,

@@ -7,7 +7,6 @@
 
 use std::collections::BTreeSet;
 use std::io::Write;
-use std::sync::atomic::AtomicBool;
 
 use codec::{MAX_PDU_LEN, Request};
 use drives::corpus::Corpus;
@@ -16,9 +15,10 @@ use drives::{Fault, FaultSet};
 use engine::cases::generate::pdu_tags;
 use engine::cases::generated::Generator;
 use engine::cases::shrink::{self, RegressionFile, ShrinkLimits};
-use engine::session::{self, Options, run};
+use engine::session::{self, Options};
 use engine::targets::TargetUrl;
 use engine::{Case, Send, Step, Tag, Verdict};
+use test_support::{failures_of, profile, run_ok};
 
 /// The size bound of a shrunk reproducer (RangeUnchecked / QuantityUnchecked on the MDrive): at most this
 /// many exchange steps ...
@@ -33,10 +33,6 @@ fn say(line: &str) {
     let _ = writeln!(std::io::stderr().lock(), "{line}");
 }
 
-fn profile(name: &str) -> Profile {
-    session::load_profile(&Corpus::Embedded, name).expect("profile")
-}
-
 fn generated(target: &str, n: u64, seed: u64, faults: &[Fault]) -> Options {
     let mut o = Options::new(TargetUrl::parse(target).expect("url"));
     o.generated = n;
@@ -44,16 +40,6 @@ fn generated(target: &str, n: u64, seed: u64, faults: &[Fault]) -> Options {
     o.faults = FaultSet::of(faults);
     o.keep_verdicts = true;
     o
-}
-
-fn go(o: &Options) -> session::Outcome {
-    run(
-        o,
-        &mut std::io::sink(),
-        &AtomicBool::new(false),
-        &mut |_, _, _, _| {},
-    )
-    .unwrap_or_else(|e| panic!("{}: {e}", o.target))
 }
 
 /// The PDUs a case sends, as built (mutations applied where they act on the PDU).
@@ -235,12 +221,8 @@ fn healthy_reference_drives_pass_every_generated_case() {
         "sim:generic",
         "sim:mdrive?transport=rtu",
     ] {
-        let out = go(&generated(target, 400, seed, &[]));
-        let fails: Vec<String> = out
-            .failures
-            .iter()
-            .map(|f| format!("{}: {:?}", f.id, f.findings().collect::<Vec<_>>()))
-            .collect();
+        let out = run_ok(&generated(target, 400, seed, &[]));
+        let fails = failures_of(&out);
         assert!(fails.is_empty(), "{target} seed {seed}: {fails:#?}");
         assert_eq!(out.info.seed, Some(seed));
         assert!(
@@ -261,7 +243,7 @@ fn a_faulted_drive_fails_generated_cases_and_the_shrinker_returns_a_small_reprod
         o.regressions_dir = Some(dir.path().to_path_buf());
         o.max_shrinks = 3;
         o.shrink = Some(ShrinkLimits::default());
-        let out = go(&o);
+        let out = run_ok(&o);
         assert!(out.summary.count(Verdict::Fail) > 0, "{fault}: no FAIL");
         assert!(!out.shrunk.is_empty(), "{fault}: nothing shrunk");
         for r in &out.shrunk {
@@ -306,7 +288,7 @@ fn the_shrinker_respects_its_step_bound() {
         max_steps: 3,
         max_time: std::time::Duration::from_secs(30),
     });
-    let out = go(&o);
+    let out = run_ok(&o);
     assert!(!out.shrunk.is_empty());
     for r in &out.shrunk {
         let s = r.shrunk.as_ref().expect("shrunk");
@@ -332,7 +314,7 @@ fn the_committed_reproducer_is_in_the_catalog_passes_healthy_and_fails_faulted()
         o.include = vec![COMMITTED.to_string()];
         o.faults = FaultSet::of(faults);
         o.keep_verdicts = true;
-        let out = go(&o);
+        let out = run_ok(&o);
         assert_eq!(out.verdicts.len(), 1, "{:?}", out.verdicts);
         out.verdicts[0].1
     };

@@ -3,14 +3,15 @@
 //! as the in-process run.
 
 use std::collections::BTreeMap;
-use std::sync::atomic::AtomicBool;
 use std::time::Duration;
 
 use engine::Verdict;
 use engine::servers::ServerConfig;
-use engine::session::{Options, run};
+use engine::session::Options;
 use engine::targets::TargetUrl;
-use test_support::{PtyPair, have_socat, loopback_tcp_and_rtu, serve, skip};
+use test_support::{
+    PtyPair, failures_of, have_socat, loopback_tcp_and_rtu, run_quietly, serve, skip,
+};
 
 fn verdicts(url: &str, profile: &str) -> BTreeMap<String, Verdict> {
     let mut o = Options::new(TargetUrl::parse(url).expect("url"));
@@ -21,18 +22,8 @@ fn verdicts(url: &str, profile: &str) -> BTreeMap<String, Verdict> {
     o.allow_destructive = true;
     o.timeout = Duration::from_millis(1000);
     o.silence = Duration::from_millis(150);
-    let out = run(
-        &o,
-        &mut std::io::sink(),
-        &AtomicBool::new(false),
-        &mut |_, _, _, _| {},
-    )
-    .unwrap_or_else(|e| panic!("{url}: {e}"));
-    let fails: Vec<String> = out
-        .failures
-        .iter()
-        .map(|f| format!("{}: {:?}", f.id, f.findings().collect::<Vec<_>>()))
-        .collect();
+    let out = run_quietly(&o).unwrap_or_else(|e| panic!("{url}: {e}"));
+    let fails = failures_of(&out);
     assert!(fails.is_empty(), "{url} ({profile}) has FAILs: {fails:#?}");
     out.verdicts.into_iter().collect()
 }

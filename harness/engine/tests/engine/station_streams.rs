@@ -5,26 +5,12 @@
 use std::time::Duration;
 
 use codec::{CharFormat, Direction, Parity, RtuTiming, rtu, tcp};
-use drives::corpus::Corpus;
-use drives::profile::Profile;
-use drives::{self, FaultSet, RtuPort, Station, TcpConn};
+use drives::{RtuPort, TcpConn};
 use engine::cases::catalog::probe_pdu;
 use proptest::prelude::*;
+use test_support::{profile, station};
 
 const PROFILES: [&str; 4] = ["sd2x", "mdrive", "lmd", "generic"];
-
-fn profile(name: &str) -> Profile {
-    let (f, t) = Corpus::Embedded.file("profiles", name).expect("profile");
-    Profile::parse(&f, &t).expect("valid profile")
-}
-
-fn station(p: &Profile) -> Station {
-    Station::new(
-        drives::build(p.clone(), FaultSet::none()),
-        FaultSet::none(),
-        p.device.default_unit,
-    )
-}
 
 fn chunks() -> impl Strategy<Value = Vec<(Vec<u8>, u16)>> {
     // (bytes, gap in µs before them): garbage, valid-looking MBAP headers, RTU-looking frames alike.
@@ -40,7 +26,7 @@ proptest! {
     #[test]
     fn tcp_streams(stream in chunks(), which in 0usize..4) {
         let p = profile(PROFILES[which]);
-        let mut s = station(&p);
+        let mut s = station(PROFILES[which], &[]);
         let mut conn = TcpConn::default();
         let mut now = Duration::ZERO;
         for (bytes, gap) in &stream {
@@ -66,7 +52,7 @@ proptest! {
     #[test]
     fn rtu_streams(stream in chunks(), which in 0usize..4, over_tcp in any::<bool>()) {
         let p = profile(PROFILES[which]);
-        let mut s = station(&p);
+        let mut s = station(PROFILES[which], &[]);
         let timing = if over_tcp {
             RtuTiming::tcp_carrier()
         } else {

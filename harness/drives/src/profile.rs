@@ -65,12 +65,33 @@ fn default_max_pdu() -> u16 {
     253
 }
 
-/// A transport the device speaks.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Deserialize)]
-#[serde(rename_all = "lowercase")]
+/// How Modbus travels: what a device speaks (a profile's `transports`) and how a run reached it.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Deserialize, serde::Serialize)]
+#[serde(rename_all = "snake_case")]
 pub enum Transport {
+    /// Modbus/TCP (MBAP framing).
     Tcp,
+    /// RTU on a serial line.
     Rtu,
+    /// RTU frames carried in a TCP stream (serial gateways).
+    RtuOverTcp,
+}
+
+impl Transport {
+    /// The name used in reports and on the command line.
+    pub fn label(self) -> &'static str {
+        match self {
+            Transport::Tcp => "tcp",
+            Transport::Rtu => "rtu",
+            Transport::RtuOverTcp => "rtu-over-tcp",
+        }
+    }
+}
+
+impl std::fmt::Display for Transport {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.label())
+    }
 }
 
 /// Serial line settings (RTU drives).

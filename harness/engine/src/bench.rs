@@ -232,12 +232,11 @@ fn runner_for(target: Box<dyn Target>, profile: &Profile) -> Runner {
     let shadow = SimTarget::with_framing(shadow_station, framing, target.rtu_timing()).mirror();
     let cfg = RunConfig {
         unit: UNIT,
-        timeout: TIMEOUT,
-        silence: Duration::from_millis(300),
-        allow_motion: false,
-        allow_destructive: false,
-        read_only: false,
-        max_rate: None,
+        timing: crate::runner::Timing {
+            timeout: TIMEOUT,
+            silence: Duration::from_millis(300),
+        },
+        safety: Default::default(),
         is_sim: false,
     };
     Runner::new(
@@ -516,12 +515,8 @@ pub fn catalog_loop(
     .mirror();
     let cfg = RunConfig {
         unit,
-        timeout: opts.timeout,
-        silence: opts.silence,
-        allow_motion: false,
-        allow_destructive: false,
-        read_only: false,
-        max_rate: None,
+        timing: opts.timing,
+        safety: Default::default(),
         is_sim: true,
     };
     let mut reports = match report {

@@ -23,4 +23,5 @@ pub mod session;
 pub mod targets;
 
 pub use cases::{Case, Compare, Level, Mutation, Send, Step, Tag, Verdict};
-pub use observe::{CaseResult, Dir, Outcome, StepResult, WireEvent};
+pub use observe::{CaseResult, Dir, StepResult, WireEvent};
+pub use targets::Received;

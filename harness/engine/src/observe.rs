@@ -5,6 +5,7 @@ use std::time::Duration;
 use serde::Serialize;
 
 use crate::cases::Verdict;
+use crate::targets::Received;
 
 /// Which way bytes went.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
@@ -27,27 +28,6 @@ pub struct WireEvent {
     pub intended_malformed: bool,
 }
 
-/// What came back for one request.
-#[derive(Clone, Debug, PartialEq, Eq, Serialize)]
-#[serde(rename_all = "snake_case", tag = "kind")]
-pub enum Outcome {
-    /// A complete frame (it may still be malformed in its content).
-    Frame {
-        #[serde(serialize_with = "hex_bytes")]
-        bytes: Vec<u8>,
-    },
-    /// Nothing within the timeout (partial bytes, if any, are in the wire log).
-    Silence,
-    /// The peer closed the connection.
-    Closed,
-    /// Bytes that cannot be a frame (framer discard, impossible MBAP length).
-    Garbage {
-        #[serde(serialize_with = "hex_bytes")]
-        bytes: Vec<u8>,
-        reason: String,
-    },
-}
-
 /// The judged result of one step.
 #[derive(Clone, Debug, PartialEq, Eq, Serialize)]
 pub struct StepResult {
@@ -57,7 +37,7 @@ pub struct StepResult {
     /// What the reference model answers (framed as on the wire; None = silence).
     #[serde(serialize_with = "opt_hex")]
     pub expected: Option<Vec<u8>>,
-    pub observed: Vec<Outcome>,
+    pub observed: Vec<Received>,
     pub verdict: Verdict,
     /// Why the verdict is not PASS, one line each.
     pub findings: Vec<String>,
@@ -91,7 +71,7 @@ fn micros<S: serde::Serializer>(d: &Duration, s: S) -> Result<S::Ok, S::Error> {
     s.serialize_u64(d.as_micros() as u64)
 }
 
-fn hex_bytes<S: serde::Serializer>(b: &[u8], s: S) -> Result<S::Ok, S::Error> {
+pub(crate) fn hex_bytes<S: serde::Serializer>(b: &[u8], s: S) -> Result<S::Ok, S::Error> {
     s.serialize_str(&codec::hex_spaced(b))
 }
 

@@ -5,27 +5,52 @@ use std::time::{Duration, Instant};
 
 use crate::cases::{Case, Compare, Mutation, Send, Step, Tag, Verdict};
 use crate::expect::Expectations;
-use crate::observe::{CaseResult, Dir, Outcome, StepResult, WireEvent};
+use crate::observe::{CaseResult, Dir, StepResult, WireEvent};
 use crate::oracle::{self, Captured, Finding, Sent, Severity};
 use crate::targets::sim::SimTarget;
 use crate::targets::{Received, Target, TargetError};
 use codec::{Framing, Request, rtu, tcp};
 use drives::profile::Profile;
 
+/// How long the runner waits.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Timing {
+    /// How long to wait for an expected answer.
+    pub timeout: Duration,
+    /// How long to listen to confirm that nothing comes.
+    pub silence: Duration,
+}
+
+impl Default for Timing {
+    /// 1 s for an answer, 300 ms of listening for one that must not come.
+    fn default() -> Self {
+        Self {
+            timeout: Duration::from_millis(1000),
+            silence: Duration::from_millis(300),
+        }
+    }
+}
+
+/// What the safety policy lets a run do to a real drive (the in-process simulator is not protected).
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct Safety {
+    /// Cases that can move the motor or enable the power stage run.
+    pub allow_motion: bool,
+    /// Cases that change non-volatile state or leave the drive faulted run.
+    pub allow_destructive: bool,
+    /// No case that writes runs.
+    pub read_only: bool,
+    /// Requests per second at most.
+    pub max_rate: Option<f64>,
+}
+
 /// How a run behaves.
 #[derive(Clone, Debug)]
 pub struct RunConfig {
     /// Unit id / slave address of the drive.
     pub unit: u8,
-    /// How long to wait for an expected answer.
-    pub timeout: Duration,
-    /// How long to listen to confirm that nothing comes.
-    pub silence: Duration,
-    pub allow_motion: bool,
-    pub allow_destructive: bool,
-    pub read_only: bool,
-    /// Requests per second at most (real targets).
-    pub max_rate: Option<f64>,
+    pub timing: Timing,
+    pub safety: Safety,
     /// The target is the in-process simulator: the safety policy does not apply.
     pub is_sim: bool,
 }
@@ -38,17 +63,17 @@ pub fn skip_reason(case: &Case, cfg: &RunConfig, framing: Framing) -> Option<Str
     if case.has(Tag::RtuOnly) && framing != Framing::Rtu {
         return Some("needs RTU framing".into());
     }
-    if cfg.read_only && case.has(Tag::Write) {
+    if cfg.safety.read_only && case.has(Tag::Write) {
         return Some("writes, and --read-only is set".into());
     }
     if !cfg.is_sim {
-        if case.has(Tag::Motion) && !cfg.allow_motion {
+        if case.has(Tag::Motion) && !cfg.safety.allow_motion {
             return Some(
                 "can move the motor or enable the power stage: pass --allow-motion to run it"
                     .into(),
             );
         }
-        if case.has(Tag::Destructive) && !cfg.allow_destructive {
+        if case.has(Tag::Destructive) && !cfg.safety.allow_destructive {
             return Some("changes non-volatile state or leaves the drive faulted: pass --allow-destructive to run it".into());
         }
     }
@@ -172,7 +197,7 @@ impl Runner {
         if self.cfg.is_sim {
             return;
         }
-        if let (Some(rate), Some(last)) = (self.cfg.max_rate, self.last_send) {
+        if let (Some(rate), Some(last)) = (self.cfg.safety.max_rate, self.last_send) {
             let gap = Duration::from_secs_f64(1.0 / rate.max(0.001));
             let since = last.elapsed();
             if since < gap {
@@ -422,9 +447,9 @@ impl Runner {
         let n = expected.len().max(1);
         for i in 0..n {
             let wait = if expected.is_empty() {
-                self.cfg.silence
+                self.cfg.timing.silence
             } else {
-                self.cfg.timeout
+                self.cfg.timing.timeout
             };
             let got = self.target.recv(wait)?;
             let stop = !matches!(got, Received::Frame { .. } | Received::Garbage { .. });
@@ -464,7 +489,7 @@ impl Runner {
             {
                 *s = Some(c);
             }
-            observed.push(outcome(got));
+            observed.push(got);
             if stop {
                 break;
             }
@@ -500,15 +525,6 @@ fn record(r: &Received, wire: &mut Vec<WireEvent>) {
             bytes: bytes.clone(),
             intended_malformed: false,
         });
-    }
-}
-
-fn outcome(r: Received) -> Outcome {
-    match r {
-        Received::Frame { bytes, .. } => Outcome::Frame { bytes },
-        Received::Silence { .. } => Outcome::Silence,
-        Received::Closed { .. } => Outcome::Closed,
-        Received::Garbage { bytes, reason, .. } => Outcome::Garbage { bytes, reason },
     }
 }
 

@@ -13,7 +13,7 @@ use crate::expect::Expectations;
 use crate::observe::CaseResult;
 use crate::reports::snapshot::{self, Drift, SnapshotHeader, SnapshotWriter};
 use crate::reports::{Reports, RunInfo, Summary, Tally};
-use crate::runner::{RunConfig, Runner, skip_reason};
+use crate::runner::{RunConfig, Runner, Safety, Timing, skip_reason};
 use crate::targets::sim::SimTarget;
 use crate::targets::{self, Received, TargetError, TargetUrl};
 use codec::{Direction, Framing, Pdu, Request, Response, decode_any, rtu, tcp};
@@ -30,13 +30,11 @@ pub struct Options {
     pub profile: Option<String>,
     pub corpus: Corpus,
     pub unit: Option<u8>,
-    pub timeout: Duration,
-    pub silence: Duration,
+    /// How long to wait for answers and for silence.
+    pub timing: Timing,
     pub connect_timeout: Duration,
-    pub allow_motion: bool,
-    pub allow_destructive: bool,
-    pub read_only: bool,
-    pub max_rate: Option<f64>,
+    /// What the run may do to a real drive.
+    pub safety: Safety,
     pub include: Vec<String>,
     pub exclude: Vec<String>,
     pub expect: Option<PathBuf>,
@@ -83,13 +81,9 @@ impl Options {
             profile: None,
             corpus: Corpus::Embedded,
             unit: None,
-            timeout: Duration::from_millis(1000),
-            silence: Duration::from_millis(300),
+            timing: Timing::default(),
             connect_timeout: Duration::from_secs(3),
-            allow_motion: false,
-            allow_destructive: false,
-            read_only: false,
-            max_rate: None,
+            safety: Safety::default(),
             include: Vec::new(),
             exclude: Vec::new(),
             expect: None,
@@ -122,7 +116,7 @@ pub enum SessionError {
 
 /// What a run produced.
 #[derive(Debug)]
-pub struct Outcome {
+pub struct RunOutcome {
     pub summary: Summary,
     pub info: RunInfo,
     /// (case id, verdict), when `keep_verdicts` was set.
@@ -165,7 +159,7 @@ impl SnapshotOutcome {
     }
 }
 
-impl Outcome {
+impl RunOutcome {
     /// The verdict of a case, when kept.
     pub fn verdict(&self, id: &str) -> Option<Verdict> {
         self.verdicts.iter().find(|(i, _)| i == id).map(|(_, v)| *v)
@@ -264,7 +258,7 @@ fn auto_profile(opts: &Options, log: &mut dyn Write) -> Result<Profile, SessionE
         let _ = rtu::encode_adu(unit, &pdu, &mut frame);
     }
     t.send(&frame)?;
-    let got = t.recv(opts.timeout)?;
+    let got = t.recv(opts.timing.timeout)?;
     let Received::Frame { bytes, .. } = got else {
         return Err(SessionError::Setup(format!(
             "--profile auto: {} gave no device identification answer ({got:?}); name the profile with --profile",
@@ -396,12 +390,8 @@ fn selected(c: &Case, include: &[String], exclude: &[String]) -> bool {
 pub(crate) fn config(opts: &Options, profile: &Profile) -> RunConfig {
     RunConfig {
         unit: opts.unit.unwrap_or(profile.device.default_unit),
-        timeout: opts.timeout,
-        silence: opts.silence,
-        allow_motion: opts.allow_motion,
-        allow_destructive: opts.allow_destructive,
-        read_only: opts.read_only,
-        max_rate: opts.max_rate,
+        timing: opts.timing,
+        safety: opts.safety,
         is_sim: opts.target.is_sim() && !opts.policy_on_sim,
     }
 }
@@ -454,7 +444,7 @@ pub fn run(
     log: &mut dyn Write,
     interrupt: &AtomicBool,
     progress: &mut dyn FnMut(usize, usize, &str, Verdict),
-) -> Result<Outcome, SessionError> {
+) -> Result<RunOutcome, SessionError> {
     let profile = resolve_profile(opts, log)?;
     if !opts.faults.0.is_empty() && !opts.target.is_sim() {
         return Err(SessionError::Setup(
@@ -645,7 +635,7 @@ pub fn run(
         (Some(w), Some(s)) => Some(finish_snapshot(w, s)?),
         _ => None,
     };
-    Ok(Outcome {
+    Ok(RunOutcome {
         summary,
         info,
         verdicts,

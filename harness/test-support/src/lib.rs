@@ -18,7 +18,7 @@ use drives::corpus::Corpus;
 use drives::profile::Profile;
 use drives::{self, Fault, FaultSet, Station};
 use engine::servers::{self, SerialConfig, ServerConfig, ServerHandle};
-use engine::session::{self, Options, Outcome, SessionError};
+use engine::session::{self, Options, RunOutcome, SessionError};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::TcpStream;
 
@@ -671,7 +671,7 @@ pub fn wait_socat_ready(stderr: impl std::io::Read + Send + 'static, what: &str)
 }
 
 /// A conformance run with no log, no interruption and no progress reports.
-pub fn run_quietly(o: &Options) -> Result<Outcome, SessionError> {
+pub fn run_quietly(o: &Options) -> Result<RunOutcome, SessionError> {
     session::run(
         o,
         &mut std::io::sink(),
@@ -681,12 +681,12 @@ pub fn run_quietly(o: &Options) -> Result<Outcome, SessionError> {
 }
 
 /// `run_quietly`, panicking with the target named when the run fails to run.
-pub fn run_ok(o: &Options) -> Outcome {
+pub fn run_ok(o: &Options) -> RunOutcome {
     run_quietly(o).unwrap_or_else(|e| panic!("{}: {e}", o.target))
 }
 
 /// The FAILs of a run, each as its case id and findings.
-pub fn failures_of(out: &Outcome) -> Vec<String> {
+pub fn failures_of(out: &RunOutcome) -> Vec<String> {
     out.failures
         .iter()
         .map(|f| format!("{}: {:?}", f.id, f.findings().collect::<Vec<_>>()))

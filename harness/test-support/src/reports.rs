@@ -5,8 +5,8 @@ use std::time::Duration;
 
 use engine::reports::{RunInfo, Transport};
 use engine::{
-    Case, CaseResult, Compare, Dir, Level, Mutation, Outcome, Send, Step, StepResult, Tag, Verdict,
-    WireEvent,
+    Case, CaseResult, Compare, Dir, Level, Mutation, Received, Send, Step, StepResult, Tag,
+    Verdict, WireEvent,
 };
 
 /// A finding that tries to inject markup into the HTML and XML reports.
@@ -83,9 +83,9 @@ fn exchange(
                 bytes: r.clone(),
                 intended_malformed: false,
             });
-            vec![Outcome::Frame { bytes: r.clone() }]
+            vec![Received::frame(r.clone())]
         }
-        None => vec![Outcome::Silence],
+        None => vec![Received::silence()],
     };
     CaseResult {
         id: id.to_string(),

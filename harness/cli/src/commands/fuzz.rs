@@ -111,11 +111,11 @@ pub fn run(args: &FuzzArgs) -> ExitCode {
     base.profile = args.profile.clone();
     base.corpus = Corpus::Embedded;
     base.unit = args.unit;
-    base.timeout = Duration::from_millis(args.timeout.max(1));
+    base.timing.timeout = Duration::from_millis(args.timeout.max(1));
     base.faults = faults;
-    base.allow_motion = args.allow_motion;
-    base.allow_destructive = args.allow_destructive;
-    base.read_only = args.read_only;
+    base.safety.allow_motion = args.allow_motion;
+    base.safety.allow_destructive = args.allow_destructive;
+    base.safety.read_only = args.read_only;
     let regressions = args.regressions.clone().unwrap_or_else(|| {
         if std::path::Path::new("corpus").is_dir() {
             PathBuf::from("corpus/regressions")

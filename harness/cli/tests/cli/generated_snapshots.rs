@@ -31,8 +31,8 @@ fn options(url: &str, profile: &str, seed: u64, faults: &[Fault]) -> Options {
     o.faults = FaultSet::of(faults);
     o.policy_on_sim = true;
     o.shrink = None;
-    o.timeout = Duration::from_millis(1000);
-    o.silence = Duration::from_millis(150);
+    o.timing.timeout = Duration::from_millis(1000);
+    o.timing.silence = Duration::from_millis(150);
     o
 }
 

@@ -14,7 +14,8 @@ use super::{
     HTML_FILE, INDEX_FILE, RunInfo, Sink, Summary, dir_label, iso8601_utc, partial_path, promote,
     with_path,
 };
-use crate::{Case, CaseResult, Dir, Outcome, StepResult, Verdict};
+use crate::targets::Received;
+use crate::{Case, CaseResult, Dir, StepResult, Verdict};
 use codec::hex_spaced;
 
 /// The most cases of one verdict that the page shows in full.
@@ -147,12 +148,12 @@ fn diff_hex(observed: &[u8], expected: Option<&[u8]>) -> String {
     s
 }
 
-fn observed_html(o: &Outcome, expected: Option<&[u8]>) -> String {
+fn observed_html(o: &Received, expected: Option<&[u8]>) -> String {
     match o {
-        Outcome::Frame { bytes } => format!("<code>{}</code>", diff_hex(bytes, expected)),
-        Outcome::Silence => "<i>silence</i>".to_string(),
-        Outcome::Closed => "<i>connection closed</i>".to_string(),
-        Outcome::Garbage { bytes, reason } => format!(
+        Received::Frame { bytes, .. } => format!("<code>{}</code>", diff_hex(bytes, expected)),
+        Received::Silence { .. } => "<i>silence</i>".to_string(),
+        Received::Closed { .. } => "<i>connection closed</i>".to_string(),
+        Received::Garbage { bytes, reason, .. } => format!(
             "<i>garbage ({})</i> <code>{}</code>",
             escape_html(reason),
             hex_spaced(bytes)

@@ -40,7 +40,10 @@ use std::time::Duration;
 
 use serde::Serialize;
 
-use crate::{Case, CaseResult, Dir, Outcome, Verdict, WireEvent};
+pub use drives::profile::Transport;
+
+use crate::targets::Received;
+use crate::{Case, CaseResult, Dir, Verdict, WireEvent};
 use codec::hex_spaced;
 
 pub use html::{HTML_ROWS_PER_VERDICT, HtmlSink, escape_html};
@@ -67,35 +70,6 @@ pub const FAILING_CAP: usize = 100;
 pub const TERMINAL_FAILING_CAP: usize = 50;
 /// The TCP port the pcap uses when the run has none (serial RTU): no Wireshark dissector claims it.
 pub const PCAP_SERIAL_PORT: u16 = 5020;
-
-/// How the harness reached the target.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize)]
-#[serde(rename_all = "snake_case")]
-pub enum Transport {
-    /// Modbus/TCP (MBAP framing).
-    Tcp,
-    /// RTU on a serial line.
-    Rtu,
-    /// RTU frames carried in a TCP stream.
-    RtuOverTcp,
-}
-
-impl Transport {
-    /// The name used in reports.
-    pub fn label(self) -> &'static str {
-        match self {
-            Transport::Tcp => "tcp",
-            Transport::Rtu => "rtu",
-            Transport::RtuOverTcp => "rtu-over-tcp",
-        }
-    }
-}
-
-impl std::fmt::Display for Transport {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.write_str(self.label())
-    }
-}
 
 /// What was run, against what, by whom: the header of every report.
 #[derive(Clone, Debug, PartialEq, Eq, Serialize)]
@@ -540,12 +514,14 @@ pub(crate) fn dir_label(d: Dir) -> &'static str {
 }
 
 /// An observed outcome in one line.
-pub(crate) fn outcome_text(o: &Outcome) -> String {
+pub(crate) fn outcome_text(o: &Received) -> String {
     match o {
-        Outcome::Frame { bytes } => hex_spaced(bytes),
-        Outcome::Silence => "(silence)".to_string(),
-        Outcome::Closed => "(connection closed)".to_string(),
-        Outcome::Garbage { bytes, reason } => format!("(garbage: {reason}) {}", hex_spaced(bytes)),
+        Received::Frame { bytes, .. } => hex_spaced(bytes),
+        Received::Silence { .. } => "(silence)".to_string(),
+        Received::Closed { .. } => "(connection closed)".to_string(),
+        Received::Garbage { bytes, reason, .. } => {
+            format!("(garbage: {reason}) {}", hex_spaced(bytes))
+        }
     }
 }
 

@@ -198,7 +198,7 @@ pub async fn start(station: Station, config: &ServerConfig) -> Result<ServerHand
         handle.tcp = listener.local_addr().ok();
         handle.tasks.spawn(listen(
             listener,
-            Transport::Tcp,
+            Speaks::Tcp,
             shared.clone(),
             Shutdown::new(stop_rx.clone()),
         ));
@@ -208,7 +208,7 @@ pub async fn start(station: Station, config: &ServerConfig) -> Result<ServerHand
         handle.rtu_over_tcp = listener.local_addr().ok();
         handle.tasks.spawn(listen(
             listener,
-            Transport::RtuOverTcp(config.rtu_over_tcp_timing),
+            Speaks::RtuOverTcp(config.rtu_over_tcp_timing),
             shared.clone(),
             Shutdown::new(stop_rx.clone()),
         ));
@@ -236,9 +236,9 @@ async fn bind(kind: &'static str, addr: SocketAddr) -> Result<TcpListener, Serve
         .map_err(|source| ServerError::Bind { kind, addr, source })
 }
 
-/// What a listener's connections speak.
+/// What a listener's connections speak: Modbus/TCP, or RTU frames cut with this timing.
 #[derive(Clone, Copy, Debug)]
-enum Transport {
+enum Speaks {
     Tcp,
     RtuOverTcp(RtuTiming),
 }
@@ -246,7 +246,7 @@ enum Transport {
 /// Accept connections until shutdown; each gets its own task and its own receive state.
 async fn listen(
     listener: TcpListener,
-    transport: Transport,
+    speaks: Speaks,
     shared: Arc<SharedStation>,
     mut shutdown: Shutdown,
 ) {
@@ -262,7 +262,7 @@ async fn listen(
             }
             accepted = listener.accept(), if conns.len() < MAX_CONNECTIONS => match accepted {
                 Ok((stream, peer)) => {
-                    conns.spawn(serve_conn(stream, peer, transport, shared.clone(), shutdown.clone()));
+                    conns.spawn(serve_conn(stream, peer, speaks, shared.clone(), shutdown.clone()));
                 }
                 Err(e) => {
                     // EMFILE and the like: retrying at once would spin, so back off a little.
@@ -287,7 +287,7 @@ async fn listen(
 async fn serve_conn(
     stream: TcpStream,
     peer: SocketAddr,
-    transport: Transport,
+    speaks: Speaks,
     shared: Arc<SharedStation>,
     shutdown: Shutdown,
 ) {
@@ -295,12 +295,12 @@ async fn serve_conn(
     if let Err(e) = stream.set_nodelay(true) {
         eprintln!("server: {peer}: cannot set TCP_NODELAY: {e}");
     }
-    match transport {
-        Transport::Tcp => {
+    match speaks {
+        Speaks::Tcp => {
             let label = format!("tcp {peer}");
             conn::drive(stream, conn::Tcp::default(), &shared, shutdown, &label).await
         }
-        Transport::RtuOverTcp(timing) => {
+        Speaks::RtuOverTcp(timing) => {
             // No line, so no inter-frame silence to keep before replying.
             let label = format!("rtu-over-tcp {peer}");
             conn::drive(

@@ -13,27 +13,75 @@ use codec::Framing;
 
 pub use url::{TargetUrl, UrlError};
 
-/// What one receive produced.
-#[derive(Clone, Debug, PartialEq, Eq)]
+/// What one receive produced: the observation of a step. Reports serialize it as
+/// `{"kind": "frame", "bytes": "..."}` etc.; the timestamps stay in the case's wire log.
+#[derive(Clone, Debug, PartialEq, Eq, serde::Serialize)]
+#[serde(rename_all = "snake_case", tag = "kind")]
 pub enum Received {
     /// A complete frame (by MBAP length, or by RTU length rules + CRC, or by silence).
     Frame {
+        #[serde(serialize_with = "crate::observe::hex_bytes")]
         bytes: Vec<u8>,
+        #[serde(skip)]
         first_at: Duration,
+        #[serde(skip)]
         last_at: Duration,
         /// Largest silence between two bytes of the frame.
+        #[serde(skip)]
         max_gap: Duration,
     },
     /// Nothing complete before the deadline; `partial` holds bytes of an incomplete frame.
-    Silence { partial: Vec<u8>, at: Duration },
+    Silence {
+        #[serde(skip)]
+        partial: Vec<u8>,
+        #[serde(skip)]
+        at: Duration,
+    },
     /// The peer closed the connection.
-    Closed { partial: Vec<u8>, at: Duration },
+    Closed {
+        #[serde(skip)]
+        partial: Vec<u8>,
+        #[serde(skip)]
+        at: Duration,
+    },
     /// Bytes that cannot be a frame (bad CRC after silence, impossible MBAP length).
     Garbage {
+        #[serde(serialize_with = "crate::observe::hex_bytes")]
         bytes: Vec<u8>,
+        #[serde(skip)]
         at: Duration,
         reason: String,
     },
+}
+
+impl Received {
+    /// A frame with no timing (tests, reconstructed observations).
+    pub fn frame(bytes: Vec<u8>) -> Self {
+        Received::Frame {
+            bytes,
+            first_at: Duration::ZERO,
+            last_at: Duration::ZERO,
+            max_gap: Duration::ZERO,
+        }
+    }
+
+    /// Silence with nothing partial.
+    pub fn silence() -> Self {
+        Received::Silence {
+            partial: Vec::new(),
+            at: Duration::ZERO,
+        }
+    }
+
+    /// When the observation ended (the frame's first byte for a frame).
+    pub fn at(&self) -> Duration {
+        match self {
+            Received::Frame { first_at, .. } => *first_at,
+            Received::Silence { at, .. }
+            | Received::Closed { at, .. }
+            | Received::Garbage { at, .. } => *at,
+        }
+    }
 }
 
 /// Why a target could not be used.

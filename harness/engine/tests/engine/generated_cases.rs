@@ -204,7 +204,7 @@ fn generated_writes_carry_the_safety_tags_of_what_they_write() {
         assert!(!writes || c.has(Tag::Write), "{} writes untagged", c.id);
     }
     let mut o = generated("sim:mdrive", 200, 3, &[]);
-    o.read_only = true;
+    o.safety.read_only = true;
     let plan = session::plan(&o, &md).expect("plan");
     assert!(plan.iter().any(|(c, s)| c.has(Tag::Write) && s.is_some()));
     assert!(plan.iter().all(|(c, s)| !c.has(Tag::Write) || s.is_some()));

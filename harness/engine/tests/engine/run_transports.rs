@@ -18,10 +18,10 @@ fn verdicts(url: &str, profile: &str) -> BTreeMap<String, Verdict> {
     o.profile = Some(profile.to_string());
     o.keep_verdicts = true;
     // Equivalence needs every case on every transport; these are simulators, nothing moves.
-    o.allow_motion = true;
-    o.allow_destructive = true;
-    o.timeout = Duration::from_millis(1000);
-    o.silence = Duration::from_millis(150);
+    o.safety.allow_motion = true;
+    o.safety.allow_destructive = true;
+    o.timing.timeout = Duration::from_millis(1000);
+    o.timing.silence = Duration::from_millis(150);
     let out = run_quietly(&o).unwrap_or_else(|e| panic!("{url}: {e}"));
     let fails = failures_of(&out);
     assert!(fails.is_empty(), "{url} ({profile}) has FAILs: {fails:#?}");

@@ -7,7 +7,7 @@ use std::sync::atomic::Ordering;
 use std::time::Duration;
 
 use engine::reports::snapshot::{SnapshotHeader, SnapshotWriter, compare, natural_cmp};
-use engine::{CaseResult, Outcome, StepResult, Verdict};
+use engine::{CaseResult, Received, StepResult, Verdict};
 
 use crate::{LIVE, PEAK, alone};
 
@@ -28,9 +28,7 @@ fn result(n: usize, changed: bool) -> CaseResult {
                 note: "read".into(),
                 sent: Some(request.clone()),
                 expected: None,
-                observed: vec![Outcome::Frame {
-                    bytes: answer.clone(),
-                }],
+                observed: vec![Received::frame(answer.clone())],
                 verdict: Verdict::Pass,
                 findings: vec![],
             };

@@ -11,8 +11,6 @@ pub mod bench;
 pub mod campaign;
 pub mod cases;
 pub mod expect;
-#[cfg(feature = "fuzzing")]
-pub mod fuzzing;
 pub mod observe;
 pub mod oracle;
 pub mod probe;

@@ -5,9 +5,6 @@
 //! corpus (drives) -> cases -> runner -> targets -> observation -> oracle -> verdicts -> reports
 //! ```
 
-/// Benchmark drivers for bench/run.sh and the benches (BENCHMARKS.md); not a stable API.
-#[doc(hidden)]
-pub mod bench;
 pub mod campaign;
 pub mod cases;
 pub mod expect;

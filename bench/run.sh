@@ -14,7 +14,7 @@
 #   --out FILE    also write the Markdown table to FILE
 #   --smoke       for CI: debug build, 0.2 s per figure, 1 round, 2,000-case memory runs; checks that every
 #                 figure was produced (not its value) and exits non-zero otherwise. About 30 s after the build.
-#   --no-build    use the binaries already built (target/release, or target/debug with --smoke)
+#   --no-build    use the binaries already built (release, or debug with --smoke, in cargo's target directory)
 #
 # Needs gcc, pkg-config and libmodbus-dev, python3 with pymodbus, socat, taskset (the packages .ci/run
 # installs); peak RSS comes from /usr/bin/time -v (Debian package `time`), or from the same getrusage figure
@@ -107,7 +107,10 @@ if [ "$BUILD" = 1 ]; then
 else
   cargo build "${cargo_profile[@]}" --bench wire --message-format=json --offline >"$work/build.json" 2>/dev/null
 fi
-mh="$root/target/$prof_dir/modbus-harness"
+# The target directory as cargo resolves it (CARGO_TARGET_DIR, build.target-dir, or $root/target).
+target_dir=$(cargo metadata --format-version 1 --no-deps --offline |
+  python3 -c 'import json, sys; print(json.load(sys.stdin)["target_directory"])')
+mh="$target_dir/$prof_dir/modbus-harness"
 wire=$(python3 -c '
 import json, sys
 for line in open(sys.argv[1]):

@@ -1,4 +1,4 @@
-//! libFuzzer entry point of `modbus_harness_engine::fuzzing::differential_tokio_modbus` (the input format is documented there).
+//! libFuzzer entry point of `modbus_harness_fuzz::differential_tokio_modbus` (the input format is documented in src/differential.rs).
 #![no_main]
 
-libfuzzer_sys::fuzz_target!(|data: &[u8]| modbus_harness_engine::fuzzing::differential_tokio_modbus(data));
+libfuzzer_sys::fuzz_target!(|data: &[u8]| modbus_harness_fuzz::differential_tokio_modbus(data));

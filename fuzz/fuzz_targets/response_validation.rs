@@ -1,4 +1,4 @@
-//! libFuzzer entry point of `modbus_harness_engine::fuzzing::response_validation` (the input format is documented there).
+//! libFuzzer entry point of `modbus_harness_fuzz::response_validation` (the input format is documented in src/response_validation.rs).
 #![no_main]
 
-libfuzzer_sys::fuzz_target!(|data: &[u8]| modbus_harness_engine::fuzzing::response_validation(data));
+libfuzzer_sys::fuzz_target!(|data: &[u8]| modbus_harness_fuzz::response_validation(data));

@@ -1,4 +1,4 @@
-//! libFuzzer entry point of `modbus_harness_engine::fuzzing::rtu_framer` (the input format is documented there).
+//! libFuzzer entry point of `modbus_harness_fuzz::rtu_framer` (the input format is documented in src/rtu_framer.rs).
 #![no_main]
 
-libfuzzer_sys::fuzz_target!(|data: &[u8]| modbus_harness_engine::fuzzing::rtu_framer(data));
+libfuzzer_sys::fuzz_target!(|data: &[u8]| modbus_harness_fuzz::rtu_framer(data));

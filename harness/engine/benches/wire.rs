@@ -1,6 +1,6 @@
 //! The harness's side of bench/run.sh (BENCHMARKS.md): its request paths against a server that is already
 //! running. Not a criterion bench: bench/run.sh starts the peers, pins everything to one core and runs this
-//! binary once per figure. Each figure prints one `RESULT ...` line (see `engine::bench`).
+//! binary once per figure. Each figure prints one `RESULT ...` line (see `support`).
 //!
 //!   wire raw tcp HOST:PORT SECS          TcpTarget send/recv, one FC 03 read at a time
 //!   wire raw rtu DEVICE BAUD SECS        SerialTarget (8N1), the same
@@ -15,9 +15,11 @@
 
 extern crate modbus_harness_engine as engine;
 
+mod support;
+
 use std::process::ExitCode;
 
-use engine::bench;
+use support as bench;
 
 const USAGE: &str = "usage: wire raw|runner tcp HOST:PORT SECS | raw|runner rtu DEVICE BAUD SECS | \
 pipeline HOST:PORT K SECS | inproc SECS | catalog-loop PROFILE CASES [REPORT_DIR]";

@@ -5,14 +5,9 @@
 //! corpus (drives) -> cases -> runner -> targets -> observation -> oracle -> verdicts -> reports
 //! ```
 
-/// Benchmark drivers for bench/run.sh and the benches (BENCHMARKS.md); not a stable API.
-#[doc(hidden)]
-pub mod bench;
 pub mod campaign;
 pub mod cases;
 pub mod expect;
-#[cfg(feature = "fuzzing")]
-pub mod fuzzing;
 pub mod observe;
 pub mod oracle;
 pub mod probe;

@@ -1,11 +1,10 @@
-//! The engine's tests: the fault matrix, generated cases, campaigns, transports, reports, snapshots,
-//! and the replay of the committed fuzz corpus.
+//! The engine's tests: the fault matrix, generated cases, campaigns, transports, reports and snapshots
+//! (the replay of the committed fuzz corpus is fuzz/tests/fuzz_corpus.rs).
 
 extern crate modbus_harness_engine as engine;
 
 mod fault_matrix;
 mod fuzz_campaign;
-mod fuzz_corpus;
 mod generated_cases;
 mod report_files;
 mod run_transports;

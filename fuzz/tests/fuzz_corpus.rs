@@ -1,19 +1,19 @@
 //! Replays every file of `fuzz/corpus/<target>/` through the fuzz target functions on stable Rust, so CI
 //! exercises the seeds and every crash regression without libFuzzer.
 //!
-//! `cargo test --test fuzz_corpus -- --ignored write_seed_corpus` rewrites the `seed-*` files from the
-//! embedded golden frames and the case catalog (after an input format or the corpus changed); other files
-//! (regressions, inputs the fuzzer found) are kept.
+//! `cargo test --manifest-path fuzz/Cargo.toml --test fuzz_corpus -- --ignored write_seed_corpus` rewrites
+//! the `seed-*` files from the embedded golden frames and the case catalog (after an input format or the
+//! corpus changed); other files (regressions, inputs the fuzzer found) are kept.
 
 use std::fs;
 use std::panic::{AssertUnwindSafe, catch_unwind};
 use std::path::{Path, PathBuf};
 
 use drives::{Fault, FaultSet};
-use engine::fuzzing::{self, TARGETS};
+use modbus_harness_fuzz::{self as fuzzing, TARGETS};
 
 fn fuzz_dir() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("../../fuzz")
+    Path::new(env!("CARGO_MANIFEST_DIR")).to_path_buf()
 }
 
 fn corpus_files(target: &str) -> Vec<PathBuf> {

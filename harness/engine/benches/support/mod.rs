@@ -1,8 +1,9 @@
-//! Benchmark drivers (BENCHMARKS.md, bench/run.sh, harness/benches/): the harness's own request paths, timed.
+//! Benchmark drivers (BENCHMARKS.md, bench/run.sh): the harness's own request paths, timed, shared by the
+//! `wire` and `inproc` benches (`mod support;`). Not part of the engine library.
 //!
-//! Not a user-facing API. Every workload is the one of issue 8: FC 03 reads of 2 registers at address 0,
-//! unit 1, one connection. Results print as one line in the format the C and Python peers use, so
-//! bench/run.sh reads all of them alike:
+//! Every workload is the one of issue 8: FC 03 reads of 2 registers at address 0, unit 1, one connection.
+//! Results print as one line in the format the C and Python peers use, so bench/run.sh reads all of them
+//! alike:
 //!
 //! `RESULT requests=N seconds=S rps=R p50_us=P p99_us=Q`
 
@@ -11,19 +12,19 @@ use std::hint::black_box;
 use std::path::Path;
 use std::time::{Duration, Instant};
 
-use crate::expect::Expectations;
-use crate::reports::{Reports, RunInfo, Tally, Transport};
-use crate::runner::{RunConfig, Runner, skip_reason};
-use crate::session::{self, load_profile};
-use crate::targets::net::TcpTarget;
-use crate::targets::serial::SerialTarget;
-use crate::targets::sim::SimTarget;
-use crate::targets::{Received, Target, TargetError};
-use crate::{Case, Compare, Level, Send, Step, Verdict};
 use codec::{Direction, Framing, Request, Response, rtu, tcp};
 use drives::corpus::Corpus;
 use drives::profile::Profile;
 use drives::{self, FaultSet, Station, TcpConn};
+use engine::expect::Expectations;
+use engine::reports::{Reports, RunInfo, Tally, Transport};
+use engine::runner::{RunConfig, Runner, skip_reason};
+use engine::session::{self, load_profile};
+use engine::targets::net::TcpTarget;
+use engine::targets::serial::SerialTarget;
+use engine::targets::sim::SimTarget;
+use engine::targets::{Received, Target, TargetError};
+use engine::{Case, Compare, Level, Send, Step, Verdict};
 
 /// Requests made before timing starts (connection set-up, caches, the peer's first allocations).
 pub const WARMUP: usize = 200;
@@ -489,7 +490,7 @@ pub fn catalog_loop(
     cases: u64,
     report: Option<&Path>,
 ) -> Result<LoopOutcome, BenchError> {
-    let opts = session::Options::new(crate::targets::TargetUrl::Sim {
+    let opts = session::Options::new(engine::targets::TargetUrl::Sim {
         profile: profile_name.into(),
         rtu: None,
     });

@@ -233,7 +233,7 @@ fn runner_for(target: Box<dyn Target>, profile: &Profile) -> Runner {
     let shadow = SimTarget::with_framing(shadow_station, framing, target.rtu_timing()).mirror();
     let cfg = RunConfig {
         unit: UNIT,
-        timing: crate::runner::Timing {
+        timing: engine::runner::Timing {
             timeout: TIMEOUT,
             silence: Duration::from_millis(300),
         },

@@ -12,7 +12,6 @@ use codec::{
 use drives::corpus::Corpus;
 use drives::profile::Profile;
 use drives::{FaultSet, Station, TcpConn, Wire};
-use engine::session;
 
 /// The reference drives the drive targets exercise, in the order of their selector bits.
 pub const DRIVES: [&str; 4] = ["sd2x", "mdrive", "lmd", "generic"];
@@ -26,7 +25,8 @@ pub(crate) fn profiles() -> &'static [Profile] {
         DRIVES
             .iter()
             .map(|name| {
-                session::load_profile(&Corpus::Embedded, name)
+                Corpus::Embedded
+                    .profile(name)
                     .unwrap_or_else(|e| panic!("embedded profile {name}: {e}"))
             })
             .collect()

@@ -9,7 +9,7 @@ use drives::corpus::Corpus;
 use drives::golden::{Form, GoldenDirection, GoldenFile, check_frame};
 use drives::profile::Profile;
 use engine::cases::catalog;
-use engine::{Mutation, Send, Step, session};
+use engine::{Mutation, Send, Step};
 
 use crate::differential::differential_input;
 use crate::drive_model::{OP_PDU, OP_RTU, OP_TCP, OP_WAIT, Op, parse_ops};
@@ -355,7 +355,8 @@ fn catalog_seeds(set: &mut SeedSet, drive: u8, p: &Profile, g: Option<&GoldenFil
 pub fn seeds() -> Vec<Seed> {
     let mut set = SeedSet::default();
     for (drive, p) in profiles().iter().enumerate() {
-        let golden = session::load_golden(&Corpus::Embedded, &p.device.id)
+        let golden = Corpus::Embedded
+            .golden(&p.device.id)
             .unwrap_or_else(|e| panic!("embedded golden file of {}: {e}", p.device.id));
         if let Some(g) = &golden {
             golden_seeds(&mut set, drive as u8, p, g);

@@ -266,9 +266,7 @@ pub fn campaign(
     let base = &opts.base;
     let profile = resolve_profile(base, log)?;
     if !base.faults.0.is_empty() && !base.target.is_sim() {
-        return Err(SessionError::Setup(
-            "--fault applies to the in-process simulator only (sim:PROFILE)".into(),
-        ));
+        return Err(SessionError::FaultNeedsSim);
     }
     let cfg = config(base, &profile);
     let mut runner = open_runner(base, &profile, &cfg, &Expectations::default())?;

@@ -18,7 +18,6 @@ use crate::targets::sim::SimTarget;
 use crate::targets::{self, Received, TargetError, TargetUrl};
 use codec::{Direction, Framing, Pdu, Request, Response, decode_any, rtu, tcp};
 use drives::corpus::Corpus;
-use drives::golden::GoldenFile;
 use drives::profile::{Profile, Transport};
 use drives::{self, FaultSet, Station};
 
@@ -106,8 +105,29 @@ impl Options {
 /// Why a run could not start or complete (exit code 2).
 #[derive(Debug, thiserror::Error)]
 pub enum SessionError {
+    /// A profile or golden file could not be loaded.
+    #[error(transparent)]
+    Corpus(#[from] drives::corpus::CorpusError),
+    #[error("--profile is required for {target} (one of: {}, or auto to read the device identification)", known.join(", "))]
+    ProfileRequired { target: String, known: Vec<String> },
+    /// `--profile auto` could not pick a profile.
+    #[error("--profile auto: {0}")]
+    AutoProfile(String),
+    #[error(
+        "--fault applies to the in-process simulator only (sim:PROFILE); for a server use `simulate --fault`"
+    )]
+    FaultNeedsSim,
     #[error("{0}")]
-    Setup(String),
+    Expectations(String),
+    #[error("{0}")]
+    Regressions(String),
+    #[error("no snapshot at {}: write it with --update-snapshot", .0.display())]
+    NoSnapshot(PathBuf),
+    #[error("cannot create directory {}: {source}", path.display())]
+    CreateDir {
+        path: PathBuf,
+        source: std::io::Error,
+    },
     #[error(transparent)]
     Target(#[from] TargetError),
     #[error("writing the report: {0}")]
@@ -166,21 +186,6 @@ impl RunOutcome {
     }
 }
 
-/// The names of the profiles in a corpus.
-pub fn profile_names(corpus: &Corpus) -> Vec<String> {
-    corpus.profile_names()
-}
-
-/// Load a profile by name, listing the known ones when it is not there.
-pub fn load_profile(corpus: &Corpus, name: &str) -> Result<Profile, String> {
-    corpus.profile(name).map_err(|e| e.to_string())
-}
-
-/// The golden frames of a profile's manual, if the corpus has them.
-pub fn load_golden(corpus: &Corpus, profile: &str) -> Result<Option<GoldenFile>, String> {
-    corpus.golden(profile).map_err(|e| e.to_string())
-}
-
 /// The framing a target URL implies (for `sim:`, the profile's native transport).
 pub fn framing_of(url: &TargetUrl, profile: &Profile) -> Framing {
     match url {
@@ -226,21 +231,27 @@ pub fn resolve_profile(opts: &Options, log: &mut dyn Write) -> Result<Profile, S
         (None | Some(_), TargetUrl::Sim { profile, .. }) => profile.clone(),
         (Some(_), _) => return auto_profile(opts, log),
         (None, _) => {
-            return Err(SessionError::Setup(format!(
-                "--profile is required for {} (one of: {}, or auto to read the device identification)",
-                opts.target,
-                profile_names(&opts.corpus).join(", ")
-            )));
+            return Err(SessionError::ProfileRequired {
+                target: opts.target.to_string(),
+                known: opts.corpus.profile_names(),
+            });
         }
     };
-    load_profile(&opts.corpus, &name).map_err(SessionError::Setup)
+    Ok(opts.corpus.profile(&name)?)
 }
 
 /// Read FC 2B/0E basic identification from the target and pick the profile whose objects match.
 fn auto_profile(opts: &Options, log: &mut dyn Write) -> Result<Profile, SessionError> {
     let mut t = targets::open(
         &opts.target,
-        |_| Err("sim: has its own profile".into()),
+        |name| {
+            let p = opts.corpus.profile(name)?;
+            Ok(Station::new(
+                drives::build(p, FaultSet::none()),
+                FaultSet::none(),
+                opts.unit.unwrap_or(1),
+            ))
+        },
         opts.connect_timeout,
     )?;
     let unit = opts.unit.unwrap_or(1);
@@ -260,16 +271,16 @@ fn auto_profile(opts: &Options, log: &mut dyn Write) -> Result<Profile, SessionE
     t.send(&frame)?;
     let got = t.recv(opts.timing.timeout)?;
     let Received::Frame { bytes, .. } = got else {
-        return Err(SessionError::Setup(format!(
-            "--profile auto: {} gave no device identification answer ({got:?}); name the profile with --profile",
+        return Err(SessionError::AutoProfile(format!(
+            "{} gave no device identification answer ({got:?}); name the profile with --profile",
             opts.target
         )));
     };
     let objects = match decode_any(&bytes, framing, Direction::Response).map(|d| d.pdu) {
         Ok(Pdu::Response(Response::ReadDeviceId(d))) => d.objects,
         other => {
-            return Err(SessionError::Setup(format!(
-                "--profile auto: the identification answer is not usable ({other:?}); name the profile with --profile"
+            return Err(SessionError::AutoProfile(format!(
+                "the identification answer is not usable ({other:?}); name the profile with --profile"
             )));
         }
     };
@@ -280,8 +291,8 @@ fn auto_profile(opts: &Options, log: &mut dyn Write) -> Result<Profile, SessionE
     let _ = writeln!(log, "device identification: {found:?}");
     let lower = |s: &str| s.to_ascii_lowercase();
     let mut best: Option<(usize, Profile)> = None;
-    for name in profile_names(&opts.corpus) {
-        let Ok(p) = load_profile(&opts.corpus, &name) else {
+    for name in opts.corpus.profile_names() {
+        let Ok(p) = opts.corpus.profile(&name) else {
             continue;
         };
         let score = p
@@ -310,9 +321,9 @@ fn auto_profile(opts: &Options, log: &mut dyn Write) -> Result<Profile, SessionE
             );
             Ok(p)
         }
-        None => Err(SessionError::Setup(format!(
-            "--profile auto: no profile matches the identification {found:?}; known profiles: {}",
-            profile_names(&opts.corpus).join(", ")
+        None => Err(SessionError::AutoProfile(format!(
+            "no profile matches the identification {found:?}; known profiles: {}",
+            opts.corpus.profile_names().join(", ")
         ))),
     }
 }
@@ -331,12 +342,13 @@ fn catalog_plan(
     if !runs_catalog(opts) {
         return Ok(Vec::new());
     }
-    let golden = load_golden(&opts.corpus, &profile.device.id).map_err(SessionError::Setup)?;
+    let golden = opts.corpus.golden(&profile.device.id)?;
     let framing = framing_of(&opts.target, profile);
     let unit = opts.unit.unwrap_or(profile.device.default_unit);
     let mut all = crate::cases::catalog::build(profile, golden.as_ref(), framing, unit);
     all.extend(
-        crate::cases::catalog::regressions(&opts.corpus, profile).map_err(SessionError::Setup)?,
+        crate::cases::catalog::regressions(&opts.corpus, profile)
+            .map_err(SessionError::Regressions)?,
     );
     let cases = select(all, &opts.include, &opts.exclude);
     let cfg = config(opts, profile);
@@ -447,12 +459,10 @@ pub fn run(
 ) -> Result<RunOutcome, SessionError> {
     let profile = resolve_profile(opts, log)?;
     if !opts.faults.0.is_empty() && !opts.target.is_sim() {
-        return Err(SessionError::Setup(
-            "--fault applies to the in-process simulator only (sim:PROFILE); for a server use `simulate --fault`".into(),
-        ));
+        return Err(SessionError::FaultNeedsSim);
     }
     let expectations = match &opts.expect {
-        Some(p) => Expectations::load(p).map_err(SessionError::Setup)?,
+        Some(p) => Expectations::load(p).map_err(SessionError::Expectations)?,
         None => Expectations::default(),
     };
     let cfg = config(opts, &profile);
@@ -469,10 +479,7 @@ pub fn run(
         && !snap.update
         && !snap.path.is_file()
     {
-        return Err(SessionError::Setup(format!(
-            "no snapshot at {}: write it with --update-snapshot",
-            snap.path.display()
-        )));
+        return Err(SessionError::NoSnapshot(snap.path.clone()));
     }
     // One seed for the whole run, chosen before anything is generated.
     let mut opts = opts.clone();
@@ -651,8 +658,9 @@ fn snapshot_dir(path: &std::path::Path) -> Result<PathBuf, SessionError> {
         Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
         _ => PathBuf::from("."),
     };
-    std::fs::create_dir_all(&dir).map_err(|e| {
-        SessionError::Setup(format!("cannot create directory {}: {e}", dir.display()))
+    std::fs::create_dir_all(&dir).map_err(|source| SessionError::CreateDir {
+        path: dir.clone(),
+        source,
     })?;
     Ok(dir)
 }

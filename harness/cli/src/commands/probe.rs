@@ -7,7 +7,6 @@ use clap::Args;
 use drives::corpus::Corpus;
 use drives::{self, FaultSet, Station};
 use engine::probe;
-use engine::session::load_profile;
 use engine::targets::{self, TargetUrl};
 
 /// Arguments of `probe`.
@@ -66,7 +65,7 @@ pub fn run(args: &ProbeArgs) -> ExitCode {
         TargetUrl::Sim { profile, .. } => Some(profile.clone()),
         _ => None,
     });
-    let profile = match profile_name.as_deref().map(|n| load_profile(&corpus, n)) {
+    let profile = match profile_name.as_deref().map(|n| corpus.profile(n)) {
         Some(Ok(p)) => Some(p),
         Some(Err(e)) => {
             eprintln!("error: {e}");
@@ -78,7 +77,7 @@ pub fn run(args: &ProbeArgs) -> ExitCode {
     let mut t = match targets::open(
         &url,
         |name| {
-            let p = load_profile(&corpus, name)?;
+            let p = corpus.profile(name)?;
             Ok(Station::new(
                 drives::build(p, FaultSet::none()),
                 FaultSet::none(),

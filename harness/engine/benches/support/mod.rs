@@ -19,7 +19,7 @@ use drives::{self, FaultSet, Station, TcpConn};
 use engine::expect::Expectations;
 use engine::reports::{Reports, RunInfo, Tally, Transport};
 use engine::runner::{RunConfig, Runner, skip_reason};
-use engine::session::{self, load_profile};
+use engine::session;
 use engine::targets::net::TcpTarget;
 use engine::targets::serial::SerialTarget;
 use engine::targets::sim::SimTarget;
@@ -220,7 +220,9 @@ pub fn read_case() -> Case {
 
 /// The generic profile (the one bench/ servers are shaped like).
 pub fn generic_profile() -> Result<Profile, BenchError> {
-    load_profile(&Corpus::Embedded, "generic").map_err(other)
+    Corpus::Embedded
+        .profile("generic")
+        .map_err(|e| other(e.to_string()))
 }
 
 fn runner_for(target: Box<dyn Target>, profile: &Profile) -> Runner {
@@ -494,7 +496,10 @@ pub fn catalog_loop(
         profile: profile_name.into(),
         rtu: None,
     });
-    let profile = load_profile(&opts.corpus, profile_name).map_err(other)?;
+    let profile = opts
+        .corpus
+        .profile(profile_name)
+        .map_err(|e| other(e.to_string()))?;
     let planned = session::plan(&opts, &profile).map_err(|e| other(e.to_string()))?;
     let unit = profile.device.default_unit;
     let station = Station::new(

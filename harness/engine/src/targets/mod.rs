@@ -98,8 +98,8 @@ pub enum TargetError {
     Resolve { addr: String, reason: String },
     #[error("cannot open serial port {path}: {reason}")]
     Serial { path: String, reason: String },
-    #[error("{0}")]
-    Profile(String),
+    #[error(transparent)]
+    Profile(#[from] drives::corpus::CorpusError),
     #[error("I/O error on {target}: {source}")]
     Io {
         target: String,
@@ -138,7 +138,7 @@ pub trait Target {
 /// Open the target a URL names; `sim:` needs the run's profile and unit.
 pub fn open(
     url: &TargetUrl,
-    sim_station: impl FnOnce(&str) -> Result<drives::Station, String>,
+    sim_station: impl FnOnce(&str) -> Result<drives::Station, drives::corpus::CorpusError>,
     connect_timeout: Duration,
 ) -> Result<Box<dyn Target>, TargetError> {
     Ok(match url {
@@ -155,7 +155,7 @@ pub fn open(
             Box::new(serial::SerialTarget::open(path, *baud, *format)?)
         }
         TargetUrl::Sim { profile, rtu } => {
-            let station = sim_station(profile).map_err(TargetError::Profile)?;
+            let station = sim_station(profile)?;
             match rtu {
                 None => Box::new(sim::SimTarget::new(station)),
                 Some(r) => {

@@ -3,6 +3,7 @@
 pub mod catalog;
 pub mod generate;
 pub mod generated;
+pub mod regressions;
 pub mod shrink;
 
 use std::fmt;

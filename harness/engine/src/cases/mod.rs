@@ -1,7 +1,6 @@
 //! Test cases: stable ids tied to spec sections, the requirement they check, their steps and tags.
 
 pub mod catalog;
-pub mod generate;
 pub mod generated;
 pub mod regressions;
 pub mod shrink;

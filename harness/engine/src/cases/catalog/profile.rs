@@ -393,6 +393,7 @@ fn identification(cx: &mut Ctx) {
     }
 }
 
+/// The id segment of a register: its address and its mnemonic (or name).
 fn reg_slug(r: &Register) -> String {
     match &r.mnemonic {
         Some(m) => format!("0x{:04X}-{}", r.address, slug(m)),
@@ -400,6 +401,7 @@ fn reg_slug(r: &Register) -> String {
     }
 }
 
+/// A value as the register's words: a 32-bit one split in the device's word order.
 fn encode_value(p: &Profile, r: &Register, v: i64) -> Vec<u16> {
     if r.width == 2 {
         p.device.word_order.split(v as u32).to_vec()

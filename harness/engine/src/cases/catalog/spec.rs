@@ -225,6 +225,7 @@ fn write_coil_illegal_value(cx: &mut Ctx) {
     }
 }
 
+/// The address of the first readable register of `table` (or of both tables); 0 if there is none.
 fn first_reg(p: &Profile, table: Table) -> u16 {
     p.registers
         .iter()

@@ -790,50 +790,54 @@ fn is_write_fc(fc: u8) -> bool {
     matches!(fc, 0x05 | 0x06 | 0x0F | 0x10 | 0x15 | 0x16 | 0x17 | 0x42)
 }
 
-/// Safety tags of a request PDU, from what it would do on a drive of profile `p`.
-pub fn pdu_tags(p: &Profile, pdu: &[u8]) -> BTreeSet<Tag> {
-    let mut tags = BTreeSet::new();
-    let regs = |tags: &mut BTreeSet<Tag>, address: u16, n: usize| {
-        tags.insert(Tag::Write);
-        for i in 0..n.min(0x1_0000) {
-            let a = address.wrapping_add(i as u16);
-            if let Some(r) = p.register_at(a, false) {
-                if r.motion {
-                    tags.insert(Tag::Motion);
-                }
-                if r.destructive {
-                    tags.insert(Tag::Destructive);
-                }
+/// Tags of a write to `n` registers from `address`: the registers' own, and the watchdog's.
+fn tag_registers(p: &Profile, tags: &mut BTreeSet<Tag>, address: u16, n: usize) {
+    tags.insert(Tag::Write);
+    for i in 0..n.min(0x1_0000) {
+        let a = address.wrapping_add(i as u16);
+        if let Some(r) = p.register_at(a, false) {
+            if r.motion {
+                tags.insert(Tag::Motion);
             }
-            // A watchdog left armed faults the drive when it runs out.
-            if p.watchdog.as_ref().is_some_and(|w| w.register == a) {
+            if r.destructive {
                 tags.insert(Tag::Destructive);
             }
         }
-    };
-    let coils = |tags: &mut BTreeSet<Tag>, address: u16, n: u16| {
-        tags.insert(Tag::Write);
-        let end = u32::from(address) + u32::from(n);
-        if p.coils.iter().map(|c| c.get_ref()).any(|c| {
-            c.motion && u32::from(c.address) >= u32::from(address) && u32::from(c.address) < end
-        }) {
-            tags.insert(Tag::Motion);
+        // A watchdog left armed faults the drive when it runs out.
+        if p.watchdog.as_ref().is_some_and(|w| w.register == a) {
+            tags.insert(Tag::Destructive);
         }
-    };
+    }
+}
+
+/// Tags of a write to `n` coils from `address`.
+fn tag_coils(p: &Profile, tags: &mut BTreeSet<Tag>, address: u16, n: u16) {
+    tags.insert(Tag::Write);
+    let end = u32::from(address) + u32::from(n);
+    if p.coils.iter().map(|c| c.get_ref()).any(|c| {
+        c.motion && u32::from(c.address) >= u32::from(address) && u32::from(c.address) < end
+    }) {
+        tags.insert(Tag::Motion);
+    }
+}
+
+/// Safety tags of a request PDU, from what it would do on a drive of profile `p`.
+pub fn pdu_tags(p: &Profile, pdu: &[u8]) -> BTreeSet<Tag> {
+    let mut tags = BTreeSet::new();
     match Request::decode(pdu) {
-        Ok(Request::WriteSingleCoil { address, .. }) => coils(&mut tags, address, 1),
+        Ok(Request::WriteSingleCoil { address, .. }) => tag_coils(p, &mut tags, address, 1),
         Ok(Request::WriteMultipleCoils {
             address, quantity, ..
-        }) => coils(&mut tags, address, quantity),
-        Ok(Request::WriteSingleRegister { address, .. }) => regs(&mut tags, address, 1),
+        }) => tag_coils(p, &mut tags, address, quantity),
+        Ok(Request::WriteSingleRegister { address, .. }) => tag_registers(p, &mut tags, address, 1),
         Ok(Request::WriteMultipleRegisters { address, values }) => {
-            regs(&mut tags, address, values.len())
+            tag_registers(p, &mut tags, address, values.len())
         }
         Ok(Request::ReadWriteMultipleRegisters {
             write_address,
             values,
             ..
-        }) => regs(&mut tags, write_address, values.len()),
+        }) => tag_registers(p, &mut tags, write_address, values.len()),
         Ok(Request::CanOpen(a)) if a.is_write() => {
             tags.insert(Tag::Write);
             match p.object(a.index, a.subindex) {
@@ -842,7 +846,7 @@ pub fn pdu_tags(p: &Profile, pdu: &[u8]) -> BTreeSet<Tag> {
                         tags.insert(Tag::Motion);
                     }
                     if let Some(r) = o.register {
-                        regs(&mut tags, r, 1);
+                        tag_registers(p, &mut tags, r, 1);
                     }
                 }
                 None => {

@@ -9,7 +9,7 @@ use std::time::{Duration, Instant};
 
 use crate::cases::catalog::probe_pdu;
 use crate::cases::generated::Generator;
-use crate::cases::shrink::{Origin, RegressionFile, file_stem};
+use crate::cases::regressions::{Origin, RegressionFile, file_stem};
 use crate::cases::{Case, Compare, Level, Send, Step, Verdict};
 use crate::expect::Expectations;
 use crate::runner::skip_reason;

@@ -7,7 +7,8 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
 
 use crate::cases::generated::{self, Generator};
-use crate::cases::shrink::{self, Origin, ShrinkLimits, Shrunk};
+use crate::cases::regressions::{self, Origin};
+use crate::cases::shrink::{self, ShrinkLimits, Shrunk};
 use crate::cases::{Case, Tag, Verdict};
 use crate::expect::Expectations;
 use crate::observe::CaseResult;
@@ -763,7 +764,7 @@ fn shrink_one(
                     shrink_steps: s.steps,
                     findings: s.findings.clone(),
                 };
-                match shrink::write_regression(dir, &profile.device.id, &s, origin) {
+                match regressions::write_regression(dir, &profile.device.id, &s, origin) {
                     Ok(p) => report.file = Some(p),
                     Err(e) => report.note = Some(format!("cannot write the reproducer: {e}")),
                 }

@@ -1,8 +1,8 @@
 //! Test cases: stable ids tied to spec sections, the requirement they check, their steps and tags.
 
 pub mod catalog;
-pub mod generate;
 pub mod generated;
+pub mod regressions;
 pub mod shrink;
 
 use std::fmt;

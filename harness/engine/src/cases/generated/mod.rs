@@ -1,6 +1,10 @@
-//! The generated cases of a run: case `index` of seed `seed` is drawn from its own random stream, so it is
-//! the same whatever the number of cases, and replays from (seed, index) alone. Ids are
-//! `gen/<seed>/<index>/<kind>`.
+//! Property-generated cases. A case is described by a [`Spec`] (`spec.rs`): a short sequence of requests of
+//! every function code the profile supports, drawn from its map, at its boundaries, and altered on purpose.
+//! The proptest strategies (`strategy.rs`) draw descriptions, [`Spec::build`] (`build.rs`) turns one into a
+//! [`Case`] for a profile, and the [`Generator`] here draws the cases of a run.
+//!
+//! Case `index` of seed `seed` is drawn from its own random stream, so it is the same whatever the number of
+//! cases, and replays from (seed, index) alone. Ids are `gen/<seed>/<index>/<kind>`.
 //!
 //! Reproducibility holds for one harness version (the proptest version is pinned by Cargo.lock): the same
 //! seed, profile and unit give the same cases on every transport; transport-specific alterations carry
@@ -10,8 +14,19 @@ use proptest::strategy::{BoxedStrategy, Strategy, ValueTree};
 use proptest::test_runner::{Config, RngAlgorithm, TestRng, TestRunner};
 
 use crate::cases::Case;
-use crate::cases::generate::{GenContext, Spec};
 use drives::profile::Profile;
+
+mod build;
+mod spec;
+mod strategy;
+
+#[cfg(feature = "arbitrary")]
+pub use build::case_from_bytes;
+pub use build::{GenContext, pdu_tags};
+pub use spec::{
+    Alter, Edge, MAX_BATCH_EXTRA, MAX_EXTEND, MAX_OPS, MAX_SPLIT_GAP_US, Op, Quantity, Req, Spec,
+    Value,
+};
 
 /// The first segment of every generated case id.
 pub const ID_PREFIX: &str = "gen";

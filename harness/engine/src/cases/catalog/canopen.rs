@@ -1,0 +1,155 @@
+//! CANopen objects over FC 43 / MEI 0x0D (SD2x): reads, refused writes, SDO errors, and the objects that
+//! mirror a register pair.
+
+use super::{Ctx, capture, exchange, pdu, slug};
+use crate::cases::{Compare, Send, Step, Tag};
+use codec::{CanOpenAccess, Request};
+use drives::profile::Access;
+
+const MANUAL: &str =
+    "SD2x manual, section 3.6 (FC 43 Encapsulated Interface Transport) and 3.8 (SDO errors)";
+
+/// The CANopen suite, family by family.
+pub(super) fn cases(cx: &mut Ctx) {
+    object_accesses(cx);
+    views_agree(cx);
+    missing_object(cx);
+    wrong_length(cx);
+}
+
+/// Each object read, and each read-only one refused a write.
+fn object_accesses(cx: &mut Ctx) {
+    let p = cx.p;
+    let node = cx.unit;
+    for o in p.objects.iter().map(|o| o.get_ref()) {
+        let read = pdu(&Request::CanOpen(CanOpenAccess::read(
+            node,
+            o.index,
+            o.subindex,
+            o.ty.size() as u16,
+        )));
+        if o.access.readable() {
+            cx.push(
+                format!(
+                    "profile/{}/object/{}-{}/read",
+                    p.device.id,
+                    o.index,
+                    slug(&o.name)
+                ),
+                format!("FC 43/0x0D read of object {} {}", o.index, o.name),
+                MANUAL,
+                "The object is read with FC 43 / MEI 0x0D, its size in bytes, little-endian data.",
+                vec![],
+                vec![exchange(
+                    Send::Pdu(read.clone()),
+                    Compare::Structure,
+                    "read",
+                )],
+            );
+        }
+        if o.access == Access::Ro {
+            let data = vec![0u8; o.ty.size()];
+            cx.push(
+                format!("profile/{}/object/{}-{}/write-read-only", p.device.id, o.index, slug(&o.name)),
+                format!("FC 43/0x0D write of read-only object {}", o.index),
+                MANUAL,
+                "A write to a read-only object is answered with the extended exception carrying SDO error 0xFFFF000A.",
+                vec![Tag::Write],
+                vec![exchange(
+                    Send::Pdu(pdu(&Request::CanOpen(CanOpenAccess::write(node, o.index, o.subindex, data)))),
+                    Compare::Exact,
+                    "write",
+                )],
+            );
+        }
+    }
+}
+
+/// Both views of a mirrored value agree: the register pair in the profile's word order, the object
+/// little-endian. This is where a device's word order shows against its manual.
+fn views_agree(cx: &mut Ctx) {
+    let p = cx.p;
+    let node = cx.unit;
+    for o in p.objects.iter().map(|o| o.get_ref()) {
+        let Some(reg) = o
+            .register
+            .and_then(|a| p.register_at(a, true).filter(|r| r.address == a))
+        else {
+            continue;
+        };
+        if reg.width != 2 || !o.access.readable() || !reg.access.readable() {
+            continue;
+        }
+        let read_reg = pdu(&cx.read_request(reg.address, 2, reg.table));
+        let read_obj = pdu(&Request::CanOpen(CanOpenAccess::read(
+            node,
+            o.index,
+            o.subindex,
+            o.ty.size() as u16,
+        )));
+        cx.push(
+            format!("profile/{}/object/{}-{}/agrees-with-register", p.device.id, o.index, slug(&o.name)),
+            format!("object {} and registers {}..{} hold the same value", o.index, reg.address, reg.address + 1),
+            format!("{MANUAL}; section 4.3 (byte order of process data)"),
+            "A 32-bit value read as two registers in the device's word order equals the same value read as an FC 43 object (little-endian).",
+            vec![],
+            vec![
+                capture(Send::Pdu(read_reg), Compare::InRange, 0, "read the register pair"),
+                capture(Send::Pdu(read_obj), Compare::Structure, 1, "read the object"),
+                Step::Agree { registers: 0, object: 1, note: "both views agree".into() },
+            ],
+        );
+    }
+}
+
+/// A read of an object that is not in the dictionary.
+fn missing_object(cx: &mut Ctx) {
+    let p = cx.p;
+    let node = cx.unit;
+    let missing = p
+        .objects
+        .iter()
+        .map(|o| o.get_ref().index)
+        .max()
+        .unwrap_or(0)
+        .saturating_add(100);
+    cx.push(
+        format!("profile/{}/object/missing/read", p.device.id),
+        format!("FC 43/0x0D read of object {missing}, which does not exist"),
+        MANUAL,
+        "A read of an object that is not in the dictionary is answered with SDO error 0xFFFF000B.",
+        vec![],
+        vec![exchange(
+            Send::Pdu(pdu(&Request::CanOpen(CanOpenAccess::read(
+                node, missing, 0, 2,
+            )))),
+            Compare::Exact,
+            "read",
+        )],
+    );
+}
+
+/// A read whose byte count is not the object's size.
+fn wrong_length(cx: &mut Ctx) {
+    let p = cx.p;
+    let node = cx.unit;
+    if let Some(o) = p
+        .objects
+        .iter()
+        .map(|o| o.get_ref())
+        .find(|o| o.access.readable())
+    {
+        cx.push(
+            format!("profile/{}/object/wrong-length/read", p.device.id),
+            format!("FC 43/0x0D read of object {} with byte count 3", o.index),
+            MANUAL,
+            "A read whose byte count does not match the object's size is answered with an SDO length error.",
+            vec![],
+            vec![exchange(
+                Send::Pdu(pdu(&Request::CanOpen(CanOpenAccess::read(node, o.index, o.subindex, 3)))),
+                Compare::Exact,
+                "read 3 bytes",
+            )],
+        );
+    }
+}

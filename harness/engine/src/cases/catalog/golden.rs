@@ -1,0 +1,144 @@
+//! Golden replay: the manual's example requests, sent as the manual prints them (as corrected).
+
+use super::{Ctx, capture, exchange, pdu};
+use crate::cases::{Compare, Send, Step, Tag};
+use codec::{Request, rtu};
+use drives::golden::{Form, GoldenDirection, GoldenFile, GoldenFrame};
+use drives::profile::{Register, Table};
+
+/// One case per request frame of the golden file that decodes as a request.
+pub(super) fn cases(cx: &mut Ctx, g: &GoldenFile) {
+    for f in g
+        .frames
+        .iter()
+        .filter(|f| f.direction == GoldenDirection::Request)
+    {
+        let Some((pdu_bytes, addr, req)) = decode(f) else {
+            continue;
+        };
+        let has_response = g
+            .frames
+            .iter()
+            .any(|r| r.request.as_deref() == Some(f.id.as_str()));
+        let mut tags = Vec::new();
+        let mut steps = Vec::new();
+        let (compare, restore) = judge(cx, &req, &mut tags, &mut steps);
+        let send = match addr {
+            Some(u) if u != cx.unit => Send::PduToUnit {
+                pdu: pdu_bytes.clone(),
+                unit: u,
+            },
+            _ => Send::Pdu(pdu_bytes.clone()),
+        };
+        steps.push(exchange(
+            send,
+            compare,
+            format!("golden request as corrected: {}", f.meaning),
+        ));
+        if let Some(a) = restore {
+            steps.push(exchange(
+                Send::Restore {
+                    address: a,
+                    slot: 0,
+                },
+                Compare::Exact,
+                "restore the original value",
+            ));
+        }
+        let id = format!("golden/{}", f.id);
+        let reference = format!("{} line {} ({})", g.manual, f.line, f.section);
+        let requirement = if has_response {
+            format!(
+                "The drive answers the manual's example as the reference drive does: {}",
+                f.meaning
+            )
+        } else {
+            format!("The drive handles the manual's example: {}", f.meaning)
+        };
+        cx.push(id, f.meaning.clone(), reference, requirement, tags, steps);
+    }
+}
+
+/// The PDU of a golden request, the unit it is addressed to (if the frame carries one), and the request.
+/// `None` for frames the harness cannot send as printed: no bytes, bad hex, a bad frame, an unknown request.
+fn decode(f: &GoldenFrame) -> Option<(Vec<u8>, Option<u8>, Request)> {
+    let hex = f.corrected.as_ref().or(f.printed.as_ref())?;
+    let bytes = codec::parse_hex(hex).ok()?;
+    let (pdu_bytes, addr) = match f.form {
+        Form::Pdu => (bytes, None),
+        Form::Rtu => {
+            let a = rtu::decode_adu(&bytes).ok()?;
+            (a.pdu.to_vec(), Some(a.address))
+        }
+        Form::Tcp => {
+            let a = codec::tcp::decode_adu(&bytes).ok()?;
+            (a.pdu.to_vec(), Some(a.header.unit_id))
+        }
+    };
+    let req = Request::decode(&pdu_bytes).ok()?;
+    Some((pdu_bytes, addr, req))
+}
+
+/// How the golden request's answer is compared, and its safety tags. A register write that moves nothing
+/// is made harmless: the value is read first (a step pushed here) and the address to restore returned.
+fn judge(
+    cx: &Ctx,
+    req: &Request,
+    tags: &mut Vec<Tag>,
+    steps: &mut Vec<Step>,
+) -> (Compare, Option<u16>) {
+    let p = cx.p;
+    let mut restore = None;
+    let compare = match req {
+        Request::WriteSingleRegister { address, .. }
+        | Request::WriteMultipleRegisters { address, .. } => {
+            tags.push(Tag::Write);
+            let n = match req {
+                Request::WriteMultipleRegisters { values, .. } => values.len() as u16,
+                _ => 1,
+            };
+            let regs: Vec<&Register> = (0..n)
+                .filter_map(|i| p.register_at(address.wrapping_add(i), false))
+                .collect();
+            if regs.iter().any(|r| r.motion) {
+                tags.push(Tag::Motion);
+            } else if cx.supports(0x03) || cx.supports(0x04) {
+                // Read what is there first, put it back after.
+                steps.push(capture(
+                    Send::Pdu(pdu(&cx.read_request(*address, n, Table::Holding))),
+                    Compare::Structure,
+                    0,
+                    "read the value the golden write will change",
+                ));
+                restore = Some(*address);
+            }
+            if regs.iter().any(|r| r.destructive) {
+                tags.push(Tag::Destructive);
+            }
+            Compare::Exact
+        }
+        Request::WriteSingleCoil { .. } | Request::WriteMultipleCoils { .. } => {
+            tags.push(Tag::Write);
+            Compare::Exact
+        }
+        Request::VendorWrite { mnemonic, .. } => {
+            tags.push(Tag::Write);
+            if let Some(m) = p.mnemonic(&mnemonic.name()) {
+                if m.motion {
+                    tags.push(Tag::Motion);
+                }
+                if m.destructive {
+                    tags.push(Tag::Destructive);
+                }
+            }
+            Compare::Structure
+        }
+        Request::CanOpen(a) if a.is_write() => {
+            tags.push(Tag::Write);
+            Compare::Exact
+        }
+        Request::ReadDeviceId { .. } | Request::VendorRead { .. } => Compare::Structure,
+        _ => Compare::InRange,
+    };
+    (compare, restore)
+}

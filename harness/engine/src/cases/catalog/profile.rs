@@ -1,0 +1,422 @@
+//! Cases derived from the profile: every register, reserved range, coil, discrete input, vendor mnemonic
+//! and identification object of the drive's map, read and (where it is safe to undo) written.
+
+use super::{APP, Ctx, capture, exchange, pdu, slug};
+use crate::cases::{Compare, Send, Tag};
+use codec::{Mnemonic, Request};
+use drives::profile::{Profile, Register, Table};
+
+/// The profile suite, family by family.
+pub(super) fn cases(cx: &mut Ctx) {
+    registers(cx);
+    reserved(cx);
+    coils(cx);
+    discrete_inputs(cx);
+    mnemonics(cx);
+    identification(cx);
+}
+
+/// Each register read at its width, and written where the profile allows it (the watchdog is left alone:
+/// writing it arms a timer that faults the drive).
+fn registers(cx: &mut Ctx) {
+    let p = cx.p;
+    let watchdog = p.watchdog.as_ref().map(|w| w.register);
+    for r in p.registers.iter().map(|r| r.get_ref()) {
+        let table = if r.table == Table::Input {
+            Table::Input
+        } else {
+            Table::Holding
+        };
+        let read = pdu(&cx.read_request(r.address, u16::from(r.width), table));
+        if r.access.readable() && (cx.supports(0x03) || cx.supports(0x04)) {
+            register_read(cx, r, &read);
+        }
+        if !cx.can_write_registers() || Some(r.address) == watchdog {
+            continue;
+        }
+        if r.access.writable() {
+            let tags = write_tags(r);
+            register_write(cx, r, &read, &tags);
+            register_write_out_of_range(cx, r, &read, &tags);
+        } else {
+            register_write_read_only(cx, r);
+        }
+    }
+}
+
+/// The tags of a write to `r`.
+fn write_tags(r: &Register) -> Vec<Tag> {
+    let mut tags = vec![Tag::Write];
+    if r.motion {
+        tags.push(Tag::Motion);
+    }
+    if r.destructive {
+        tags.push(Tag::Destructive);
+    }
+    tags
+}
+
+/// A register is readable and holds a value in its range.
+fn register_read(cx: &mut Ctx, r: &Register, read: &[u8]) {
+    let p = cx.p;
+    let pid = &p.device.id;
+    cx.push(
+        format!("profile/{pid}/read/{}", reg_slug(r)),
+        format!("read {} at its width", r.name),
+        format!(
+            "{} register map: 0x{:04X} {}",
+            p.device.name, r.address, r.name
+        ),
+        format!(
+            "Register 0x{:04X} ({} register{}) is readable and holds a value in {}..={}.",
+            r.address,
+            r.width,
+            if r.width == 2 {
+                "s, one 32-bit value"
+            } else {
+                ""
+            },
+            r.range().0,
+            r.range().1
+        ),
+        vec![],
+        vec![exchange(Send::Pdu(read.to_vec()), Compare::InRange, "read")],
+    );
+}
+
+/// An in-range write is read back unchanged; the original value is put back when it can be read.
+fn register_write(cx: &mut Ctx, r: &Register, read: &[u8], tags: &[Tag]) {
+    let p = cx.p;
+    let pid = &p.device.id;
+    let v = probe_value(r);
+    let mut steps = Vec::new();
+    let restorable = r.access.readable() && !r.motion;
+    if restorable {
+        steps.push(capture(
+            Send::Pdu(read.to_vec()),
+            Compare::InRange,
+            0,
+            "read the current value",
+        ));
+    }
+    steps.push(exchange(
+        Send::Pdu(pdu(&cx.write_request(r.address, encode_value(p, r, v)))),
+        Compare::Exact,
+        format!("write {v}"),
+    ));
+    if r.access.readable() {
+        steps.push(exchange(
+            Send::Pdu(read.to_vec()),
+            Compare::Exact,
+            format!("read back {v}"),
+        ));
+    }
+    if restorable {
+        steps.push(exchange(
+            Send::Restore {
+                address: r.address,
+                slot: 0,
+            },
+            Compare::Exact,
+            "restore",
+        ));
+    }
+    cx.push(
+        format!("profile/{pid}/write/{}", reg_slug(r)),
+        format!("write {} in range and read it back", r.name),
+        format!("{} register map: 0x{:04X} {}", p.device.name, r.address, r.name),
+        format!("Register 0x{:04X} accepts {v} and reads it back unchanged, in the device's word order.", r.address),
+        tags.to_vec(),
+        steps,
+    );
+}
+
+/// A value just outside the register's range (where its width leaves room) is rejected and not stored.
+fn register_write_out_of_range(cx: &mut Ctx, r: &Register, read: &[u8], tags: &[Tag]) {
+    let p = cx.p;
+    let pid = &p.device.id;
+    let (lo, hi) = r.natural_range();
+    let (min, max) = r.range();
+    let bad = if max < hi {
+        Some(max + 1)
+    } else if min > lo {
+        Some(min - 1)
+    } else {
+        None
+    };
+    if let Some(b) = bad {
+        cx.push(
+            format!("profile/{pid}/write-out-of-range/{}", reg_slug(r)),
+            format!("write {} = {b}, outside {min}..={max}", r.name),
+            format!(
+                "{} register map: 0x{:04X} {} range",
+                p.device.name, r.address, r.name
+            ),
+            format!("A value outside {min}..={max} is rejected with an exception and not stored."),
+            tags.to_vec(),
+            vec![
+                exchange(
+                    Send::Pdu(pdu(&cx.write_request(r.address, encode_value(p, r, b)))),
+                    Compare::Exact,
+                    format!("write {b}"),
+                ),
+                exchange(
+                    Send::Pdu(read.to_vec()),
+                    Compare::InRange,
+                    "the value is still in range",
+                ),
+            ],
+        );
+    }
+}
+
+/// A write to a read-only register is rejected.
+fn register_write_read_only(cx: &mut Ctx, r: &Register) {
+    let p = cx.p;
+    let pid = &p.device.id;
+    let v = r.default.unwrap_or(0);
+    cx.push(
+        format!("profile/{pid}/write-read-only/{}", reg_slug(r)),
+        format!("write read-only {}", r.name),
+        format!(
+            "{} register map: 0x{:04X} {} (read-only)",
+            p.device.name, r.address, r.name
+        ),
+        "A write to a read-only register is rejected with an exception.",
+        vec![Tag::Write],
+        vec![exchange(
+            Send::Pdu(pdu(&cx.write_request(r.address, encode_value(p, r, v)))),
+            Compare::Exact,
+            "write",
+        )],
+    );
+}
+
+/// A read of a reserved range is answered with exception 02.
+fn reserved(cx: &mut Ctx) {
+    let p = cx.p;
+    let pid = &p.device.id;
+    for res in p.reserved.iter().map(|r| r.get_ref()) {
+        if !(cx.supports(0x03) || cx.supports(0x04)) {
+            break;
+        }
+        cx.push(
+            format!("profile/{pid}/reserved/0x{:04X}", res.start),
+            format!("read reserved 0x{:04X}..=0x{:04X}", res.start, res.end),
+            format!("{} register map: reserved", p.device.name),
+            "A read of a reserved address is answered with exception 02 (Illegal Data Address).",
+            vec![],
+            vec![exchange(
+                Send::Pdu(pdu(&cx.read_request(res.start, 1, Table::Holding))),
+                Compare::Exact,
+                "read",
+            )],
+        );
+    }
+}
+
+/// Coils: write ON, read back, restore.
+fn coils(cx: &mut Ctx) {
+    let p = cx.p;
+    let pid = &p.device.id;
+    if cx.supports(0x05) && cx.supports(0x01) {
+        for c in p
+            .coils
+            .iter()
+            .map(|c| c.get_ref())
+            .filter(|c| c.access.writable())
+        {
+            let read = pdu(&Request::ReadCoils {
+                address: c.address,
+                quantity: 1,
+            });
+            let mut tags = vec![Tag::Write];
+            if c.motion {
+                tags.push(Tag::Motion);
+            }
+            cx.push(
+                format!("profile/{pid}/coil/{}-{}", c.address, slug(&c.name)),
+                format!("switch {} on and read it back", c.name),
+                format!("{}: coil {} {}", p.device.name, c.address, c.name),
+                "Write Single Coil ON is echoed and Read Coils then shows the coil on.",
+                tags,
+                vec![
+                    capture(Send::Pdu(read.clone()), Compare::Structure, 0, "read"),
+                    exchange(
+                        Send::Pdu(pdu(&Request::WriteSingleCoil {
+                            address: c.address,
+                            value: 0xFF00,
+                        })),
+                        Compare::Exact,
+                        "ON",
+                    ),
+                    exchange(Send::Pdu(read), Compare::Exact, "read back"),
+                    exchange(
+                        Send::Restore {
+                            address: c.address,
+                            slot: 0,
+                        },
+                        Compare::Exact,
+                        "restore",
+                    ),
+                ],
+            );
+        }
+    }
+}
+
+/// Each discrete input is readable.
+fn discrete_inputs(cx: &mut Ctx) {
+    let p = cx.p;
+    let pid = &p.device.id;
+    if cx.supports(0x02) {
+        for d in p.discrete_inputs.iter().map(|c| c.get_ref()) {
+            cx.push(
+                format!(
+                    "profile/{pid}/discrete-input/{}-{}",
+                    d.address,
+                    slug(&d.name)
+                ),
+                format!("read {}", d.name),
+                format!("{}: discrete input {} {}", p.device.name, d.address, d.name),
+                "The input is readable with Read Discrete Inputs.",
+                vec![],
+                vec![exchange(
+                    Send::Pdu(pdu(&Request::ReadDiscreteInputs {
+                        address: d.address,
+                        quantity: 1,
+                    })),
+                    Compare::Structure,
+                    "read",
+                )],
+            );
+        }
+    }
+}
+
+/// Vendor mnemonics: each readable one read, each writable one written with the manual's example, and
+/// an unknown one refused.
+fn mnemonics(cx: &mut Ctx) {
+    let p = cx.p;
+    let pid = &p.device.id;
+    for m in p.mnemonics.iter().map(|m| m.get_ref()) {
+        let Some(w) = Mnemonic::from_name(&m.name) else {
+            continue;
+        };
+        if m.read && cx.supports(0x41) {
+            cx.push(
+                format!("profile/{pid}/mnemonic/{}/read", slug(&m.name)),
+                format!("FC 0x41 read of {}", m.name),
+                format!("{}: vendor FC 0x41, mnemonic {}", p.device.name, m.name),
+                "A readable mnemonic is answered with its parameter string.",
+                vec![],
+                vec![exchange(
+                    Send::Pdu(pdu(&Request::VendorRead { mnemonic: w })),
+                    Compare::Structure,
+                    "read",
+                )],
+            );
+        }
+        if m.write
+            && cx.supports(0x42)
+            && let Some(ex) = &m.example
+        {
+            let mut tags = vec![Tag::Write];
+            if m.motion {
+                tags.push(Tag::Motion);
+            }
+            if m.destructive {
+                tags.push(Tag::Destructive);
+            }
+            cx.push(
+                format!("profile/{pid}/mnemonic/{}/write", slug(&m.name)),
+                format!("FC 0x42 write of {}{}", m.name, ex),
+                format!("{}: vendor FC 0x42, mnemonic {}", p.device.name, m.name),
+                "A writable mnemonic accepts the manual's example parameters and echoes the mnemonic.",
+                tags,
+                vec![exchange(
+                    Send::Pdu(pdu(&Request::VendorWrite { mnemonic: w, params: ex.as_bytes().to_vec() })),
+                    Compare::Exact,
+                    "write",
+                )],
+            );
+        }
+    }
+    let unknown = Mnemonic::from_name("QQ").expect("2 ASCII bytes");
+    if cx.supports(0x41) {
+        cx.push(
+            format!("profile/{pid}/mnemonic/unknown/read"),
+            "FC 0x41 read of an unknown mnemonic",
+            format!("{}: vendor FC 0x41", p.device.name),
+            "A mnemonic the drive does not know is answered with an exception.",
+            vec![],
+            vec![exchange(
+                Send::Pdu(pdu(&Request::VendorRead { mnemonic: unknown })),
+                Compare::Exact,
+                "QQ",
+            )],
+        );
+    }
+}
+
+/// Device identification: the basic and regular streams, and an object the device does not have.
+fn identification(cx: &mut Ctx) {
+    let p = cx.p;
+    let pid = &p.device.id;
+    if cx.supports(0x2B) && !p.identification.is_empty() {
+        for (code, label) in [(1u8, "basic"), (2, "regular")] {
+            cx.push(
+                format!("profile/{pid}/identification/{label}"),
+                format!("read device identification, {label} stream"),
+                format!("{APP}, section 6.21; {} device id", p.device.name),
+                "Read Device Identification returns the objects of the requested category with a consistent object list.",
+                vec![],
+                vec![exchange(
+                    Send::Pdu(pdu(&Request::ReadDeviceId { read_code: code, object_id: 0 })),
+                    Compare::Structure,
+                    label,
+                )],
+            );
+        }
+        cx.push(
+            format!("profile/{pid}/identification/individual-missing"),
+            "read an individual identification object that does not exist",
+            format!("{APP}, section 6.21"),
+            "An individual access to an object id the device does not have is answered with exception 02.",
+            vec![],
+            vec![exchange(
+                Send::Pdu(pdu(&Request::ReadDeviceId { read_code: 4, object_id: 0x7F })),
+                Compare::Exact,
+                "object 0x7F",
+            )],
+        );
+    }
+}
+
+/// The id segment of a register: its address and its mnemonic (or name).
+fn reg_slug(r: &Register) -> String {
+    match &r.mnemonic {
+        Some(m) => format!("0x{:04X}-{}", r.address, slug(m)),
+        None => format!("0x{:04X}-{}", r.address, slug(&r.name)),
+    }
+}
+
+/// A value as the register's words: a 32-bit one split in the device's word order.
+fn encode_value(p: &Profile, r: &Register, v: i64) -> Vec<u16> {
+    if r.width == 2 {
+        p.device.word_order.split(v as u32).to_vec()
+    } else {
+        vec![v as u16]
+    }
+}
+
+/// The in-range value a write case uses: the smallest change from the default.
+fn probe_value(r: &Register) -> i64 {
+    let (min, max) = r.range();
+    match r.default {
+        Some(d) if d < max => d + 1,
+        Some(d) if d > min => d - 1,
+        Some(d) => d,
+        None => min + (max - min) / 2,
+    }
+}

@@ -1,0 +1,169 @@
+//! Modbus RTU cases: CRC checking, slave addressing and broadcast, framing, and the FC 08 diagnostics.
+
+use super::{APP, Ctx, SER, exchange, pdu, probe_pdu};
+use crate::cases::{Compare, Mutation, Send, Tag};
+use codec::Request;
+
+/// The RTU suite, family by family.
+pub(super) fn cases(cx: &mut Ctx) {
+    crc_and_addressing(cx);
+    framing(cx);
+    if cx.supports(0x08) {
+        return_query_data(cx);
+        counters(cx);
+    }
+}
+
+/// The slave address the addressing cases send to: one that is not the drive's (nor broadcast).
+fn other_slave(unit: u8) -> u8 {
+    if unit == 247 {
+        246
+    } else {
+        unit.wrapping_add(1).max(1)
+    }
+}
+
+/// An FC 08 request with sub-function `sub` and one data word.
+fn diag(sub: u16, data: u16) -> Vec<u8> {
+    pdu(&Request::Diagnostics {
+        sub_function: sub,
+        data: data.to_be_bytes().to_vec(),
+    })
+}
+
+/// Frames a slave must not answer: a bad CRC, another slave's address, a broadcast read.
+fn crc_and_addressing(cx: &mut Ctx) {
+    let probe = probe_pdu(cx.p);
+    cx.push(
+        "rtu/crc/bad-crc-silence".into(),
+        "a request with a wrong CRC is not answered",
+        format!("{SER}, section 2.5.1.2 (CRC checking)"),
+        "A frame whose CRC does not match is discarded without a response; the drive keeps answering valid frames.",
+        vec![Tag::RtuOnly],
+        vec![
+            exchange(Send::Mutated { pdu: probe.clone(), mutation: Mutation::BadCrc }, Compare::Exact, "CRC inverted"),
+            cx.probe(),
+        ],
+    );
+    let other = other_slave(cx.unit);
+    cx.push(
+        "rtu/address/other-slave-silence".into(),
+        format!("a request to slave {other} is ignored by slave {}", cx.unit),
+        format!("{SER}, section 2.2 (slave addressing)"),
+        "A frame addressed to another slave is not answered.",
+        vec![Tag::RtuOnly],
+        vec![exchange(
+            Send::PduToUnit {
+                pdu: probe.clone(),
+                unit: other,
+            },
+            Compare::Exact,
+            format!("address {other}"),
+        )],
+    );
+    cx.push(
+        "rtu/address/broadcast-no-reply".into(),
+        "a broadcast (address 0) read is not answered",
+        format!("{SER}, section 2.1 (broadcast mode: no reply)"),
+        "No slave answers a frame sent to address 0.",
+        vec![Tag::RtuOnly],
+        vec![exchange(
+            Send::PduToUnit {
+                pdu: probe.clone(),
+                unit: 0,
+            },
+            Compare::Exact,
+            "address 0",
+        )],
+    );
+}
+
+/// A frame delivered in pieces without a silence between them is still one frame.
+fn framing(cx: &mut Ctx) {
+    let probe = probe_pdu(cx.p);
+    cx.push(
+        "rtu/framing/request-split-within-t1.5".into(),
+        "a request whose bytes arrive in two writes, back to back",
+        format!("{SER}, section 2.5.1.1 (RTU framing)"),
+        "A frame delivered in pieces without an inter-character silence is answered once.",
+        vec![Tag::RtuOnly],
+        vec![exchange(
+            Send::Mutated {
+                pdu: probe.clone(),
+                mutation: Mutation::Split { at: 3, gap_us: 0 },
+            },
+            Compare::Structure,
+            "split after 3 bytes",
+        )],
+    );
+}
+
+/// FC 08/00 echoes its data.
+fn return_query_data(cx: &mut Ctx) {
+    cx.push(
+        "rtu/fc08/return-query-data".into(),
+        "FC 08/00 echoes its data",
+        format!("{SER}, section 6.1.1; {APP} 6.8"),
+        "Return Query Data echoes the request's data field unchanged.",
+        vec![Tag::RtuOnly],
+        vec![exchange(
+            Send::Pdu(diag(0x00, 0xA537)),
+            Compare::Exact,
+            "data 0xA537",
+        )],
+    );
+}
+
+/// The FC 08 counters after a known sequence of frames.
+fn counters(cx: &mut Ctx) {
+    let probe = probe_pdu(cx.p);
+    let other = other_slave(cx.unit);
+    let mut steps = vec![
+        exchange(Send::Pdu(diag(0x0A, 0)), Compare::Exact, "clear counters"),
+        exchange(
+            Send::Pdu(probe.clone()),
+            Compare::Structure,
+            "one valid request",
+        ),
+        exchange(
+            Send::Mutated {
+                pdu: probe.clone(),
+                mutation: Mutation::BadCrc,
+            },
+            Compare::Exact,
+            "one bad CRC",
+        ),
+        exchange(
+            Send::PduToUnit {
+                pdu: probe.clone(),
+                unit: other,
+            },
+            Compare::Exact,
+            "one frame for another slave",
+        ),
+        exchange(
+            Send::Pdu(vec![0x55, 0, 0]),
+            Compare::Exact,
+            "one exception (illegal function)",
+        ),
+    ];
+    for (sub, what) in [
+        (0x0Bu16, "bus message count"),
+        (0x0C, "bus communication (CRC) error count"),
+        (0x0D, "exception count"),
+        (0x0E, "slave message count"),
+        (0x0F, "no-response count"),
+    ] {
+        if cx.p.diagnostics.iter().any(|d| d.sub_function == sub) {
+            steps.push(exchange(Send::Pdu(diag(sub, 0)), Compare::Exact, what));
+        }
+    }
+    cx.push(
+        "rtu/fc08/counters".into(),
+        "FC 08 counters after a known sequence",
+        format!("{SER}, section 6.1 (diagnostic counters)"),
+        "After Clear Counters, the bus message, CRC error, exception, slave message and no-response counters count exactly the frames that followed.",
+        vec![Tag::RtuOnly],
+        steps,
+    );
+}

@@ -1,0 +1,246 @@
+//! Generic cases from the Modbus application protocol: what every server must do with requests it
+//! cannot serve (exception codes 01, 02, 03), whatever its profile.
+
+use super::{APP, Ctx, exchange, pdu};
+use crate::cases::{Compare, Send, Tag};
+use codec::Request;
+use drives::profile::{Profile, Table};
+
+/// The spec suite, family by family.
+pub(super) fn cases(cx: &mut Ctx) {
+    unsupported_functions(cx);
+    quantities_out_of_range(cx);
+    addresses_beyond_map(cx);
+    byte_count_mismatches(cx);
+    truncated_pdus(cx);
+    write_coil_illegal_value(cx);
+}
+
+/// Unsupported function codes: exception 01 (a handful that the profile lacks, plus an undefined one).
+fn unsupported_functions(cx: &mut Ctx) {
+    let candidates = [
+        0x07u8, 0x0B, 0x0C, 0x11, 0x14, 0x16, 0x18, 0x01, 0x02, 0x05, 0x06, 0x0F, 0x17, 0x08, 0x04,
+        0x55, 0x7F,
+    ];
+    let mut n = 0;
+    for fc in candidates {
+        if cx.supports(fc) || n >= 4 {
+            continue;
+        }
+        n += 1;
+        // A request of plausible length for the code, so only the code is at fault.
+        let body: Vec<u8> = match fc {
+            0x07 | 0x0B | 0x0C | 0x11 => vec![fc],
+            0x0F => vec![fc, 0, 0, 0, 1, 1, 1],
+            0x17 => vec![fc, 0, 0, 0, 1, 0, 0, 0, 1, 2, 0, 0],
+            0x14 => vec![fc, 7, 6, 0, 1, 0, 0, 0, 1],
+            0x16 => vec![fc, 0, 0, 0xFF, 0xFF, 0, 0],
+            0x18 => vec![fc, 0, 0],
+            _ => vec![fc, 0, 0, 0, 1],
+        };
+        cx.push(
+            format!("spec/app-7/unsupported-function/fc-0x{fc:02X}"),
+            format!("function code 0x{fc:02X} is not supported"),
+            format!("{APP}, section 7 (exception codes), 6 (state diagrams)"),
+            "A function code the server does not implement is answered with exception 01 (Illegal Function) in a response whose function code is the request's with the high bit set, and the exception response is exactly 2 bytes.",
+            vec![],
+            vec![exchange(Send::Pdu(body), Compare::Exact, format!("FC 0x{fc:02X}"))],
+        );
+    }
+}
+
+/// Quantity 0 and max + 1 for every quantity-carrying function the profile supports: exception 03.
+fn quantities_out_of_range(cx: &mut Ctx) {
+    let p = cx.p;
+    for fc in [0x01u8, 0x02, 0x03, 0x04, 0x0F, 0x10, 0x17] {
+        if !cx.supports(fc) {
+            continue;
+        }
+        let max = cx.max_quantity(fc);
+        for (label, q) in [("zero", 0u16), ("max-plus-1", max.saturating_add(1))] {
+            let req = match fc {
+                0x01 => Request::ReadCoils {
+                    address: 0,
+                    quantity: q,
+                },
+                0x02 => Request::ReadDiscreteInputs {
+                    address: 0,
+                    quantity: q,
+                },
+                0x03 => Request::ReadHoldingRegisters {
+                    address: first_reg(p, Table::Holding),
+                    quantity: q,
+                },
+                0x04 => Request::ReadInputRegisters {
+                    address: first_reg(p, Table::Input),
+                    quantity: q,
+                },
+                0x0F => Request::WriteMultipleCoils {
+                    address: 0,
+                    quantity: q,
+                    data: vec![0; (q as usize).div_ceil(8)],
+                },
+                0x10 => Request::WriteMultipleRegisters {
+                    address: first_reg(p, Table::Holding),
+                    values: vec![0; q as usize],
+                },
+                _ => Request::ReadWriteMultipleRegisters {
+                    read_address: first_reg(p, Table::Holding),
+                    read_quantity: q,
+                    write_address: first_reg(p, Table::Holding),
+                    values: vec![0],
+                },
+            };
+            // A quantity whose data would not fit a PDU is sent with the quantity field alone changed.
+            let bytes = match req.to_bytes() {
+                Ok(b) => b,
+                Err(_) => {
+                    let mut b = pdu(&Request::WriteMultipleRegisters {
+                        address: first_reg(p, Table::Holding),
+                        values: vec![0],
+                    });
+                    b[3..5].copy_from_slice(&q.to_be_bytes());
+                    b
+                }
+            };
+            let writes = matches!(fc, 0x0F | 0x10 | 0x17);
+            cx.push(
+                format!("spec/app-6/quantity/fc-0x{fc:02X}/{label}"),
+                format!("FC 0x{fc:02X} with quantity {q} (limit {max})"),
+                format!("{APP}, section 6.{} (state diagram: quantity out of range)", fc),
+                format!("A quantity of 0 or above the limit ({max} for this device) is answered with exception 03 (Illegal Data Value)."),
+                if writes { vec![Tag::Write] } else { vec![] },
+                vec![exchange(Send::Pdu(bytes), Compare::Exact, format!("quantity {q}"))],
+            );
+        }
+    }
+}
+
+/// An address beyond the map: exception 02.
+fn addresses_beyond_map(cx: &mut Ctx) {
+    let p = cx.p;
+    if let Some(addr) = beyond_map(p) {
+        for fc in [0x03u8, 0x04] {
+            if !cx.supports(fc) {
+                continue;
+            }
+            let req = if fc == 3 {
+                Request::ReadHoldingRegisters {
+                    address: addr,
+                    quantity: 1,
+                }
+            } else {
+                Request::ReadInputRegisters {
+                    address: addr,
+                    quantity: 1,
+                }
+            };
+            cx.push(
+                format!("spec/app-6/address-beyond-map/fc-0x{fc:02X}"),
+                format!("FC 0x{fc:02X} at 0x{addr:04X}, past the last register"),
+                format!("{APP}, section 6.{fc} (state diagram: starting address + quantity out of range)"),
+                "A read of an address the device does not have is answered with exception 02 (Illegal Data Address).",
+                vec![],
+                vec![exchange(Send::Pdu(pdu(&req)), Compare::Exact, format!("address 0x{addr:04X}"))],
+            );
+        }
+    }
+}
+
+/// Byte count disagreeing with the quantity: exception 03.
+fn byte_count_mismatches(cx: &mut Ctx) {
+    let p = cx.p;
+    if cx.supports(0x10) {
+        let a = first_reg(p, Table::Holding);
+        let mut b = pdu(&Request::WriteMultipleRegisters {
+            address: a,
+            values: vec![0, 0],
+        });
+        b[5] = 2; // says 2 bytes while quantity is 2 registers (4 bytes) and 4 bytes follow
+        cx.push(
+            "spec/app-6.12/byte-count-mismatch/fc-0x10".into(),
+            "FC 16 whose byte count disagrees with its quantity",
+            format!("{APP}, section 6.12"),
+            "A byte count that is not 2 x quantity is answered with exception 03 (Illegal Data Value); the drive keeps answering.",
+            vec![Tag::Write],
+            vec![
+                exchange(Send::Pdu(b), Compare::Exact, "byte count 2 for 2 registers"),
+                cx.probe(),
+            ],
+        );
+    }
+    if cx.supports(0x0F) {
+        let mut b = pdu(&Request::WriteMultipleCoils {
+            address: 0,
+            quantity: 9,
+            data: vec![0, 0],
+        });
+        b[5] = 1;
+        b.pop();
+        cx.push(
+            "spec/app-6.11/byte-count-mismatch/fc-0x0F".into(),
+            "FC 15 whose byte count disagrees with its quantity",
+            format!("{APP}, section 6.11"),
+            "A byte count that is not ceil(quantity / 8) is answered with exception 03 (Illegal Data Value).",
+            vec![Tag::Write],
+            vec![exchange(Send::Pdu(b), Compare::Exact, "byte count 1 for 9 coils"), cx.probe()],
+        );
+    }
+}
+
+/// Truncated PDUs: a supported function code with data cut short.
+fn truncated_pdus(cx: &mut Ctx) {
+    for fc in [0x03u8, 0x04, 0x01, 0x02, 0x06, 0x10] {
+        if !cx.supports(fc) {
+            continue;
+        }
+        cx.push(
+            format!("spec/app-6/truncated-pdu/fc-0x{fc:02X}"),
+            format!("FC 0x{fc:02X} with its data cut to 2 bytes"),
+            format!("{APP}, section 6 (request PDU layouts) and 7"),
+            "A request too short for its function code is rejected (exception 03) or ignored, never answered as if valid; the drive keeps answering.",
+            if matches!(fc, 0x06 | 0x10) { vec![Tag::Write] } else { vec![] },
+            vec![exchange(Send::Pdu(vec![fc, 0x00, 0x01]), Compare::RejectOrIgnore, "3-byte PDU"), cx.probe()],
+        );
+    }
+}
+
+/// FC 05 values other than ON/OFF.
+fn write_coil_illegal_value(cx: &mut Ctx) {
+    let p = cx.p;
+    if cx.supports(0x05) {
+        let addr = p.coils.first().map_or(0, |c| c.get_ref().address);
+        cx.push(
+            "spec/app-6.5/write-coil-illegal-value".into(),
+            "FC 05 with value 0x1234",
+            format!("{APP}, section 6.5"),
+            "A Write Single Coil value other than 0xFF00 or 0x0000 is answered with exception 03 (Illegal Data Value).",
+            vec![Tag::Write],
+            vec![exchange(
+                Send::Pdu(pdu(&Request::WriteSingleCoil { address: addr, value: 0x1234 })),
+                Compare::Exact,
+                "value 0x1234",
+            )],
+        );
+    }
+}
+
+/// The address of the first readable register of `table` (or of both tables); 0 if there is none.
+fn first_reg(p: &Profile, table: Table) -> u16 {
+    p.registers
+        .iter()
+        .map(|r| r.get_ref())
+        .find(|r| r.access.readable() && (r.table == table || r.table == Table::Both))
+        .map_or(0, |r| r.address)
+}
+
+/// The first address past every register and reserved range, if there is one.
+fn beyond_map(p: &Profile) -> Option<u16> {
+    let end = p
+        .registers
+        .iter()
+        .map(|r| r.get_ref().end())
+        .chain(p.reserved.iter().map(|r| u32::from(r.get_ref().end) + 1))
+        .max()?;
+    u16::try_from(end).ok()
+}

@@ -174,7 +174,7 @@ impl<'p> DriveRun<'p> {
     /// After the sequence: the drive still answers a valid read on both transports, and its state holds.
     fn finish(&mut self) {
         self.wait(Duration::from_secs(1));
-        let probe = catalog::probe_pdu(self.profile);
+        let probe = catalog::known_good_read(self.profile);
         let unit = self.profile.device.default_unit;
         let responses = self.request(unit, &probe);
         assert_eq!(

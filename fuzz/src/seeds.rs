@@ -9,7 +9,7 @@ use drives::corpus::Corpus;
 use drives::golden::{Form, GoldenDirection, GoldenFile, check_frame};
 use drives::profile::Profile;
 use engine::cases::catalog;
-use engine::{Mutation, Send, Step};
+use engine::{Mutation, Outgoing, Step};
 
 use crate::differential::differential_input;
 use crate::drive_model::{OP_PDU, OP_RTU, OP_TCP, OP_WAIT, Op, parse_ops};
@@ -172,9 +172,9 @@ fn case_ops(p: &Profile, steps: &[Step]) -> Vec<u8> {
     for step in steps {
         match step {
             Step::Exchange { send, .. } => match send {
-                Send::Pdu(pdu) => op_request(&mut out, default, default, pdu),
-                Send::PduToUnit { pdu, unit } => op_request(&mut out, default, *unit, pdu),
-                Send::Mutated { pdu, mutation } => {
+                Outgoing::Pdu(pdu) => op_request(&mut out, default, default, pdu),
+                Outgoing::PduToUnit { pdu, unit } => op_request(&mut out, default, *unit, pdu),
+                Outgoing::Mutated { pdu, mutation } => {
                     let tcp = frame_request(Framing::Tcp, default, pdu);
                     let rtu = frame_request(Framing::Rtu, default, pdu);
                     match (mutation, tcp, rtu) {
@@ -202,7 +202,7 @@ fn case_ops(p: &Profile, steps: &[Step]) -> Vec<u8> {
                         _ => op_request(&mut out, default, default, pdu),
                     }
                 }
-                Send::Batch(pdus) => {
+                Outgoing::Batch(pdus) => {
                     let mut stream = Vec::new();
                     for pdu in pdus {
                         stream
@@ -210,7 +210,7 @@ fn case_ops(p: &Profile, steps: &[Step]) -> Vec<u8> {
                     }
                     op_tcp(&mut out, &stream);
                 }
-                Send::Restore { .. } => {}
+                Outgoing::Restore { .. } => {}
             },
             Step::Wait(d) => {
                 out.push(OP_WAIT);
@@ -318,7 +318,7 @@ fn catalog_seeds(set: &mut SeedSet, drive: u8, p: &Profile, g: Option<&GoldenFil
             }
             for (i, step) in case.steps.iter().enumerate() {
                 let Step::Exchange {
-                    send: Send::Pdu(pdu),
+                    send: Outgoing::Pdu(pdu),
                     compare,
                     ..
                 } = step

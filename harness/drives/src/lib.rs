@@ -4,6 +4,7 @@
 //! Sans-IO: no sockets, no clock of its own (time is passed in), no tokio.
 
 pub mod corpus;
+pub mod ds402;
 pub mod faults;
 pub mod golden;
 pub mod models;

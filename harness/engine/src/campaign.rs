@@ -7,10 +7,10 @@ use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
 
-use crate::cases::catalog::probe_pdu;
+use crate::cases::catalog::known_good_read;
 use crate::cases::generated::Generator;
 use crate::cases::regressions::{Origin, RegressionFile, file_stem};
-use crate::cases::{Case, Compare, Level, Send, Step, Verdict};
+use crate::cases::{Case, Compare, Level, Outgoing, Step, Verdict};
 use crate::expect::Expectations;
 use crate::runner::skip_reason;
 use crate::session::{Options, SessionError, config, open_runner, resolve_profile};
@@ -85,7 +85,7 @@ fn probe_case(profile: &drives::profile::Profile) -> Case {
         level: Level::Must,
         tags: vec![],
         steps: vec![Step::Exchange {
-            send: Send::Pdu(probe_pdu(profile)),
+            send: Outgoing::Pdu(known_good_read(profile)),
             compare: Compare::Structure,
             capture: None,
             note: "liveness probe".into(),

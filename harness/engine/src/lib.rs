@@ -17,6 +17,6 @@ pub mod servers;
 pub mod session;
 pub mod targets;
 
-pub use cases::{Case, Compare, Level, Mutation, Send, Step, Tag, Verdict};
+pub use cases::{Case, Compare, Level, Mutation, Outgoing, Step, Tag, Verdict};
 pub use observe::{CaseResult, Dir, StepResult, WireEvent};
 pub use targets::Received;

@@ -3,12 +3,13 @@
 
 use std::time::{Duration, Instant};
 
-use crate::cases::{Case, Compare, Mutation, Send, Step, Tag, Verdict};
+use crate::cases::{Case, Compare, Mutation, Outgoing, Step, Tag, Verdict};
 use crate::expect::Expectations;
 use crate::observe::{CaseResult, Dir, StepResult, WireEvent};
 use crate::oracle::{self, Captured, Finding, Sent, Severity};
 use crate::targets::sim::SimTarget;
 use crate::targets::{Received, Target, TargetError};
+use codec::FunctionCode;
 use codec::{Framing, Request, rtu, tcp};
 use drives::profile::Profile;
 
@@ -218,7 +219,12 @@ impl Runner {
     fn restore_pdu(&self, address: u16, slot: usize) -> Option<Vec<u8>> {
         let req = match self.slots.get(slot)?.as_ref()? {
             Captured::Registers(values) => {
-                if values.len() == 1 && self.profile.function(0x10).is_none() {
+                if values.len() == 1
+                    && self
+                        .profile
+                        .function(FunctionCode::WRITE_MULTIPLE_REGISTERS)
+                        .is_none()
+                {
                     Request::WriteSingleRegister {
                         address,
                         value: values[0],
@@ -343,7 +349,7 @@ impl Runner {
 
     fn exchange(
         &mut self,
-        send: &Send,
+        send: &Outgoing,
         compare: &Compare,
         capture: Option<usize>,
         note: &str,
@@ -352,17 +358,17 @@ impl Runner {
         let unit = self.cfg.unit;
         // What goes on the wire: the frames, and the writes (pieces with a gap after each).
         let (frames, pieces): (Vec<Framed>, Vec<(Vec<u8>, Duration)>) = match send {
-            Send::Pdu(p) => {
+            Outgoing::Pdu(p) => {
                 let f = self.frame(p, unit, None);
                 let piece = vec![(f.bytes.clone(), Duration::ZERO)];
                 (vec![f], piece)
             }
-            Send::PduToUnit { pdu, unit } => {
+            Outgoing::PduToUnit { pdu, unit } => {
                 let f = self.frame(pdu, *unit, None);
                 let piece = vec![(f.bytes.clone(), Duration::ZERO)];
                 (vec![f], piece)
             }
-            Send::Mutated { pdu, mutation } => {
+            Outgoing::Mutated { pdu, mutation } => {
                 let f = self.frame(pdu, unit, Some(mutation));
                 let pieces = match mutation {
                     Mutation::Split { at, gap_us } if *at < f.bytes.len() => vec![
@@ -373,7 +379,7 @@ impl Runner {
                 };
                 (vec![f], pieces)
             }
-            Send::Batch(pdus) => {
+            Outgoing::Batch(pdus) => {
                 let frames: Vec<Framed> = pdus.iter().map(|p| self.frame(p, unit, None)).collect();
                 let all = frames
                     .iter()
@@ -381,7 +387,7 @@ impl Runner {
                     .collect();
                 (frames, vec![(all, Duration::ZERO)])
             }
-            Send::Restore { address, slot } => match self.restore_pdu(*address, *slot) {
+            Outgoing::Restore { address, slot } => match self.restore_pdu(*address, *slot) {
                 Some(p) => {
                     let f = self.frame(&p, unit, None);
                     let piece = vec![(f.bytes.clone(), Duration::ZERO)];

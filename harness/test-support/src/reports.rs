@@ -5,7 +5,7 @@ use std::time::Duration;
 
 use engine::reports::{RunInfo, Transport};
 use engine::{
-    Case, CaseResult, Compare, Dir, Level, Mutation, Received, Send, Step, StepResult, Tag,
+    Case, CaseResult, Compare, Dir, Level, Mutation, Outgoing, Received, Step, StepResult, Tag,
     Verdict, WireEvent,
 };
 
@@ -49,7 +49,7 @@ fn case(id: &str, title: &str, pdu: &[u8], tags: Vec<Tag>) -> Case {
         level: Level::Must,
         tags,
         steps: vec![Step::Exchange {
-            send: Send::Pdu(pdu.to_vec()),
+            send: Outgoing::Pdu(pdu.to_vec()),
             compare: Compare::Exact,
             capture: None,
             note: "read 2 holding registers".to_string(),
@@ -198,7 +198,7 @@ pub fn sample(transport: Transport) -> Vec<(Case, CaseResult)> {
     };
     let mut c = case(IDS[3], "a malformed request is ignored", &read, vec![]);
     c.steps = vec![Step::Exchange {
-        send: Send::Mutated {
+        send: Outgoing::Mutated {
             pdu: read.to_vec(),
             mutation,
         },

@@ -123,33 +123,7 @@ pub mod status {
     pub const STATE_MASK: u16 = 0x006F;
 }
 
-/// Control word bits and commands (DS402 0x6040).
-pub mod control {
-    /// Bit 0: switch on.
-    pub const SWITCH_ON: u16 = 1 << 0;
-    /// Bit 1: enable voltage.
-    pub const ENABLE_VOLTAGE: u16 = 1 << 1;
-    /// Bit 2: quick stop; 0 requests a quick stop.
-    pub const QUICK_STOP: u16 = 1 << 2;
-    /// Bit 3: enable operation.
-    pub const ENABLE_OPERATION: u16 = 1 << 3;
-    /// Bit 7: fault reset (acts on the rising edge).
-    pub const FAULT_RESET: u16 = 1 << 7;
-    /// Bit 8: halt.
-    pub const HALT: u16 = 1 << 8;
-    /// Command "shutdown" (example 6.1, line 1202).
-    pub const CMD_SHUTDOWN: u16 = 0x0006;
-    /// Command "switch on" (and "disable operation" from operation enabled).
-    pub const CMD_SWITCH_ON: u16 = 0x0007;
-    /// Command "switch on + enable operation" (example 6.1, line 1245).
-    pub const CMD_ENABLE_OPERATION: u16 = 0x000F;
-    /// Command "disable voltage".
-    pub const CMD_DISABLE_VOLTAGE: u16 = 0x0000;
-    /// Command "quick stop".
-    pub const CMD_QUICK_STOP: u16 = 0x0002;
-    /// Command "fault reset".
-    pub const CMD_FAULT_RESET: u16 = 0x0080;
-}
+pub use crate::ds402::control;
 
 /// SDO error codes the model sends (section 3.8, lines 683-712).
 pub mod sdo {

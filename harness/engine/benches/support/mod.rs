@@ -24,7 +24,7 @@ use engine::targets::net::TcpTarget;
 use engine::targets::serial::SerialTarget;
 use engine::targets::sim::SimTarget;
 use engine::targets::{Received, Target, TargetError};
-use engine::{Case, Compare, Level, Send, Step, Verdict};
+use engine::{Case, Compare, Level, Outgoing, Step, Verdict};
 
 /// Requests made before timing starts (connection set-up, caches, the peer's first allocations).
 pub const WARMUP: usize = 200;
@@ -210,7 +210,7 @@ pub fn read_case() -> Case {
         level: Level::Must,
         tags: vec![],
         steps: vec![Step::Exchange {
-            send: Send::Pdu(read_pdu()),
+            send: Outgoing::Pdu(read_pdu()),
             compare: Compare::Structure,
             capture: None,
             note: "read".into(),

@@ -45,7 +45,7 @@ pub enum Compare {
 /// How the bytes of a step are put on the wire.
 #[derive(Clone, Debug, PartialEq, Eq, Serialize)]
 #[serde(rename_all = "snake_case")]
-pub enum Send {
+pub enum Outgoing {
     /// A PDU, framed for the target's transport with the run's unit id (and a fresh transaction id).
     Pdu(Vec<u8>),
     /// A PDU framed with a specific unit id / slave address.
@@ -114,9 +114,9 @@ impl Mutation {
 pub enum Step {
     /// Send and observe the answer(s); compare with the reference model.
     Exchange {
-        send: Send,
+        send: Outgoing,
         compare: Compare,
-        /// Store the register values of the response in this slot (for `Send::Restore`).
+        /// Store the register values of the response in this slot (for `Outgoing::Restore`).
         capture: Option<usize>,
         /// What this step is about, for the report.
         note: String,

@@ -33,7 +33,7 @@ use std::time::Duration;
 use serde::{Deserialize, Serialize};
 
 use crate::cases::shrink::Shrunk;
-use crate::cases::{Case, Compare, Level, Mutation, Send, Step, Tag};
+use crate::cases::{Case, Compare, Level, Mutation, Outgoing, Step, Tag};
 use codec::{hex_spaced, parse_hex};
 
 /// The id prefix of replayed regression cases: `regression/<profile>/<name>`.
@@ -136,17 +136,17 @@ fn step_file(step: &Step) -> StepFile {
             f.capture = *capture;
             f.note = Some(note.clone());
             match send {
-                Send::Pdu(p) => f.pdu = Some(hex_spaced(p)),
-                Send::PduToUnit { pdu, unit } => {
+                Outgoing::Pdu(p) => f.pdu = Some(hex_spaced(p)),
+                Outgoing::PduToUnit { pdu, unit } => {
                     f.pdu = Some(hex_spaced(pdu));
                     f.unit = Some(*unit);
                 }
-                Send::Mutated { pdu, mutation } => {
+                Outgoing::Mutated { pdu, mutation } => {
                     f.pdu = Some(hex_spaced(pdu));
                     f.mutation = Some(mutation.clone());
                 }
-                Send::Batch(ps) => f.batch = Some(ps.iter().map(|p| hex_spaced(p)).collect()),
-                Send::Restore { address, slot } => {
+                Outgoing::Batch(ps) => f.batch = Some(ps.iter().map(|p| hex_spaced(p)).collect()),
+                Outgoing::Restore { address, slot } => {
                     f.restore_address = Some(*address);
                     f.restore_slot = Some(*slot);
                 }
@@ -189,9 +189,9 @@ fn step_of(i: usize, f: &StepFile) -> Result<Step, String> {
                 (Some(p), None, None) => {
                     let pdu = hex(p)?;
                     match (&f.mutation, f.unit) {
-                        (None, None) => Send::Pdu(pdu),
-                        (None, Some(unit)) => Send::PduToUnit { pdu, unit },
-                        (Some(m), None) => Send::Mutated {
+                        (None, None) => Outgoing::Pdu(pdu),
+                        (None, Some(unit)) => Outgoing::PduToUnit { pdu, unit },
+                        (Some(m), None) => Outgoing::Mutated {
                             pdu,
                             mutation: m.clone(),
                         },
@@ -201,9 +201,9 @@ fn step_of(i: usize, f: &StepFile) -> Result<Step, String> {
                     }
                 }
                 (None, Some(b), None) => {
-                    Send::Batch(b.iter().map(|p| hex(p)).collect::<Result<Vec<_>, _>>()?)
+                    Outgoing::Batch(b.iter().map(|p| hex(p)).collect::<Result<Vec<_>, _>>()?)
                 }
-                (None, None, Some(address)) => Send::Restore {
+                (None, None, Some(address)) => Outgoing::Restore {
                     address,
                     slot: f.restore_slot.unwrap_or(0),
                 },
@@ -352,13 +352,13 @@ mod tests {
             tags: vec![Tag::Write, Tag::TcpOnly],
             steps: vec![
                 Step::Exchange {
-                    send: Send::Pdu(vec![3, 0, 0, 0, 1]),
+                    send: Outgoing::Pdu(vec![3, 0, 0, 0, 1]),
                     compare: Compare::InRange,
                     capture: Some(0),
                     note: "read".into(),
                 },
                 Step::Exchange {
-                    send: Send::Mutated {
+                    send: Outgoing::Mutated {
                         pdu: vec![3, 0, 0, 0, 1],
                         mutation: Mutation::BitFlip { bit: 3 },
                     },
@@ -367,7 +367,7 @@ mod tests {
                     note: "flip".into(),
                 },
                 Step::Exchange {
-                    send: Send::Mutated {
+                    send: Outgoing::Mutated {
                         pdu: vec![3, 0, 0, 0, 1],
                         mutation: Mutation::BadCrc,
                     },
@@ -376,7 +376,7 @@ mod tests {
                     note: "crc".into(),
                 },
                 Step::Exchange {
-                    send: Send::Mutated {
+                    send: Outgoing::Mutated {
                         pdu: vec![3],
                         mutation: Mutation::Extend(vec![1, 2]),
                     },
@@ -385,7 +385,7 @@ mod tests {
                     note: "ext".into(),
                 },
                 Step::Exchange {
-                    send: Send::PduToUnit {
+                    send: Outgoing::PduToUnit {
                         pdu: vec![3, 0, 0, 0, 1],
                         unit: 9,
                     },
@@ -394,13 +394,13 @@ mod tests {
                     note: "unit".into(),
                 },
                 Step::Exchange {
-                    send: Send::Batch(vec![vec![3, 0, 0, 0, 1], vec![4, 0, 0, 0, 1]]),
+                    send: Outgoing::Batch(vec![vec![3, 0, 0, 0, 1], vec![4, 0, 0, 0, 1]]),
                     compare: Compare::Structure,
                     capture: None,
                     note: "batch".into(),
                 },
                 Step::Exchange {
-                    send: Send::Restore {
+                    send: Outgoing::Restore {
                         address: 7,
                         slot: 0,
                     },

@@ -10,7 +10,7 @@ use std::collections::HashMap;
 use std::time::{Duration, Instant};
 
 use crate::cases::generated::Generator;
-use crate::cases::{Case, Send, Step, Verdict};
+use crate::cases::{Case, Outgoing, Step, Verdict};
 use crate::observe::CaseResult;
 use crate::targets::TargetError;
 
@@ -144,12 +144,12 @@ pub fn case_size(case: &Case) -> (usize, usize) {
         if let Step::Exchange { send, .. } = s {
             exchanges += 1;
             let n = match send {
-                Send::Pdu(p) | Send::PduToUnit { pdu: p, .. } => p.len(),
-                Send::Mutated { pdu, mutation } => {
+                Outgoing::Pdu(p) | Outgoing::PduToUnit { pdu: p, .. } => p.len(),
+                Outgoing::Mutated { pdu, mutation } => {
                     mutation.apply_to_pdu(pdu).map_or(pdu.len(), |p| p.len())
                 }
-                Send::Batch(ps) => ps.iter().map(Vec::len).sum(),
-                Send::Restore { .. } => 0,
+                Outgoing::Batch(ps) => ps.iter().map(Vec::len).sum(),
+                Outgoing::Restore { .. } => 0,
             };
             largest = largest.max(n);
         }

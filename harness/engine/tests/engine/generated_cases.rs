@@ -8,6 +8,7 @@
 use std::collections::BTreeSet;
 use std::io::Write;
 
+use codec::FunctionCode;
 use codec::{MAX_PDU_LEN, Request};
 use drives::corpus::Corpus;
 use drives::profile::Profile;
@@ -17,7 +18,7 @@ use engine::cases::regressions::RegressionFile;
 use engine::cases::shrink::{self, ShrinkLimits};
 use engine::session::{self, Options};
 use engine::targets::TargetUrl;
-use engine::{Case, Send, Step, Tag, Verdict};
+use engine::{Case, Outgoing, Step, Tag, Verdict};
 use test_support::{failures_of, profile, run_ok};
 
 /// The size bound of a shrunk reproducer (RangeUnchecked / QuantityUnchecked on the MDrive): at most this
@@ -48,12 +49,12 @@ fn pdus(c: &Case) -> Vec<Vec<u8>> {
     for s in &c.steps {
         if let Step::Exchange { send, .. } = s {
             match send {
-                Send::Pdu(p) | Send::PduToUnit { pdu: p, .. } => out.push(p.clone()),
-                Send::Mutated { pdu, mutation } => {
+                Outgoing::Pdu(p) | Outgoing::PduToUnit { pdu: p, .. } => out.push(p.clone()),
+                Outgoing::Mutated { pdu, mutation } => {
                     out.push(mutation.apply_to_pdu(pdu).unwrap_or_else(|| pdu.clone()))
                 }
-                Send::Batch(ps) => out.extend(ps.iter().cloned()),
-                Send::Restore { .. } => {}
+                Outgoing::Batch(ps) => out.extend(ps.iter().cloned()),
+                Outgoing::Restore { .. } => {}
             }
         }
     }
@@ -123,8 +124,8 @@ fn every_function_code_boundary_and_alteration_is_generated() {
             "{name}: no unsupported FC"
         );
         let max = p
-            .function(0x03)
-            .or(p.function(0x04))
+            .function(FunctionCode::READ_HOLDING_REGISTERS)
+            .or(p.function(FunctionCode::READ_INPUT_REGISTERS))
             .and_then(|f| f.max_quantity)
             .unwrap_or(125);
         for q in [0, 1, max, max + 1] {

@@ -6,7 +6,7 @@ use std::time::Duration;
 
 use codec::{CharFormat, Direction, Parity, RtuTiming, rtu, tcp};
 use drives::{RtuPort, TcpConn};
-use engine::cases::catalog::probe_pdu;
+use engine::cases::catalog::known_good_read;
 use proptest::prelude::*;
 use test_support::{profile, station};
 
@@ -42,7 +42,7 @@ proptest! {
         // Still in service: a fresh connection's valid read is answered.
         let mut fresh = TcpConn::default();
         let mut adu = Vec::new();
-        tcp::encode_adu(7, p.device.default_unit, &probe_pdu(&p), &mut adu).unwrap();
+        tcp::encode_adu(7, p.device.default_unit, &known_good_read(&p), &mut adu).unwrap();
         let out = s.serve_tcp(now + Duration::from_millis(1), &mut fresh, &adu);
         prop_assert_eq!(out.replies.len(), 1, "no answer after the stream");
         let (h, _) = tcp::decode(&out.replies[0].bytes, Direction::Response).expect("decodes");
@@ -72,7 +72,7 @@ proptest! {
         now += timing.t3_5 * 2;
         let _ = s.poll_rtu(now, &mut port);
         let mut frame = Vec::new();
-        rtu::encode_adu(p.device.default_unit, &probe_pdu(&p), &mut frame).unwrap();
+        rtu::encode_adu(p.device.default_unit, &known_good_read(&p), &mut frame).unwrap();
         let mut replies = s.serve_rtu(now, &mut port, &frame);
         replies.extend(s.poll_rtu(now + timing.t3_5 * 2, &mut port));
         prop_assert_eq!(replies.len(), 1, "no answer after the stream");

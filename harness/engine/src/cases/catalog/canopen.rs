@@ -2,7 +2,7 @@
 //! mirror a register pair.
 
 use super::{Ctx, capture, exchange, pdu, slug};
-use crate::cases::{Compare, Send, Step, Tag};
+use crate::cases::{Compare, Outgoing, Step, Tag};
 use codec::{CanOpenAccess, Request};
 use drives::profile::Access;
 
@@ -41,7 +41,7 @@ fn object_accesses(cx: &mut Ctx) {
                 "The object is read with FC 43 / MEI 0x0D, its size in bytes, little-endian data.",
                 vec![],
                 vec![exchange(
-                    Send::Pdu(read.clone()),
+                    Outgoing::Pdu(read.clone()),
                     Compare::Structure,
                     "read",
                 )],
@@ -56,7 +56,7 @@ fn object_accesses(cx: &mut Ctx) {
                 "A write to a read-only object is answered with the extended exception carrying SDO error 0xFFFF000A.",
                 vec![Tag::Write],
                 vec![exchange(
-                    Send::Pdu(pdu(&Request::CanOpen(CanOpenAccess::write(node, o.index, o.subindex, data)))),
+                    Outgoing::Pdu(pdu(&Request::CanOpen(CanOpenAccess::write(node, o.index, o.subindex, data)))),
                     Compare::Exact,
                     "write",
                 )],
@@ -94,8 +94,8 @@ fn views_agree(cx: &mut Ctx) {
             "A 32-bit value read as two registers in the device's word order equals the same value read as an FC 43 object (little-endian).",
             vec![],
             vec![
-                capture(Send::Pdu(read_reg), Compare::InRange, 0, "read the register pair"),
-                capture(Send::Pdu(read_obj), Compare::Structure, 1, "read the object"),
+                capture(Outgoing::Pdu(read_reg), Compare::InRange, 0, "read the register pair"),
+                capture(Outgoing::Pdu(read_obj), Compare::Structure, 1, "read the object"),
                 Step::Agree { registers: 0, object: 1, note: "both views agree".into() },
             ],
         );
@@ -120,7 +120,7 @@ fn missing_object(cx: &mut Ctx) {
         "A read of an object that is not in the dictionary is answered with SDO error 0xFFFF000B.",
         vec![],
         vec![exchange(
-            Send::Pdu(pdu(&Request::CanOpen(CanOpenAccess::read(
+            Outgoing::Pdu(pdu(&Request::CanOpen(CanOpenAccess::read(
                 node, missing, 0, 2,
             )))),
             Compare::Exact,
@@ -146,7 +146,7 @@ fn wrong_length(cx: &mut Ctx) {
             "A read whose byte count does not match the object's size is answered with an SDO length error.",
             vec![],
             vec![exchange(
-                Send::Pdu(pdu(&Request::CanOpen(CanOpenAccess::read(node, o.index, o.subindex, 3)))),
+                Outgoing::Pdu(pdu(&Request::CanOpen(CanOpenAccess::read(node, o.index, o.subindex, 3)))),
                 Compare::Exact,
                 "read 3 bytes",
             )],

@@ -3,8 +3,11 @@
 use std::time::Duration;
 
 use super::{Ctx, exchange, pdu};
-use crate::cases::{Compare, Send, Step, Tag};
+use crate::cases::{Compare, Outgoing, Step, Tag};
 use codec::Request;
+use drives::ds402::control::{
+    CMD_DISABLE_VOLTAGE, CMD_ENABLE_OPERATION, CMD_FAULT_RESET, CMD_SHUTDOWN, CMD_SWITCH_ON,
+};
 use drives::profile::{Access, Profile, Register, Watchdog};
 
 const MANUAL: &str =
@@ -57,12 +60,12 @@ impl ProcessData {
     }
 
     /// The whole block in one FC 16: control word `cw`, watchdog time `wd` (ms), zeros between.
-    fn write(&self, cw: u16, wd: u16) -> Send {
+    fn write(&self, cw: u16, wd: u16) -> Outgoing {
         let n = self.n;
         let mut v = vec![0u16; n];
         v[0] = cw;
         v[n - 1] = wd;
-        Send::Pdu(pdu(&Request::WriteMultipleRegisters {
+        Outgoing::Pdu(pdu(&Request::WriteMultipleRegisters {
             address: self.base,
             values: v,
         }))
@@ -72,11 +75,15 @@ impl ProcessData {
     fn reset(&self) -> Vec<Step> {
         vec![
             exchange(
-                self.write(0x80, 0),
+                self.write(CMD_FAULT_RESET, 0),
                 Compare::Exact,
                 "fault reset (0x80), watchdog off",
             ),
-            exchange(self.write(0x00, 0), Compare::Exact, "control word 0"),
+            exchange(
+                self.write(CMD_DISABLE_VOLTAGE, 0),
+                Compare::Exact,
+                "control word 0",
+            ),
             exchange(
                 read(self.status),
                 Compare::Exact,
@@ -87,8 +94,8 @@ impl ProcessData {
 }
 
 /// One state word. Only the state words are read: speeds and currents depend on the exact time of the read.
-fn read(address: u16) -> Send {
-    Send::Pdu(pdu(&Request::ReadHoldingRegisters {
+fn read(address: u16) -> Outgoing {
+    Outgoing::Pdu(pdu(&Request::ReadHoldingRegisters {
         address,
         quantity: 1,
     }))
@@ -98,17 +105,25 @@ fn read(address: u16) -> Send {
 fn enable_sequence(cx: &mut Ctx, pd: &ProcessData) {
     let mut steps = pd.reset();
     steps.extend([
-        exchange(pd.write(0x06, 0), Compare::Exact, "shutdown (0x06)"),
+        exchange(pd.write(CMD_SHUTDOWN, 0), Compare::Exact, "shutdown (0x06)"),
         exchange(
             read(pd.status),
             Compare::Exact,
             "status: ready to switch on",
         ),
-        exchange(pd.write(0x07, 0), Compare::Exact, "switch on (0x07)"),
+        exchange(
+            pd.write(CMD_SWITCH_ON, 0),
+            Compare::Exact,
+            "switch on (0x07)",
+        ),
         exchange(read(pd.status), Compare::Exact, "status: switched on"),
-        exchange(pd.write(0x0F, 0), Compare::Exact, "enable operation (0x0F)"),
+        exchange(
+            pd.write(CMD_ENABLE_OPERATION, 0),
+            Compare::Exact,
+            "enable operation (0x0F)",
+        ),
         exchange(read(pd.status), Compare::Exact, "status: operation enabled"),
-        exchange(pd.write(0x06, 0), Compare::Exact, "shutdown again"),
+        exchange(pd.write(CMD_SHUTDOWN, 0), Compare::Exact, "shutdown again"),
         exchange(
             read(pd.status),
             Compare::Exact,
@@ -130,7 +145,7 @@ fn watchdog(cx: &mut Ctx, pd: &ProcessData, w: &Watchdog) {
     let mut steps = pd.reset();
     steps.extend([
         exchange(
-            pd.write(0x06, 100),
+            pd.write(CMD_SHUTDOWN, 100),
             Compare::Exact,
             "shutdown with watchdog 100 ms",
         ),

@@ -1,7 +1,8 @@
 //! Golden replay: the manual's example requests, sent as the manual prints them (as corrected).
 
 use super::{Ctx, capture, exchange, pdu};
-use crate::cases::{Compare, Send, Step, Tag};
+use crate::cases::{Compare, Outgoing, Step, Tag};
+use codec::FunctionCode;
 use codec::{Request, rtu};
 use drives::golden::{Form, GoldenDirection, GoldenFile, GoldenFrame};
 use drives::profile::{Register, Table};
@@ -24,11 +25,11 @@ pub(super) fn cases(cx: &mut Ctx, g: &GoldenFile) {
         let mut steps = Vec::new();
         let (compare, restore) = judge(cx, &req, &mut tags, &mut steps);
         let send = match addr {
-            Some(u) if u != cx.unit => Send::PduToUnit {
+            Some(u) if u != cx.unit => Outgoing::PduToUnit {
                 pdu: pdu_bytes.clone(),
                 unit: u,
             },
-            _ => Send::Pdu(pdu_bytes.clone()),
+            _ => Outgoing::Pdu(pdu_bytes.clone()),
         };
         steps.push(exchange(
             send,
@@ -37,7 +38,7 @@ pub(super) fn cases(cx: &mut Ctx, g: &GoldenFile) {
         ));
         if let Some(a) = restore {
             steps.push(exchange(
-                Send::Restore {
+                Outgoing::Restore {
                     address: a,
                     slot: 0,
                 },
@@ -102,10 +103,12 @@ fn judge(
                 .collect();
             if regs.iter().any(|r| r.motion) {
                 tags.push(Tag::Motion);
-            } else if cx.supports(0x03) || cx.supports(0x04) {
+            } else if cx.supports(FunctionCode::READ_HOLDING_REGISTERS)
+                || cx.supports(FunctionCode::READ_INPUT_REGISTERS)
+            {
                 // Read what is there first, put it back after.
                 steps.push(capture(
-                    Send::Pdu(pdu(&cx.read_request(*address, n, Table::Holding))),
+                    Outgoing::Pdu(pdu(&cx.read_request(*address, n, Table::Holding))),
                     Compare::Structure,
                     0,
                     "read the value the golden write will change",

@@ -11,7 +11,8 @@ mod rtu;
 mod spec;
 mod tcp;
 
-use crate::cases::{Case, Compare, Level, Send, Step, Tag};
+use crate::cases::{Case, Compare, Level, Outgoing, Step, Tag};
+use codec::FunctionCode;
 use codec::{Framing, Request};
 use drives::golden::GoldenFile;
 use drives::profile::{Profile, Table};
@@ -27,7 +28,7 @@ fn pdu(r: &Request) -> Vec<u8> {
 }
 
 /// A step that sends and compares.
-fn exchange(send: Send, compare: Compare, note: impl Into<String>) -> Step {
+fn exchange(send: Outgoing, compare: Compare, note: impl Into<String>) -> Step {
     Step::Exchange {
         send,
         compare,
@@ -37,7 +38,7 @@ fn exchange(send: Send, compare: Compare, note: impl Into<String>) -> Step {
 }
 
 /// A step that sends, compares, and keeps the response's registers in `slot`.
-fn capture(send: Send, compare: Compare, slot: usize, note: impl Into<String>) -> Step {
+fn capture(send: Outgoing, compare: Compare, slot: usize, note: impl Into<String>) -> Step {
     Step::Exchange {
         send,
         compare,
@@ -76,34 +77,32 @@ impl Ctx<'_> {
         });
     }
 
-    fn supports(&self, fc: u8) -> bool {
+    fn supports(&self, fc: impl Into<FunctionCode>) -> bool {
         self.p.function(fc).is_some()
     }
 
-    fn max_quantity(&self, fc: u8) -> u16 {
+    fn max_quantity(&self, fc: impl Into<FunctionCode>) -> u16 {
+        let fc = fc.into();
         self.p
             .function(fc)
             .and_then(|f| f.max_quantity)
-            .unwrap_or(match fc {
-                0x01 | 0x02 => 2000,
-                0x03 | 0x04 => 125,
-                0x0F => 0x7B0,
-                0x10 => 123,
-                _ => 125,
-            })
+            .or(fc.max_quantity())
+            .unwrap_or(125)
     }
 
     /// A read that every healthy drive of the profile answers: the liveness probe after malformed input.
-    fn probe(&self) -> Step {
+    fn liveness(&self) -> Step {
         exchange(
-            Send::Pdu(probe_pdu(self.p)),
+            Outgoing::Pdu(known_good_read(self.p)),
             Compare::Structure,
             "liveness: a valid read is still answered",
         )
     }
 
     fn read_request(&self, address: u16, quantity: u16, table: Table) -> Request {
-        let fc04 = table == Table::Input || (!self.supports(0x03) && self.supports(0x04));
+        let fc04 = table == Table::Input
+            || (!self.supports(FunctionCode::READ_HOLDING_REGISTERS)
+                && self.supports(FunctionCode::READ_INPUT_REGISTERS));
         if fc04 {
             Request::ReadInputRegisters { address, quantity }
         } else {
@@ -112,7 +111,10 @@ impl Ctx<'_> {
     }
 
     fn write_request(&self, address: u16, values: Vec<u16>) -> Request {
-        if values.len() == 1 && !self.supports(0x10) && self.supports(0x06) {
+        if values.len() == 1
+            && !self.supports(FunctionCode::WRITE_MULTIPLE_REGISTERS)
+            && self.supports(FunctionCode::WRITE_SINGLE_REGISTER)
+        {
             Request::WriteSingleRegister {
                 address,
                 value: values[0],
@@ -123,12 +125,13 @@ impl Ctx<'_> {
     }
 
     fn can_write_registers(&self) -> bool {
-        self.supports(0x10) || self.supports(0x06)
+        self.supports(FunctionCode::WRITE_MULTIPLE_REGISTERS)
+            || self.supports(FunctionCode::WRITE_SINGLE_REGISTER)
     }
 }
 
 /// A read of the first readable register: the liveness probe.
-pub fn probe_pdu(p: &Profile) -> Vec<u8> {
+pub fn known_good_read(p: &Profile) -> Vec<u8> {
     let reg = p
         .registers
         .iter()
@@ -137,7 +140,10 @@ pub fn probe_pdu(p: &Profile) -> Vec<u8> {
     let (address, width, input) = reg.map_or((0, 1, false), |r| {
         (r.address, r.width, r.table == Table::Input)
     });
-    let req = if input || p.function(0x03).is_none() && p.function(0x04).is_some() {
+    let req = if input
+        || p.function(FunctionCode::READ_HOLDING_REGISTERS).is_none()
+            && p.function(FunctionCode::READ_INPUT_REGISTERS).is_some()
+    {
         Request::ReadInputRegisters {
             address,
             quantity: u16::from(width),

@@ -2,7 +2,8 @@
 //! and identification object of the drive's map, read and (where it is safe to undo) written.
 
 use super::{APP, Ctx, capture, exchange, pdu, slug};
-use crate::cases::{Compare, Send, Tag};
+use crate::cases::{Compare, Outgoing, Tag};
+use codec::FunctionCode;
 use codec::{Mnemonic, Request};
 use drives::profile::{Profile, Register, Table};
 
@@ -28,7 +29,10 @@ fn registers(cx: &mut Ctx) {
             Table::Holding
         };
         let read = pdu(&cx.read_request(r.address, u16::from(r.width), table));
-        if r.access.readable() && (cx.supports(0x03) || cx.supports(0x04)) {
+        if r.access.readable()
+            && (cx.supports(FunctionCode::READ_HOLDING_REGISTERS)
+                || cx.supports(FunctionCode::READ_INPUT_REGISTERS))
+        {
             register_read(cx, r, &read);
         }
         if !cx.can_write_registers() || Some(r.address) == watchdog {
@@ -80,7 +84,11 @@ fn register_read(cx: &mut Ctx, r: &Register, read: &[u8]) {
             r.range().1
         ),
         vec![],
-        vec![exchange(Send::Pdu(read.to_vec()), Compare::InRange, "read")],
+        vec![exchange(
+            Outgoing::Pdu(read.to_vec()),
+            Compare::InRange,
+            "read",
+        )],
     );
 }
 
@@ -88,32 +96,32 @@ fn register_read(cx: &mut Ctx, r: &Register, read: &[u8]) {
 fn register_write(cx: &mut Ctx, r: &Register, read: &[u8], tags: &[Tag]) {
     let p = cx.p;
     let pid = &p.device.id;
-    let v = probe_value(r);
+    let v = write_value(r);
     let mut steps = Vec::new();
     let restorable = r.access.readable() && !r.motion;
     if restorable {
         steps.push(capture(
-            Send::Pdu(read.to_vec()),
+            Outgoing::Pdu(read.to_vec()),
             Compare::InRange,
             0,
             "read the current value",
         ));
     }
     steps.push(exchange(
-        Send::Pdu(pdu(&cx.write_request(r.address, encode_value(p, r, v)))),
+        Outgoing::Pdu(pdu(&cx.write_request(r.address, encode_value(p, r, v)))),
         Compare::Exact,
         format!("write {v}"),
     ));
     if r.access.readable() {
         steps.push(exchange(
-            Send::Pdu(read.to_vec()),
+            Outgoing::Pdu(read.to_vec()),
             Compare::Exact,
             format!("read back {v}"),
         ));
     }
     if restorable {
         steps.push(exchange(
-            Send::Restore {
+            Outgoing::Restore {
                 address: r.address,
                 slot: 0,
             },
@@ -156,12 +164,12 @@ fn register_write_out_of_range(cx: &mut Ctx, r: &Register, read: &[u8], tags: &[
             tags.to_vec(),
             vec![
                 exchange(
-                    Send::Pdu(pdu(&cx.write_request(r.address, encode_value(p, r, b)))),
+                    Outgoing::Pdu(pdu(&cx.write_request(r.address, encode_value(p, r, b)))),
                     Compare::Exact,
                     format!("write {b}"),
                 ),
                 exchange(
-                    Send::Pdu(read.to_vec()),
+                    Outgoing::Pdu(read.to_vec()),
                     Compare::InRange,
                     "the value is still in range",
                 ),
@@ -185,7 +193,7 @@ fn register_write_read_only(cx: &mut Ctx, r: &Register) {
         "A write to a read-only register is rejected with an exception.",
         vec![Tag::Write],
         vec![exchange(
-            Send::Pdu(pdu(&cx.write_request(r.address, encode_value(p, r, v)))),
+            Outgoing::Pdu(pdu(&cx.write_request(r.address, encode_value(p, r, v)))),
             Compare::Exact,
             "write",
         )],
@@ -197,7 +205,9 @@ fn reserved(cx: &mut Ctx) {
     let p = cx.p;
     let pid = &p.device.id;
     for res in p.reserved.iter().map(|r| r.get_ref()) {
-        if !(cx.supports(0x03) || cx.supports(0x04)) {
+        if !(cx.supports(FunctionCode::READ_HOLDING_REGISTERS)
+            || cx.supports(FunctionCode::READ_INPUT_REGISTERS))
+        {
             break;
         }
         cx.push(
@@ -207,7 +217,7 @@ fn reserved(cx: &mut Ctx) {
             "A read of a reserved address is answered with exception 02 (Illegal Data Address).",
             vec![],
             vec![exchange(
-                Send::Pdu(pdu(&cx.read_request(res.start, 1, Table::Holding))),
+                Outgoing::Pdu(pdu(&cx.read_request(res.start, 1, Table::Holding))),
                 Compare::Exact,
                 "read",
             )],
@@ -219,7 +229,7 @@ fn reserved(cx: &mut Ctx) {
 fn coils(cx: &mut Ctx) {
     let p = cx.p;
     let pid = &p.device.id;
-    if cx.supports(0x05) && cx.supports(0x01) {
+    if cx.supports(FunctionCode::WRITE_SINGLE_COIL) && cx.supports(FunctionCode::READ_COILS) {
         for c in p
             .coils
             .iter()
@@ -241,18 +251,18 @@ fn coils(cx: &mut Ctx) {
                 "Write Single Coil ON is echoed and Read Coils then shows the coil on.",
                 tags,
                 vec![
-                    capture(Send::Pdu(read.clone()), Compare::Structure, 0, "read"),
+                    capture(Outgoing::Pdu(read.clone()), Compare::Structure, 0, "read"),
                     exchange(
-                        Send::Pdu(pdu(&Request::WriteSingleCoil {
+                        Outgoing::Pdu(pdu(&Request::WriteSingleCoil {
                             address: c.address,
                             value: 0xFF00,
                         })),
                         Compare::Exact,
                         "ON",
                     ),
-                    exchange(Send::Pdu(read), Compare::Exact, "read back"),
+                    exchange(Outgoing::Pdu(read), Compare::Exact, "read back"),
                     exchange(
-                        Send::Restore {
+                        Outgoing::Restore {
                             address: c.address,
                             slot: 0,
                         },
@@ -269,7 +279,7 @@ fn coils(cx: &mut Ctx) {
 fn discrete_inputs(cx: &mut Ctx) {
     let p = cx.p;
     let pid = &p.device.id;
-    if cx.supports(0x02) {
+    if cx.supports(FunctionCode::READ_DISCRETE_INPUTS) {
         for d in p.discrete_inputs.iter().map(|c| c.get_ref()) {
             cx.push(
                 format!(
@@ -282,7 +292,7 @@ fn discrete_inputs(cx: &mut Ctx) {
                 "The input is readable with Read Discrete Inputs.",
                 vec![],
                 vec![exchange(
-                    Send::Pdu(pdu(&Request::ReadDiscreteInputs {
+                    Outgoing::Pdu(pdu(&Request::ReadDiscreteInputs {
                         address: d.address,
                         quantity: 1,
                     })),
@@ -303,7 +313,7 @@ fn mnemonics(cx: &mut Ctx) {
         let Some(w) = Mnemonic::from_name(&m.name) else {
             continue;
         };
-        if m.read && cx.supports(0x41) {
+        if m.read && cx.supports(FunctionCode::VENDOR_READ) {
             cx.push(
                 format!("profile/{pid}/mnemonic/{}/read", slug(&m.name)),
                 format!("FC 0x41 read of {}", m.name),
@@ -311,14 +321,14 @@ fn mnemonics(cx: &mut Ctx) {
                 "A readable mnemonic is answered with its parameter string.",
                 vec![],
                 vec![exchange(
-                    Send::Pdu(pdu(&Request::VendorRead { mnemonic: w })),
+                    Outgoing::Pdu(pdu(&Request::VendorRead { mnemonic: w })),
                     Compare::Structure,
                     "read",
                 )],
             );
         }
         if m.write
-            && cx.supports(0x42)
+            && cx.supports(FunctionCode::VENDOR_WRITE)
             && let Some(ex) = &m.example
         {
             let mut tags = vec![Tag::Write];
@@ -335,7 +345,7 @@ fn mnemonics(cx: &mut Ctx) {
                 "A writable mnemonic accepts the manual's example parameters and echoes the mnemonic.",
                 tags,
                 vec![exchange(
-                    Send::Pdu(pdu(&Request::VendorWrite { mnemonic: w, params: ex.as_bytes().to_vec() })),
+                    Outgoing::Pdu(pdu(&Request::VendorWrite { mnemonic: w, params: ex.as_bytes().to_vec() })),
                     Compare::Exact,
                     "write",
                 )],
@@ -343,7 +353,7 @@ fn mnemonics(cx: &mut Ctx) {
         }
     }
     let unknown = Mnemonic::from_name("QQ").expect("2 ASCII bytes");
-    if cx.supports(0x41) {
+    if cx.supports(FunctionCode::VENDOR_READ) {
         cx.push(
             format!("profile/{pid}/mnemonic/unknown/read"),
             "FC 0x41 read of an unknown mnemonic",
@@ -351,7 +361,7 @@ fn mnemonics(cx: &mut Ctx) {
             "A mnemonic the drive does not know is answered with an exception.",
             vec![],
             vec![exchange(
-                Send::Pdu(pdu(&Request::VendorRead { mnemonic: unknown })),
+                Outgoing::Pdu(pdu(&Request::VendorRead { mnemonic: unknown })),
                 Compare::Exact,
                 "QQ",
             )],
@@ -363,7 +373,7 @@ fn mnemonics(cx: &mut Ctx) {
 fn identification(cx: &mut Ctx) {
     let p = cx.p;
     let pid = &p.device.id;
-    if cx.supports(0x2B) && !p.identification.is_empty() {
+    if cx.supports(FunctionCode::ENCAPSULATED_INTERFACE) && !p.identification.is_empty() {
         for (code, label) in [(1u8, "basic"), (2, "regular")] {
             cx.push(
                 format!("profile/{pid}/identification/{label}"),
@@ -372,7 +382,7 @@ fn identification(cx: &mut Ctx) {
                 "Read Device Identification returns the objects of the requested category with a consistent object list.",
                 vec![],
                 vec![exchange(
-                    Send::Pdu(pdu(&Request::ReadDeviceId { read_code: code, object_id: 0 })),
+                    Outgoing::Pdu(pdu(&Request::ReadDeviceId { read_code: code, object_id: 0 })),
                     Compare::Structure,
                     label,
                 )],
@@ -385,7 +395,7 @@ fn identification(cx: &mut Ctx) {
             "An individual access to an object id the device does not have is answered with exception 02.",
             vec![],
             vec![exchange(
-                Send::Pdu(pdu(&Request::ReadDeviceId { read_code: 4, object_id: 0x7F })),
+                Outgoing::Pdu(pdu(&Request::ReadDeviceId { read_code: 4, object_id: 0x7F })),
                 Compare::Exact,
                 "object 0x7F",
             )],
@@ -411,7 +421,7 @@ fn encode_value(p: &Profile, r: &Register, v: i64) -> Vec<u16> {
 }
 
 /// The in-range value a write case uses: the smallest change from the default.
-fn probe_value(r: &Register) -> i64 {
+fn write_value(r: &Register) -> i64 {
     let (min, max) = r.range();
     match r.default {
         Some(d) if d < max => d + 1,

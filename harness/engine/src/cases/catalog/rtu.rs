@@ -1,14 +1,16 @@
 //! Modbus RTU cases: CRC checking, slave addressing and broadcast, framing, and the FC 08 diagnostics.
 
-use super::{APP, Ctx, SER, exchange, pdu, probe_pdu};
-use crate::cases::{Compare, Mutation, Send, Tag};
+use super::{APP, Ctx, SER, exchange, known_good_read, pdu};
+use crate::cases::{Compare, Mutation, Outgoing, Tag};
+use codec::FunctionCode;
 use codec::Request;
+use codec::codes::diag;
 
 /// The RTU suite, family by family.
 pub(super) fn cases(cx: &mut Ctx) {
     crc_and_addressing(cx);
     framing(cx);
-    if cx.supports(0x08) {
+    if cx.supports(FunctionCode::DIAGNOSTICS) {
         return_query_data(cx);
         counters(cx);
     }
@@ -33,7 +35,7 @@ fn diag(sub: u16, data: u16) -> Vec<u8> {
 
 /// Frames a slave must not answer: a bad CRC, another slave's address, a broadcast read.
 fn crc_and_addressing(cx: &mut Ctx) {
-    let probe = probe_pdu(cx.p);
+    let read = known_good_read(cx.p);
     cx.push(
         "rtu/crc/bad-crc-silence".into(),
         "a request with a wrong CRC is not answered",
@@ -41,8 +43,8 @@ fn crc_and_addressing(cx: &mut Ctx) {
         "A frame whose CRC does not match is discarded without a response; the drive keeps answering valid frames.",
         vec![Tag::RtuOnly],
         vec![
-            exchange(Send::Mutated { pdu: probe.clone(), mutation: Mutation::BadCrc }, Compare::Exact, "CRC inverted"),
-            cx.probe(),
+            exchange(Outgoing::Mutated { pdu: read.clone(), mutation: Mutation::BadCrc }, Compare::Exact, "CRC inverted"),
+            cx.liveness(),
         ],
     );
     let other = other_slave(cx.unit);
@@ -53,8 +55,8 @@ fn crc_and_addressing(cx: &mut Ctx) {
         "A frame addressed to another slave is not answered.",
         vec![Tag::RtuOnly],
         vec![exchange(
-            Send::PduToUnit {
-                pdu: probe.clone(),
+            Outgoing::PduToUnit {
+                pdu: read.clone(),
                 unit: other,
             },
             Compare::Exact,
@@ -68,8 +70,8 @@ fn crc_and_addressing(cx: &mut Ctx) {
         "No slave answers a frame sent to address 0.",
         vec![Tag::RtuOnly],
         vec![exchange(
-            Send::PduToUnit {
-                pdu: probe.clone(),
+            Outgoing::PduToUnit {
+                pdu: read.clone(),
                 unit: 0,
             },
             Compare::Exact,
@@ -80,7 +82,7 @@ fn crc_and_addressing(cx: &mut Ctx) {
 
 /// A frame delivered in pieces without a silence between them is still one frame.
 fn framing(cx: &mut Ctx) {
-    let probe = probe_pdu(cx.p);
+    let read = known_good_read(cx.p);
     cx.push(
         "rtu/framing/request-split-within-t1.5".into(),
         "a request whose bytes arrive in two writes, back to back",
@@ -88,8 +90,8 @@ fn framing(cx: &mut Ctx) {
         "A frame delivered in pieces without an inter-character silence is answered once.",
         vec![Tag::RtuOnly],
         vec![exchange(
-            Send::Mutated {
-                pdu: probe.clone(),
+            Outgoing::Mutated {
+                pdu: read.clone(),
                 mutation: Mutation::Split { at: 3, gap_us: 0 },
             },
             Compare::Structure,
@@ -107,7 +109,7 @@ fn return_query_data(cx: &mut Ctx) {
         "Return Query Data echoes the request's data field unchanged.",
         vec![Tag::RtuOnly],
         vec![exchange(
-            Send::Pdu(diag(0x00, 0xA537)),
+            Outgoing::Pdu(diag(diag::RETURN_QUERY_DATA, 0xA537)),
             Compare::Exact,
             "data 0xA537",
         )],
@@ -116,46 +118,53 @@ fn return_query_data(cx: &mut Ctx) {
 
 /// The FC 08 counters after a known sequence of frames.
 fn counters(cx: &mut Ctx) {
-    let probe = probe_pdu(cx.p);
+    let read = known_good_read(cx.p);
     let other = other_slave(cx.unit);
     let mut steps = vec![
-        exchange(Send::Pdu(diag(0x0A, 0)), Compare::Exact, "clear counters"),
         exchange(
-            Send::Pdu(probe.clone()),
+            Outgoing::Pdu(diag(diag::CLEAR_COUNTERS, 0)),
+            Compare::Exact,
+            "clear counters",
+        ),
+        exchange(
+            Outgoing::Pdu(read.clone()),
             Compare::Structure,
             "one valid request",
         ),
         exchange(
-            Send::Mutated {
-                pdu: probe.clone(),
+            Outgoing::Mutated {
+                pdu: read.clone(),
                 mutation: Mutation::BadCrc,
             },
             Compare::Exact,
             "one bad CRC",
         ),
         exchange(
-            Send::PduToUnit {
-                pdu: probe.clone(),
+            Outgoing::PduToUnit {
+                pdu: read.clone(),
                 unit: other,
             },
             Compare::Exact,
             "one frame for another slave",
         ),
         exchange(
-            Send::Pdu(vec![0x55, 0, 0]),
+            Outgoing::Pdu(vec![0x55, 0, 0]),
             Compare::Exact,
             "one exception (illegal function)",
         ),
     ];
     for (sub, what) in [
-        (0x0Bu16, "bus message count"),
-        (0x0C, "bus communication (CRC) error count"),
-        (0x0D, "exception count"),
-        (0x0E, "slave message count"),
-        (0x0F, "no-response count"),
+        (diag::BUS_MESSAGE_COUNT, "bus message count"),
+        (
+            diag::BUS_COMM_ERROR_COUNT,
+            "bus communication (CRC) error count",
+        ),
+        (diag::BUS_EXCEPTION_ERROR_COUNT, "exception count"),
+        (diag::SERVER_MESSAGE_COUNT, "slave message count"),
+        (diag::SERVER_NO_RESPONSE_COUNT, "no-response count"),
     ] {
         if cx.p.diagnostics.iter().any(|d| d.sub_function == sub) {
-            steps.push(exchange(Send::Pdu(diag(sub, 0)), Compare::Exact, what));
+            steps.push(exchange(Outgoing::Pdu(diag(sub, 0)), Compare::Exact, what));
         }
     }
     cx.push(

@@ -2,7 +2,8 @@
 //! cannot serve (exception codes 01, 02, 03), whatever its profile.
 
 use super::{APP, Ctx, exchange, pdu};
-use crate::cases::{Compare, Send, Tag};
+use crate::cases::{Compare, Outgoing, Tag};
+use codec::FunctionCode;
 use codec::Request;
 use drives::profile::{Profile, Table};
 
@@ -44,7 +45,7 @@ fn unsupported_functions(cx: &mut Ctx) {
             format!("{APP}, section 7 (exception codes), 6 (state diagrams)"),
             "A function code the server does not implement is answered with exception 01 (Illegal Function) in a response whose function code is the request's with the high bit set, and the exception response is exactly 2 bytes.",
             vec![],
-            vec![exchange(Send::Pdu(body), Compare::Exact, format!("FC 0x{fc:02X}"))],
+            vec![exchange(Outgoing::Pdu(body), Compare::Exact, format!("FC 0x{fc:02X}"))],
         );
     }
 }
@@ -110,7 +111,7 @@ fn quantities_out_of_range(cx: &mut Ctx) {
                 format!("{APP}, section 6.{} (state diagram: quantity out of range)", fc),
                 format!("A quantity of 0 or above the limit ({max} for this device) is answered with exception 03 (Illegal Data Value)."),
                 if writes { vec![Tag::Write] } else { vec![] },
-                vec![exchange(Send::Pdu(bytes), Compare::Exact, format!("quantity {q}"))],
+                vec![exchange(Outgoing::Pdu(bytes), Compare::Exact, format!("quantity {q}"))],
             );
         }
     }
@@ -141,7 +142,7 @@ fn addresses_beyond_map(cx: &mut Ctx) {
                 format!("{APP}, section 6.{fc} (state diagram: starting address + quantity out of range)"),
                 "A read of an address the device does not have is answered with exception 02 (Illegal Data Address).",
                 vec![],
-                vec![exchange(Send::Pdu(pdu(&req)), Compare::Exact, format!("address 0x{addr:04X}"))],
+                vec![exchange(Outgoing::Pdu(pdu(&req)), Compare::Exact, format!("address 0x{addr:04X}"))],
             );
         }
     }
@@ -150,7 +151,7 @@ fn addresses_beyond_map(cx: &mut Ctx) {
 /// Byte count disagreeing with the quantity: exception 03.
 fn byte_count_mismatches(cx: &mut Ctx) {
     let p = cx.p;
-    if cx.supports(0x10) {
+    if cx.supports(FunctionCode::WRITE_MULTIPLE_REGISTERS) {
         let a = first_reg(p, Table::Holding);
         let mut b = pdu(&Request::WriteMultipleRegisters {
             address: a,
@@ -164,12 +165,12 @@ fn byte_count_mismatches(cx: &mut Ctx) {
             "A byte count that is not 2 x quantity is answered with exception 03 (Illegal Data Value); the drive keeps answering.",
             vec![Tag::Write],
             vec![
-                exchange(Send::Pdu(b), Compare::Exact, "byte count 2 for 2 registers"),
-                cx.probe(),
+                exchange(Outgoing::Pdu(b), Compare::Exact, "byte count 2 for 2 registers"),
+                cx.liveness(),
             ],
         );
     }
-    if cx.supports(0x0F) {
+    if cx.supports(FunctionCode::WRITE_MULTIPLE_COILS) {
         let mut b = pdu(&Request::WriteMultipleCoils {
             address: 0,
             quantity: 9,
@@ -183,7 +184,7 @@ fn byte_count_mismatches(cx: &mut Ctx) {
             format!("{APP}, section 6.11"),
             "A byte count that is not ceil(quantity / 8) is answered with exception 03 (Illegal Data Value).",
             vec![Tag::Write],
-            vec![exchange(Send::Pdu(b), Compare::Exact, "byte count 1 for 9 coils"), cx.probe()],
+            vec![exchange(Outgoing::Pdu(b), Compare::Exact, "byte count 1 for 9 coils"), cx.liveness()],
         );
     }
 }
@@ -200,7 +201,7 @@ fn truncated_pdus(cx: &mut Ctx) {
             format!("{APP}, section 6 (request PDU layouts) and 7"),
             "A request too short for its function code is rejected (exception 03) or ignored, never answered as if valid; the drive keeps answering.",
             if matches!(fc, 0x06 | 0x10) { vec![Tag::Write] } else { vec![] },
-            vec![exchange(Send::Pdu(vec![fc, 0x00, 0x01]), Compare::RejectOrIgnore, "3-byte PDU"), cx.probe()],
+            vec![exchange(Outgoing::Pdu(vec![fc, 0x00, 0x01]), Compare::RejectOrIgnore, "3-byte PDU"), cx.liveness()],
         );
     }
 }
@@ -208,7 +209,7 @@ fn truncated_pdus(cx: &mut Ctx) {
 /// FC 05 values other than ON/OFF.
 fn write_coil_illegal_value(cx: &mut Ctx) {
     let p = cx.p;
-    if cx.supports(0x05) {
+    if cx.supports(FunctionCode::WRITE_SINGLE_COIL) {
         let addr = p.coils.first().map_or(0, |c| c.get_ref().address);
         cx.push(
             "spec/app-6.5/write-coil-illegal-value".into(),
@@ -217,7 +218,7 @@ fn write_coil_illegal_value(cx: &mut Ctx) {
             "A Write Single Coil value other than 0xFF00 or 0x0000 is answered with exception 03 (Illegal Data Value).",
             vec![Tag::Write],
             vec![exchange(
-                Send::Pdu(pdu(&Request::WriteSingleCoil { address: addr, value: 0x1234 })),
+                Outgoing::Pdu(pdu(&Request::WriteSingleCoil { address: addr, value: 0x1234 })),
                 Compare::Exact,
                 "value 0x1234",
             )],

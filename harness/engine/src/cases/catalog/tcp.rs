@@ -1,7 +1,7 @@
 //! Modbus/TCP cases: the MBAP header, requests across and within segments, unit ids, the PDU size limit.
 
-use super::{APP, Ctx, TCPG, exchange, probe_pdu};
-use crate::cases::{Compare, Mutation, Send, Step, Tag};
+use super::{APP, Ctx, TCPG, exchange, known_good_read};
+use crate::cases::{Compare, Mutation, Outgoing, Step, Tag};
 
 /// The Modbus/TCP suite, family by family.
 pub(super) fn cases(cx: &mut Ctx) {
@@ -13,7 +13,7 @@ pub(super) fn cases(cx: &mut Ctx) {
 
 /// The MBAP header: transaction ids echoed, a foreign protocol id and a wrong length not served.
 fn mbap_header(cx: &mut Ctx) {
-    let probe = probe_pdu(cx.p);
+    let read = known_good_read(cx.p);
     cx.push(
         "tcp/mbap/transaction-id-echo".into(),
         "transaction ids 0x0000, 0x1234 and 0xFFFF are echoed",
@@ -21,9 +21,9 @@ fn mbap_header(cx: &mut Ctx) {
         "The server copies the transaction identifier of the request into the response, and answers with protocol identifier 0 and a length field equal to the bytes that follow it.",
         vec![Tag::TcpOnly],
         vec![
-            exchange(Send::Pdu(probe.clone()), Compare::Structure, "first request"),
-            exchange(Send::Pdu(probe.clone()), Compare::Structure, "second request"),
-            exchange(Send::Pdu(probe.clone()), Compare::Structure, "third request"),
+            exchange(Outgoing::Pdu(read.clone()), Compare::Structure, "first request"),
+            exchange(Outgoing::Pdu(read.clone()), Compare::Structure, "second request"),
+            exchange(Outgoing::Pdu(read.clone()), Compare::Structure, "third request"),
         ],
     );
     cx.push(
@@ -34,12 +34,12 @@ fn mbap_header(cx: &mut Ctx) {
         vec![Tag::TcpOnly],
         vec![
             exchange(
-                Send::Mutated { pdu: probe.clone(), mutation: Mutation::ProtocolId(1) },
+                Outgoing::Mutated { pdu: read.clone(), mutation: Mutation::ProtocolId(1) },
                 Compare::Exact,
                 "protocol id 1",
             ),
             Step::Reconnect,
-            cx.probe(),
+            cx.liveness(),
         ],
     );
     for (label, delta) in [("length-plus-1", 1i16), ("length-minus-1", -1)] {
@@ -51,12 +51,12 @@ fn mbap_header(cx: &mut Ctx) {
             vec![Tag::TcpOnly],
             vec![
                 exchange(
-                    Send::Mutated { pdu: probe.clone(), mutation: Mutation::LengthDelta(delta) },
+                    Outgoing::Mutated { pdu: read.clone(), mutation: Mutation::LengthDelta(delta) },
                     Compare::RejectOrIgnore,
                     format!("length field {delta:+}"),
                 ),
                 Step::Reconnect,
-                cx.probe(),
+                cx.liveness(),
             ],
         );
     }
@@ -64,7 +64,7 @@ fn mbap_header(cx: &mut Ctx) {
 
 /// A TCP stream has no message boundaries: several requests in one segment, one request in two.
 fn segments(cx: &mut Ctx) {
-    let probe = probe_pdu(cx.p);
+    let read = known_good_read(cx.p);
     for k in [2usize, 4] {
         cx.push(
             format!("tcp/pipeline/{k}-requests-one-segment"),
@@ -72,7 +72,7 @@ fn segments(cx: &mut Ctx) {
             format!("{TCPG}, section 4.2.1 (several requests may be pipelined)"),
             "Requests that arrive together in one segment are all answered, in order, each with its own transaction id.",
             vec![Tag::TcpOnly],
-            vec![exchange(Send::Batch(vec![probe.clone(); k]), Compare::Structure, format!("{k} requests"))],
+            vec![exchange(Outgoing::Batch(vec![read.clone(); k]), Compare::Structure, format!("{k} requests"))],
         );
     }
     cx.push(
@@ -82,7 +82,7 @@ fn segments(cx: &mut Ctx) {
         "A request whose bytes arrive in two segments is answered once, as if it had arrived whole.",
         vec![Tag::TcpOnly],
         vec![exchange(
-            Send::Mutated { pdu: probe.clone(), mutation: Mutation::Split { at: 4, gap_us: 5_000 } },
+            Outgoing::Mutated { pdu: read.clone(), mutation: Mutation::Split { at: 4, gap_us: 5_000 } },
             Compare::Structure,
             "split after 4 bytes",
         )],
@@ -91,7 +91,7 @@ fn segments(cx: &mut Ctx) {
 
 /// The unit ids a drive answers on TCP, and those it ignores.
 fn unit_ids(cx: &mut Ctx) {
-    let probe = probe_pdu(cx.p);
+    let read = known_good_read(cx.p);
     for unit in [0u8, 1, 247, 255] {
         cx.push(
             format!("tcp/unit-id/{unit}"),
@@ -99,7 +99,7 @@ fn unit_ids(cx: &mut Ctx) {
             format!("{TCPG}, section 4.4.1.2 (unit identifier)"),
             "The server answers the unit ids its profile says it answers, echoing the unit id, and ignores the others.",
             vec![Tag::TcpOnly],
-            vec![exchange(Send::PduToUnit { pdu: probe.clone(), unit }, Compare::Structure, format!("unit {unit}"))],
+            vec![exchange(Outgoing::PduToUnit { pdu: read.clone(), unit }, Compare::Structure, format!("unit {unit}"))],
         );
     }
 }
@@ -113,9 +113,9 @@ fn oversized_pdu(cx: &mut Ctx) {
         "A frame longer than the 253-byte PDU limit is not answered as a valid request; the server recovers on a new connection.",
         vec![Tag::TcpOnly],
         vec![
-            exchange(Send::Pdu(vec![0x03; 254]), Compare::RejectOrIgnore, "254-byte PDU"),
+            exchange(Outgoing::Pdu(vec![0x03; 254]), Compare::RejectOrIgnore, "254-byte PDU"),
             Step::Reconnect,
-            cx.probe(),
+            cx.liveness(),
         ],
     );
 }

@@ -12,8 +12,9 @@ use std::collections::BTreeSet;
 use super::spec::{
     Alter, Edge, MAX_BATCH_EXTRA, MAX_EXTEND, MAX_SPLIT_GAP_US, Op, Quantity, Req, Spec, Value,
 };
-use crate::cases::catalog::probe_pdu;
-use crate::{Case, Compare, Level, Mutation, Send, Step, Tag};
+use crate::cases::catalog::known_good_read;
+use crate::{Case, Compare, Level, Mutation, Outgoing, Step, Tag};
+use codec::FunctionCode;
 use codec::{CanOpenAccess, MAX_PDU_LEN, Mnemonic, Request};
 use drives::profile::{Bit, Object, Profile, Register, Table, VendorMnemonic};
 
@@ -35,7 +36,7 @@ pub struct GenContext {
     pub(super) id_objects: Vec<u8>,
     functions: Vec<u8>,
     pub(super) unsupported: Vec<u8>,
-    probe: Vec<u8>,
+    known_good: Vec<u8>,
     /// The profile has motion registers, coils or mnemonics: values may change by themselves.
     can_move: bool,
 }
@@ -113,7 +114,7 @@ impl GenContext {
             id_objects: profile.identification.iter().map(|o| o.object_id).collect(),
             functions,
             unsupported,
-            probe: probe_pdu(profile),
+            known_good: known_good_read(profile),
             can_move: profile.registers.iter().any(|r| r.get_ref().motion)
                 || profile.coils.iter().any(|c| c.get_ref().motion)
                 || profile.mnemonics.iter().any(|m| m.get_ref().motion)
@@ -133,25 +134,26 @@ impl GenContext {
     }
 
     /// True if the profile supports function code `fc`.
-    pub(super) fn supports(&self, fc: u8) -> bool {
-        self.functions.contains(&fc)
+    pub(super) fn supports(&self, fc: impl Into<FunctionCode>) -> bool {
+        self.functions.contains(&fc.into().0)
     }
 
-    fn max_quantity(&self, fc: u8) -> u16 {
+    /// The quantity limit of `fc`: the profile's, else the spec's.
+    fn max_quantity(&self, fc: impl Into<FunctionCode>) -> u16 {
+        let fc = fc.into();
         self.profile
             .function(fc)
             .and_then(|f| f.max_quantity)
-            .unwrap_or(match fc {
-                0x01 | 0x02 => 2000,
-                0x0F => 0x7B0,
-                0x10 => 123,
-                _ => 125,
-            })
+            .or(fc.max_quantity())
+            .unwrap_or(125)
     }
 
     /// The read function for a table choice: FC 04 for input registers where supported, else FC 03.
     fn read_fc(&self, table: Table, input: bool) -> u8 {
-        let (r3, r4) = (self.supports(0x03), self.supports(0x04));
+        let (r3, r4) = (
+            self.supports(FunctionCode::READ_HOLDING_REGISTERS),
+            self.supports(FunctionCode::READ_INPUT_REGISTERS),
+        );
         match table {
             Table::Input if r4 || !r3 => 0x04,
             Table::Holding if r3 || !r4 => 0x03,
@@ -414,7 +416,9 @@ fn write_register(cx: &GenContext, reg: u16, value: Value, fc06: bool, check: bo
     };
     let v = value_in(value, r.range(), r.natural_range());
     let values = encode_register(p, r, v);
-    let single = values.len() == 1 && ((fc06 && cx.supports(0x06)) || !cx.supports(0x10));
+    let single = values.len() == 1
+        && ((fc06 && cx.supports(FunctionCode::WRITE_SINGLE_REGISTER))
+            || !cx.supports(FunctionCode::WRITE_MULTIPLE_REGISTERS));
     let req = if single {
         Request::WriteSingleRegister {
             address: r.address,
@@ -430,7 +434,8 @@ fn write_register(cx: &GenContext, reg: u16, value: Value, fc06: bool, check: bo
         && r.access.readable()
         && r.access.writable()
         && !r.motion
-        && (cx.supports(0x03) || cx.supports(0x04));
+        && (cx.supports(FunctionCode::READ_HOLDING_REGISTERS)
+            || cx.supports(FunctionCode::READ_INPUT_REGISTERS));
     Built {
         pdu: to_pdu(&req),
         compare: Compare::Exact,
@@ -464,7 +469,9 @@ fn write_half(cx: &GenContext, reg: u16, second: bool, word: u16, fc06: bool) ->
         .build(cx);
     };
     let address = r.address.wrapping_add(u16::from(second));
-    let req = if (fc06 && cx.supports(0x06)) || !cx.supports(0x10) {
+    let req = if (fc06 && cx.supports(FunctionCode::WRITE_SINGLE_REGISTER))
+        || !cx.supports(FunctionCode::WRITE_MULTIPLE_REGISTERS)
+    {
         Request::WriteSingleRegister {
             address,
             value: word,
@@ -491,7 +498,10 @@ fn write_half(cx: &GenContext, reg: u16, second: bool, word: u16, fc06: bool) ->
 /// FC 16 of a block, every register set to one word; cut to fit the PDU limit.
 fn write_span(cx: &GenContext, at: Edge, quantity: Quantity, word: u16) -> Built {
     let address = cx.edge(&cx.holding, at);
-    let q = cx.quantity(quantity, cx.max_quantity(0x10));
+    let q = cx.quantity(
+        quantity,
+        cx.max_quantity(FunctionCode::WRITE_MULTIPLE_REGISTERS),
+    );
     Built::plain(
         fit(
             to_pdu(&Request::WriteMultipleRegisters {
@@ -550,20 +560,24 @@ fn write_coil(cx: &GenContext, coil: u16, on: bool, check: bool) -> Built {
             c.map_or(String::new(), |c| format!(" {}", c.name)),
             if on { "ON" } else { "OFF" }
         ),
-        check: (check && c.is_some_and(|c| !c.motion) && cx.supports(0x01)).then(|| Check {
-            read: to_pdu(&Request::ReadCoils {
+        check: (check && c.is_some_and(|c| !c.motion) && cx.supports(FunctionCode::READ_COILS))
+            .then(|| Check {
+                read: to_pdu(&Request::ReadCoils {
+                    address,
+                    quantity: 1,
+                }),
                 address,
-                quantity: 1,
             }),
-            address,
-        }),
     }
 }
 
 /// FC 15 of a block of coils; cut to fit the PDU limit.
 fn write_coils(cx: &GenContext, at: Edge, quantity: Quantity, bits: u32) -> Built {
     let address = cx.edge(&cx.coil_addresses(false), at);
-    let q = cx.quantity(quantity, cx.max_quantity(0x0F));
+    let q = cx.quantity(
+        quantity,
+        cx.max_quantity(FunctionCode::WRITE_MULTIPLE_COILS),
+    );
     let data = (0..usize::from(q).div_ceil(8))
         .map(|i| (bits >> (8 * (i % 4))) as u8)
         .collect();
@@ -586,7 +600,10 @@ fn write_coils(cx: &GenContext, at: Edge, quantity: Quantity, bits: u32) -> Buil
 fn read_write(cx: &GenContext, at: Edge, quantity: Quantity, reg: u16, value: Value) -> Built {
     let p = &cx.profile;
     let read_address = cx.edge(&cx.holding, at);
-    let read_quantity = cx.quantity(quantity, cx.max_quantity(0x17));
+    let read_quantity = cx.quantity(
+        quantity,
+        cx.max_quantity(FunctionCode::READ_WRITE_MULTIPLE_REGISTERS),
+    );
     let (write_address, values, label) = match pick(&cx.regs, reg) {
         Some(r) => {
             let v = value_in(value, r.range(), r.natural_range());
@@ -912,7 +929,12 @@ fn altered_tags(p: &Profile, original: &[u8], altered: &[u8]) -> BTreeSet<Tag> {
     tags
 }
 
-fn exchange(send: Send, compare: Compare, capture: Option<usize>, note: impl Into<String>) -> Step {
+fn exchange(
+    send: Outgoing,
+    compare: Compare,
+    capture: Option<usize>,
+    note: impl Into<String>,
+) -> Step {
     Step::Exchange {
         send,
         compare,
@@ -935,9 +957,9 @@ impl Op {
         let note = format!("{}{what}", b.note);
         steps.push(exchange(send, compare, None, note.clone()));
         steps.extend(tail);
-        if self.probe && self.alter != Alter::None {
+        if self.liveness && self.alter != Alter::None {
             steps.push(exchange(
-                Send::Pdu(cx.probe.clone()),
+                Outgoing::Pdu(cx.known_good.clone()),
                 Compare::Structure,
                 None,
                 "liveness: a valid read is still answered",
@@ -948,7 +970,7 @@ impl Op {
 }
 
 /// How an operation's main exchange is sent, how its answer is judged, and what its note adds.
-type Sent = (Send, Compare, String);
+type Sent = (Outgoing, Compare, String);
 
 impl Alter {
     /// The main exchange of request `b` altered so; steps that go before it are pushed to `steps`, those
@@ -968,7 +990,11 @@ impl Alter {
                 if let Some(c) = &b.check {
                     check_steps(cx, c, steps, tail);
                 }
-                (Send::Pdu(b.pdu.clone()), b.compare.clone(), String::new())
+                (
+                    Outgoing::Pdu(b.pdu.clone()),
+                    b.compare.clone(),
+                    String::new(),
+                )
             }
             Alter::BitFlip { bit } => {
                 let bit = usize::from(*bit) % (b.pdu.len() * 8).max(1);
@@ -1036,7 +1062,7 @@ impl Alter {
 /// restore after.
 fn check_steps(cx: &GenContext, c: &Check, steps: &mut Vec<Step>, tail: &mut Vec<Step>) {
     steps.push(exchange(
-        Send::Pdu(c.read.clone()),
+        Outgoing::Pdu(c.read.clone()),
         Compare::Structure,
         Some(0),
         "read the value the write will change",
@@ -1049,13 +1075,13 @@ fn check_steps(cx: &GenContext, c: &Check, steps: &mut Vec<Step>, tail: &mut Vec
         Compare::Exact
     };
     tail.push(exchange(
-        Send::Pdu(c.read.clone()),
+        Outgoing::Pdu(c.read.clone()),
         readback,
         None,
         "read back",
     ));
     tail.push(exchange(
-        Send::Restore {
+        Outgoing::Restore {
             address: c.address,
             slot: 0,
         },
@@ -1066,13 +1092,13 @@ fn check_steps(cx: &GenContext, c: &Check, steps: &mut Vec<Step>, tail: &mut Vec
 }
 
 /// Request `b` sent with mutation `m`, its tags those of what the mutation leaves of it.
-fn mutated(p: &Profile, b: &Built, m: Mutation, tags: &mut BTreeSet<Tag>) -> Send {
+fn mutated(p: &Profile, b: &Built, m: Mutation, tags: &mut BTreeSet<Tag>) -> Outgoing {
     if let Some(altered) = m.apply_to_pdu(&b.pdu) {
         tags.extend(altered_tags(p, &b.pdu, &altered));
     } else {
         tags.extend(pdu_tags(p, &b.pdu));
     }
-    Send::Mutated {
+    Outgoing::Mutated {
         pdu: b.pdu.clone(),
         mutation: m,
     }
@@ -1169,7 +1195,7 @@ fn wrong_unit(cx: &GenContext, b: &Built, unit: u8, tags: &mut BTreeSet<Tag>) ->
     }
     tags.extend(t);
     (
-        Send::PduToUnit {
+        Outgoing::PduToUnit {
             pdu: b.pdu.clone(),
             unit: u,
         },
@@ -1190,11 +1216,11 @@ fn batch(cx: &GenContext, b: &Built, extra: &[Req], tags: &mut BTreeSet<Tag>) ->
         pdus.push(e);
     }
     if pdus.len() == 1 {
-        pdus.push(cx.probe.clone());
+        pdus.push(cx.known_good.clone());
     }
     let n = pdus.len();
     (
-        Send::Batch(pdus),
+        Outgoing::Batch(pdus),
         Compare::Structure,
         format!(", with {} more request(s) in the same write", n - 1),
     )

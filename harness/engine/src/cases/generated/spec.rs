@@ -31,7 +31,7 @@ pub struct Op {
     /// What is done to it on purpose.
     pub alter: Alter,
     /// After an altered request: check with a valid read that the drive still answers.
-    pub probe: bool,
+    pub liveness: bool,
 }
 
 /// An address choice: the first or last mapped address of a table, or the address of one entry.

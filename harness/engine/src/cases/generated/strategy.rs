@@ -9,6 +9,8 @@ use proptest::prelude::*;
 use proptest::strategy::{BoxedStrategy, Union};
 
 use super::build::GenContext;
+use codec::FunctionCode;
+
 use super::spec::{
     Alter, Edge, MAX_BATCH_EXTRA, MAX_EXTEND, MAX_OPS, Op, Quantity, Req, Spec, Value,
 };
@@ -102,7 +104,11 @@ impl GenContext {
     pub fn op_strategy(&self) -> BoxedStrategy<Op> {
         let alter = prop_oneof![3 => Just(Alter::None), 2 => self.alter_strategy()];
         (self.req_strategy(), alter, any::<bool>())
-            .prop_map(|(req, alter, probe)| Op { req, alter, probe })
+            .prop_map(|(req, alter, liveness)| Op {
+                req,
+                alter,
+                liveness,
+            })
             .boxed()
     }
 
@@ -119,7 +125,8 @@ impl GenContext {
 
     /// FC 03/04: one register, a span, one half of a 32-bit register.
     fn register_read_arms(&self, arms: &mut Arms) {
-        let reads = self.supports(0x03) || self.supports(0x04);
+        let reads = self.supports(FunctionCode::READ_HOLDING_REGISTERS)
+            || self.supports(FunctionCode::READ_INPUT_REGISTERS);
         let (nr, nw) = (self.regs.len(), self.wide.len());
         if reads && nr > 0 {
             arms.push((
@@ -156,7 +163,10 @@ impl GenContext {
     /// FC 06/16: one register, one half of a 32-bit register, a span.
     fn register_write_arms(&self, arms: &mut Arms) {
         let (nr, nw) = (self.regs.len(), self.wide.len());
-        if (self.supports(0x06) || self.supports(0x10)) && nr > 0 {
+        if (self.supports(FunctionCode::WRITE_SINGLE_REGISTER)
+            || self.supports(FunctionCode::WRITE_MULTIPLE_REGISTERS))
+            && nr > 0
+        {
             arms.push((
                 4,
                 (index(nr), value(), any::<bool>(), any::<bool>())
@@ -182,7 +192,7 @@ impl GenContext {
                 ));
             }
         }
-        if self.supports(0x10) && nr > 0 {
+        if self.supports(FunctionCode::WRITE_MULTIPLE_REGISTERS) && nr > 0 {
             arms.push((
                 1,
                 (edge(self.holding.len()), quantity(), any::<u16>())
@@ -211,7 +221,7 @@ impl GenContext {
                 ));
             }
         }
-        if self.supports(0x05) {
+        if self.supports(FunctionCode::WRITE_SINGLE_COIL) {
             arms.push((
                 1,
                 (index(self.coils.len()), any::<bool>(), any::<bool>())
@@ -219,7 +229,7 @@ impl GenContext {
                     .boxed(),
             ));
         }
-        if self.supports(0x0F) {
+        if self.supports(FunctionCode::WRITE_MULTIPLE_COILS) {
             arms.push((
                 1,
                 (edge(self.coils.len()), quantity(), any::<u32>())
@@ -232,7 +242,7 @@ impl GenContext {
     /// FC 23.
     fn read_write_arm(&self, arms: &mut Arms) {
         let nr = self.regs.len();
-        if self.supports(0x17) && nr > 0 {
+        if self.supports(FunctionCode::READ_WRITE_MULTIPLE_REGISTERS) && nr > 0 {
             arms.push((
                 1,
                 (edge(self.holding.len()), quantity(), index(nr), value())
@@ -249,7 +259,7 @@ impl GenContext {
 
     /// FC 08 and FC 43/14.
     fn diagnostic_and_id_arms(&self, arms: &mut Arms) {
-        if self.supports(0x08) {
+        if self.supports(FunctionCode::DIAGNOSTICS) {
             arms.push((
                 1,
                 (index(self.diagnostics.len() + 1), any::<u16>())
@@ -257,7 +267,7 @@ impl GenContext {
                     .boxed(),
             ));
         }
-        if self.supports(0x2B) && !self.id_objects.is_empty() {
+        if self.supports(FunctionCode::ENCAPSULATED_INTERFACE) && !self.id_objects.is_empty() {
             arms.push((
                 1,
                 (0u8..6, any::<u8>())
@@ -269,7 +279,7 @@ impl GenContext {
 
     /// FC 43/13 reads and writes.
     fn object_arms(&self, arms: &mut Arms) {
-        if self.supports(0x2B) && !self.objects.is_empty() {
+        if self.supports(FunctionCode::ENCAPSULATED_INTERFACE) && !self.objects.is_empty() {
             let n = self.objects.len();
             arms.push((
                 2,
@@ -288,7 +298,7 @@ impl GenContext {
 
     /// FC 65 and FC 66.
     fn vendor_arms(&self, arms: &mut Arms) {
-        if self.supports(0x41) {
+        if self.supports(FunctionCode::VENDOR_READ) {
             arms.push((
                 1,
                 index(self.read_mnemonics.len() + 1)
@@ -296,7 +306,7 @@ impl GenContext {
                     .boxed(),
             ));
         }
-        if self.supports(0x42) && !self.write_mnemonics.is_empty() {
+        if self.supports(FunctionCode::VENDOR_WRITE) && !self.write_mnemonics.is_empty() {
             arms.push((
                 1,
                 index(self.write_mnemonics.len())

@@ -81,6 +81,9 @@ pub fn skip_reason(case: &Case, cfg: &RunConfig, framing: Framing) -> Option<Str
     None
 }
 
+/// One write of a step and the idle time after it.
+type Piece = (Vec<u8>, Duration);
+
 /// A framed request ready to send.
 struct Framed {
     bytes: Vec<u8>,
@@ -355,9 +358,26 @@ impl Runner {
         note: &str,
         wire: &mut Vec<WireEvent>,
     ) -> Result<StepResult, TargetError> {
+        let Some((frames, pieces)) = self.outgoing(send) else {
+            return Ok(StepResult {
+                note: note.to_string(),
+                sent: None,
+                expected: None,
+                observed: vec![],
+                verdict: Verdict::Skipped,
+                findings: vec!["nothing was captured to restore".into()],
+            });
+        };
+        self.sync_shadow();
+        let sent = self.send_pieces(&frames, &pieces, wire)?;
+        self.receive_and_judge(&frames, &pieces, sent, compare, capture, note, wire)
+    }
+
+    /// What a step puts on the wire: its frames, and the writes (pieces, each with a gap after it).
+    /// `None` for a restore with nothing captured.
+    fn outgoing(&mut self, send: &Outgoing) -> Option<(Vec<Framed>, Vec<Piece>)> {
         let unit = self.cfg.unit;
-        // What goes on the wire: the frames, and the writes (pieces with a gap after each).
-        let (frames, pieces): (Vec<Framed>, Vec<(Vec<u8>, Duration)>) = match send {
+        Some(match send {
             Outgoing::Pdu(p) => {
                 let f = self.frame(p, unit, None);
                 let piece = vec![(f.bytes.clone(), Duration::ZERO)];
@@ -393,25 +413,25 @@ impl Runner {
                     let piece = vec![(f.bytes.clone(), Duration::ZERO)];
                     (vec![f], piece)
                 }
-                None => {
-                    return Ok(StepResult {
-                        note: note.to_string(),
-                        sent: None,
-                        expected: None,
-                        observed: vec![],
-                        verdict: Verdict::Skipped,
-                        findings: vec!["nothing was captured to restore".into()],
-                    });
-                }
+                None => return None,
             },
-        };
+        })
+    }
+
+    /// Write the pieces to the target and to the reference drive. Returns what the harness could not
+    /// guarantee (a split frame's pieces too far apart) and the target's time just before the last write.
+    fn send_pieces(
+        &mut self,
+        frames: &[Framed],
+        pieces: &[Piece],
+        wire: &mut Vec<WireEvent>,
+    ) -> Result<(Vec<Finding>, Duration), TargetError> {
         let malformed = frames.iter().any(|f| f.malformed);
-        self.sync_shadow();
         let mut precondition = Vec::new();
         // On the target's clock: virtual on `sim:`, where a stall of the harness is not a gap on the line.
         let mut last_write: Option<Duration> = None;
         let mut before_last_write = self.target.now();
-        for (bytes, gap) in &pieces {
+        for (bytes, gap) in pieces {
             // On a real line, pieces meant to be one frame must follow within t1.5: check the harness did.
             if let (Some(t), Some(prev)) = (self.target.rtu_timing(), last_write) {
                 let took = self.target.now().saturating_sub(prev);
@@ -444,12 +464,27 @@ impl Runner {
                 self.shadow.idle(*gap);
             }
         }
+        Ok((precondition, before_last_write))
+    }
+
+    /// Receive every answer the reference gives (or the silence it keeps) and judge each.
+    #[allow(clippy::too_many_arguments)]
+    fn receive_and_judge(
+        &mut self,
+        frames: &[Framed],
+        pieces: &[Piece],
+        (precondition, sent_at): (Vec<Finding>, Duration),
+        compare: &Compare,
+        capture: Option<usize>,
+        note: &str,
+        wire: &mut Vec<WireEvent>,
+    ) -> Result<StepResult, TargetError> {
         // The reference answers: every frame it sends before it falls silent.
         let (expected, reference_closed) = self.shadow.settle();
         let mut observed = Vec::new();
         let mut findings: Vec<Finding> = precondition;
+        let unit = self.cfg.unit;
         let framing = self.target.framing();
-        let sent_at = before_last_write;
         let n = expected.len().max(1);
         for i in 0..n {
             let wait = if expected.is_empty() {

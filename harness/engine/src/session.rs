@@ -451,14 +451,51 @@ fn unix_ms() -> u64 {
         .map_or(0, |d| d.as_millis() as u64)
 }
 
-/// Run the selected catalog. `progress` is called after each case with (done, total, id, verdict).
-pub fn run(
+/// What a run collects as its cases complete: counts, verdicts if kept, the first failures, and the failing
+/// generated cases to shrink afterwards.
+struct Collected {
+    tally: Tally,
+    verdicts: Vec<(String, Verdict)>,
+    failures: Vec<CaseResult>,
+    /// Failing generated cases to shrink after the run (the first `max_shrinks`): (index, id).
+    to_shrink: Vec<(u64, String)>,
+}
+
+impl Collected {
+    fn new() -> Self {
+        Self {
+            tally: Tally::new(),
+            verdicts: Vec::new(),
+            failures: Vec::new(),
+            to_shrink: Vec::new(),
+        }
+    }
+
+    fn record(&mut self, opts: &Options, case: &Case, result: CaseResult, gen_index: Option<u64>) {
+        self.tally.record(&result);
+        if opts.keep_verdicts {
+            self.verdicts.push((case.id.clone(), result.verdict));
+        }
+        if result.verdict == Verdict::Fail {
+            if let Some(index) = gen_index
+                && self.to_shrink.len() < opts.max_shrinks
+            {
+                self.to_shrink.push((index, case.id.clone()));
+            }
+            if self.failures.len() < 200 {
+                self.failures.push(result);
+            }
+        }
+    }
+}
+
+/// The checks of a run's options against its profile, before anything is opened; the expectations file.
+fn check_options(
     opts: &Options,
+    profile: &Profile,
+    cfg: &RunConfig,
     log: &mut dyn Write,
-    interrupt: &AtomicBool,
-    progress: &mut dyn FnMut(usize, usize, &str, Verdict),
-) -> Result<RunOutcome, SessionError> {
-    let profile = resolve_profile(opts, log)?;
+) -> Result<Expectations, SessionError> {
     if !opts.faults.0.is_empty() && !opts.target.is_sim() {
         return Err(SessionError::FaultNeedsSim);
     }
@@ -466,7 +503,6 @@ pub fn run(
         Some(p) => Expectations::load(p).map_err(SessionError::Expectations)?,
         None => Expectations::default(),
     };
-    let cfg = config(opts, &profile);
     let [lo, hi] = profile.device.unit_ids;
     let broadcast = profile.device.broadcast && cfg.unit == 0;
     if !((lo..=hi).contains(&cfg.unit) || broadcast) {
@@ -482,6 +518,81 @@ pub fn run(
     {
         return Err(SessionError::NoSnapshot(snap.path.clone()));
     }
+    Ok(expectations)
+}
+
+/// The header of every report of the run.
+fn run_info(
+    opts: &Options,
+    profile: &Profile,
+    runner: &Runner,
+    generator: Option<&Generator>,
+) -> RunInfo {
+    RunInfo {
+        target: opts.target.to_string(),
+        profile: profile.device.id.clone(),
+        transport: match (&opts.target, runner.framing()) {
+            (TargetUrl::RtuOverTcp { .. }, _) => crate::reports::Transport::RtuOverTcp,
+            (_, Framing::Rtu) => crate::reports::Transport::Rtu,
+            _ => crate::reports::Transport::Tcp,
+        },
+        server_port: runner.target().server_port(),
+        started_unix_ms: unix_ms(),
+        command_line: opts.command_line.clone(),
+        seed: generator.map(Generator::seed).or(opts.seed),
+        harness_version: env!("CARGO_PKG_VERSION").to_string(),
+        report_dir: opts.report_dir.clone(),
+    }
+}
+
+/// The snapshot writer of a run that has `--snapshot`.
+fn open_snapshot(
+    opts: &Options,
+    info: &RunInfo,
+    framing: Framing,
+    unit: u8,
+) -> Result<Option<SnapshotWriter>, SessionError> {
+    let Some(s) = &opts.snapshot else {
+        return Ok(None);
+    };
+    let dir = snapshot_dir(&s.path)?;
+    let header = SnapshotHeader {
+        profile: info.profile.clone(),
+        framing: if framing == Framing::Rtu {
+            "rtu"
+        } else {
+            "tcp"
+        }
+        .into(),
+        unit,
+        seed: info.seed,
+    };
+    Ok(Some(SnapshotWriter::new(&header, &dir)))
+}
+
+/// A skipped case's result.
+fn skipped(case: &Case, reason: String) -> CaseResult {
+    CaseResult {
+        id: case.id.clone(),
+        verdict: Verdict::Skipped,
+        expected_deviation: None,
+        steps: vec![],
+        wire: vec![],
+        duration: Duration::ZERO,
+        reason: Some(reason),
+    }
+}
+
+/// Run the selected catalog. `progress` is called after each case with (done, total, id, verdict).
+pub fn run(
+    opts: &Options,
+    log: &mut dyn Write,
+    interrupt: &AtomicBool,
+    progress: &mut dyn FnMut(usize, usize, &str, Verdict),
+) -> Result<RunOutcome, SessionError> {
+    let profile = resolve_profile(opts, log)?;
+    let cfg = config(opts, &profile);
+    let expectations = check_options(opts, &profile, &cfg, log)?;
     // One seed for the whole run, chosen before anything is generated.
     let mut opts = opts.clone();
     if opts.generated > 0 && opts.seed.is_none() {
@@ -492,43 +603,12 @@ pub fn run(
     let generator = generator(opts, &profile);
     let mut runner = open_runner(opts, &profile, &cfg, &expectations)?;
     let framing = runner.framing();
-    let info = RunInfo {
-        target: opts.target.to_string(),
-        profile: profile.device.id.clone(),
-        transport: match (&opts.target, framing) {
-            (TargetUrl::RtuOverTcp { .. }, _) => crate::reports::Transport::RtuOverTcp,
-            (_, Framing::Rtu) => crate::reports::Transport::Rtu,
-            _ => crate::reports::Transport::Tcp,
-        },
-        server_port: runner.target().server_port(),
-        started_unix_ms: unix_ms(),
-        command_line: opts.command_line.clone(),
-        seed: generator.as_ref().map(Generator::seed).or(opts.seed),
-        harness_version: env!("CARGO_PKG_VERSION").to_string(),
-        report_dir: opts.report_dir.clone(),
-    };
+    let info = run_info(opts, &profile, &runner, generator.as_ref());
     let mut reports = match &opts.report_dir {
         Some(d) => Some(Reports::create(d, &info)?),
         None => None,
     };
-    let mut snap = match &opts.snapshot {
-        Some(s) => {
-            let dir = snapshot_dir(&s.path)?;
-            let header = SnapshotHeader {
-                profile: profile.device.id.clone(),
-                framing: if framing == Framing::Rtu {
-                    "rtu"
-                } else {
-                    "tcp"
-                }
-                .into(),
-                unit: cfg.unit,
-                seed: info.seed,
-            };
-            Some(SnapshotWriter::new(&header, &dir))
-        }
-        None => None,
-    };
+    let mut snap = open_snapshot(opts, &info, framing, cfg.unit)?;
     let total = planned.len() + usize::try_from(opts.generated).unwrap_or(usize::MAX);
     let _ = writeln!(
         log,
@@ -547,11 +627,7 @@ pub fn run(
             g.seed()
         );
     }
-    let mut tally = Tally::new();
-    let mut verdicts = Vec::new();
-    let mut failures = Vec::new();
-    // Failing generated cases to shrink after the run (the first `max_shrinks`).
-    let mut to_shrink: Vec<(u64, String)> = Vec::new();
+    let mut collected = Collected::new();
     let started = Instant::now();
     let mut banner_done = cfg.is_sim;
     let mut interrupted = false;
@@ -574,16 +650,8 @@ pub fn run(
             interrupted = true;
             break;
         }
-        let result = match &skip {
-            Some(reason) => CaseResult {
-                id: case.id.clone(),
-                verdict: Verdict::Skipped,
-                expected_deviation: None,
-                steps: vec![],
-                wire: vec![],
-                duration: Duration::ZERO,
-                reason: Some(reason.clone()),
-            },
+        let result = match skip {
+            Some(reason) => skipped(&case, reason),
             None => {
                 if !banner_done && case.has(Tag::Write) {
                     banner_done = true;
@@ -592,7 +660,6 @@ pub fn run(
                 runner.run_case(&case)?
             }
         };
-        tally.record(&result);
         if let Some(r) = reports.as_mut() {
             r.case(&case, &result)?;
         }
@@ -600,23 +667,11 @@ pub fn run(
             w.add(&result)?;
         }
         progress(i + 1, total, &case.id, result.verdict);
-        if opts.keep_verdicts {
-            verdicts.push((case.id.clone(), result.verdict));
-        }
-        if result.verdict == Verdict::Fail {
-            if let Some(index) = gen_index
-                && to_shrink.len() < opts.max_shrinks
-            {
-                to_shrink.push((index, case.id.clone()));
-            }
-            if failures.len() < 200 {
-                failures.push(result);
-            }
-        }
+        collected.record(opts, &case, result, gen_index);
     }
     let mut shrunk = Vec::new();
     if let (Some(limits), Some(g), false) = (&opts.shrink, &generator, interrupted) {
-        for (index, id) in to_shrink {
+        for (index, id) in std::mem::take(&mut collected.to_shrink) {
             if interrupt.load(Ordering::SeqCst) {
                 break;
             }
@@ -635,7 +690,7 @@ pub fn run(
             shrunk.push(report);
         }
     }
-    let summary = tally.summary(interrupted, started.elapsed());
+    let summary = collected.tally.summary(interrupted, started.elapsed());
     if let Some(r) = reports {
         r.finish(&summary)?;
     }
@@ -646,8 +701,8 @@ pub fn run(
     Ok(RunOutcome {
         summary,
         info,
-        verdicts,
-        failures,
+        verdicts: collected.verdicts,
+        failures: collected.failures,
         shrunk,
         snapshot,
     })
@@ -713,15 +768,6 @@ fn shrink_one(
 ) -> ShrinkReport {
     let framing = runner.framing();
     // A candidate the safety policy would skip is not run: it counts as not failing.
-    let skipped = |case: &Case, reason: String| CaseResult {
-        id: case.id.clone(),
-        verdict: Verdict::Skipped,
-        expected_deviation: None,
-        steps: vec![],
-        wire: vec![],
-        duration: Duration::ZERO,
-        reason: Some(reason),
-    };
     let result = if opts.target.is_sim() {
         shrink::shrink(g, index, limits, |case| {
             if let Some(reason) = skip_reason(case, cfg, framing) {

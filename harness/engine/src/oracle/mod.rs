@@ -95,29 +95,56 @@ pub fn judge(
     profile: &Profile,
     reference_closed: bool,
 ) -> Vec<Finding> {
-    let mut out = Vec::new();
-    if *compare == Compare::RejectOrIgnore {
-        match observed {
-            Received::Silence { partial, .. } if partial.is_empty() => return out,
-            Received::Closed { .. } if framing == Framing::Tcp => return out,
-            Received::Frame { bytes, .. } if expected.is_none() => {
-                // The reference ignores it; a target may reject it instead, with any exception.
-                let rejected = matches!(
-                    decode_any(bytes, framing, Direction::Response).map(|d| d.pdu),
-                    Ok(Pdu::Response(r)) if r.is_exception()
-                );
-                if !rejected {
-                    out.push(must(format!(
-                        "an invalid request was answered as valid: {}",
-                        brief(framing, bytes)
-                    )));
-                }
-                return out;
-            }
-            _ => {}
-        }
+    if *compare == Compare::RejectOrIgnore
+        && let Some(findings) = reject_or_ignore(framing, expected, observed)
+    {
+        return findings;
     }
-    let (exp, obs) = match (expected, observed) {
+    match frames_to_compare(framing, expected, observed, reference_closed) {
+        Ok((exp, obs)) => compare_frames(framing, sent, exp, obs, compare, profile),
+        Err(findings) => findings,
+    }
+}
+
+/// A request that must be rejected or ignored: silence, a close (TCP) or any exception settles it; `None`
+/// when the observation needs the usual comparison.
+fn reject_or_ignore(
+    framing: Framing,
+    expected: Option<&[u8]>,
+    observed: &Received,
+) -> Option<Vec<Finding>> {
+    let mut out = Vec::new();
+    match observed {
+        Received::Silence { partial, .. } if partial.is_empty() => Some(out),
+        Received::Closed { .. } if framing == Framing::Tcp => Some(out),
+        Received::Frame { bytes, .. } if expected.is_none() => {
+            // The reference ignores it; a target may reject it instead, with any exception.
+            let rejected = matches!(
+                decode_any(bytes, framing, Direction::Response).map(|d| d.pdu),
+                Ok(Pdu::Response(r)) if r.is_exception()
+            );
+            if !rejected {
+                out.push(must(format!(
+                    "an invalid request was answered as valid: {}",
+                    brief(framing, bytes)
+                )));
+            }
+            Some(out)
+        }
+        _ => None,
+    }
+}
+
+/// The reference's frame and the observed one, when both are frames; otherwise the verdict on the
+/// silence, close or garbage that came (or should have come) instead.
+fn frames_to_compare<'a>(
+    framing: Framing,
+    expected: Option<&'a [u8]>,
+    observed: &'a Received,
+    reference_closed: bool,
+) -> Result<(&'a [u8], &'a [u8]), Vec<Finding>> {
+    let mut out = Vec::new();
+    match (expected, observed) {
         (None, Received::Silence { partial, .. }) => {
             if !partial.is_empty() {
                 out.push(must(format!(
@@ -126,27 +153,27 @@ pub fn judge(
                     hex_spaced(partial)
                 )));
             }
-            return out;
+            Err(out)
         }
         (None, Received::Closed { .. }) => {
             if !reference_closed {
                 out.push(should("the connection was closed where the reference drive stays silent and keeps it open"));
             }
-            return out;
+            Err(out)
         }
         (None, Received::Frame { bytes, .. }) => {
             out.push(must(format!(
                 "expected no response, got {}",
                 brief(framing, bytes)
             )));
-            return out;
+            Err(out)
         }
         (None, Received::Garbage { bytes, reason, .. }) => {
             out.push(must(format!(
                 "expected no response, got malformed bytes {} ({reason})",
                 hex_spaced(bytes)
             )));
-            return out;
+            Err(out)
         }
         (Some(e), Received::Silence { partial, .. }) => {
             let tail = if partial.is_empty() {
@@ -162,24 +189,37 @@ pub fn judge(
                 "no response within the timeout; the reference answers {}{tail}",
                 brief(framing, e)
             )));
-            return out;
+            Err(out)
         }
         (Some(e), Received::Closed { .. }) => {
             out.push(must(format!(
                 "the connection was closed instead of an answer; the reference answers {}",
                 brief(framing, e)
             )));
-            return out;
+            Err(out)
         }
         (Some(_), Received::Garbage { bytes, reason, .. }) => {
             out.push(must(format!(
                 "malformed response {}: {reason}",
                 hex_spaced(bytes)
             )));
-            return out;
+            Err(out)
         }
-        (Some(e), Received::Frame { bytes, .. }) => (e, bytes.as_slice()),
-    };
+        (Some(e), Received::Frame { bytes, .. }) => Ok((e, bytes.as_slice())),
+    }
+}
+
+/// Compare two decoded frames: they decode, the echoes match (transaction id, unit), exceptions agree, then
+/// the compare mode of the step.
+fn compare_frames(
+    framing: Framing,
+    sent: &Sent,
+    exp: &[u8],
+    obs: &[u8],
+    compare: &Compare,
+    profile: &Profile,
+) -> Vec<Finding> {
+    let mut out = Vec::new();
     let obs_d = match decode_any(obs, framing, Direction::Response) {
         Ok(d) => d,
         Err(err) => {
@@ -219,54 +259,9 @@ pub fn judge(
     let (Pdu::Response(e), Pdu::Response(o)) = (&exp_d.pdu, &obs_d.pdu) else {
         return out;
     };
-    match (e.is_exception(), o.is_exception()) {
-        (true, true) => {
-            if exp_d.pdu != obs_d.pdu {
-                let text = format!(
-                    "exception {} where the reference answers {}",
-                    summary(&obs_d.pdu),
-                    summary(&exp_d.pdu)
-                );
-                // "Illegal function" for a function the profile has: the target lacks it.
-                let illegal_fn = matches!(o, Response::Exception { code, function }
-                    if code.0 == 1 && function.without_exception_bit() == e.function().without_exception_bit());
-                out.push(if illegal_fn {
-                    Finding {
-                        severity: Severity::Unimplemented,
-                        text,
-                    }
-                } else {
-                    must(text)
-                });
-            }
-            return out;
-        }
-        (true, false) => {
-            out.push(must(format!(
-                "answered {} where the reference answers with exception {}",
-                summary(&obs_d.pdu),
-                summary(&exp_d.pdu)
-            )));
-            return out;
-        }
-        (false, true) => {
-            let illegal_fn = matches!(o, Response::Exception { code, function } if code.0 == 1 && function.without_exception_bit() == e.function());
-            let text = format!(
-                "exception {} where the reference answers {}",
-                summary(&obs_d.pdu),
-                summary(&exp_d.pdu)
-            );
-            out.push(if illegal_fn {
-                Finding {
-                    severity: Severity::Unimplemented,
-                    text,
-                }
-            } else {
-                must(text)
-            });
-            return out;
-        }
-        (false, false) => {}
+    if let Some(f) = exception_mismatch(e, o, &exp_d.pdu, &obs_d.pdu) {
+        out.extend(f);
+        return out;
     }
     if e.function() != o.function() {
         out.push(must(format!(
@@ -300,6 +295,48 @@ pub fn judge(
         Compare::Any | Compare::RejectOrIgnore => {}
     }
     out
+}
+
+/// Where the reference or the target answers with an exception: the findings, or `None` when neither does.
+/// "Illegal function" for a function the profile has is graded UNIMPLEMENTED: the target lacks it.
+fn exception_mismatch(e: &Response, o: &Response, exp: &Pdu, obs: &Pdu) -> Option<Vec<Finding>> {
+    let lacks = |same_function: bool| {
+        matches!(o, Response::Exception { code, .. } if code.0 == 1) && same_function
+    };
+    let differs = || {
+        format!(
+            "exception {} where the reference answers {}",
+            summary(obs),
+            summary(exp)
+        )
+    };
+    let finding = |unimplemented: bool, text: String| {
+        if unimplemented {
+            Finding {
+                severity: Severity::Unimplemented,
+                text,
+            }
+        } else {
+            must(text)
+        }
+    };
+    match (e.is_exception(), o.is_exception()) {
+        (true, true) if exp == obs => Some(vec![]),
+        (true, true) => Some(vec![finding(
+            lacks(o.function().without_exception_bit() == e.function().without_exception_bit()),
+            differs(),
+        )]),
+        (true, false) => Some(vec![must(format!(
+            "answered {} where the reference answers with exception {}",
+            summary(obs),
+            summary(exp)
+        ))]),
+        (false, true) => Some(vec![finding(
+            lacks(o.function().without_exception_bit() == e.function()),
+            differs(),
+        )]),
+        (false, false) => None,
+    }
 }
 
 /// Same shape: counts, echoed addresses, object lists; data values free.

@@ -178,18 +178,22 @@ impl fmt::Display for Fault {
     }
 }
 
+/// A fault name that is not one of [`Fault::ALL`].
+#[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
+#[error("unknown fault `{name}`; known: {}", Fault::ALL.iter().map(|f| f.1).collect::<Vec<_>>().join(", "))]
+pub struct UnknownFault {
+    pub name: String,
+}
+
 impl FromStr for Fault {
-    type Err = String;
+    type Err = UnknownFault;
     fn from_str(s: &str) -> Result<Self, Self::Err> {
         Self::ALL
             .iter()
             .find(|f| f.1 == s)
             .map(|f| f.0)
-            .ok_or_else(|| {
-                format!(
-                    "unknown fault `{s}`; known: {}",
-                    Self::ALL.iter().map(|f| f.1).collect::<Vec<_>>().join(", ")
-                )
+            .ok_or_else(|| UnknownFault {
+                name: s.to_string(),
             })
     }
 }

@@ -7,6 +7,14 @@ use serde::Deserialize;
 
 use crate::cases::Verdict;
 
+/// Why an expectations file was rejected.
+#[derive(Debug, thiserror::Error)]
+#[error("{file}: {reason}")]
+pub struct ExpectError {
+    pub file: String,
+    pub reason: String,
+}
+
 /// A parsed expectations file.
 #[derive(Clone, Debug, Default, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -31,27 +39,25 @@ pub struct ExpectedDeviation {
 
 impl Expectations {
     /// Load and validate: every pattern compiles, every verdict is known, every reason is written.
-    pub fn load(path: &Path) -> Result<Self, String> {
-        let text = std::fs::read_to_string(path).map_err(|e| format!("{}: {e}", path.display()))?;
-        let e: Expectations = toml::from_str(&text).map_err(|e| {
-            format!(
-                "{}: {}",
-                path.display(),
-                drives::profile::toml_error_message(&text, &e)
-            )
-        })?;
+    pub fn load(path: &Path) -> Result<Self, ExpectError> {
+        let bad = |reason: String| ExpectError {
+            file: path.display().to_string(),
+            reason,
+        };
+        let text = std::fs::read_to_string(path).map_err(|e| bad(e.to_string()))?;
+        let e: Expectations = toml::from_str(&text)
+            .map_err(|e| bad(drives::profile::toml_error_message(&text, &e)))?;
         for d in &e.deviations {
             glob::Pattern::new(&d.case)
-                .map_err(|err| format!("{}: case pattern `{}`: {err}", path.display(), d.case))?;
+                .map_err(|err| bad(format!("case pattern `{}`: {err}", d.case)))?;
             d.verdict
                 .parse::<Verdict>()
-                .map_err(|err| format!("{}: case `{}`: {err}", path.display(), d.case))?;
+                .map_err(|err| bad(format!("case `{}`: {err}", d.case)))?;
             if d.reason.trim().is_empty() {
-                return Err(format!(
-                    "{}: case `{}` has no reason: every expected deviation needs one",
-                    path.display(),
+                return Err(bad(format!(
+                    "case `{}` has no reason: every expected deviation needs one",
                     d.case
-                ));
+                )));
             }
         }
         Ok(e)

@@ -118,10 +118,10 @@ pub enum SessionError {
         "--fault applies to the in-process simulator only (sim:PROFILE); for a server use `simulate --fault`"
     )]
     FaultNeedsSim,
-    #[error("{0}")]
-    Expectations(String),
-    #[error("{0}")]
-    Regressions(String),
+    #[error(transparent)]
+    Expectations(#[from] crate::expect::ExpectError),
+    #[error(transparent)]
+    Regressions(#[from] crate::cases::regressions::RegressionError),
     #[error("no snapshot at {}: write it with --update-snapshot", .0.display())]
     NoSnapshot(PathBuf),
     #[error("cannot create directory {}: {source}", path.display())]
@@ -347,10 +347,7 @@ fn catalog_plan(
     let framing = framing_of(&opts.target, profile);
     let unit = opts.unit.unwrap_or(profile.device.default_unit);
     let mut all = crate::cases::catalog::build(profile, golden.as_ref(), framing, unit);
-    all.extend(
-        crate::cases::catalog::regressions(&opts.corpus, profile)
-            .map_err(SessionError::Regressions)?,
-    );
+    all.extend(crate::cases::catalog::regressions(&opts.corpus, profile)?);
     let cases = select(all, &opts.include, &opts.exclude);
     let cfg = config(opts, profile);
     Ok(cases
@@ -500,7 +497,7 @@ fn check_options(
         return Err(SessionError::FaultNeedsSim);
     }
     let expectations = match &opts.expect {
-        Some(p) => Expectations::load(p).map_err(SessionError::Expectations)?,
+        Some(p) => Expectations::load(p)?,
         None => Expectations::default(),
     };
     let [lo, hi] = profile.device.unit_ids;

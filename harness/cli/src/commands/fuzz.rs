@@ -104,7 +104,7 @@ pub fn run(args: &FuzzArgs) -> ExitCode {
             Ok(f) => {
                 faults.0.insert(f);
             }
-            Err(e) => return fail(e),
+            Err(e) => return fail(e.to_string()),
         }
     }
     let mut base = Options::new(url);

@@ -59,7 +59,7 @@ enum ParityArg {
     Odd,
 }
 
-fn parse_fault(s: &str) -> Result<Fault, String> {
+fn parse_fault(s: &str) -> Result<Fault, drives::faults::UnknownFault> {
     s.parse()
 }
 

@@ -171,8 +171,34 @@ fn step_file(step: &Step) -> StepFile {
     f
 }
 
-fn step_of(i: usize, f: &StepFile) -> Result<Step, String> {
-    let at = |what: &str| format!("step {}: {what}", i + 1);
+/// Why a regression file cannot be used.
+#[derive(Debug, thiserror::Error)]
+pub enum RegressionError {
+    /// The file is not valid TOML or not a regression file.
+    #[error("{file}: {reason}")]
+    Parse { file: String, reason: String },
+    /// A step of the file does not make a step.
+    #[error("{file}step {step}: {reason}")]
+    Step {
+        /// The file and `: `, or empty when the file is not known yet.
+        file: String,
+        step: usize,
+        reason: String,
+    },
+    /// The folder of regressions cannot be read.
+    #[error("regressions of {profile}: {source}")]
+    Read {
+        profile: String,
+        source: std::io::Error,
+    },
+}
+
+fn step_of(i: usize, f: &StepFile) -> Result<Step, RegressionError> {
+    let at = |what: &str| RegressionError::Step {
+        file: String::new(),
+        step: i + 1,
+        reason: what.to_string(),
+    };
     let hex = |s: &str| parse_hex(s).map_err(|e| at(&format!("bad hex `{s}`: {e}")));
     Ok(match f.kind {
         StepKind::Wait => Step::Wait(Duration::from_micros(
@@ -238,7 +264,7 @@ impl RegressionFile {
     }
 
     /// The case, with id `id`.
-    pub fn to_case(&self, id: String) -> Result<Case, String> {
+    pub fn to_case(&self, id: String) -> Result<Case, RegressionError> {
         Ok(Case {
             id,
             title: self.title.clone(),
@@ -256,9 +282,11 @@ impl RegressionFile {
     }
 
     /// Parse a regression file; `name` is used in errors.
-    pub fn parse(name: &str, text: &str) -> Result<Self, String> {
-        toml::from_str(text)
-            .map_err(|e| format!("{name}: {}", drives::profile::toml_error_message(text, &e)))
+    pub fn parse(name: &str, text: &str) -> Result<Self, RegressionError> {
+        toml::from_str(text).map_err(|e| RegressionError::Parse {
+            file: name.to_string(),
+            reason: drives::profile::toml_error_message(text, &e),
+        })
     }
 
     /// The file's text, with a comment saying what it is.
@@ -308,11 +336,16 @@ pub fn write_regression(
 pub fn load_regressions(
     corpus: &drives::corpus::Corpus,
     profile: &str,
-) -> Result<Vec<Case>, String> {
+) -> Result<Vec<Case>, RegressionError> {
     let files = match corpus.files(&format!("{REGRESSION_PREFIX}s/{profile}")) {
         Ok(f) => f,
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(Vec::new()),
-        Err(e) => return Err(format!("regressions of {profile}: {e}")),
+        Err(source) => {
+            return Err(RegressionError::Read {
+                profile: profile.to_string(),
+                source,
+            });
+        }
     };
     let mut out = Vec::new();
     for (name, text) in files {
@@ -332,7 +365,14 @@ pub fn load_regressions(
         let file = RegressionFile::parse(&name, &text)?;
         out.push(
             file.to_case(format!("{REGRESSION_PREFIX}/{profile}/{stem}"))
-                .map_err(|e| format!("{name}: {e}"))?,
+                .map_err(|e| match e {
+                    RegressionError::Step { step, reason, .. } => RegressionError::Step {
+                        file: format!("{name}: "),
+                        step,
+                        reason,
+                    },
+                    other => other,
+                })?,
         );
     }
     Ok(out)

@@ -198,6 +198,9 @@ pub fn build(p: &Profile, golden: Option<&GoldenFile>, framing: Framing, unit: u
 
 /// The shrunk reproducers of a profile, `corpus/regressions/<profile>/*.toml`, as cases
 /// `regression/<profile>/<file name>` (see [`crate::cases::regressions`] for the file format).
-pub fn regressions(corpus: &drives::corpus::Corpus, p: &Profile) -> Result<Vec<Case>, String> {
+pub fn regressions(
+    corpus: &drives::corpus::Corpus,
+    p: &Profile,
+) -> Result<Vec<Case>, crate::cases::regressions::RegressionError> {
     crate::cases::regressions::load_regressions(corpus, &p.device.id)
 }

@@ -271,6 +271,172 @@ fn check_len(pdu: &[u8]) -> Result<(), DecodeError> {
     Ok(())
 }
 
+/// The SD2x extended exception after its function code: AB FF, length, MEI 0D, CE, SDO code (LE).
+fn decode_extended_exception(r: &mut Reader<'_>) -> Result<Response, DecodeError> {
+    r.u8("exception code")?;
+    let at = r.pos();
+    let len = r.u16("extended exception length")? as usize;
+    if len != r.remaining() {
+        return Err(mismatch(
+            at,
+            "extended exception length",
+            len,
+            r.remaining(),
+            "bytes present",
+        ));
+    }
+    let m_at = r.pos();
+    let m = r.u8("MEI type")?;
+    if m != mei::CANOPEN {
+        return Err(DecodeError::new(
+            m_at,
+            DecodeErrorKind::InvalidField {
+                field: "MEI type",
+                value: m as u32,
+                rule: "an extended exception carries MEI 0x0D",
+            },
+        ));
+    }
+    let c_at = r.pos();
+    let c = r.u8("extended exception code")?;
+    if c != 0xCE {
+        return Err(DecodeError::new(
+            c_at,
+            DecodeErrorKind::InvalidField {
+                field: "extended exception code",
+                value: c as u32,
+                rule: "only 0xCE (SDO error) is defined",
+            },
+        ));
+    }
+    let b = r.take("SDO error code", 4)?;
+    Ok(Response::CanOpenError {
+        sdo_code: u32::from_le_bytes([b[0], b[1], b[2], b[3]]),
+    })
+}
+
+/// A normal (non-exception) response after its function code.
+fn decode_normal_response(fc: FunctionCode, r: &mut Reader<'_>) -> Result<Response, DecodeError> {
+    Ok(match fc.0 {
+        0x01..=0x04 | 0x17 => {
+            let at = r.pos();
+            let bc = r.u8("byte count")? as usize;
+            if bc != r.remaining() {
+                return Err(mismatch(
+                    at,
+                    "byte count",
+                    bc,
+                    r.remaining(),
+                    "data bytes present",
+                ));
+            }
+            if fc.0 >= 0x03 && bc % 2 != 0 {
+                return Err(DecodeError::new(
+                    at,
+                    DecodeErrorKind::InvalidField {
+                        field: "byte count",
+                        value: bc as u32,
+                        rule: "register data must be an even number of bytes",
+                    },
+                ));
+            }
+            match fc.0 {
+                0x01 => Response::ReadCoils {
+                    data: r.take("coil status", bc)?.to_vec(),
+                },
+                0x02 => Response::ReadDiscreteInputs {
+                    data: r.take("input status", bc)?.to_vec(),
+                },
+                0x03 => Response::ReadHoldingRegisters {
+                    values: r.registers("register values", bc)?,
+                },
+                0x04 => Response::ReadInputRegisters {
+                    values: r.registers("register values", bc)?,
+                },
+                _ => Response::ReadWriteMultipleRegisters {
+                    values: r.registers("register values", bc)?,
+                },
+            }
+        }
+        0x05 => Response::WriteSingleCoil {
+            address: r.u16("output address")?,
+            value: r.u16("output value")?,
+        },
+        0x06 => Response::WriteSingleRegister {
+            address: r.u16("register address")?,
+            value: r.u16("register value")?,
+        },
+        0x08 => Response::Diagnostics {
+            sub_function: r.u16("sub-function")?,
+            data: r.rest().to_vec(),
+        },
+        0x0F => Response::WriteMultipleCoils {
+            address: r.u16("starting address")?,
+            quantity: r.u16("quantity of outputs")?,
+        },
+        0x10 => Response::WriteMultipleRegisters {
+            address: r.u16("starting address")?,
+            quantity: r.u16("quantity of registers")?,
+        },
+        0x2B => {
+            let m = r.u8("MEI type")?;
+            match m {
+                mei::CANOPEN => Response::CanOpen(decode_canopen(r, Direction::Response)?),
+                mei::DEVICE_ID => {
+                    let read_code = r.u8("read device id code")?;
+                    let conformity = r.u8("conformity level")?;
+                    let more_follows = r.u8("more follows")?;
+                    let next_object_id = r.u8("next object id")?;
+                    let n = r.u8("number of objects")?;
+                    let mut objects = Vec::with_capacity(n.min(32) as usize);
+                    for _ in 0..n {
+                        let id = r.u8("object id")?;
+                        let len = r.u8("object length")? as usize;
+                        let value = r.take("object value", len)?.to_vec();
+                        objects.push(DeviceIdObject { id, value });
+                    }
+                    Response::ReadDeviceId(DeviceIdResponse {
+                        read_code,
+                        conformity,
+                        more_follows,
+                        next_object_id,
+                        objects,
+                    })
+                }
+                _ => {
+                    let mut data = vec![m];
+                    data.extend_from_slice(r.rest());
+                    Response::Raw { function: fc, data }
+                }
+            }
+        }
+        0x41 => {
+            let at = r.pos();
+            let bc = r.u8("byte count")? as usize;
+            if bc != r.remaining() {
+                return Err(mismatch(
+                    at,
+                    "byte count",
+                    bc,
+                    r.remaining(),
+                    "parameter bytes present",
+                ));
+            }
+            Response::VendorRead {
+                params: r.rest().to_vec(),
+            }
+        }
+        0x42 => Response::VendorWrite {
+            written: r.u8("bytes written")?,
+            mnemonic: Mnemonic(r.take("mnemonic", 4)?.try_into().unwrap_or([0; 4])),
+        },
+        _ => Response::Raw {
+            function: fc,
+            data: r.rest().to_vec(),
+        },
+    })
+}
+
 impl Request {
     /// The function code this request carries.
     pub fn function(&self) -> FunctionCode {
@@ -563,172 +729,14 @@ impl Response {
         let resp = if fc == FunctionCode::ENCAPSULATED_INTERFACE.exception()
             && pdu.get(1) == Some(&ExceptionCode::EXTENDED.0)
         {
-            r.u8("exception code")?;
-            let at = r.pos();
-            let len = r.u16("extended exception length")? as usize;
-            if len != r.remaining() {
-                return Err(mismatch(
-                    at,
-                    "extended exception length",
-                    len,
-                    r.remaining(),
-                    "bytes present",
-                ));
-            }
-            let m_at = r.pos();
-            let m = r.u8("MEI type")?;
-            if m != mei::CANOPEN {
-                return Err(DecodeError::new(
-                    m_at,
-                    DecodeErrorKind::InvalidField {
-                        field: "MEI type",
-                        value: m as u32,
-                        rule: "an extended exception carries MEI 0x0D",
-                    },
-                ));
-            }
-            let c_at = r.pos();
-            let c = r.u8("extended exception code")?;
-            if c != 0xCE {
-                return Err(DecodeError::new(
-                    c_at,
-                    DecodeErrorKind::InvalidField {
-                        field: "extended exception code",
-                        value: c as u32,
-                        rule: "only 0xCE (SDO error) is defined",
-                    },
-                ));
-            }
-            let b = r.take("SDO error code", 4)?;
-            Response::CanOpenError {
-                sdo_code: u32::from_le_bytes([b[0], b[1], b[2], b[3]]),
-            }
+            decode_extended_exception(&mut r)?
         } else if fc.is_exception() {
             Response::Exception {
                 function: fc,
                 code: ExceptionCode(r.u8("exception code")?),
             }
         } else {
-            match fc.0 {
-                0x01..=0x04 | 0x17 => {
-                    let at = r.pos();
-                    let bc = r.u8("byte count")? as usize;
-                    if bc != r.remaining() {
-                        return Err(mismatch(
-                            at,
-                            "byte count",
-                            bc,
-                            r.remaining(),
-                            "data bytes present",
-                        ));
-                    }
-                    if fc.0 >= 0x03 && bc % 2 != 0 {
-                        return Err(DecodeError::new(
-                            at,
-                            DecodeErrorKind::InvalidField {
-                                field: "byte count",
-                                value: bc as u32,
-                                rule: "register data must be an even number of bytes",
-                            },
-                        ));
-                    }
-                    match fc.0 {
-                        0x01 => Response::ReadCoils {
-                            data: r.take("coil status", bc)?.to_vec(),
-                        },
-                        0x02 => Response::ReadDiscreteInputs {
-                            data: r.take("input status", bc)?.to_vec(),
-                        },
-                        0x03 => Response::ReadHoldingRegisters {
-                            values: r.registers("register values", bc)?,
-                        },
-                        0x04 => Response::ReadInputRegisters {
-                            values: r.registers("register values", bc)?,
-                        },
-                        _ => Response::ReadWriteMultipleRegisters {
-                            values: r.registers("register values", bc)?,
-                        },
-                    }
-                }
-                0x05 => Response::WriteSingleCoil {
-                    address: r.u16("output address")?,
-                    value: r.u16("output value")?,
-                },
-                0x06 => Response::WriteSingleRegister {
-                    address: r.u16("register address")?,
-                    value: r.u16("register value")?,
-                },
-                0x08 => Response::Diagnostics {
-                    sub_function: r.u16("sub-function")?,
-                    data: r.rest().to_vec(),
-                },
-                0x0F => Response::WriteMultipleCoils {
-                    address: r.u16("starting address")?,
-                    quantity: r.u16("quantity of outputs")?,
-                },
-                0x10 => Response::WriteMultipleRegisters {
-                    address: r.u16("starting address")?,
-                    quantity: r.u16("quantity of registers")?,
-                },
-                0x2B => {
-                    let m = r.u8("MEI type")?;
-                    match m {
-                        mei::CANOPEN => {
-                            Response::CanOpen(decode_canopen(&mut r, Direction::Response)?)
-                        }
-                        mei::DEVICE_ID => {
-                            let read_code = r.u8("read device id code")?;
-                            let conformity = r.u8("conformity level")?;
-                            let more_follows = r.u8("more follows")?;
-                            let next_object_id = r.u8("next object id")?;
-                            let n = r.u8("number of objects")?;
-                            let mut objects = Vec::with_capacity(n.min(32) as usize);
-                            for _ in 0..n {
-                                let id = r.u8("object id")?;
-                                let len = r.u8("object length")? as usize;
-                                let value = r.take("object value", len)?.to_vec();
-                                objects.push(DeviceIdObject { id, value });
-                            }
-                            Response::ReadDeviceId(DeviceIdResponse {
-                                read_code,
-                                conformity,
-                                more_follows,
-                                next_object_id,
-                                objects,
-                            })
-                        }
-                        _ => {
-                            let mut data = vec![m];
-                            data.extend_from_slice(r.rest());
-                            Response::Raw { function: fc, data }
-                        }
-                    }
-                }
-                0x41 => {
-                    let at = r.pos();
-                    let bc = r.u8("byte count")? as usize;
-                    if bc != r.remaining() {
-                        return Err(mismatch(
-                            at,
-                            "byte count",
-                            bc,
-                            r.remaining(),
-                            "parameter bytes present",
-                        ));
-                    }
-                    Response::VendorRead {
-                        params: r.rest().to_vec(),
-                    }
-                }
-                0x42 => Response::VendorWrite {
-                    written: r.u8("bytes written")?,
-                    mnemonic: Mnemonic(r.take("mnemonic", 4)?.try_into().unwrap_or([0; 4])),
-                },
-                _ => Response::Raw {
-                    function: fc,
-                    data: r.rest().to_vec(),
-                },
-            }
+            decode_normal_response(fc, &mut r)?
         };
         r.finish()?;
         Ok(resp)

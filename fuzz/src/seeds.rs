@@ -37,15 +37,7 @@ struct SeedSet {
 }
 
 fn slug(s: &str) -> String {
-    let mut out = String::new();
-    for c in s.chars() {
-        if c.is_ascii_alphanumeric() {
-            out.push(c.to_ascii_lowercase());
-        } else if !out.ends_with('-') {
-            out.push('-');
-        }
-    }
-    out.trim_matches('-').chars().take(72).collect()
+    engine::cases::catalog::slug_of_length(s, 72)
 }
 
 /// A request PDU and the reference answer's PDU (empty when the drive stays silent).

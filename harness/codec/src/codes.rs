@@ -2,6 +2,26 @@
 
 use std::fmt;
 
+/// A code newtype is its byte, both ways.
+macro_rules! byte_newtype {
+    ($t:ident) => {
+        impl From<u8> for $t {
+            fn from(b: u8) -> Self {
+                Self(b)
+            }
+        }
+
+        impl From<$t> for u8 {
+            fn from(c: $t) -> Self {
+                c.0
+            }
+        }
+    };
+}
+
+byte_newtype!(FunctionCode);
+byte_newtype!(ExceptionCode);
+
 /// A Modbus function code byte (the high bit set marks an exception response).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
 #[cfg_attr(feature = "arbitrary", derive(arbitrary::Arbitrary))]
@@ -98,18 +118,6 @@ impl FunctionCode {
     }
 }
 
-impl From<u8> for FunctionCode {
-    fn from(b: u8) -> Self {
-        Self(b)
-    }
-}
-
-impl From<FunctionCode> for u8 {
-    fn from(c: FunctionCode) -> Self {
-        c.0
-    }
-}
-
 impl fmt::Display for FunctionCode {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         match self.name() {
@@ -158,18 +166,6 @@ impl ExceptionCode {
             0xFF => "Extended Exception",
             _ => return None,
         })
-    }
-}
-
-impl From<u8> for ExceptionCode {
-    fn from(b: u8) -> Self {
-        Self(b)
-    }
-}
-
-impl From<ExceptionCode> for u8 {
-    fn from(c: ExceptionCode) -> Self {
-        c.0
     }
 }
 

@@ -226,6 +226,15 @@ impl Register {
         }
     }
 
+    /// `value` as the register's words on the wire: a 32-bit value split in `order`.
+    pub fn words(&self, order: WordOrder, value: i64) -> Vec<u16> {
+        if self.width == 2 {
+            order.split(value as u32).to_vec()
+        } else {
+            vec![value as u16]
+        }
+    }
+
     /// The inclusive range a write must fall in.
     pub fn range(&self) -> (i64, i64) {
         let (lo, hi) = self.natural_range();

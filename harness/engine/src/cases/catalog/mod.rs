@@ -159,6 +159,11 @@ pub fn known_good_read(p: &Profile) -> Vec<u8> {
 
 /// A name as an id segment: lowercase ASCII letters and digits, dashes between, at most 40 characters.
 fn slug(s: &str) -> String {
+    slug_of_length(s, 40)
+}
+
+/// A name as an id or file-name segment of at most `max` characters (lowercase letters, digits, dashes).
+pub fn slug_of_length(s: &str, max: usize) -> String {
     let mut out = String::new();
     for c in s.chars() {
         if c.is_ascii_alphanumeric() {
@@ -167,7 +172,7 @@ fn slug(s: &str) -> String {
             out.push('-');
         }
     }
-    out.trim_matches('-').chars().take(40).collect()
+    out.trim_matches('-').chars().take(max).collect()
 }
 
 /// Build the catalog for a profile on a transport.

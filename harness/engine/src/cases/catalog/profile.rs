@@ -5,7 +5,7 @@ use super::{APP, Ctx, capture, exchange, pdu, slug};
 use crate::cases::{Compare, Outgoing, Tag};
 use codec::FunctionCode;
 use codec::{Mnemonic, Request};
-use drives::profile::{Profile, Register, Table};
+use drives::profile::{Register, Table};
 
 /// The profile suite, family by family.
 pub(super) fn cases(cx: &mut Ctx) {
@@ -108,7 +108,9 @@ fn register_write(cx: &mut Ctx, r: &Register, read: &[u8], tags: &[Tag]) {
         ));
     }
     steps.push(exchange(
-        Outgoing::Pdu(pdu(&cx.write_request(r.address, encode_value(p, r, v)))),
+        Outgoing::Pdu(pdu(
+            &cx.write_request(r.address, r.words(p.device.word_order, v))
+        )),
         Compare::Exact,
         format!("write {v}"),
     ));
@@ -164,7 +166,9 @@ fn register_write_out_of_range(cx: &mut Ctx, r: &Register, read: &[u8], tags: &[
             tags.to_vec(),
             vec![
                 exchange(
-                    Outgoing::Pdu(pdu(&cx.write_request(r.address, encode_value(p, r, b)))),
+                    Outgoing::Pdu(pdu(
+                        &cx.write_request(r.address, r.words(p.device.word_order, b))
+                    )),
                     Compare::Exact,
                     format!("write {b}"),
                 ),
@@ -193,7 +197,9 @@ fn register_write_read_only(cx: &mut Ctx, r: &Register) {
         "A write to a read-only register is rejected with an exception.",
         vec![Tag::Write],
         vec![exchange(
-            Outgoing::Pdu(pdu(&cx.write_request(r.address, encode_value(p, r, v)))),
+            Outgoing::Pdu(pdu(
+                &cx.write_request(r.address, r.words(p.device.word_order, v))
+            )),
             Compare::Exact,
             "write",
         )],
@@ -408,15 +414,6 @@ fn reg_slug(r: &Register) -> String {
     match &r.mnemonic {
         Some(m) => format!("0x{:04X}-{}", r.address, slug(m)),
         None => format!("0x{:04X}-{}", r.address, slug(&r.name)),
-    }
-}
-
-/// A value as the register's words: a 32-bit one split in the device's word order.
-fn encode_value(p: &Profile, r: &Register, v: i64) -> Vec<u16> {
-    if r.width == 2 {
-        p.device.word_order.split(v as u32).to_vec()
-    } else {
-        vec![v as u16]
     }
 }
 

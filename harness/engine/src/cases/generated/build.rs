@@ -217,14 +217,6 @@ fn value_label(v: Value) -> &'static str {
     }
 }
 
-fn encode_register(p: &Profile, r: &Register, v: i64) -> Vec<u16> {
-    if r.width == 2 {
-        p.device.word_order.split(v as u32).to_vec()
-    } else {
-        vec![v as u16]
-    }
-}
-
 fn reg_name(r: &Register) -> String {
     match &r.mnemonic {
         Some(m) => format!("0x{:04X} {m}", r.address),
@@ -415,7 +407,7 @@ fn write_register(cx: &GenContext, reg: u16, value: Value, fc06: bool, check: bo
         .build(cx);
     };
     let v = value_in(value, r.range(), r.natural_range());
-    let values = encode_register(p, r, v);
+    let values = r.words(p.device.word_order, v);
     let single = values.len() == 1
         && ((fc06 && cx.supports(FunctionCode::WRITE_SINGLE_REGISTER))
             || !cx.supports(FunctionCode::WRITE_MULTIPLE_REGISTERS));
@@ -609,7 +601,7 @@ fn read_write(cx: &GenContext, at: Edge, quantity: Quantity, reg: u16, value: Va
             let v = value_in(value, r.range(), r.natural_range());
             (
                 r.address,
-                encode_register(p, r, v),
+                r.words(p.device.word_order, v),
                 format!("{} = {v}{}", reg_name(r), value_label(value)),
             )
         }

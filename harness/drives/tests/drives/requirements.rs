@@ -398,3 +398,47 @@ fn malformed_files_are_rejected_with_file_line_and_reason() {
         assert!(err.contains(want), "expected `{want}`, got `{err}`");
     }
 }
+
+#[test]
+fn freedom_items_exist_in_their_profile_and_the_first_access_is_the_profiles() {
+    let r = embedded();
+    for f in r.freedoms() {
+        for p in f.profiles.iter().filter(|p| *p != "all") {
+            let prof = Corpus::Embedded.profile(p).unwrap();
+            for it in &f.items {
+                if let Some(a) = it.register {
+                    let reg = prof
+                        .registers
+                        .iter()
+                        .map(|x| x.get_ref())
+                        .find(|x| x.address == a)
+                        .unwrap_or_else(|| panic!("{}: no register 0x{a:04X} in {p}", f.id));
+                    if let (Some(n), Some(m)) = (&it.name, &reg.mnemonic) {
+                        assert_eq!(n, m, "{}: register 0x{a:04X}", f.id);
+                    }
+                    if f.kind == FreedomKind::Access {
+                        let want = match reg.access {
+                            drives::profile::Access::Ro => "ro",
+                            drives::profile::Access::Rw => "rw",
+                            drives::profile::Access::Wo => "wo",
+                        };
+                        assert_eq!(
+                            f.values[0],
+                            FreedomValue::Text(want.into()),
+                            "{}: register 0x{a:04X} is {want} in the {p} profile",
+                            f.id
+                        );
+                    }
+                }
+                if let Some(m) = &it.mnemonic {
+                    let name = if m == "ESC" { "\u{1b}" } else { m.as_str() };
+                    assert!(
+                        prof.mnemonic(name).is_some(),
+                        "{}: no mnemonic {m} in {p}",
+                        f.id
+                    );
+                }
+            }
+        }
+    }
+}

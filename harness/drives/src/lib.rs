@@ -9,6 +9,7 @@ pub mod faults;
 pub mod golden;
 pub mod models;
 pub mod profile;
+pub mod requirements;
 pub mod station;
 
 pub use faults::{Fault, FaultSet};

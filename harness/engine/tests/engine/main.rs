@@ -7,5 +7,6 @@ mod fault_matrix;
 mod fuzz_campaign;
 mod generated_cases;
 mod report_files;
+mod requirements_cited;
 mod run_transports;
 mod station_streams;

@@ -172,7 +172,7 @@ fn watchdog(cx: &mut Ctx, pd: &ProcessData, w: &Watchdog) {
     cx.push(
         format!("profile/{}/ds402/watchdog", cx.p.device.id),
         "RxPDO watchdog: a 100 ms watchdog not rewritten trips the drive",
-        format!("SD2x manual, section 4.1 and 6.1 (watchdog register {})", w.register),
+        format!("SD2x manual, sections 4.1, 5 (Watchdog) and 6.1 (watchdog register {})", w.register),
         "With a watchdog time set, the drive is not faulted before the time elapses and is faulted, with its error code, once the RxPDO has not been rewritten for longer than the time.",
         vec![Tag::Write, Tag::Motion, Tag::Destructive],
         steps,

@@ -39,7 +39,7 @@ fn crc_and_addressing(cx: &mut Ctx) {
     cx.push(
         "rtu/crc/bad-crc-silence".into(),
         "a request with a wrong CRC is not answered",
-        format!("{SER}, section 2.5.1.2 (CRC checking)"),
+        format!("{SER}, section 2.5.1.2 (CRC checking) and 2.4.2 (no reply to a frame in error)"),
         "A frame whose CRC does not match is discarded without a response; the drive keeps answering valid frames.",
         vec![Tag::RtuOnly],
         vec![
@@ -51,7 +51,9 @@ fn crc_and_addressing(cx: &mut Ctx) {
     cx.push(
         "rtu/address/other-slave-silence".into(),
         format!("a request to slave {other} is ignored by slave {}", cx.unit),
-        format!("{SER}, section 2.2 (slave addressing)"),
+        format!(
+            "{SER}, section 2.5.1.1 and 2.4.2 (a frame not addressed to the slave is discarded)"
+        ),
         "A frame addressed to another slave is not answered.",
         vec![Tag::RtuOnly],
         vec![exchange(
@@ -105,7 +107,7 @@ fn return_query_data(cx: &mut Ctx) {
     cx.push(
         "rtu/fc08/return-query-data".into(),
         "FC 08/00 echoes its data",
-        format!("{SER}, section 6.1.1; {APP} 6.8"),
+        format!("{APP}, section 6.8.1 (sub-function 00)"),
         "Return Query Data echoes the request's data field unchanged.",
         vec![Tag::RtuOnly],
         vec![exchange(

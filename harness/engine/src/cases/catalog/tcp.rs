@@ -29,7 +29,7 @@ fn mbap_header(cx: &mut Ctx) {
     cx.push(
         "tcp/mbap/request-protocol-id-nonzero".into(),
         "a request with protocol id 1 is not answered",
-        format!("{TCPG}, section 3.1.3 and 4.4.1 (MBAP checks)"),
+        format!("{TCPG}, section 3.1.3 and 4.4.2.2 (MBAP checks)"),
         "A request whose protocol identifier is not 0 (Modbus) is discarded; the server keeps serving the connection.",
         vec![Tag::TcpOnly],
         vec![
@@ -46,7 +46,7 @@ fn mbap_header(cx: &mut Ctx) {
         cx.push(
             format!("tcp/mbap/request-{label}"),
             format!("a request whose MBAP length is off by {delta}"),
-            format!("{TCPG}, section 3.1.3 and 4.4.1"),
+            format!("{TCPG}, section 3.1.2 and 3.1.3 (the MBAP length field)"),
             "A request whose MBAP length disagrees with its PDU is not answered as a valid request, and the server recovers on a new connection.",
             vec![Tag::TcpOnly],
             vec![
@@ -69,7 +69,7 @@ fn segments(cx: &mut Ctx) {
         cx.push(
             format!("tcp/pipeline/{k}-requests-one-segment"),
             format!("{k} requests in one TCP segment"),
-            format!("{TCPG}, section 4.2.1 (several requests may be pipelined)"),
+            format!("{TCPG}, section 4.2.1.1 (several transactions may be active on one connection)"),
             "Requests that arrive together in one segment are all answered, in order, each with its own transaction id.",
             vec![Tag::TcpOnly],
             vec![exchange(Outgoing::Batch(vec![read.clone(); k]), Compare::Structure, format!("{k} requests"))],
@@ -78,7 +78,7 @@ fn segments(cx: &mut Ctx) {
     cx.push(
         "tcp/segment/request-split".into(),
         "one request split across two TCP segments 5 ms apart",
-        format!("{TCPG}, section 4.2.1 (a TCP stream has no message boundaries)"),
+        format!("{TCPG}, section 3.1.2 (the MBAP length marks message boundaries)"),
         "A request whose bytes arrive in two segments is answered once, as if it had arrived whole.",
         vec![Tag::TcpOnly],
         vec![exchange(
@@ -109,7 +109,7 @@ fn oversized_pdu(cx: &mut Ctx) {
     cx.push(
         "tcp/pdu/over-253-bytes".into(),
         "a request with a 254-byte PDU (MBAP length 255)",
-        format!("{APP}, section 4.1 (PDU size limit); {TCPG} 4.4.1"),
+        format!("{APP}, section 4.1 (PDU size limit: TCP ADU at most 260 bytes)"),
         "A frame longer than the 253-byte PDU limit is not answered as a valid request; the server recovers on a new connection.",
         vec![Tag::TcpOnly],
         vec![

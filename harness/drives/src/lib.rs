@@ -3,6 +3,7 @@
 //!
 //! Sans-IO: no sockets, no clock of its own (time is passed in), no tokio.
 
+pub mod choices;
 pub mod corpus;
 pub mod ds402;
 pub mod faults;
@@ -12,6 +13,7 @@ pub mod profile;
 pub mod requirements;
 pub mod station;
 
+pub use choices::{Choices, Decision, Rejection};
 pub use faults::{Fault, FaultSet};
-pub use models::{DriveModel, build};
+pub use models::{DriveModel, build, build_with};
 pub use station::{Counters, RtuPort, Station, TcpConn, Wire};

@@ -6,6 +6,7 @@
 
 use std::time::Duration;
 
+use crate::choices::{Choices, Decision, Rejection, ids};
 use crate::faults::{Fault, FaultSet};
 use crate::models::DriveModel;
 use crate::profile::{DiagCounter, Profile};
@@ -84,6 +85,10 @@ pub struct Station {
     unit: u8,
     counters: Counters,
     dead: bool,
+    /// The values taken where the freedoms leave the wire side a choice.
+    choices: Choices,
+    /// Freedoms that decided answers since the last [`Station::take_decisions`].
+    decisions: Vec<Decision>,
 }
 
 impl Station {
@@ -95,7 +100,23 @@ impl Station {
             unit,
             counters: Counters::default(),
             dead: false,
+            choices: Choices::reference(),
+            decisions: Vec::new(),
         }
+    }
+
+    /// The same station taking `choices` where the freedoms leave the wire side one (the model takes its
+    /// own from [`crate::build_with`]).
+    pub fn with_choices(mut self, choices: Choices) -> Self {
+        self.choices = choices;
+        self
+    }
+
+    /// The freedoms that decided the answers given since the last call, the model's included: where an
+    /// oracle must accept any admissible value, not only this drive's.
+    pub fn take_decisions(&mut self) -> Vec<Decision> {
+        self.decisions.extend(self.model.take_decisions());
+        std::mem::take(&mut self.decisions)
     }
 
     /// The drive model.
@@ -346,6 +367,8 @@ impl Station {
         let fc = FunctionCode(*pdu.first()?);
         let supported = !fc.is_exception() && self.profile().function(fc).is_some();
         let resp = if !supported {
+            // A function the profile does not list: a drive may serve it anyway (a freedom of the spec).
+            self.decisions.push(ids::SERVED_EXTRA_FUNCTION);
             Some(Response::exception(fc, ExceptionCode::ILLEGAL_FUNCTION))
         } else {
             match Request::decode(pdu) {
@@ -357,7 +380,10 @@ impl Station {
                     Some(Response::exception(fc, ExceptionCode::ILLEGAL_DATA_VALUE))
                 }
                 Ok(req) => match self.spec_checks(&req) {
-                    Some(e) => Some(Response::exception(fc, e)),
+                    Some(e) => {
+                        self.decisions.extend(e.freedom);
+                        Some(Response::exception(fc, e.code))
+                    }
                     None if fc == FunctionCode::DIAGNOSTICS => Some(self.diagnostics(&req)),
                     None => {
                         self.model.advance(now);
@@ -373,48 +399,72 @@ impl Station {
     }
 
     /// Quantity limits and FC 05 values, per the application protocol spec's state diagrams.
-    fn spec_checks(&self, req: &Request) -> Option<ExceptionCode> {
-        let limit = |fc: FunctionCode| {
-            self.profile()
-                .function(fc)
-                .and_then(|f| f.max_quantity)
-                .or(fc.max_quantity())
-                .unwrap_or(u16::MAX)
+    fn spec_checks(&self, req: &Request) -> Option<Rejection> {
+        if self.faults.has(Fault::QuantityUnchecked) {
+            return self.coil_value_check(req);
+        }
+        let profile_limit =
+            |fc: FunctionCode| self.profile().function(fc).and_then(|f| f.max_quantity);
+        // 03 outside the spec's range; outside the device's own (stricter) limit, the code is a freedom.
+        let check = |q: u16, fc: FunctionCode, spec: Option<u16>| {
+            let spec = spec.unwrap_or(u16::MAX);
+            let device = profile_limit(fc).unwrap_or(spec);
+            if q == 0 || q > spec.max(device) {
+                Some(Rejection::fixed(ExceptionCode::ILLEGAL_DATA_VALUE))
+            } else if q > device {
+                Some(self.choices.reject(
+                    ids::QUANTITY_OVER_DEVICE_LIMIT,
+                    ExceptionCode::ILLEGAL_DATA_VALUE,
+                ))
+            } else {
+                None
+            }
         };
-        let bad =
-            |q: u16, max: u16| (q == 0 || q > max) && !self.faults.has(Fault::QuantityUnchecked);
         use Request::*;
-        let illegal = match req {
+        match req {
             ReadCoils { quantity, .. }
             | ReadDiscreteInputs { quantity, .. }
             | ReadHoldingRegisters { quantity, .. }
             | ReadInputRegisters { quantity, .. }
-            | WriteMultipleCoils { quantity, .. } => bad(*quantity, limit(req.function())),
-            WriteMultipleRegisters { values, .. } => bad(
-                values.len() as u16,
-                limit(FunctionCode::WRITE_MULTIPLE_REGISTERS),
-            ),
+            | WriteMultipleCoils { quantity, .. } => {
+                check(*quantity, req.function(), req.function().max_quantity())
+            }
+            WriteMultipleRegisters { values, .. } => {
+                let fc = FunctionCode::WRITE_MULTIPLE_REGISTERS;
+                check(values.len() as u16, fc, fc.max_quantity())
+            }
             ReadWriteMultipleRegisters {
                 read_quantity,
                 values,
                 ..
             } => {
+                let fc = FunctionCode::READ_WRITE_MULTIPLE_REGISTERS;
                 let wmax = self
                     .profile()
-                    .function(FunctionCode::READ_WRITE_MULTIPLE_REGISTERS)
+                    .function(fc)
                     .and_then(|f| f.max_write_quantity)
                     .unwrap_or(FunctionCode::MAX_READ_WRITE_WRITE_QUANTITY);
-                bad(
-                    *read_quantity,
-                    limit(FunctionCode::READ_WRITE_MULTIPLE_REGISTERS),
-                ) || bad(values.len() as u16, wmax)
+                check(*read_quantity, fc, fc.max_quantity()).or_else(|| {
+                    (values.is_empty() || values.len() > usize::from(wmax))
+                        .then(|| Rejection::fixed(ExceptionCode::ILLEGAL_DATA_VALUE))
+                })
             }
-            WriteSingleCoil { value, .. } => {
-                *value != 0xFF00 && *value != 0 && !self.faults.has(Fault::IllegalCoilValueAccepted)
+            _ => self.coil_value_check(req),
+        }
+    }
+
+    /// FC 05 takes 0xFF00 or 0x0000 only (spec 6.5): 03 for anything else.
+    fn coil_value_check(&self, req: &Request) -> Option<Rejection> {
+        match req {
+            Request::WriteSingleCoil { value, .. }
+                if *value != 0xFF00
+                    && *value != 0
+                    && !self.faults.has(Fault::IllegalCoilValueAccepted) =>
+            {
+                Some(Rejection::fixed(ExceptionCode::ILLEGAL_DATA_VALUE))
             }
-            _ => false,
-        };
-        illegal.then_some(ExceptionCode::ILLEGAL_DATA_VALUE)
+            _ => None,
+        }
     }
 
     /// FC 08 over the counters, for the sub-functions the profile lists.

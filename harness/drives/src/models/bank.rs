@@ -28,6 +28,7 @@ use std::collections::BTreeMap;
 
 use super::data_model::DataModel;
 pub use super::data_model::{BitTable, RegTable};
+use crate::choices::{Choices, Rejection, ids};
 use crate::faults::{Fault, FaultSet};
 use crate::profile::{Access, Profile, Register, Table, WordOrder};
 use codec::ExceptionCode;
@@ -67,6 +68,10 @@ pub struct RegisterBank {
     reserved_readable: bool,
     read_only_writable: bool,
     range_unchecked: bool,
+    /// The exception codes chosen where the freedoms leave a choice.
+    choices: Choices,
+    /// Freedoms that decided the answer being given (drained per request).
+    decisions: Vec<crate::choices::Decision>,
 }
 
 /// The value a register starts with: its default, else 0 moved into its range.
@@ -88,7 +93,7 @@ fn wrap_to_width(reg: &Register, value: i64) -> i64 {
 
 impl RegisterBank {
     /// Build the bank: every register at its default, every bit off; faults that change the data model apply.
-    pub fn new(profile: &Profile, faults: &FaultSet) -> Self {
+    pub fn new(profile: &Profile, faults: &FaultSet, choices: &Choices) -> Self {
         let mut slots = Vec::with_capacity(profile.registers.len());
         let mut holding = BTreeMap::new();
         let mut input = BTreeMap::new();
@@ -139,7 +144,14 @@ impl RegisterBank {
             reserved_readable: faults.has(Fault::ReservedReadable),
             read_only_writable: faults.has(Fault::ReadOnlyWritable),
             range_unchecked: faults.has(Fault::RangeUnchecked),
+            choices: choices.clone(),
+            decisions: Vec::new(),
         }
+    }
+
+    /// The freedoms that decided answers since the last call.
+    pub fn take_decisions(&mut self) -> Vec<crate::choices::Decision> {
+        std::mem::take(&mut self.decisions)
     }
 
     /// The word order 32-bit registers travel in (the profile's, or the opposite under `Fault::WordOrder`).
@@ -200,11 +212,11 @@ impl RegisterBank {
         table: RegTable,
         address: u16,
         quantity: u16,
-    ) -> Result<Vec<u16>, ExceptionCode> {
+    ) -> Result<Vec<u16>, Rejection> {
         let end = u32::from(address) + u32::from(quantity);
         if end > 0x1_0000 {
             // Modbus spec state diagrams: starting address + quantity must be a valid address range.
-            return Err(ExceptionCode::ILLEGAL_DATA_ADDRESS);
+            return Err(ExceptionCode::ILLEGAL_DATA_ADDRESS.into());
         }
         let map = self.map(table);
         let mut out = Vec::with_capacity(usize::from(quantity));
@@ -216,36 +228,54 @@ impl RegisterBank {
                     let w = self.words(&slot.reg, slot.value);
                     out.push(w.get(half).copied().unwrap_or(0));
                 }
-                Some(_) => return Err(ExceptionCode::ILLEGAL_DATA_ADDRESS),
+                Some(_) => return Err(ExceptionCode::ILLEGAL_DATA_ADDRESS.into()),
                 None if self.reserved_readable => out.push(0),
-                None => return Err(ExceptionCode::ILLEGAL_DATA_ADDRESS),
+                None => return Err(ExceptionCode::ILLEGAL_DATA_ADDRESS.into()),
             }
         }
         Ok(out)
     }
 
+    /// True when the range starts or ends inside a 32-bit register of `table`.
+    pub fn splits_register(&self, table: RegTable, address: u16, quantity: u16) -> bool {
+        let map = self.map(table);
+        let inside = |a: u32| {
+            u16::try_from(a)
+                .ok()
+                .and_then(|a| map.get(&a).and_then(|&i| self.slots.get(i)).map(|s| (a, s)))
+                .is_some_and(|(a, s)| s.reg.width == 2 && s.reg.address != a)
+        };
+        let end = u32::from(address) + u32::from(quantity);
+        quantity > 0 && (inside(u32::from(address)) || inside(end))
+    }
+
     /// Validate a holding-register write of `words` at `address` without applying it: address/access errors
     /// (02) first for the whole range, then value errors (03).
-    pub fn plan_write(&self, address: u16, words: &[u16]) -> Result<Vec<Change>, ExceptionCode> {
+    pub fn plan_write(&self, address: u16, words: &[u16]) -> Result<Vec<Change>, Rejection> {
         let end = u32::from(address) + words.len() as u32;
         if end > 0x1_0000 {
-            return Err(ExceptionCode::ILLEGAL_DATA_ADDRESS);
+            return Err(ExceptionCode::ILLEGAL_DATA_ADDRESS.into());
         }
         // Pass 1: every address belongs to a writable register that the range covers completely.
         let mut spans = Vec::new();
         let mut a = u32::from(address);
         while a < end {
             let Some(&idx) = self.holding.get(&(a as u16)) else {
-                return Err(ExceptionCode::ILLEGAL_DATA_ADDRESS);
+                return Err(ExceptionCode::ILLEGAL_DATA_ADDRESS.into());
             };
             let Some(slot) = self.slots.get(idx) else {
-                return Err(ExceptionCode::ILLEGAL_DATA_ADDRESS);
+                return Err(ExceptionCode::ILLEGAL_DATA_ADDRESS.into());
             };
             if u32::from(slot.reg.address) != a || slot.reg.end() > end {
-                return Err(ExceptionCode::ILLEGAL_DATA_ADDRESS);
+                return Err(self.choices.reject(
+                    ids::PARTIAL_REGISTER_WRITE,
+                    ExceptionCode::ILLEGAL_DATA_ADDRESS,
+                ));
             }
             if !slot.reg.access.writable() && !self.read_only_writable {
-                return Err(ExceptionCode::ILLEGAL_DATA_ADDRESS);
+                return Err(self
+                    .choices
+                    .reject(ids::WRITE_READ_ONLY, ExceptionCode::ILLEGAL_DATA_ADDRESS));
             }
             spans.push((idx, (a - u32::from(address)) as usize));
             a = slot.reg.end();
@@ -254,13 +284,15 @@ impl RegisterBank {
         let mut changes = Vec::with_capacity(spans.len());
         for (idx, off) in spans {
             let Some(slot) = self.slots.get(idx) else {
-                return Err(ExceptionCode::ILLEGAL_DATA_ADDRESS);
+                return Err(ExceptionCode::ILLEGAL_DATA_ADDRESS.into());
             };
             let w = words.get(off..).unwrap_or(&[]);
             let value = self.value_of_words(&slot.reg, w);
             let (lo, hi) = slot.reg.range();
             if (value < lo || value > hi) && !self.range_unchecked {
-                return Err(ExceptionCode::ILLEGAL_DATA_VALUE);
+                return Err(self
+                    .choices
+                    .reject(ids::VALUE_OUT_OF_RANGE, ExceptionCode::ILLEGAL_DATA_VALUE));
             }
             changes.push(Change {
                 address: slot.reg.address,
@@ -278,7 +310,7 @@ impl RegisterBank {
     }
 
     /// Validate and apply a holding-register write (FC 06/10/17); returns what changed.
-    pub fn write(&mut self, address: u16, words: &[u16]) -> Result<Vec<Change>, ExceptionCode> {
+    pub fn write(&mut self, address: u16, words: &[u16]) -> Result<Vec<Change>, Rejection> {
         let changes = self.plan_write(address, words)?;
         self.commit(&changes);
         Ok(changes)
@@ -349,19 +381,19 @@ impl RegisterBank {
         table: BitTable,
         address: u16,
         quantity: u16,
-    ) -> Result<Vec<u8>, ExceptionCode> {
+    ) -> Result<Vec<u8>, Rejection> {
         let end = u32::from(address) + u32::from(quantity);
         if end > 0x1_0000 {
-            return Err(ExceptionCode::ILLEGAL_DATA_ADDRESS);
+            return Err(ExceptionCode::ILLEGAL_DATA_ADDRESS.into());
         }
         let map = self.bits(table);
         let mut out = vec![0u8; usize::from(quantity).div_ceil(8)];
         for (i, a) in (u32::from(address)..end).enumerate() {
             let on = match map.get(&(a as u16)) {
                 Some(c) if c.access.readable() => c.state,
-                Some(_) => return Err(ExceptionCode::ILLEGAL_DATA_ADDRESS),
+                Some(_) => return Err(ExceptionCode::ILLEGAL_DATA_ADDRESS.into()),
                 None if self.reserved_readable => false,
-                None => return Err(ExceptionCode::ILLEGAL_DATA_ADDRESS),
+                None => return Err(ExceptionCode::ILLEGAL_DATA_ADDRESS.into()),
             };
             if on && let Some(byte) = out.get_mut(i / 8) {
                 *byte |= 1 << (i % 8);
@@ -371,15 +403,20 @@ impl RegisterBank {
     }
 
     /// Write coils from `address` on (FC 05/0F): all or nothing; unmapped or read-only coils give 02.
-    pub fn write_coils(&mut self, address: u16, states: &[bool]) -> Result<(), ExceptionCode> {
+    pub fn write_coils(&mut self, address: u16, states: &[bool]) -> Result<(), Rejection> {
         let end = u32::from(address) + states.len() as u32;
         if end > 0x1_0000 {
-            return Err(ExceptionCode::ILLEGAL_DATA_ADDRESS);
+            return Err(ExceptionCode::ILLEGAL_DATA_ADDRESS.into());
         }
         for a in u32::from(address)..end {
             match self.coils.get(&(a as u16)) {
                 Some(c) if c.access.writable() || self.read_only_writable => {}
-                _ => return Err(ExceptionCode::ILLEGAL_DATA_ADDRESS),
+                Some(_) => {
+                    return Err(self
+                        .choices
+                        .reject(ids::WRITE_READ_ONLY, ExceptionCode::ILLEGAL_DATA_ADDRESS));
+                }
+                None => return Err(ExceptionCode::ILLEGAL_DATA_ADDRESS.into()),
             }
         }
         for (a, &s) in (u32::from(address)..end).zip(states) {
@@ -420,12 +457,20 @@ impl DataModel for RegisterBank {
         table: RegTable,
         address: u16,
         quantity: u16,
-    ) -> Result<Vec<u16>, ExceptionCode> {
+    ) -> Result<Vec<u16>, Rejection> {
         self.read(table, address, quantity)
     }
 
-    fn plan_write(&self, address: u16, words: &[u16]) -> Result<Vec<Change>, ExceptionCode> {
+    fn splits_register(&self, table: RegTable, address: u16, quantity: u16) -> bool {
+        RegisterBank::splits_register(self, table, address, quantity)
+    }
+
+    fn plan_write(&self, address: u16, words: &[u16]) -> Result<Vec<Change>, Rejection> {
         RegisterBank::plan_write(self, address, words)
+    }
+
+    fn decided(&mut self, freedom: crate::choices::Decision) {
+        self.decisions.push(freedom);
     }
 
     fn commit(&mut self, plan: Vec<Change>) {
@@ -437,11 +482,11 @@ impl DataModel for RegisterBank {
         table: BitTable,
         address: u16,
         quantity: u16,
-    ) -> Result<Vec<u8>, ExceptionCode> {
+    ) -> Result<Vec<u8>, Rejection> {
         RegisterBank::read_bits(self, table, address, quantity)
     }
 
-    fn write_coils(&mut self, address: u16, states: &[bool]) -> Result<(), ExceptionCode> {
+    fn write_coils(&mut self, address: u16, states: &[bool]) -> Result<(), Rejection> {
         RegisterBank::write_coils(self, address, states)
     }
 }

@@ -9,6 +9,8 @@
 
 use codec::{ExceptionCode, Request, Response, bits};
 
+use crate::choices::{Decision, Rejection, ids};
+
 /// Which register table an access goes to.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum RegTable {
@@ -38,10 +40,19 @@ pub trait DataModel {
         table: RegTable,
         address: u16,
         quantity: u16,
-    ) -> Result<Vec<u16>, ExceptionCode>;
+    ) -> Result<Vec<u16>, Rejection>;
+
+    /// True when a read of `quantity` registers from `address` starts or ends inside a 32-bit register
+    /// (served by the reference drives; a freedom of the manuals).
+    fn splits_register(&self, _table: RegTable, _address: u16, _quantity: u16) -> bool {
+        false
+    }
 
     /// Validate a holding-register write of `words` at `address` without changing anything.
-    fn plan_write(&self, address: u16, words: &[u16]) -> Result<Self::Plan, ExceptionCode>;
+    fn plan_write(&self, address: u16, words: &[u16]) -> Result<Self::Plan, Rejection>;
+
+    /// Note that a freedom decided the answer being given.
+    fn decided(&mut self, _freedom: Decision) {}
 
     /// Apply a plan made by [`DataModel::plan_write`], with whatever the write sets off.
     fn commit(&mut self, plan: Self::Plan);
@@ -53,17 +64,17 @@ pub trait DataModel {
         _table: BitTable,
         _address: u16,
         _quantity: u16,
-    ) -> Result<Vec<u8>, ExceptionCode> {
-        Err(ExceptionCode::ILLEGAL_FUNCTION)
+    ) -> Result<Vec<u8>, Rejection> {
+        Err(ExceptionCode::ILLEGAL_FUNCTION.into())
     }
 
     /// Write coils from `address` on (FC 05/0F), all or nothing.
-    fn write_coils(&mut self, _address: u16, _states: &[bool]) -> Result<(), ExceptionCode> {
-        Err(ExceptionCode::ILLEGAL_FUNCTION)
+    fn write_coils(&mut self, _address: u16, _states: &[bool]) -> Result<(), Rejection> {
+        Err(ExceptionCode::ILLEGAL_FUNCTION.into())
     }
 
     /// Validate and apply a register write.
-    fn write_registers(&mut self, address: u16, words: &[u16]) -> Result<(), ExceptionCode> {
+    fn write_registers(&mut self, address: u16, words: &[u16]) -> Result<(), Rejection> {
         let plan = self.plan_write(address, words)?;
         self.commit(plan);
         Ok(())
@@ -76,8 +87,24 @@ pub trait DataModel {
 /// model's address, access and value rules.
 pub fn serve<M: DataModel + ?Sized>(model: &mut M, request: &Request) -> Option<Response> {
     let fc = request.function();
-    let exc = |e: ExceptionCode| Response::exception(fc, e);
-    Some(match request {
+    let mut decided = None;
+    let mut exc = |e: Rejection| {
+        decided = e.freedom;
+        Response::exception(fc, e.code)
+    };
+    if let Request::ReadHoldingRegisters { address, quantity }
+    | Request::ReadInputRegisters { address, quantity } = request
+    {
+        let table = if matches!(request, Request::ReadInputRegisters { .. }) {
+            RegTable::Input
+        } else {
+            RegTable::Holding
+        };
+        if model.splits_register(table, *address, *quantity) {
+            model.decided(ids::PARTIAL_REGISTER_READ);
+        }
+    }
+    let answer = Some(match request {
         Request::ReadCoils { address, quantity } => model
             .read_bits(BitTable::Coils, *address, *quantity)
             .map_or_else(exc, |data| Response::ReadCoils { data }),
@@ -151,5 +178,9 @@ pub fn serve<M: DataModel + ?Sized>(model: &mut M, request: &Request) -> Option<
             })
         }
         _ => return None,
-    })
+    });
+    if let Some(d) = decided {
+        model.decided(d);
+    }
+    answer
 }

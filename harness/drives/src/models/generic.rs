@@ -11,6 +11,7 @@ use std::time::Duration;
 use super::DriveModel;
 use super::bank::RegisterBank;
 use super::data_model;
+use crate::choices::{Choices, Decision};
 use crate::faults::FaultSet;
 use crate::profile::Profile;
 use codec::mei::read_code;
@@ -27,8 +28,8 @@ pub struct Generic {
 impl Generic {
     /// Build the model from its profile; model-level faults (word order, reserved-readable, read-only-writable,
     /// range-unchecked) act through the register bank.
-    pub fn new(profile: Profile, faults: FaultSet) -> Self {
-        let bank = RegisterBank::new(&profile, &faults);
+    pub fn new(profile: Profile, faults: FaultSet, choices: Choices) -> Self {
+        let bank = RegisterBank::new(&profile, &faults, &choices);
         Self { profile, bank }
     }
 
@@ -148,6 +149,10 @@ impl DriveModel for Generic {
 
     /// A plain server has no state that evolves on its own.
     fn advance(&mut self, _now: Duration) {}
+
+    fn take_decisions(&mut self) -> Vec<Decision> {
+        self.bank.take_decisions()
+    }
 
     fn handle(&mut self, _now: Duration, _unit: u8, request: &Request) -> Option<Response> {
         if let Some(r) = data_model::serve(&mut self.bank, request) {

@@ -60,6 +60,7 @@ use super::DriveModel;
 use super::bank::{Change, RegisterBank};
 use super::data_model::{self, BitTable, DataModel, RegTable};
 use super::generic::read_device_id;
+use crate::choices::{Choices, Decision, Rejection, ids};
 use crate::faults::FaultSet;
 use crate::profile::{Profile, VendorMnemonic};
 use codec::{ExceptionCode, FunctionCode, Mnemonic, Request, Response};
@@ -511,12 +512,16 @@ pub struct Mdrive {
     params: BTreeMap<String, Vec<String>>,
     program: Program,
     nvm_writes: u32,
+    /// The values taken where the freedoms leave a choice.
+    choices: Choices,
+    /// Freedoms that decided the answer being given (drained per request).
+    decisions: Vec<Decision>,
 }
 
 impl Mdrive {
     /// Build the model from its profile (`mdrive` or `lmd`); model-level faults act through the register bank.
-    pub fn new(profile: Profile, faults: FaultSet) -> Self {
-        let mut bank = RegisterBank::new(&profile, &faults);
+    pub fn new(profile: Profile, faults: FaultSet, choices: Choices) -> Self {
+        let mut bank = RegisterBank::new(&profile, &faults, &choices);
         let outputs = bank.bit_addresses(BitTable::Coils);
         let inputs = bank.bit_addresses(BitTable::DiscreteInputs);
         let at = |m: &str| bank.address_of(m);
@@ -571,6 +576,8 @@ impl Mdrive {
             params,
             program: Program::Idle,
             nvm_writes: 0,
+            choices,
+            decisions: Vec::new(),
         };
         model.refresh();
         model
@@ -691,10 +698,14 @@ impl Mdrive {
     }
 
     /// The dependent limits a register write must respect (exception 03), beyond each register's own range.
-    fn check_limits(&self, changes: &[Change]) -> Result<(), ExceptionCode> {
+    fn check_limits(&self, changes: &[Change]) -> Result<(), Rejection> {
         if self.bank.range_unchecked() {
             return Ok(());
         }
+        // A dependent limit is a range too: the value is outside what the drive accepts now.
+        let out_of_range = self
+            .choices
+            .reject(ids::VALUE_OUT_OF_RANGE, ExceptionCode::ILLEGAL_DATA_VALUE);
         let new = |addr: Option<u16>| {
             let a = addr?;
             changes
@@ -709,16 +720,16 @@ impl Mdrive {
             && let (Some(vi), Some(vm)) = (new(self.addrs.vi), new(self.addrs.vm))
             && vi >= vm
         {
-            return Err(ExceptionCode::ILLEGAL_DATA_VALUE);
+            return Err(out_of_range);
         }
         if touched(self.addrs.ms) && new(self.addrs.ms).is_some_and(|m| !MICROSTEPS.contains(&m)) {
-            return Err(ExceptionCode::ILLEGAL_DATA_VALUE);
+            return Err(out_of_range);
         }
         if touched(self.addrs.ht) || touched(self.addrs.mt) {
             let ht = new(self.addrs.ht).unwrap_or(0);
             let mt = new(self.addrs.mt).unwrap_or(0);
             if (touched(self.addrs.ht) && ht == 1) || ht.saturating_add(mt) > 65_535 {
-                return Err(ExceptionCode::ILLEGAL_DATA_VALUE);
+                return Err(out_of_range);
             }
         }
         Ok(())
@@ -801,13 +812,21 @@ impl Mdrive {
     }
 
     /// FC 0x41: read a mnemonic's parameters.
-    fn vendor_read(&self, mnemonic: &Mnemonic) -> Response {
+    fn vendor_read(&mut self, mnemonic: &Mnemonic) -> Response {
         let fc = FunctionCode::VENDOR_READ;
         let Some(m) = self.vendor_entry(mnemonic) else {
-            return Response::exception(fc, ExceptionCode::ILLEGAL_DATA_ADDRESS);
+            return self.refuse(
+                fc,
+                ids::UNKNOWN_MNEMONIC,
+                ExceptionCode::ILLEGAL_DATA_ADDRESS,
+            );
         };
         if !m.read {
-            return Response::exception(fc, ExceptionCode::ILLEGAL_DATA_ADDRESS);
+            return self.refuse(
+                fc,
+                ids::MNEMONIC_ACCESS,
+                ExceptionCode::ILLEGAL_DATA_ADDRESS,
+            );
         }
         let key = m.name.to_ascii_uppercase();
         let mut values = match (vendor_kind(&m), self.params.get(&key)) {
@@ -839,17 +858,28 @@ impl Mdrive {
     /// FC 0x42: write a setting or run a command.
     fn vendor_write(&mut self, mnemonic: &Mnemonic, params: &[u8]) -> Response {
         let fc = FunctionCode::VENDOR_WRITE;
-        let fail = |e| Response::exception(fc, e);
         let Some(m) = self.vendor_entry(mnemonic) else {
-            return fail(ExceptionCode::ILLEGAL_DATA_ADDRESS);
+            return self.refuse(
+                fc,
+                ids::UNKNOWN_MNEMONIC,
+                ExceptionCode::ILLEGAL_DATA_ADDRESS,
+            );
         };
         let kind = vendor_kind(&m);
         let writable = m.write || (kind == VendorKind::Status && self.bank.read_only_writable());
         if !writable {
-            return fail(ExceptionCode::ILLEGAL_DATA_ADDRESS);
+            return self.refuse(
+                fc,
+                ids::MNEMONIC_ACCESS,
+                ExceptionCode::ILLEGAL_DATA_ADDRESS,
+            );
         }
         if params.len() > MAX_PARAM_BYTES || !params.iter().all(|b| (0x20..=0x7E).contains(b)) {
-            return fail(ExceptionCode::ILLEGAL_DATA_VALUE);
+            return self.refuse(
+                fc,
+                ids::MNEMONIC_BAD_PARAMETER,
+                ExceptionCode::ILLEGAL_DATA_VALUE,
+            );
         }
         // Printable ASCII only, so this cannot fail; an empty string stands in if it ever did.
         let text = std::str::from_utf8(params).unwrap_or_default();
@@ -869,13 +899,29 @@ impl Mdrive {
                     self.nvm_writes = self.nvm_writes.saturating_add(1);
                 }
                 self.refresh();
+                self.decisions.push(ids::FC42_BYTES_WRITTEN);
+                let written = match self.choices.name(ids::FC42_BYTES_WRITTEN) {
+                    Some("parameter-bytes") => u8::try_from(params.len()).unwrap_or(u8::MAX),
+                    _ => BYTES_WRITTEN,
+                };
                 Response::VendorWrite {
-                    written: BYTES_WRITTEN,
+                    written,
                     mnemonic: *mnemonic,
                 }
             }
-            Err(e) => fail(e),
+            Err(code) => self.refuse(fc, ids::MNEMONIC_BAD_PARAMETER, code),
         }
+    }
+
+    /// Refuse a vendor request whose exception code the freedom `freedom` decides (`reference` by default).
+    fn refuse(
+        &mut self,
+        fc: FunctionCode,
+        freedom: Decision,
+        reference: ExceptionCode,
+    ) -> Response {
+        self.decisions.push(freedom);
+        Response::exception(fc, self.choices.code(freedom, reference))
     }
 
     fn run_command(
@@ -977,15 +1023,23 @@ impl DataModel for Mdrive {
         table: RegTable,
         address: u16,
         quantity: u16,
-    ) -> Result<Vec<u16>, ExceptionCode> {
+    ) -> Result<Vec<u16>, Rejection> {
         self.bank.read(table, address, quantity)
     }
 
-    fn plan_write(&self, address: u16, words: &[u16]) -> Result<Vec<Change>, ExceptionCode> {
+    fn splits_register(&self, table: RegTable, address: u16, quantity: u16) -> bool {
+        self.bank.splits_register(table, address, quantity)
+    }
+
+    fn plan_write(&self, address: u16, words: &[u16]) -> Result<Vec<Change>, Rejection> {
         let changes = self.bank.plan_write(address, words)?;
         self.check_limits(&changes)?;
         self.check_motion(&changes)?;
         Ok(changes)
+    }
+
+    fn decided(&mut self, freedom: Decision) {
+        self.decisions.push(freedom);
     }
 
     fn commit(&mut self, changes: Vec<Change>) {
@@ -1001,11 +1055,11 @@ impl DataModel for Mdrive {
         table: BitTable,
         address: u16,
         quantity: u16,
-    ) -> Result<Vec<u8>, ExceptionCode> {
+    ) -> Result<Vec<u8>, Rejection> {
         self.bank.read_bits(table, address, quantity)
     }
 
-    fn write_coils(&mut self, address: u16, states: &[bool]) -> Result<(), ExceptionCode> {
+    fn write_coils(&mut self, address: u16, states: &[bool]) -> Result<(), Rejection> {
         self.bank.write_coils(address, states)
     }
 }
@@ -1013,6 +1067,10 @@ impl DataModel for Mdrive {
 impl DriveModel for Mdrive {
     fn profile(&self) -> &Profile {
         &self.profile
+    }
+
+    fn take_decisions(&mut self) -> Vec<Decision> {
+        std::mem::take(&mut self.decisions)
     }
 
     fn advance(&mut self, now: Duration) {

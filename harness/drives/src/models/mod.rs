@@ -15,6 +15,7 @@ use std::time::Duration;
 use crate::profile::Profile;
 use codec::{Request, Response};
 
+use crate::choices::{Choices, Decision};
 use crate::faults::FaultSet;
 
 /// An executable model of a drive: what a conforming drive answers, and its state over time.
@@ -28,13 +29,24 @@ pub trait DriveModel: Send {
     /// Answer a request addressed to this drive as unit `unit` at `now` (after `advance(now)`).
     /// `None` means the drive stays silent. Broadcasts are handled too; the station drops their answer.
     fn handle(&mut self, now: Duration, unit: u8, request: &Request) -> Option<Response>;
+
+    /// The freedoms that decided the answers since the last call (see [`crate::choices`]).
+    fn take_decisions(&mut self) -> Vec<Decision> {
+        Vec::new()
+    }
 }
 
-/// Build the model a profile describes: sd2x, mdrive and lmd have their own models, anything else is generic.
+/// Build the reference model a profile describes: sd2x, mdrive and lmd have their own models, anything
+/// else is generic.
 pub fn build(profile: Profile, faults: FaultSet) -> Box<dyn DriveModel> {
+    build_with(profile, faults, Choices::reference())
+}
+
+/// Build the model a profile describes, taking `choices` where the freedoms leave one.
+pub fn build_with(profile: Profile, faults: FaultSet, choices: Choices) -> Box<dyn DriveModel> {
     match profile.device.id.as_str() {
-        "sd2x" => Box::new(sd2x::Sd2x::new(profile, faults)),
-        "mdrive" | "lmd" => Box::new(mdrive::Mdrive::new(profile, faults)),
-        _ => Box::new(generic::Generic::new(profile, faults)),
+        "sd2x" => Box::new(sd2x::Sd2x::new(profile, faults, choices)),
+        "mdrive" | "lmd" => Box::new(mdrive::Mdrive::new(profile, faults, choices)),
+        _ => Box::new(generic::Generic::new(profile, faults, choices)),
     }
 }

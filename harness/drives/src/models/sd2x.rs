@@ -46,6 +46,7 @@ use std::time::Duration;
 
 use super::DriveModel;
 use super::data_model::{self, DataModel, RegTable};
+use crate::choices::{Choices, Decision, Rejection, ids};
 use crate::faults::Fault;
 use crate::faults::FaultSet;
 use crate::profile::{Access, ObjectType, Profile, WordOrder};
@@ -309,6 +310,10 @@ pub struct Sd2x {
     error_code: u16,
     /// When the watchdog expires; `None` when it is off or has tripped.
     watchdog_deadline: Option<Duration>,
+    /// The values taken where the freedoms leave a choice.
+    choices: Choices,
+    /// Freedoms that decided the answer being given (drained per request).
+    decisions: Vec<Decision>,
 }
 
 /// Raw bits of `value` at `bytes` bytes (two's complement for negatives).
@@ -336,7 +341,7 @@ fn clamp_i16(v: i64) -> i16 {
 
 impl Sd2x {
     /// Build the model from its profile, at power-on (time zero, switch on disabled).
-    pub fn new(profile: Profile, faults: FaultSet) -> Self {
+    pub fn new(profile: Profile, faults: FaultSet, choices: Choices) -> Self {
         let mut regs = BTreeMap::new();
         for r in profile.registers.iter().map(|r| r.get_ref()) {
             let bytes = 2 * usize::from(r.width);
@@ -358,6 +363,8 @@ impl Sd2x {
             speed_fine: 0,
             error_code: 0,
             watchdog_deadline: None,
+            choices,
+            decisions: Vec::new(),
         };
         let unmapped: Vec<((u16, u8), u32)> = model
             .profile
@@ -644,7 +651,7 @@ impl Sd2x {
 
     /// Validate a write of `values` from `address` and return the new raw value of every register touched.
     /// Nothing is changed: a request is written whole or not at all.
-    fn stage_write(&self, address: u16, values: &[u16]) -> Result<Vec<(u16, u32)>, ExceptionCode> {
+    fn stage_write(&self, address: u16, values: &[u16]) -> Result<Vec<(u16, u32)>, Rejection> {
         let end = u32::try_from(values.len())
             .ok()
             .and_then(|n| u32::from(address).checked_add(n))
@@ -657,7 +664,9 @@ impl Sd2x {
             let slot = self.slot(a).ok_or(ExceptionCode::ILLEGAL_DATA_ADDRESS)?;
             if !slot.access.writable() && !self.has(Fault::ReadOnlyWritable) {
                 // The TxPDO is the input-register image (line 726): not a valid address to write (line 672).
-                return Err(ExceptionCode::ILLEGAL_DATA_ADDRESS);
+                return Err(self
+                    .choices
+                    .reject(ids::WRITE_READ_ONLY, ExceptionCode::ILLEGAL_DATA_ADDRESS));
             }
             let entry = staged
                 .entry(slot.address)
@@ -678,7 +687,7 @@ impl Sd2x {
                 }
                 let v = signed_value(*raw, 2 * usize::from(slot.width), slot.signed);
                 if v < slot.range.0 || v > slot.range.1 {
-                    return Err(ExceptionCode::ILLEGAL_DATA_VALUE);
+                    return Err(ExceptionCode::ILLEGAL_DATA_VALUE.into());
                 }
             }
         }
@@ -753,17 +762,25 @@ impl Sd2x {
         }
     }
 
-    /// The SDO error for a byte count `n` against an object of `size` bytes, if any.
-    fn length_error(n: usize, size: usize) -> Option<u32> {
-        if n > 4 {
-            Some(sdo::LENGTH_WRONG)
+    /// The SDO error for a byte count `n` against an object of `size` bytes, if any. Which of the length
+    /// codes a drive gives is a freedom; the reference's are the most specific ones.
+    fn length_error(&mut self, n: usize, size: usize) -> Option<u32> {
+        let reference = if n > 4 {
+            sdo::LENGTH_WRONG
         } else if n > size {
-            Some(sdo::LENGTH_TOO_LONG)
+            sdo::LENGTH_TOO_LONG
         } else if n < size {
-            Some(sdo::LENGTH_TOO_SHORT)
+            sdo::LENGTH_TOO_SHORT
         } else {
-            None
-        }
+            return None;
+        };
+        self.decisions.push(ids::SDO_LENGTH_ERROR);
+        Some(match self.choices.get(ids::SDO_LENGTH_ERROR) {
+            Some(crate::requirements::FreedomValue::Int(c)) => {
+                u32::try_from(*c).unwrap_or(reference)
+            }
+            _ => reference,
+        })
     }
 
     fn object_access(&mut self, unit: u8, a: &CanOpenAccess) -> Result<Response, ObjectError> {
@@ -797,7 +814,7 @@ impl Sd2x {
             if !o.access.writable() && !self.has(Fault::ReadOnlyWritable) {
                 return Err(ObjectError::Sdo(sdo::WRITE_READ_ONLY));
             }
-            if let Some(e) = Self::length_error(a.data.len(), size) {
+            if let Some(e) = self.length_error(a.data.len(), size) {
                 return Err(ObjectError::Sdo(e));
             }
             let raw = a.value_le().unwrap_or(0);
@@ -826,7 +843,7 @@ impl Sd2x {
             if !o.access.readable() {
                 return Err(ObjectError::Sdo(sdo::READ_WRITE_ONLY));
             }
-            if let Some(e) = Self::length_error(usize::from(a.byte_count), size) {
+            if let Some(e) = self.length_error(usize::from(a.byte_count), size) {
                 return Err(ObjectError::Sdo(e));
             }
             let raw = self.object_raw(a.index, a.subindex, &o);
@@ -846,12 +863,16 @@ impl DataModel for Sd2x {
         _table: RegTable,
         address: u16,
         quantity: u16,
-    ) -> Result<Vec<u16>, ExceptionCode> {
-        self.read_block(address, quantity)
+    ) -> Result<Vec<u16>, Rejection> {
+        Ok(self.read_block(address, quantity)?)
     }
 
-    fn plan_write(&self, address: u16, words: &[u16]) -> Result<Self::Plan, ExceptionCode> {
+    fn plan_write(&self, address: u16, words: &[u16]) -> Result<Self::Plan, Rejection> {
         self.stage_write(address, words)
+    }
+
+    fn decided(&mut self, freedom: Decision) {
+        self.decisions.push(freedom);
     }
 
     fn commit(&mut self, plan: Self::Plan) {
@@ -862,6 +883,10 @@ impl DataModel for Sd2x {
 impl DriveModel for Sd2x {
     fn profile(&self) -> &Profile {
         &self.profile
+    }
+
+    fn take_decisions(&mut self) -> Vec<Decision> {
+        std::mem::take(&mut self.decisions)
     }
 
     fn advance(&mut self, now: Duration) {

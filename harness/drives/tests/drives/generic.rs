@@ -292,7 +292,11 @@ fn rtu_broadcast_writes_silently() {
 
 #[test]
 fn model_alone_answers_without_a_station() {
-    let mut g = Generic::new(generic_profile(), FaultSet::none());
+    let mut g = Generic::new(
+        generic_profile(),
+        FaultSet::none(),
+        drives::Choices::reference(),
+    );
     assert_eq!(
         g.handle(
             Duration::ZERO,

@@ -419,7 +419,11 @@ fn writing_p_sets_the_reference_without_moving() {
 
 #[test]
 fn save_is_recorded() {
-    let mut m = Mdrive::new(profile("mdrive"), FaultSet::none());
+    let mut m = Mdrive::new(
+        profile("mdrive"),
+        FaultSet::none(),
+        drives::Choices::reference(),
+    );
     let r = m.handle(
         Duration::ZERO,
         1,
@@ -488,7 +492,11 @@ fn io_coils_inputs_and_their_registers() {
 
 #[test]
 fn inputs_follow_the_outside_world() {
-    let mut m = Mdrive::new(profile("mdrive"), FaultSet::none());
+    let mut m = Mdrive::new(
+        profile("mdrive"),
+        FaultSet::none(),
+        drives::Choices::reference(),
+    );
     assert!(m.set_input(3, true));
     assert!(!m.set_input(5, true));
     let r = m.handle(
@@ -603,7 +611,11 @@ fn vendor_errors() {
 
 #[test]
 fn program_commands_are_recorded() {
-    let mut m = Mdrive::new(profile("lmd"), FaultSet::none());
+    let mut m = Mdrive::new(
+        profile("lmd"),
+        FaultSet::none(),
+        drives::Choices::reference(),
+    );
     let w = |name: &str, p: &str| Request::VendorWrite {
         mnemonic: Mnemonic::from_name(name).expect("mnemonic"),
         params: p.as_bytes().to_vec(),

@@ -442,3 +442,17 @@ fn freedom_items_exist_in_their_profile_and_the_first_access_is_the_profiles() {
         }
     }
 }
+
+/// The freedoms the models decide at are freedoms of the data: code and corpus name the same choices.
+#[test]
+fn every_decision_site_is_a_freedom_of_the_corpus() {
+    let r = drives::corpus::Corpus::Embedded
+        .requirements()
+        .expect("the embedded requirements load");
+    for id in drives::choices::ids::ALL {
+        assert!(
+            r.freedom(id).is_some(),
+            "the models decide at `{id}`, which no corpus/freedoms/*.toml defines"
+        );
+    }
+}

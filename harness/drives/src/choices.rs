@@ -1,0 +1,241 @@
+//! The choices a drive makes where the specifications and its manual leave one (the freedoms of
+//! `corpus/freedoms/`, loaded by [`crate::requirements`]).
+//!
+//! The reference models take the choices as parameters (`simulate --choose FREEDOM=VALUE`), and every answer
+//! they give where a freedom decided it carries the freedom's id as a [`Decision`]: the oracle then knows
+//! that any admissible value of that freedom would have been as good an answer, for a catalog case, a
+//! generated case or a fuzz input alike.
+
+use std::collections::BTreeMap;
+use std::fmt;
+
+use codec::ExceptionCode;
+
+use crate::requirements::{Freedom, FreedomKind, FreedomValue, Requirements};
+
+/// Freedom ids the models decide at (each is a `[[freedom]]` id in `corpus/freedoms/`; a test checks it).
+pub mod ids {
+    /// The exception code for a value outside the register's range: 03 or 04.
+    pub const VALUE_OUT_OF_RANGE: &str = "value-out-of-range";
+    /// The exception code for a write to a read-only register or object: 02, 03 or 04.
+    pub const WRITE_READ_ONLY: &str = "write-read-only-exception";
+    /// A quantity above the device's limit but within the spec's: 03, or 02 when the range runs past the map.
+    pub const QUANTITY_OVER_DEVICE_LIMIT: &str = "quantity-over-device-limit";
+    /// A read that starts or ends inside a 32-bit register: served, or 02/03/04.
+    pub const PARTIAL_REGISTER_READ: &str = "partial-register-read";
+    /// A write that covers half of a 32-bit register: 02, 03, 04, or accepted.
+    pub const PARTIAL_REGISTER_WRITE: &str = "partial-register-write";
+    /// A function code the profile does not list: 01, or served.
+    pub const SERVED_EXTRA_FUNCTION: &str = "served-extra-function";
+    /// FC 0x41/0x42 with a mnemonic the drive does not know.
+    pub const UNKNOWN_MNEMONIC: &str = "unknown-mnemonic-exception";
+    /// FC 0x41 of a write-only or FC 0x42 of a read-only mnemonic.
+    pub const MNEMONIC_ACCESS: &str = "mnemonic-access-exception";
+    /// FC 0x42 with parameters the mnemonic does not take.
+    pub const MNEMONIC_BAD_PARAMETER: &str = "mnemonic-bad-parameter-exception";
+    /// SD2x FC 43: the SDO abort code of a read or write whose length does not fit the object.
+    pub const SDO_LENGTH_ERROR: &str = "sd2x-sdo-length-error";
+    /// FC 0x42 response field "bytes written": the 4 mnemonic characters, or the parameter bytes.
+    pub const FC42_BYTES_WRITTEN: &str = "fc42-bytes-written";
+
+    /// Every id above.
+    pub const ALL: &[&str] = &[
+        VALUE_OUT_OF_RANGE,
+        WRITE_READ_ONLY,
+        QUANTITY_OVER_DEVICE_LIMIT,
+        PARTIAL_REGISTER_READ,
+        PARTIAL_REGISTER_WRITE,
+        SERVED_EXTRA_FUNCTION,
+        UNKNOWN_MNEMONIC,
+        MNEMONIC_ACCESS,
+        MNEMONIC_BAD_PARAMETER,
+        SDO_LENGTH_ERROR,
+        FC42_BYTES_WRITTEN,
+    ];
+}
+
+/// A place where a freedom decided an answer (the drive took its chosen value there).
+pub type Decision = &'static str;
+
+/// A refused request: the exception code, and the freedom that decided the code, if one did.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Rejection {
+    pub code: ExceptionCode,
+    pub freedom: Option<Decision>,
+}
+
+impl Rejection {
+    /// A refusal the specs fix (no freedom).
+    pub fn fixed(code: ExceptionCode) -> Self {
+        Self {
+            code,
+            freedom: None,
+        }
+    }
+
+    /// A refusal whose code the freedom `freedom` decided.
+    pub fn by(freedom: Decision, code: ExceptionCode) -> Self {
+        Self {
+            code,
+            freedom: Some(freedom),
+        }
+    }
+}
+
+impl From<ExceptionCode> for Rejection {
+    fn from(code: ExceptionCode) -> Self {
+        Self::fixed(code)
+    }
+}
+
+/// Why a choice was rejected.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum ChoiceError {
+    #[error("`{0}`: a choice is FREEDOM=VALUE")]
+    Syntax(String),
+    #[error("no freedom `{id}`; freedoms of this profile: {}", known.join(", "))]
+    UnknownFreedom { id: String, known: Vec<String> },
+    #[error("freedom `{id}` does not apply to profile `{profile}` (it applies to {})", applies.join(", "))]
+    NotForProfile {
+        id: String,
+        profile: String,
+        applies: Vec<String>,
+    },
+    #[error("`{value}` is not an admissible value of `{id}`; admissible: {}", admissible.join(", "))]
+    NotAdmissible {
+        id: String,
+        value: String,
+        admissible: Vec<String>,
+    },
+}
+
+/// The values a drive takes for freedoms; a freedom not set takes the reference's value (its first).
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub struct Choices(BTreeMap<String, FreedomValue>);
+
+impl Choices {
+    /// The reference drive's choices: every freedom at its first value.
+    pub fn reference() -> Self {
+        Self::default()
+    }
+
+    /// True when nothing departs from the reference.
+    pub fn is_reference(&self) -> bool {
+        self.0.is_empty()
+    }
+
+    /// Parse `FREEDOM=VALUE` and check it against the freedoms of `profile`.
+    pub fn parse_one(
+        spec: &str,
+        requirements: &Requirements,
+        profile: &str,
+    ) -> Result<(String, FreedomValue), ChoiceError> {
+        let (id, value) = spec
+            .split_once('=')
+            .ok_or_else(|| ChoiceError::Syntax(spec.to_string()))?;
+        let (id, value) = (id.trim(), value.trim());
+        let known = || {
+            requirements
+                .freedoms_for(profile)
+                .map(|f| f.id.clone())
+                .collect::<Vec<_>>()
+        };
+        let f = requirements
+            .freedom(id)
+            .ok_or_else(|| ChoiceError::UnknownFreedom {
+                id: id.to_string(),
+                known: known(),
+            })?;
+        if !f.applies_to(profile) {
+            return Err(ChoiceError::NotForProfile {
+                id: id.to_string(),
+                profile: profile.to_string(),
+                applies: f.profiles.clone(),
+            });
+        }
+        let chosen = f
+            .values
+            .iter()
+            .find(|v| value_matches(v, value))
+            .cloned()
+            .ok_or_else(|| ChoiceError::NotAdmissible {
+                id: id.to_string(),
+                value: value.to_string(),
+                admissible: f.values.iter().map(|v| v.to_string()).collect(),
+            })?;
+        Ok((id.to_string(), chosen))
+    }
+
+    /// Set `freedom` to `value` (the value the data lists, see [`Choices::parse_one`]).
+    pub fn set(&mut self, freedom: impl Into<String>, value: FreedomValue) {
+        self.0.insert(freedom.into(), value);
+    }
+
+    /// The value set for `freedom`, if any.
+    pub fn get(&self, freedom: &str) -> Option<&FreedomValue> {
+        self.0.get(freedom)
+    }
+
+    /// The exception code chosen for an `exception-code` freedom, else `reference`.
+    pub fn code(&self, freedom: &str, reference: ExceptionCode) -> ExceptionCode {
+        match self.0.get(freedom) {
+            Some(FreedomValue::Int(c)) => u8::try_from(*c).map_or(reference, ExceptionCode),
+            _ => reference,
+        }
+    }
+
+    /// A refusal under an `exception-code` freedom: the chosen code, decided by the freedom.
+    pub fn reject(&self, freedom: Decision, reference: ExceptionCode) -> Rejection {
+        Rejection::by(freedom, self.code(freedom, reference))
+    }
+
+    /// The name chosen for a freedom with named values, else `None` (the reference's).
+    pub fn name(&self, freedom: &str) -> Option<&str> {
+        match self.0.get(freedom) {
+            Some(FreedomValue::Text(t)) => Some(t),
+            _ => None,
+        }
+    }
+
+    /// Every choice set.
+    pub fn iter(&self) -> impl Iterator<Item = (&String, &FreedomValue)> {
+        self.0.iter()
+    }
+}
+
+impl fmt::Display for Choices {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        if self.0.is_empty() {
+            return f.write_str("reference");
+        }
+        let parts: Vec<String> = self.0.iter().map(|(k, v)| format!("{k}={v}")).collect();
+        f.write_str(&parts.join(" "))
+    }
+}
+
+/// True when a value of the data is the one a user wrote (`4`, `0x04`, `04`, `exception-02`, a name).
+pub fn value_matches(v: &FreedomValue, written: &str) -> bool {
+    match v {
+        FreedomValue::Int(i) => parse_int(written) == Some(*i),
+        FreedomValue::Text(t) => t.eq_ignore_ascii_case(written),
+    }
+}
+
+fn parse_int(s: &str) -> Option<i64> {
+    let s = s.trim();
+    match s.strip_prefix("0x").or_else(|| s.strip_prefix("0X")) {
+        Some(h) => i64::from_str_radix(h, 16).ok(),
+        None => s.parse().ok(),
+    }
+}
+
+/// The freedoms of `kind` that apply to `profile`.
+pub fn of_kind<'a>(
+    requirements: &'a Requirements,
+    profile: &'a str,
+    kind: FreedomKind,
+) -> impl Iterator<Item = &'a Freedom> {
+    requirements
+        .freedoms_for(profile)
+        .filter(move |f| f.kind == kind)
+}

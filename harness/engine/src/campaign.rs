@@ -90,6 +90,8 @@ fn probe_case(profile: &drives::profile::Profile) -> Case {
             capture: None,
             note: "liveness probe".into(),
         }],
+        requirements: Vec::new(),
+        freedoms: Vec::new(),
     }
 }
 
@@ -117,6 +119,8 @@ fn reproducer(name: &str, history: &[Case], probe: &Case, requirement: &str) -> 
         level: Level::Must,
         tags,
         steps,
+        requirements: Vec::new(),
+        freedoms: Vec::new(),
     }
 }
 

@@ -6,12 +6,14 @@ use std::time::{Duration, Instant};
 use crate::cases::{Case, Compare, Mutation, Outgoing, Step, Tag, Verdict};
 use crate::expect::Expectations;
 use crate::observe::{CaseResult, Dir, StepResult, WireEvent};
-use crate::oracle::{self, Captured, Finding, Sent, Severity};
+use crate::oracle::{self, Captured, ChoiceLog, Finding, Sent, Severity, StepContext};
 use crate::targets::sim::SimTarget;
 use crate::targets::{Received, Target, TargetError};
 use codec::FunctionCode;
 use codec::{Framing, Request, rtu, tcp};
 use drives::profile::Profile;
+use drives::requirements::Requirements;
+use std::sync::Arc;
 
 /// How long the runner waits.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -101,6 +103,13 @@ pub struct Runner {
     slots: Vec<Option<Captured>>,
     last_send: Option<Instant>,
     expectations: Expectations,
+    /// The freedoms the oracle applies (empty: judged by the reference drive alone).
+    requirements: Arc<Requirements>,
+    /// The choices the target showed so far, held against later ones.
+    choices: ChoiceLog,
+    /// The case being run: its id and the freedoms it cites.
+    case_id: String,
+    case_freedoms: Vec<String>,
 }
 
 impl Runner {
@@ -121,7 +130,22 @@ impl Runner {
             slots: vec![None; 4],
             last_send: None,
             expectations,
+            requirements: Arc::default(),
+            choices: ChoiceLog::default(),
+            case_id: String::new(),
+            case_freedoms: Vec::new(),
         }
+    }
+
+    /// Judge with the freedoms of `requirements`: an answer another admissible choice gives passes.
+    pub fn with_requirements(mut self, requirements: Arc<Requirements>) -> Self {
+        self.requirements = requirements;
+        self
+    }
+
+    /// The choices the target showed so far.
+    pub fn choices(&self) -> &ChoiceLog {
+        &self.choices
     }
 
     /// How frames are delimited on the target.
@@ -255,6 +279,8 @@ impl Runner {
         let mut steps = Vec::new();
         self.target.drain();
         self.slots.iter_mut().for_each(|s| *s = None);
+        self.case_id.clone_from(&case.id);
+        self.case_freedoms.clone_from(&case.freedoms);
         for step in &case.steps {
             match step {
                 Step::Wait(d) => {
@@ -479,8 +505,9 @@ impl Runner {
         note: &str,
         wire: &mut Vec<WireEvent>,
     ) -> Result<StepResult, TargetError> {
-        // The reference answers: every frame it sends before it falls silent.
+        // The reference answers: every frame it sends before it falls silent, and which freedoms decided them.
         let (expected, reference_closed) = self.shadow.settle();
+        let decisions = self.shadow.take_decisions();
         let mut observed = Vec::new();
         let mut findings: Vec<Finding> = precondition;
         let unit = self.cfg.unit;
@@ -504,7 +531,20 @@ impl Runner {
                     unit,
                     pdu: vec![],
                 });
-            findings.extend(oracle::judge(
+            let request = Request::decode(&sent.pdu).ok();
+            let cx = StepContext {
+                request: request.as_ref(),
+                unit: sent.unit,
+                run_unit: self.cfg.unit,
+                profile: &self.profile,
+                malformed: frames.get(i).or(frames.last()).is_some_and(|f| f.malformed),
+                batch: frames.len() > 1,
+                decided: &decisions,
+            };
+            let requirements = Arc::clone(&self.requirements);
+            let applicable =
+                oracle::freedoms::applicable(&requirements, &cx, &decisions, &self.case_freedoms);
+            let judged = oracle::judge_admitting(
                 framing,
                 &sent,
                 expected.get(i).map(|v| v.as_slice()),
@@ -512,7 +552,18 @@ impl Runner {
                 compare,
                 &self.profile,
                 reference_closed,
-            ));
+                &applicable,
+                &cx,
+            );
+            findings.extend(judged.findings);
+            for s in &judged.shown {
+                if let Some(text) = self.choices.record(s, &self.case_id, &requirements) {
+                    findings.push(Finding {
+                        severity: Severity::Should,
+                        text,
+                    });
+                }
+            }
             // Only an answer that starts too early is judged: user space cannot see the line's gaps
             // (USB adapters and the scheduler add their own), but it never sees an answer earlier than it was.
             if let (Some(t), Received::Frame { first_at, .. }) = (self.target.rtu_timing(), &got) {

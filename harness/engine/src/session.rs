@@ -3,6 +3,7 @@
 
 use std::io::Write;
 use std::path::PathBuf;
+use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
 
@@ -20,6 +21,7 @@ use crate::targets::{self, Received, TargetError, TargetUrl};
 use codec::{Direction, Framing, Pdu, Request, Response, decode_any, rtu, tcp};
 use drives::corpus::Corpus;
 use drives::profile::{Profile, Transport};
+use drives::requirements::Requirements;
 use drives::{self, FaultSet, Station};
 
 /// Everything a run needs to know.
@@ -40,6 +42,8 @@ pub struct Options {
     pub expect: Option<PathBuf>,
     /// Faults of the in-process simulator (`sim:` targets only).
     pub faults: FaultSet,
+    /// Choices of the in-process simulator where the freedoms leave one (`FREEDOM=VALUE`, `sim:` only).
+    pub choose: Vec<String>,
     pub report_dir: Option<PathBuf>,
     /// The command line, for the report header.
     pub command_line: String,
@@ -88,6 +92,7 @@ impl Options {
             exclude: Vec::new(),
             expect: None,
             faults: FaultSet::none(),
+            choose: Vec::new(),
             report_dir: None,
             command_line: String::new(),
             keep_verdicts: false,
@@ -118,6 +123,12 @@ pub enum SessionError {
         "--fault applies to the in-process simulator only (sim:PROFILE); for a server use `simulate --fault`"
     )]
     FaultNeedsSim,
+    #[error(
+        "--choose applies to the in-process simulator only (sim:PROFILE); for a server use `simulate --choose`"
+    )]
+    ChoicesNeedSim,
+    #[error(transparent)]
+    Choice(#[from] drives::choices::ChoiceError),
     #[error(transparent)]
     Expectations(#[from] crate::expect::ExpectError),
     #[error(transparent)]
@@ -129,6 +140,8 @@ pub enum SessionError {
         path: PathBuf,
         source: std::io::Error,
     },
+    #[error(transparent)]
+    Requirements(#[from] drives::requirements::RequirementsError),
     #[error(transparent)]
     Target(#[from] TargetError),
     #[error("writing the report: {0}")]
@@ -339,6 +352,7 @@ fn runs_catalog(opts: &Options) -> bool {
 fn catalog_plan(
     opts: &Options,
     profile: &Profile,
+    requirements: &Requirements,
 ) -> Result<Vec<(Case, Option<String>)>, SessionError> {
     if !runs_catalog(opts) {
         return Ok(Vec::new());
@@ -352,11 +366,51 @@ fn catalog_plan(
     let cfg = config(opts, profile);
     Ok(cases
         .into_iter()
-        .map(|c| {
+        .map(|mut c| {
+            (c.requirements, c.freedoms) = requirements.cited(&c.id, &profile.device.id);
             let skip = skip_reason(&c, &cfg, framing);
             (c, skip)
         })
         .collect())
+}
+
+/// The choices of the in-process drive (`--choose FREEDOM=VALUE`, `sim:` targets only), checked against the
+/// freedoms of the profile.
+pub fn choices_of(
+    opts: &Options,
+    profile: &Profile,
+    requirements: &Requirements,
+) -> Result<drives::Choices, SessionError> {
+    let mut choices = drives::Choices::reference();
+    if opts.choose.is_empty() {
+        return Ok(choices);
+    }
+    if !opts.target.is_sim() {
+        return Err(SessionError::ChoicesNeedSim);
+    }
+    for spec in &opts.choose {
+        let (id, value) = drives::Choices::parse_one(spec, requirements, &profile.device.id)?;
+        choices.set(id, value);
+    }
+    Ok(choices)
+}
+
+/// The requirements, freedoms and citations of the run's corpus; a corpus directory without them (a user's
+/// profiles only) is judged with the built-in ones. The built-in ones are loaded once per process.
+pub fn requirements_of(corpus: &Corpus) -> Result<Arc<Requirements>, SessionError> {
+    static EMBEDDED: std::sync::OnceLock<Arc<Requirements>> = std::sync::OnceLock::new();
+    let embedded = || -> Result<Arc<Requirements>, SessionError> {
+        if let Some(r) = EMBEDDED.get() {
+            return Ok(Arc::clone(r));
+        }
+        let r = Arc::new(Corpus::Embedded.requirements()?);
+        Ok(Arc::clone(EMBEDDED.get_or_init(|| r)))
+    };
+    match corpus {
+        Corpus::Embedded => embedded(),
+        Corpus::Dir(d) if !d.join("requirements").is_dir() => embedded(),
+        Corpus::Dir(_) => Ok(Arc::new(corpus.requirements()?)),
+    }
 }
 
 /// The generator of a run's generated cases, if it has any (seed: the options', else the clock's).
@@ -376,7 +430,8 @@ pub fn plan(
     opts: &Options,
     profile: &Profile,
 ) -> Result<Vec<(Case, Option<String>)>, SessionError> {
-    let mut out = catalog_plan(opts, profile)?;
+    let requirements = requirements_of(&opts.corpus)?;
+    let mut out = catalog_plan(opts, profile, &requirements)?;
     if let Some(g) = generator(opts, profile) {
         let cfg = config(opts, profile);
         let framing = framing_of(&opts.target, profile);
@@ -412,17 +467,20 @@ pub(crate) fn open_runner(
     profile: &Profile,
     cfg: &RunConfig,
     expectations: &Expectations,
-) -> Result<Runner, TargetError> {
+) -> Result<Runner, SessionError> {
+    let requirements = requirements_of(&opts.corpus)?;
+    let choices = choices_of(opts, profile, &requirements)?;
     let faults = opts.faults.clone();
     let unit = cfg.unit;
     let target = targets::open(
         &opts.target,
         |_| {
             Ok(Station::new(
-                drives::build(profile.clone(), faults.clone()),
+                drives::build_with(profile.clone(), faults.clone(), choices.clone()),
                 faults.clone(),
                 unit,
-            ))
+            )
+            .with_choices(choices.clone()))
         },
         opts.connect_timeout,
     )?;
@@ -439,7 +497,8 @@ pub(crate) fn open_runner(
         profile.clone(),
         cfg.clone(),
         expectations.clone(),
-    ))
+    )
+    .with_requirements(requirements))
 }
 
 fn unix_ms() -> u64 {
@@ -456,6 +515,8 @@ struct Collected {
     failures: Vec<CaseResult>,
     /// Failing generated cases to shrink after the run (the first `max_shrinks`): (index, id).
     to_shrink: Vec<(u64, String)>,
+    /// The requirements cited by the cases that ran (not skipped).
+    exercised: std::collections::BTreeSet<String>,
 }
 
 impl Collected {
@@ -465,11 +526,15 @@ impl Collected {
             verdicts: Vec::new(),
             failures: Vec::new(),
             to_shrink: Vec::new(),
+            exercised: std::collections::BTreeSet::new(),
         }
     }
 
     fn record(&mut self, opts: &Options, case: &Case, result: CaseResult, gen_index: Option<u64>) {
         self.tally.record(&result);
+        if result.verdict != Verdict::Skipped {
+            self.exercised.extend(case.requirements.iter().cloned());
+        }
         if opts.keep_verdicts {
             self.verdicts.push((case.id.clone(), result.verdict));
         }
@@ -596,7 +661,8 @@ pub fn run(
         opts.seed = Some(generated::clock_seed());
     }
     let opts = &opts;
-    let planned = catalog_plan(opts, &profile)?;
+    let requirements = requirements_of(&opts.corpus)?;
+    let planned = catalog_plan(opts, &profile, &requirements)?;
     let generator = generator(opts, &profile);
     let mut runner = open_runner(opts, &profile, &cfg, &expectations)?;
     let framing = runner.framing();
@@ -687,7 +753,25 @@ pub fn run(
             shrunk.push(report);
         }
     }
-    let summary = collected.tally.summary(interrupted, started.elapsed());
+    let mut summary = collected.tally.summary(interrupted, started.elapsed());
+    summary.choices = runner.choices().choices().cloned().collect();
+    summary.coverage = requirements
+        .coverage(collected.exercised.iter().map(String::as_str))
+        .into_iter()
+        .filter(|c| {
+            // The specifications of the transport in use, and the profile's own manual.
+            let transport_doc = match c.document.as_str() {
+                "tcp" => framing == Framing::Tcp,
+                "serial" => framing == Framing::Rtu,
+                _ => true,
+            };
+            transport_doc
+                && requirements.document(&c.document).is_some_and(|d| {
+                    d.kind == drives::requirements::DocKind::Spec
+                        || d.profiles.contains(&profile.device.id)
+                })
+        })
+        .collect();
     if let Some(r) = reports {
         r.finish(&summary)?;
     }
@@ -768,16 +852,16 @@ fn shrink_one(
     let result = if opts.target.is_sim() {
         shrink::shrink(g, index, limits, |case| {
             if let Some(reason) = skip_reason(case, cfg, framing) {
-                return Ok(skipped(case, reason));
+                return Ok::<_, SessionError>(skipped(case, reason));
             }
-            open_runner(opts, profile, cfg, expectations)?.run_case(case)
+            Ok(open_runner(opts, profile, cfg, expectations)?.run_case(case)?)
         })
     } else {
         shrink::shrink(g, index, limits, |case| {
             if let Some(reason) = skip_reason(case, cfg, framing) {
-                return Ok(skipped(case, reason));
+                return Ok::<_, SessionError>(skipped(case, reason));
             }
-            runner.run_case(case)
+            Ok(runner.run_case(case)?)
         })
     };
     let mut report = ShrinkReport {

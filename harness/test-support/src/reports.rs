@@ -54,6 +54,8 @@ fn case(id: &str, title: &str, pdu: &[u8], tags: Vec<Tag>) -> Case {
             capture: None,
             note: "read 2 holding registers".to_string(),
         }],
+        requirements: Vec::new(),
+        freedoms: Vec::new(),
     }
 }
 

@@ -98,6 +98,10 @@ pub struct RunArgs {
     /// Inject a fault into the in-process simulator (sim: targets; repeatable; see `simulate --list-faults`).
     #[arg(long = "fault", value_name = "NAME")]
     faults: Vec<String>,
+    /// Make the in-process simulator choose FREEDOM=VALUE where the specs and manuals leave a choice
+    /// (sim: targets; repeatable; the freedoms are in corpus/freedoms/, see corpus/requirements/README.md).
+    #[arg(long = "choose", value_name = "FREEDOM=VALUE")]
+    choose: Vec<String>,
     /// Corpus directory (default: the corpus built into the binary).
     #[arg(long)]
     corpus: Option<PathBuf>,
@@ -182,6 +186,7 @@ pub fn run(args: &RunArgs) -> ExitCode {
     opts.exclude = args.exclude.clone();
     opts.expect = args.expect.clone();
     opts.faults = faults;
+    opts.choose.clone_from(&args.choose);
     opts.report_dir = args.report.clone();
     opts.command_line = std::env::args().collect::<Vec<_>>().join(" ");
     if let Some(n) = args.generated {

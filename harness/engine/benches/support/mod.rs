@@ -215,6 +215,8 @@ pub fn read_case() -> Case {
             capture: None,
             note: "read".into(),
         }],
+        requirements: Vec::new(),
+        freedoms: Vec::new(),
     }
 }
 

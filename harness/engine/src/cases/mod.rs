@@ -149,6 +149,12 @@ pub struct Case {
     pub level: Level,
     pub tags: Vec<Tag>,
     pub steps: Vec<Step>,
+    /// The requirement ids the case checks (`corpus/requirements/cases.toml`).
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub requirements: Vec<String>,
+    /// The freedoms the case allows beyond those its answers are decided by.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub freedoms: Vec<String>,
 }
 
 /// Strength of a requirement.

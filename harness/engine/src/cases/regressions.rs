@@ -278,6 +278,8 @@ impl RegressionFile {
                 .enumerate()
                 .map(|(i, s)| step_of(i, s))
                 .collect::<Result<_, _>>()?,
+            requirements: Vec::new(),
+            freedoms: Vec::new(),
         })
     }
 
@@ -456,6 +458,8 @@ mod tests {
                     note: "agree".into(),
                 },
             ],
+            requirements: Vec::new(),
+            freedoms: Vec::new(),
         }
     }
 

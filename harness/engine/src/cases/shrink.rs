@@ -12,7 +12,6 @@ use std::time::{Duration, Instant};
 use crate::cases::generated::Generator;
 use crate::cases::{Case, Outgoing, Step, Verdict};
 use crate::observe::CaseResult;
-use crate::targets::TargetError;
 
 /// Candidates run at most while shrinking one case, by default.
 pub const DEFAULT_MAX_STEPS: usize = 200;
@@ -67,12 +66,12 @@ pub struct Shrunk {
 
 /// Re-run generated case `index` through `run` and, if it FAILs, shrink it. `None` when the re-run does
 /// not FAIL (the failure needs the state earlier cases left behind).
-pub fn shrink(
+pub fn shrink<E>(
     generator: &Generator,
     index: u64,
     limits: &ShrinkLimits,
-    mut run: impl FnMut(&Case) -> Result<CaseResult, TargetError>,
-) -> Result<Option<Shrunk>, TargetError> {
+    mut run: impl FnMut(&Case) -> Result<CaseResult, E>,
+) -> Result<Option<Shrunk>, E> {
     let started = Instant::now();
     let mut tree = generator.tree(index);
     let original = generator.build(&tree.current(), index);

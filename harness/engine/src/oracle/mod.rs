@@ -1,5 +1,9 @@
 //! The oracle: the reference model's answer is what a conforming drive answers. A response passes when it
-//! matches in structure, and in value where the step says the value is deterministic.
+//! matches in structure, and in value where the step says the value is deterministic; or when it is what
+//! another admissible choice of a freedom (where the specs and manuals leave one) gives ([`freedoms`]).
+
+pub mod choices;
+pub mod freedoms;
 
 use crate::cases::{Compare, Level, Verdict};
 use crate::targets::Received;
@@ -7,11 +11,17 @@ use codec::{
     Decoded, Direction, FieldValue, Framing, Pdu, Request, Response, decode_any, describe,
     hex_spaced,
 };
-use drives::profile::{Profile, Table};
+use drives::profile::{Profile, Table, WordOrder};
+use drives::requirements::{Freedom, FreedomKind};
+
+pub use choices::{Choice, ChoiceLog};
+pub use freedoms::{Shown, StepContext};
 
 /// How bad a finding is.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord)]
 pub enum Severity {
+    /// Worth saying, not wrong (a function served that the profile does not list).
+    Info,
     /// The harness could not establish the step's precondition (e.g. keep a split request's pieces
     /// within t1.5 on a busy machine): nothing can be concluded about the target.
     Inconclusive,
@@ -95,15 +105,213 @@ pub fn judge(
     profile: &Profile,
     reference_closed: bool,
 ) -> Vec<Finding> {
+    judge_in(
+        framing,
+        sent,
+        expected,
+        observed,
+        compare,
+        profile,
+        reference_closed,
+        profile.device.word_order,
+    )
+}
+
+/// [`judge`], reading 32-bit register values in `order`.
+#[allow(clippy::too_many_arguments)]
+fn judge_in(
+    framing: Framing,
+    sent: &Sent,
+    expected: Option<&[u8]>,
+    observed: &Received,
+    compare: &Compare,
+    profile: &Profile,
+    reference_closed: bool,
+    order: WordOrder,
+) -> Vec<Finding> {
     if *compare == Compare::RejectOrIgnore
         && let Some(findings) = reject_or_ignore(framing, expected, observed)
     {
         return findings;
     }
     match frames_to_compare(framing, expected, observed, reference_closed) {
-        Ok((exp, obs)) => compare_frames(framing, sent, exp, obs, compare, profile),
+        Ok((exp, obs)) => compare_frames(framing, sent, exp, obs, compare, profile, order),
         Err(findings) => findings,
     }
+}
+
+/// The judgement of one observation with the freedoms applied.
+#[derive(Clone, Debug, Default)]
+pub struct Judged {
+    pub findings: Vec<Finding>,
+    /// The values the target showed for freedoms at this observation.
+    pub shown: Vec<Shown>,
+}
+
+/// True when findings make a step fail (or be unimplemented): what a freedom may excuse.
+fn fails(findings: &[Finding]) -> bool {
+    findings
+        .iter()
+        .any(|f| matches!(f.severity, Severity::Must | Severity::Unimplemented))
+}
+
+/// Judge one observation against the reference answer, accepting what another admissible value of an
+/// applicable freedom gives (see [`freedoms`]).
+#[allow(clippy::too_many_arguments)]
+pub fn judge_admitting(
+    framing: Framing,
+    sent: &Sent,
+    expected: Option<&[u8]>,
+    observed: &Received,
+    compare: &Compare,
+    profile: &Profile,
+    reference_closed: bool,
+    applicable: &[&Freedom],
+    cx: &StepContext<'_>,
+) -> Judged {
+    let strict = judge(
+        framing,
+        sent,
+        expected,
+        observed,
+        compare,
+        profile,
+        reference_closed,
+    );
+    let response = |b: &[u8]| match decode_any(b, framing, Direction::Response).map(|d| d.pdu) {
+        Ok(Pdu::Response(r)) => Some(r),
+        _ => None,
+    };
+    let exp = expected.and_then(response);
+    if !fails(&strict) {
+        let shown = applicable
+            .iter()
+            .filter_map(|f| freedoms::reference_shown(f, cx, exp.as_ref()))
+            .collect();
+        return Judged {
+            findings: strict,
+            shown,
+        };
+    }
+    let obs = match observed {
+        Received::Frame { bytes, .. } => response(bytes).or_else(|| other_reading(framing, bytes)),
+        _ => None,
+    };
+    for f in applicable {
+        if f.kind == FreedomKind::WordOrder {
+            let other = match profile.device.word_order {
+                WordOrder::HighFirst => WordOrder::LowFirst,
+                WordOrder::LowFirst => WordOrder::HighFirst,
+            };
+            let again = judge_in(
+                framing,
+                sent,
+                expected,
+                observed,
+                compare,
+                profile,
+                reference_closed,
+                other,
+            );
+            if !fails(&again) {
+                let name = match other {
+                    WordOrder::HighFirst => "high-first",
+                    WordOrder::LowFirst => "low-first",
+                };
+                return Judged {
+                    findings: again,
+                    shown: vec![freedoms::shown_value(f, "", name)],
+                };
+            }
+            continue;
+        }
+        for alt in freedoms::alternatives(f, cx, exp.as_ref(), obs.as_ref()) {
+            let frame = match &alt.answer {
+                Some(r) => match frame_like(framing, expected, sent, r) {
+                    Some(b) => Some(b),
+                    None => continue,
+                },
+                None => None,
+            };
+            let compare = if alt.values_free {
+                Compare::Structure
+            } else {
+                compare.clone()
+            };
+            let observed_as = match (observed, &obs) {
+                // A frame only another reading decodes is judged as that reading's bytes.
+                (Received::Frame { bytes, .. }, Some(r)) if response(bytes).is_none() => {
+                    match frame_like(framing, Some(bytes), sent, r) {
+                        Some(b) => Received::frame(b),
+                        None => observed.clone(),
+                    }
+                }
+                _ => observed.clone(),
+            };
+            let again = judge(
+                framing,
+                sent,
+                frame.as_deref(),
+                &observed_as,
+                &compare,
+                profile,
+                reference_closed,
+            );
+            if !fails(&again) {
+                let mut findings = again;
+                if let Some(n) = alt.note {
+                    findings.push(Finding {
+                        severity: Severity::Info,
+                        text: n,
+                    });
+                }
+                return Judged {
+                    findings,
+                    shown: vec![alt.shown],
+                };
+            }
+        }
+    }
+    Judged {
+        findings: strict,
+        shown: vec![],
+    }
+}
+
+/// A response frame carrying `pdu` with the addressing of `like` (the reference's frame, or else the
+/// request's transaction id and unit).
+fn frame_like(
+    framing: Framing,
+    like: Option<&[u8]>,
+    sent: &Sent,
+    pdu: &Response,
+) -> Option<Vec<u8>> {
+    let body = pdu.to_bytes().ok()?;
+    let mut out = Vec::new();
+    match framing {
+        Framing::Tcp => {
+            let (tid, unit) = match like.and_then(codec::tcp::Mbap::parse) {
+                Some(h) => (h.transaction_id, h.unit_id),
+                None => (sent.tid.unwrap_or(0), sent.unit),
+            };
+            codec::tcp::encode_adu(tid, unit, &body, &mut out).ok()?;
+        }
+        _ => {
+            let unit = like.and_then(|b| b.first().copied()).unwrap_or(sent.unit);
+            codec::rtu::encode_adu(unit, &body, &mut out).ok()?;
+        }
+    }
+    Some(out)
+}
+
+/// A response frame that only another reading of a manual decodes (FC 0x41 with a 2-byte byte count).
+fn other_reading(framing: Framing, bytes: &[u8]) -> Option<Response> {
+    let pdu = match framing {
+        Framing::Tcp => bytes.get(codec::tcp::MBAP_LEN..)?,
+        _ => bytes.get(1..bytes.len().checked_sub(2)?)?,
+    };
+    let one_byte = freedoms::fc41_two_byte_count(pdu)?;
+    Response::decode(&one_byte).ok()
 }
 
 /// A request that must be rejected or ignored: silence, a close (TCP) or any exception settles it; `None`
@@ -218,6 +426,7 @@ fn compare_frames(
     obs: &[u8],
     compare: &Compare,
     profile: &Profile,
+    order: WordOrder,
 ) -> Vec<Finding> {
     let mut out = Vec::new();
     let obs_d = match decode_any(obs, framing, Direction::Response) {
@@ -289,7 +498,7 @@ fn compare_frames(
         Compare::InRange => {
             structure(e, o, &mut out);
             if out.is_empty() {
-                in_range(&sent.pdu, o, profile, &mut out);
+                in_range(&sent.pdu, o, profile, order, &mut out);
             }
         }
         Compare::Any | Compare::RejectOrIgnore => {}
@@ -401,7 +610,7 @@ fn structure(e: &Response, o: &Response, out: &mut Vec<Finding>) {
 }
 
 /// Register values lie within the profile's ranges, read in the device's word order.
-fn in_range(req: &[u8], o: &Response, p: &Profile, out: &mut Vec<Finding>) {
+fn in_range(req: &[u8], o: &Response, p: &Profile, order: WordOrder, out: &mut Vec<Finding>) {
     let (address, input) = match Request::decode(req) {
         Ok(Request::ReadHoldingRegisters { address, .. }) => (address, false),
         Ok(Request::ReadInputRegisters { address, .. }) => (address, true),
@@ -426,7 +635,7 @@ fn in_range(req: &[u8], o: &Response, p: &Profile, out: &mut Vec<Finding>) {
             break;
         }
         let raw = if w == 2 {
-            p.device.word_order.join(values[i], values[i + 1]) as i64
+            order.join(values[i], values[i + 1]) as i64
         } else {
             i64::from(values[i])
         };
@@ -463,6 +672,7 @@ pub fn verdict(findings: &[Finding], level: Level) -> Verdict {
     let worst = findings.iter().map(|f| f.severity).max();
     match (worst, level) {
         (None, _) => Verdict::Pass,
+        (Some(Severity::Info), _) => Verdict::Informational,
         (Some(_), Level::Info) => Verdict::Informational,
         (Some(Severity::Must), Level::Must) => Verdict::Fail,
         (Some(Severity::Unimplemented), _) => Verdict::Unimplemented,

@@ -107,6 +107,10 @@ pub struct Summary {
     pub duration: Duration,
     /// Number of cases that completed.
     pub cases: usize,
+    /// The choices the target made where the specs and manuals leave one.
+    pub choices: Vec<crate::oracle::Choice>,
+    /// Requirements exercised by the cases that ran, per document.
+    pub coverage: Vec<drives::requirements::Coverage>,
 }
 
 impl Summary {
@@ -164,7 +168,24 @@ impl Summary {
             "failing_omitted": self.failing_omitted(),
             "interrupted": self.interrupted,
             "duration_us": self.duration.as_micros() as u64,
+            "choices": self.choices,
+            "coverage": self
+                .coverage
+                .iter()
+                .map(|c| serde_json::json!({
+                    "document": c.document,
+                    "title": c.title,
+                    "listed": c.listed,
+                    "exercised": c.exercised,
+                }))
+                .collect::<Vec<_>>(),
         })
+    }
+
+    /// The "choices this drive made" lines: one per freedom (and item) the target showed a value for.
+    pub fn choice_lines(&self) -> Vec<String> {
+        let log: crate::oracle::ChoiceLog = self.choices.iter().cloned().collect();
+        log.lines()
     }
 }
 
@@ -209,6 +230,8 @@ impl Tally {
             interrupted,
             duration,
             cases: self.cases,
+            choices: Vec::new(),
+            coverage: Vec::new(),
         }
     }
 }
@@ -447,6 +470,45 @@ pub fn terminal_summary(summary: &Summary, info: &RunInfo) -> String {
         if fails > shown {
             let _ = writeln!(s, "  ... and {} more", fails - shown);
         }
+    }
+    if !summary.choices.is_empty() {
+        // The choices where the drive differs from the reference drive (or changed its mind) in full; the
+        // reference's own choices are counted (every one is in index.json and the HTML page).
+        let departed: Vec<crate::oracle::Choice> = summary
+            .choices
+            .iter()
+            .filter(|c| !c.reference || !c.changed.is_empty())
+            .cloned()
+            .collect();
+        let _ = writeln!(
+            s,
+            "choices this drive made: {} freedom(s) exercised, {} as the reference drive, {} otherwise{}",
+            summary.choices.len(),
+            summary.choices.len() - departed.len(),
+            departed.len(),
+            if departed.is_empty() { "" } else { ":" }
+        );
+        let log: crate::oracle::ChoiceLog = departed.into_iter().collect();
+        let lines = log.lines();
+        for line in lines.iter().take(TERMINAL_FAILING_CAP) {
+            let _ = writeln!(s, "  {line}");
+        }
+        if lines.len() > TERMINAL_FAILING_CAP {
+            let _ = writeln!(
+                s,
+                "  ... and {} more (index.json)",
+                lines.len() - TERMINAL_FAILING_CAP
+            );
+        }
+    }
+    if !summary.coverage.is_empty() {
+        let parts: Vec<String> = summary
+            .coverage
+            .iter()
+            .filter(|c| c.listed > 0)
+            .map(|c| format!("{} {}/{}", c.document, c.exercised, c.listed))
+            .collect();
+        let _ = writeln!(s, "requirements exercised: {}", parts.join(", "));
     }
     if let Some(dir) = &info.report_dir {
         let _ = writeln!(

@@ -83,6 +83,11 @@ impl SimTarget {
         self
     }
 
+    /// The freedoms that decided the drive's answers since the last call.
+    pub fn take_decisions(&mut self) -> Vec<drives::Decision> {
+        self.station.take_decisions()
+    }
+
     /// The station (tests inspect counters and model state).
     pub fn station(&self) -> &Station {
         &self.station

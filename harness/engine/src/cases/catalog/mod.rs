@@ -74,6 +74,8 @@ impl Ctx<'_> {
             level: Level::Must,
             tags,
             steps,
+            requirements: Vec::new(),
+            freedoms: Vec::new(),
         });
     }
 

@@ -1253,6 +1253,8 @@ impl Spec {
             level: Level::Must,
             tags: tags.into_iter().collect(),
             steps,
+            requirements: Vec::new(),
+            freedoms: Vec::new(),
         }
     }
 }

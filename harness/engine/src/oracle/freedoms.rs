@@ -1,0 +1,840 @@
+//! Judging by the requirements, not by the reference drive's choices.
+//!
+//! Where a specification or a manual leaves a choice (a freedom of `corpus/freedoms/`), the reference drive
+//! answers one admissible way. A step's observation that differs from it passes when it is the answer some
+//! other admissible value of an applicable freedom gives: the oracle builds that alternative answer and judges
+//! the observation against it with the same strictness (echoes, framing, structure). Every freedom a drive
+//! showed a value for is recorded ([`Shown`]), so that the run can hold the drive to its choice and the
+//! report can say which choices it made.
+//!
+//! A freedom applies to a step when the reference drive decided its answer there (a [`drives::Decision`]),
+//! when the case cites it (`corpus/requirements/cases.toml`), or when the request touches what the freedom is
+//! about (an optional register, a status word, a unit id); always only for the profiles it lists.
+
+use codec::{ExceptionCode, FunctionCode, Mnemonic, Request, Response};
+use drives::requirements::{Freedom, FreedomKind, FreedomValue, Item, Requirements};
+
+/// A value a drive showed for a freedom, at one step.
+#[derive(Clone, Debug, PartialEq, Eq, serde::Serialize)]
+pub struct Shown {
+    /// The freedom's id.
+    pub freedom: String,
+    /// What the choice is about within the freedom (an item of an optional group), empty for the whole freedom.
+    pub about: String,
+    /// The value shown, as the freedom's data names it.
+    pub value: String,
+    /// True when it is the reference drive's own value.
+    pub reference: bool,
+}
+
+/// What the oracle needs to know about a step to apply freedoms.
+pub struct StepContext<'a> {
+    /// The request as sent (decoded, when it decodes).
+    pub request: Option<&'a Request>,
+    /// The unit id / slave address the request went to.
+    pub unit: u8,
+    /// The unit id / slave address the run talks to: requests to it must be answered.
+    pub run_unit: u8,
+    /// The run's profile.
+    pub profile: &'a drives::profile::Profile,
+    /// The request was sent malformed on purpose.
+    pub malformed: bool,
+    /// The request went out with others in one write (pipelining).
+    pub batch: bool,
+    /// The freedoms the reference drive's answer was decided by.
+    pub decided: &'a [drives::Decision],
+}
+
+impl StepContext<'_> {
+    fn decided(&self, f: &Freedom) -> bool {
+        self.decided.iter().any(|d| *d == f.id)
+    }
+}
+
+/// An alternative answer a freedom admits: the answer (`None`: silence), what the freedom's value is
+/// called, and whether the answer's data values are free (compared in structure only).
+pub struct Alternative {
+    pub answer: Option<Response>,
+    pub shown: Shown,
+    pub values_free: bool,
+    /// A note for the report when the alternative is admissible but worth saying (a function served that
+    /// the profile does not list).
+    pub note: Option<String>,
+}
+
+/// The freedoms applicable to a step: decided by the reference drive, cited by the case, or about what the
+/// request touches; only those of the run's profile.
+pub fn applicable<'a>(
+    requirements: &'a Requirements,
+    cx: &StepContext<'_>,
+    decisions: &[drives::Decision],
+    cited: &[String],
+) -> Vec<&'a Freedom> {
+    let mut out: Vec<&'a Freedom> = Vec::new();
+    let by_id = decisions
+        .iter()
+        .copied()
+        .chain(cited.iter().map(String::as_str))
+        .filter_map(|id| requirements.freedom(id));
+    let touched = requirements
+        .freedoms()
+        .iter()
+        .filter(|f| f.applies_to(&cx.profile.device.id) && touches(f, cx));
+    for f in by_id.chain(touched) {
+        if f.applies_to(&cx.profile.device.id) && !out.iter().any(|g| g.id == f.id) {
+            out.push(f);
+        }
+    }
+    out
+}
+
+/// True when the request touches what a freedom is about (item-, register- and unit-bound freedoms).
+fn touches(f: &Freedom, cx: &StepContext<'_>) -> bool {
+    let Some(req) = cx.request else {
+        return false;
+    };
+    match f.kind {
+        FreedomKind::Optional | FreedomKind::Access => f
+            .items
+            .iter()
+            .any(|item| item_touched(item, req, cx.profile)),
+        FreedomKind::StatusBits | FreedomKind::FieldValue => f
+            .register
+            .is_some_and(|r| registers_read(req).is_some_and(|(a, q)| covers(a, q, r))),
+        FreedomKind::UnitIds => cx.unit != cx.run_unit && f.units.contains(&cx.unit),
+        FreedomKind::WordOrder => true,
+        _ => false,
+    }
+}
+
+/// The (address, quantity) a request reads, for register reads.
+fn registers_read(req: &Request) -> Option<(u16, u16)> {
+    match req {
+        Request::ReadHoldingRegisters { address, quantity }
+        | Request::ReadInputRegisters { address, quantity } => Some((*address, *quantity)),
+        Request::ReadWriteMultipleRegisters {
+            read_address,
+            read_quantity,
+            ..
+        } => Some((*read_address, *read_quantity)),
+        _ => None,
+    }
+}
+
+/// The (address, quantity) a request writes, for register writes.
+fn registers_written(req: &Request) -> Option<(u16, u16)> {
+    match req {
+        Request::WriteSingleRegister { address, .. } => Some((*address, 1)),
+        Request::WriteMultipleRegisters { address, values } => {
+            Some((*address, u16::try_from(values.len()).unwrap_or(u16::MAX)))
+        }
+        Request::ReadWriteMultipleRegisters {
+            write_address,
+            values,
+            ..
+        } => Some((
+            *write_address,
+            u16::try_from(values.len()).unwrap_or(u16::MAX),
+        )),
+        _ => None,
+    }
+}
+
+fn covers(address: u16, quantity: u16, register: u16) -> bool {
+    u32::from(address) <= u32::from(register)
+        && u32::from(register) < u32::from(address) + u32::from(quantity)
+}
+
+/// True when the request reads or writes the item (a register by every address it occupies in the
+/// profile, a mnemonic by name, an object by index).
+fn item_touched(item: &Item, req: &Request, profile: &drives::profile::Profile) -> bool {
+    if let Some(r) = item.register {
+        let width = profile
+            .register_at(r, false)
+            .or_else(|| profile.register_at(r, true))
+            .filter(|reg| reg.address == r)
+            .map_or(1, |reg| reg.width);
+        let hit =
+            |(a, q): (u16, u16)| (0..u16::from(width)).any(|i| covers(a, q, r.wrapping_add(i)));
+        return registers_read(req).is_some_and(hit) || registers_written(req).is_some_and(hit);
+    }
+    if let Some(m) = &item.mnemonic {
+        let name = |mn: &Mnemonic| mn.name().eq_ignore_ascii_case(m);
+        return match req {
+            Request::VendorRead { mnemonic } | Request::VendorWrite { mnemonic, .. } => {
+                name(mnemonic)
+            }
+            _ => false,
+        };
+    }
+    if let Some(o) = item.object {
+        return matches!(req, Request::CanOpen(a) if a.index == o);
+    }
+    false
+}
+
+fn item_name(item: &Item) -> String {
+    match (&item.name, item.register, &item.mnemonic, item.object) {
+        (Some(n), _, _, _) => n.clone(),
+        (None, Some(r), _, _) => format!("0x{r:04X}"),
+        (None, None, Some(m), _) => m.clone(),
+        (None, None, None, Some(o)) => format!("object {o}"),
+        _ => String::new(),
+    }
+}
+
+fn shown(f: &Freedom, about: impl Into<String>, value: &FreedomValue) -> Shown {
+    Shown {
+        freedom: f.id.clone(),
+        about: about.into(),
+        value: value.to_string(),
+        reference: f.values.first() == Some(value),
+    }
+}
+
+/// The `Shown` of a named value of `f`.
+pub fn shown_value(f: &Freedom, about: impl Into<String>, value: &str) -> Shown {
+    shown_named(f, about, value)
+}
+
+fn shown_named(f: &Freedom, about: impl Into<String>, value: &str) -> Shown {
+    let v = f
+        .values
+        .iter()
+        .find(|v| drives::choices::value_matches(v, value))
+        .cloned()
+        .unwrap_or(FreedomValue::Text(value.to_string()));
+    shown(f, about, &v)
+}
+
+/// "exception-02" → 0x02.
+fn exception_value(v: &FreedomValue) -> Option<ExceptionCode> {
+    match v {
+        FreedomValue::Text(t) => t
+            .strip_prefix("exception-")
+            .and_then(|h| u8::from_str_radix(h, 16).ok())
+            .map(ExceptionCode),
+        FreedomValue::Int(_) => None,
+    }
+}
+
+fn exception_of(r: &Response) -> Option<(FunctionCode, ExceptionCode)> {
+    match r {
+        Response::Exception { function, code } => Some((*function, *code)),
+        _ => None,
+    }
+}
+
+fn int_values(f: &Freedom) -> impl Iterator<Item = i64> + '_ {
+    f.values.iter().filter_map(|v| match v {
+        FreedomValue::Int(i) => Some(*i),
+        FreedomValue::Text(_) => None,
+    })
+}
+
+/// The value the reference drive took for a freedom that decided its answer, as shown by this step (for the
+/// record of choices). `None` when the step says nothing about the freedom's value.
+pub fn reference_shown(
+    f: &Freedom,
+    cx: &StepContext<'_>,
+    expected: Option<&Response>,
+) -> Option<Shown> {
+    let first = f.values.first()?;
+    match f.kind {
+        // A code the reference chose shows the drive's choice only where the freedom decided it.
+        FreedomKind::ExceptionCode | FreedomKind::SdoError | FreedomKind::FieldValue
+            if !cx.decided(f) =>
+        {
+            None
+        }
+        FreedomKind::ExceptionCode => {
+            let (_, code) = exception_of(expected?)?;
+            (FreedomValue::Int(i64::from(code.0)) == *first).then(|| shown(f, "", first))
+        }
+        FreedomKind::SdoError => match expected? {
+            Response::CanOpenError { sdo_code } => {
+                (FreedomValue::Int(i64::from(*sdo_code)) == *first).then(|| shown(f, "", first))
+            }
+            _ => None,
+        },
+        FreedomKind::Optional => {
+            let req = cx.request?;
+            let item = f.items.iter().find(|i| item_touched(i, req, cx.profile))?;
+            Some(shown(f, item_name(item), first))
+        }
+        FreedomKind::Access => {
+            // Only the access a request exercises shows it: a write whether an item is read-only, a read
+            // whether it is write-only.
+            let req = cx.request?;
+            let item = f.items.iter().find(|i| item_touched(i, req, cx.profile))?;
+            let writes =
+                registers_written(req).is_some() || matches!(req, Request::VendorWrite { .. });
+            let reads = registers_read(req).is_some() || matches!(req, Request::VendorRead { .. });
+            let shows = match first.to_string().as_str() {
+                "ro" => writes,
+                "wo" => reads,
+                _ => writes || reads,
+            };
+            shows.then(|| shown(f, item_name(item), first))
+        }
+        FreedomKind::FieldValue if f.id == drives::choices::ids::FC42_BYTES_WRITTEN => {
+            // Four parameter bytes read the same both ways: that shows no choice.
+            let ambiguous = matches!(cx.request, Some(Request::VendorWrite { params, .. }) if params.len() == 4);
+            (matches!(expected?, Response::VendorWrite { .. }) && !ambiguous)
+                .then(|| shown(f, "", first))
+        }
+        _ => None,
+    }
+}
+
+/// The alternative answers a freedom admits for a step whose reference answer is `expected` (`None`:
+/// silence), tailored to what was `observed` (`None`: silence or no frame).
+pub fn alternatives(
+    f: &Freedom,
+    cx: &StepContext<'_>,
+    expected: Option<&Response>,
+    observed: Option<&Response>,
+) -> Vec<Alternative> {
+    let alt = |answer: Option<Response>, shown: Shown| Alternative {
+        answer,
+        shown,
+        values_free: false,
+        note: None,
+    };
+    match f.kind {
+        FreedomKind::ExceptionCode => {
+            // Any listed code where the reference answers with a listed code.
+            let (Some((efn, ecode)), Some((ofn, ocode))) = (
+                expected.and_then(exception_of),
+                observed.and_then(exception_of),
+            ) else {
+                return vec![];
+            };
+            let listed = |c: ExceptionCode| int_values(f).any(|v| v == i64::from(c.0));
+            if efn == ofn && listed(ecode) && listed(ocode) {
+                vec![alt(
+                    observed.cloned(),
+                    shown(f, "", &FreedomValue::Int(i64::from(ocode.0))),
+                )]
+            } else {
+                vec![]
+            }
+        }
+        FreedomKind::SdoError => match (expected, observed) {
+            (
+                Some(Response::CanOpenError { sdo_code: e }),
+                Some(Response::CanOpenError { sdo_code: o }),
+            ) if int_values(f).any(|v| v == i64::from(*e))
+                && int_values(f).any(|v| v == i64::from(*o)) =>
+            {
+                vec![alt(
+                    observed.cloned(),
+                    shown(f, "", &FreedomValue::Int(i64::from(*o))),
+                )]
+            }
+            _ => vec![],
+        },
+        FreedomKind::Optional => optional(f, cx, expected, observed),
+        FreedomKind::Access => access(f, cx, expected, observed),
+        // What kind of answer is free only where the freedom decided it, or for a request sent malformed
+        // on purpose (pipelining freedoms: for requests sent together).
+        FreedomKind::Outcome
+            if cx.decided(f) || cx.malformed || (cx.batch && f.id.starts_with("pipelined")) =>
+        {
+            outcome(f, expected, observed)
+        }
+        FreedomKind::Outcome => vec![],
+        FreedomKind::UnitIds => {
+            // The run's own unit must answer: the freedom is about the others.
+            if cx.unit == cx.run_unit || !f.units.contains(&cx.unit) {
+                return vec![];
+            }
+            let mut out = Vec::new();
+            if observed.is_none()
+                && f.values
+                    .iter()
+                    .any(|v| drives::choices::value_matches(v, "silence"))
+            {
+                out.push(alt(
+                    None,
+                    shown_named(f, format!("unit {}", cx.unit), "silence"),
+                ));
+            }
+            if let (Some(e), Some((_, code))) = (expected, observed.and_then(exception_of)) {
+                let name = format!("exception-{:02X}", code.0);
+                if f.values
+                    .iter()
+                    .any(|v| drives::choices::value_matches(v, &name))
+                {
+                    out.push(alt(
+                        Some(Response::exception(
+                            e.function().without_exception_bit(),
+                            code,
+                        )),
+                        shown_named(f, format!("unit {}", cx.unit), &name),
+                    ));
+                }
+            }
+            out
+        }
+        FreedomKind::ServedExtra => {
+            // The reference refuses a function the profile does not list; serving it is admissible.
+            let (Some(e), Some(o)) = (expected, observed) else {
+                return vec![];
+            };
+            let Some((efn, code)) = exception_of(e) else {
+                return vec![];
+            };
+            let fc = efn.without_exception_bit();
+            if code != ExceptionCode::ILLEGAL_FUNCTION
+                || !f.functions.contains(&fc.0)
+                || o.is_exception()
+                || o.function() != fc
+            {
+                return vec![];
+            }
+            vec![Alternative {
+                answer: Some(o.clone()),
+                shown: shown_named(f, format!("FC 0x{:02X}", fc.0), "served"),
+                values_free: true,
+                note: Some(format!(
+                    "FC 0x{:02X} is served although the profile does not list it (admissible: {})",
+                    fc.0, f.id
+                )),
+            }]
+        }
+        FreedomKind::StatusBits => status_bits(f, cx, expected, observed),
+        FreedomKind::FieldValue => field_value(f, cx, expected, observed),
+        FreedomKind::Reading => reading(f, cx, expected, observed),
+        FreedomKind::WordOrder | FreedomKind::PipelineOrder | FreedomKind::Counter => vec![],
+    }
+}
+
+/// An item a product may lack: the listed exception (or silence) instead of the reference's answer.
+fn optional(
+    f: &Freedom,
+    cx: &StepContext<'_>,
+    expected: Option<&Response>,
+    observed: Option<&Response>,
+) -> Vec<Alternative> {
+    let Some(req) = cx.request else {
+        return vec![];
+    };
+    let Some(item) = f.items.iter().find(|i| item_touched(i, req, cx.profile)) else {
+        return vec![];
+    };
+    let about = item_name(item);
+    let fc = req.function();
+    let mut out = Vec::new();
+    match observed {
+        None if f
+            .values
+            .iter()
+            .any(|v| drives::choices::value_matches(v, "silence")) =>
+        {
+            out.push(Alternative {
+                answer: None,
+                shown: shown_named(f, about, "silence"),
+                values_free: false,
+                note: None,
+            });
+        }
+        Some(o) => {
+            if let Some((ofn, code)) = exception_of(o) {
+                let absent = f.values.iter().any(|v| exception_value(v) == Some(code));
+                if absent && ofn.without_exception_bit() == fc && expected != observed {
+                    out.push(Alternative {
+                        answer: Some(Response::exception(fc, code)),
+                        shown: shown_named(f, about, &format!("exception-{:02X}", code.0)),
+                        values_free: false,
+                        note: None,
+                    });
+                }
+            }
+        }
+        None => {}
+    }
+    out
+}
+
+/// Access the manual does not state: a write the reference refuses may be accepted, a read it refuses may be
+/// served (values free), a read it serves may be refused (the item is write-only on that drive).
+fn access(
+    f: &Freedom,
+    cx: &StepContext<'_>,
+    expected: Option<&Response>,
+    observed: Option<&Response>,
+) -> Vec<Alternative> {
+    let (Some(req), Some(e), Some(o)) = (cx.request, expected, observed) else {
+        return vec![];
+    };
+    let Some(item) = f.items.iter().find(|i| item_touched(i, req, cx.profile)) else {
+        return vec![];
+    };
+    let about = item_name(item);
+    let has = |name: &str| {
+        f.values
+            .iter()
+            .any(|v| drives::choices::value_matches(v, name))
+    };
+    let mut out = Vec::new();
+    let writes = registers_written(req).is_some() || matches!(req, Request::VendorWrite { .. });
+    let reads = registers_read(req).is_some() || matches!(req, Request::VendorRead { .. });
+    let refused_access =
+        matches!(exception_of(e), Some((_, c)) if c == ExceptionCode::ILLEGAL_DATA_ADDRESS);
+    if refused_access && !o.is_exception() && o.function() == req.function() {
+        // The reference takes the item as read-only (writes refused) or write-only (reads refused): 02, the
+        // address does not allow that access (a range error, 03, is not about access).
+        let value = if writes && (has("rw") || has("wo")) {
+            Some(if has("rw") { "rw" } else { "wo" })
+        } else if reads && (has("rw") || has("ro")) {
+            Some(if has("rw") { "rw" } else { "ro" })
+        } else {
+            None
+        };
+        if let Some(v) = value {
+            out.push(Alternative {
+                answer: Some(o.clone()),
+                shown: shown_named(f, about, v),
+                values_free: true,
+                note: None,
+            });
+        }
+    } else if !e.is_exception()
+        && let Some((_, code)) = exception_of(o)
+    {
+        // The reference serves the item; a drive taking it as write-only refuses reads, as read-only writes.
+        let value = if reads && has("wo") {
+            Some("wo")
+        } else if writes && has("ro") {
+            Some("ro")
+        } else {
+            None
+        };
+        let refusal = [
+            ExceptionCode::ILLEGAL_FUNCTION,
+            ExceptionCode::ILLEGAL_DATA_ADDRESS,
+            ExceptionCode::ILLEGAL_DATA_VALUE,
+            ExceptionCode::SERVER_DEVICE_FAILURE,
+        ]
+        .contains(&code);
+        if let (Some(v), true) = (value, refusal) {
+            out.push(Alternative {
+                answer: Some(Response::exception(req.function(), code)),
+                shown: shown_named(f, about, v),
+                values_free: false,
+                note: None,
+            });
+        }
+    }
+    out
+}
+
+/// The kind of answer is free among the listed ones: response, silence, close, exception-XX.
+fn outcome(
+    f: &Freedom,
+    expected: Option<&Response>,
+    observed: Option<&Response>,
+) -> Vec<Alternative> {
+    let has = |name: &str| {
+        f.values
+            .iter()
+            .any(|v| drives::choices::value_matches(v, name))
+    };
+    match (expected, observed) {
+        (_, None) if has("silence") => vec![Alternative {
+            answer: None,
+            shown: shown_named(f, "", "silence"),
+            values_free: false,
+            note: None,
+        }],
+        (Some(e), Some(o)) => {
+            let fc = e.function().without_exception_bit();
+            match exception_of(o) {
+                Some((ofn, code))
+                    if ofn.without_exception_bit() == fc
+                        && has(&format!("exception-{:02X}", code.0)) =>
+                {
+                    vec![Alternative {
+                        answer: Some(Response::exception(fc, code)),
+                        shown: shown_named(f, "", &format!("exception-{:02X}", code.0)),
+                        values_free: false,
+                        note: None,
+                    }]
+                }
+                None if has("response") && o.function() == fc && e.is_exception() => {
+                    vec![Alternative {
+                        answer: Some(o.clone()),
+                        shown: shown_named(f, "", "response"),
+                        values_free: true,
+                        note: None,
+                    }]
+                }
+                _ => vec![],
+            }
+        }
+        _ => vec![],
+    }
+}
+
+/// A status word equal to the reference's under the loosest listed mask.
+fn status_bits(
+    f: &Freedom,
+    cx: &StepContext<'_>,
+    expected: Option<&Response>,
+    observed: Option<&Response>,
+) -> Vec<Alternative> {
+    let (Some(req), Some(register)) = (cx.request, f.register) else {
+        return vec![];
+    };
+    let Some((address, _)) = registers_read(req) else {
+        return vec![];
+    };
+    let index = usize::from(register.wrapping_sub(address));
+    let (Some(e), Some(o)) = (
+        expected.and_then(register_values),
+        observed.and_then(register_values),
+    ) else {
+        return vec![];
+    };
+    let (Some(ev), Some(ov)) = (e.get(index), o.get(index)) else {
+        return vec![];
+    };
+    if e.len() != o.len() {
+        return vec![];
+    }
+    // The tightest listed mask under which the two words agree.
+    let Some(mask) = int_values(f).find(|m| ev & (*m as u16) == ov & (*m as u16)) else {
+        return vec![];
+    };
+    let mut values = e.clone();
+    values[index] = *ov;
+    let Some(answer) = expected.and_then(|e| with_register_values(e, values)) else {
+        return vec![];
+    };
+    let answer = Some(answer);
+    vec![Alternative {
+        answer,
+        shown: shown(f, "", &FreedomValue::Int(mask)),
+        values_free: false,
+        note: None,
+    }]
+}
+
+fn register_values(r: &Response) -> Option<&Vec<u16>> {
+    match r {
+        Response::ReadHoldingRegisters { values }
+        | Response::ReadInputRegisters { values }
+        | Response::ReadWriteMultipleRegisters { values } => Some(values),
+        _ => None,
+    }
+}
+
+fn with_register_values(r: &Response, values: Vec<u16>) -> Option<Response> {
+    Some(match r {
+        Response::ReadHoldingRegisters { .. } => Response::ReadHoldingRegisters { values },
+        Response::ReadInputRegisters { .. } => Response::ReadInputRegisters { values },
+        Response::ReadWriteMultipleRegisters { .. } => {
+            Response::ReadWriteMultipleRegisters { values }
+        }
+        _ => return None,
+    })
+}
+
+/// A response field read more than one way.
+fn field_value(
+    f: &Freedom,
+    cx: &StepContext<'_>,
+    expected: Option<&Response>,
+    observed: Option<&Response>,
+) -> Vec<Alternative> {
+    let (Some(e), Some(o)) = (expected, observed) else {
+        return vec![];
+    };
+    let one = |answer: Response, value: &str| {
+        vec![Alternative {
+            answer: Some(answer),
+            shown: shown_named(f, "", value),
+            values_free: false,
+            note: None,
+        }]
+    };
+    match (f.id.as_str(), e, o, cx.request) {
+        (
+            "fc42-bytes-written",
+            Response::VendorWrite { mnemonic, .. },
+            Response::VendorWrite {
+                written,
+                mnemonic: om,
+            },
+            Some(Request::VendorWrite { params, .. }),
+        ) if mnemonic == om => {
+            if usize::from(*written) == params.len() {
+                one(o.clone(), "parameter-bytes")
+            } else if *written == 4 {
+                one(o.clone(), "mnemonic-characters")
+            } else {
+                vec![]
+            }
+        }
+        (
+            "fc41-read-back-format",
+            Response::VendorRead { params: ep },
+            Response::VendorRead { params: op },
+            _,
+        ) => {
+            if parameter_values(ep) == parameter_values(op) {
+                one(o.clone(), "as-written")
+            } else {
+                vec![]
+            }
+        }
+        ("sd2x-watchdog-trip-state", _, _, Some(req)) => {
+            // Fault (xxxx 1000 in bits 0-3 and 6) or fault reaction active (xxxx 1111).
+            let Some(register) = f.register else {
+                return vec![];
+            };
+            let Some((address, _)) = registers_read(req) else {
+                return vec![];
+            };
+            let index = usize::from(register.wrapping_sub(address));
+            let (Some(ev), Some(ov)) = (
+                register_values(e).and_then(|v| v.get(index)),
+                register_values(o).and_then(|v| v.get(index)),
+            ) else {
+                return vec![];
+            };
+            const FAULT: u16 = 0x0008;
+            const REACTION: u16 = 0x000F;
+            if ev & 0x004F == FAULT && ov & 0x004F == REACTION {
+                let mut values = register_values(e).cloned().unwrap_or_default();
+                values[index] = *ov;
+                with_register_values(e, values)
+                    .map(|a| one(a, "fault-reaction-active"))
+                    .unwrap_or_default()
+            } else {
+                vec![]
+            }
+        }
+        (_, _, _, Some(req)) => {
+            // A numeric register field: any listed value, or any non-zero one where the data says so.
+            let Some(register) = f.register else {
+                return vec![];
+            };
+            let Some((address, _)) = registers_read(req) else {
+                return vec![];
+            };
+            let index = usize::from(register.wrapping_sub(address));
+            let (Some(ev), Some(ov)) = (
+                register_values(e).and_then(|v| v.get(index)),
+                register_values(o).and_then(|v| v.get(index)),
+            ) else {
+                return vec![];
+            };
+            let listed = |w: u16| int_values(f).any(|v| v == i64::from(w));
+            let any_nonzero = f
+                .values
+                .iter()
+                .any(|v| drives::choices::value_matches(v, "any-nonzero"));
+            if !listed(*ev) || ev == ov {
+                return vec![];
+            }
+            let value = if listed(*ov) {
+                format!("0x{ov:04X}")
+            } else if any_nonzero && *ov != 0 {
+                "any-nonzero".to_string()
+            } else {
+                return vec![];
+            };
+            let mut values = register_values(e).cloned().unwrap_or_default();
+            values[index] = *ov;
+            with_register_values(e, values)
+                .map(|a| one(a, &value))
+                .unwrap_or_default()
+        }
+        _ => vec![],
+    }
+}
+
+/// The values of an FC 0x41 parameter string, however separated ("=0,0,0", "0, 0, 0").
+fn parameter_values(p: &[u8]) -> Vec<String> {
+    let s = String::from_utf8_lossy(p);
+    s.trim()
+        .trim_start_matches('=')
+        .split(',')
+        .map(|v| v.trim().to_string())
+        .collect()
+}
+
+/// Equally supported readings of a manual: a drive following another one may refuse the adopted form of a
+/// request (01-04, or the SD2x extended exception); its answers then say which reading it follows.
+fn reading(
+    f: &Freedom,
+    cx: &StepContext<'_>,
+    expected: Option<&Response>,
+    observed: Option<&Response>,
+) -> Vec<Alternative> {
+    let (Some(req), Some(o)) = (cx.request, observed) else {
+        return vec![];
+    };
+    if expected == observed {
+        return vec![];
+    }
+    let other = f.values.get(1).map(|v| v.to_string()).unwrap_or_default();
+    let concerned = match f.id.as_str() {
+        "sd2x-fc43-reserved-byte" => matches!(req, Request::CanOpen(_)),
+        "fc42-parameterless-byte-count" => {
+            matches!(req, Request::VendorWrite { params, .. } if params.is_empty())
+        }
+        "lmd-esc-wire-form" => {
+            matches!(req, Request::VendorWrite { mnemonic, .. } if mnemonic.name() == "\u{1b}")
+        }
+        "lmd-discrete-input-addressing" => matches!(req, Request::ReadDiscreteInputs { .. }),
+        "mdrive-program-control-function" => matches!(
+            req,
+            Request::VendorWrite { mnemonic, .. }
+                if ["E", "EX", "PS", "RS", "\u{1b}"].contains(&mnemonic.name().as_str())
+        ),
+        "fc41-byte-count-width" => false,
+        _ => true,
+    };
+    if !concerned {
+        return vec![];
+    }
+    let refused = match o {
+        Response::Exception { function, code } => {
+            function.without_exception_bit() == req.function() && (1..=4).contains(&code.0)
+        }
+        Response::CanOpenError { .. } => matches!(req, Request::CanOpen(_)),
+        _ => false,
+    };
+    if !refused {
+        return vec![];
+    }
+    vec![Alternative {
+        answer: Some(o.clone()),
+        shown: shown_named(f, "", &other),
+        values_free: false,
+        note: Some(format!(
+            "the drive refuses the form of the request the project adopted; it may follow the other reading \
+             of the manual ({}: {other})",
+            f.id
+        )),
+    }]
+}
+
+/// FC 0x41 responses with a 2-byte byte count (the other reading of `fc41-byte-count-width`), as the
+/// 1-byte form the codec decodes: `None` when the bytes are not such a response.
+pub fn fc41_two_byte_count(pdu: &[u8]) -> Option<Vec<u8>> {
+    let (&fc, rest) = pdu.split_first()?;
+    if fc != FunctionCode::VENDOR_READ.0 || rest.len() < 2 {
+        return None;
+    }
+    let count = usize::from(u16::from_be_bytes([rest[0], rest[1]]));
+    let params = &rest[2..];
+    (count == params.len() && count <= 255).then(|| {
+        let mut out = vec![fc, count as u8];
+        out.extend_from_slice(params);
+        out
+    })
+}

@@ -19,7 +19,8 @@ struct Cli {
 enum Command {
     /// Run the conformance catalog (golden frames, spec cases, profile cases) against a target.
     Run(Box<commands::run::RunArgs>),
-    /// Discover the function codes and readable registers of a target (no writes), beside a profile.
+    /// Discover what a target answers, with read requests only, beside a profile or as a draft profile
+    /// (--write-profile).
     Probe(commands::probe::ProbeArgs),
     /// A live fuzz campaign: generated and mutated requests, liveness probes, reproducers for findings.
     Fuzz(Box<commands::fuzz::FuzzArgs>),

@@ -29,6 +29,13 @@ pub enum CorpusError {
     Golden(#[from] LoadError),
 }
 
+/// True when a `--profile` value or the profile of a `sim:` target names a file rather than a profile of the
+/// corpus: it contains a `/` (or a backslash), or it ends in `.toml`. `./my.toml`, `/etc/drive.toml`, `my.toml`
+/// and `profiles/x` are files; `mdrive` is the corpus profile of that name.
+pub fn is_profile_path(s: &str) -> bool {
+    s.contains('/') || s.contains('\\') || s.ends_with(".toml")
+}
+
 /// Where corpus files come from.
 #[derive(Clone, Debug)]
 pub enum Corpus {
@@ -126,6 +133,16 @@ impl Corpus {
                     known: self.profile_names(),
                 })?;
         Ok(Profile::parse(&file, &text)?)
+    }
+
+    /// The profile a `--profile` value or a `sim:` target names: a file when [`is_profile_path`] says so
+    /// (a missing or invalid file is an error naming it), else the corpus profile of that name.
+    pub fn load(&self, name_or_path: &str) -> Result<Profile, CorpusError> {
+        if is_profile_path(name_or_path) {
+            Ok(Profile::load(Path::new(name_or_path))?)
+        } else {
+            self.profile(name_or_path)
+        }
     }
 
     /// The golden frames of a profile's manual, if the corpus has them.

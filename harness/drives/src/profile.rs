@@ -1,6 +1,12 @@
 //! Drive profiles (corpus/profiles/*.toml): register maps, limits, vendor mnemonics, object dictionaries.
 //! Loading validates: unknown keys, unknown access modes, overlapping registers and bad ranges are rejected
 //! with the file, the line and the reason. No I/O beyond reading the file.
+//!
+//! A `[[register]]`, `[[coil]]` or `[[discrete_input]]` entry may be a block: `count` (or `end`) entries from
+//! `address` on, `stride` apart, named by a template (`name = "Holding register {address}"`). Loading expands
+//! blocks, so everything after it sees one entry per register or bit (see corpus/profiles/SCHEMA.md).
+
+mod blocks;
 
 use std::collections::BTreeMap;
 use std::path::Path;
@@ -9,39 +15,88 @@ use codec::{ExceptionCode, FunctionCode};
 use serde::Deserialize;
 use toml::Spanned;
 
-/// A loaded, validated profile.
-#[derive(Clone, Debug, Deserialize)]
-#[serde(deny_unknown_fields)]
+use blocks::{BitEntry, RegisterEntry, expand_all};
+
+/// A loaded, validated profile: blocks expanded to one entry per register, coil and discrete input, each
+/// entry spanned by the text of the table it came from (for error lines).
+#[derive(Clone, Debug, PartialEq)]
 pub struct Profile {
     pub device: Device,
     pub serial: Option<Serial>,
-    #[serde(rename = "function", default)]
     pub functions: Vec<Function>,
-    #[serde(rename = "exception", default)]
     pub exceptions: Vec<NamedCode>,
-    #[serde(rename = "register", default)]
     pub registers: Vec<Spanned<Register>>,
-    #[serde(rename = "reserved", default)]
     pub reserved: Vec<Spanned<Reserved>>,
-    #[serde(rename = "coil", default)]
     pub coils: Vec<Spanned<Bit>>,
-    #[serde(rename = "discrete_input", default)]
     pub discrete_inputs: Vec<Spanned<Bit>>,
-    #[serde(rename = "mnemonic", default)]
     pub mnemonics: Vec<Spanned<VendorMnemonic>>,
-    #[serde(rename = "identification", default)]
     pub identification: Vec<IdObject>,
-    #[serde(rename = "diagnostic", default)]
     pub diagnostics: Vec<Diagnostic>,
-    #[serde(rename = "object", default)]
     pub objects: Vec<Spanned<Object>>,
-    #[serde(rename = "sdo_error", default)]
     pub sdo_errors: Vec<NamedCode32>,
     pub watchdog: Option<Watchdog>,
+    /// Present when the profile is a draft discovered by `probe --write-profile`: what the probe covered.
+    pub draft: Option<Draft>,
+}
+
+/// A profile file as written: the tables of [`Profile`], with register and bit entries that may be blocks.
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct ProfileFile {
+    device: Device,
+    serial: Option<Serial>,
+    #[serde(rename = "function", default)]
+    functions: Vec<Function>,
+    #[serde(rename = "exception", default)]
+    exceptions: Vec<NamedCode>,
+    #[serde(rename = "register", default)]
+    registers: Vec<Spanned<RegisterEntry>>,
+    #[serde(rename = "reserved", default)]
+    reserved: Vec<Spanned<Reserved>>,
+    #[serde(rename = "coil", default)]
+    coils: Vec<Spanned<BitEntry>>,
+    #[serde(rename = "discrete_input", default)]
+    discrete_inputs: Vec<Spanned<BitEntry>>,
+    #[serde(rename = "mnemonic", default)]
+    mnemonics: Vec<Spanned<VendorMnemonic>>,
+    #[serde(rename = "identification", default)]
+    identification: Vec<IdObject>,
+    #[serde(rename = "diagnostic", default)]
+    diagnostics: Vec<Diagnostic>,
+    #[serde(rename = "object", default)]
+    objects: Vec<Spanned<Object>>,
+    #[serde(rename = "sdo_error", default)]
+    sdo_errors: Vec<NamedCode32>,
+    watchdog: Option<Watchdog>,
+    draft: Option<Spanned<Draft>>,
+}
+
+/// What `probe --write-profile` covered when it drafted the profile. With it, the catalog takes only what
+/// the probe saw as known: a function code is unsupported only when it is in `unsupported_functions`, and
+/// an address is unmapped only when it lies in `scan`.
+#[derive(Clone, Debug, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Draft {
+    /// The target probed (as the probe was given it).
+    pub target: String,
+    /// Register, coil and discrete-input addresses read one by one, inclusive.
+    pub scan: [u16; 2],
+    /// Function codes the target answered with exception 01 (Illegal Function).
+    #[serde(default)]
+    pub unsupported_functions: Vec<FunctionCode>,
+    pub note: Option<String>,
+    pub line: Option<u32>,
+}
+
+impl Draft {
+    /// True when the probe read `address` (register or bit).
+    pub fn scanned(&self, address: u16) -> bool {
+        self.scan[0] <= address && address <= self.scan[1]
+    }
 }
 
 /// Identity and addressing of the device.
-#[derive(Clone, Debug, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Device {
     pub id: String,
@@ -95,7 +150,7 @@ impl std::fmt::Display for Transport {
 }
 
 /// Serial line settings (RTU drives).
-#[derive(Clone, Debug, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Serial {
     pub baud_rates: Vec<u32>,
@@ -122,19 +177,26 @@ pub enum ParityName {
 }
 
 /// A supported function code.
-#[derive(Clone, Debug, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Function {
     pub code: FunctionCode,
     pub name: String,
     pub max_quantity: Option<u16>,
     pub max_write_quantity: Option<u16>,
+    /// False when discovered by a probe and not yet confirmed by a person (documentation only).
+    #[serde(default = "yes")]
+    pub confirmed: bool,
     pub note: Option<String>,
     pub line: Option<u32>,
 }
 
+fn yes() -> bool {
+    true
+}
+
 /// A code with a name (exception codes).
-#[derive(Clone, Debug, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct NamedCode {
     pub code: ExceptionCode,
@@ -144,7 +206,7 @@ pub struct NamedCode {
 }
 
 /// A 32-bit code with a name (SDO errors).
-#[derive(Clone, Debug, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct NamedCode32 {
     pub code: u32,
@@ -184,30 +246,28 @@ pub enum Table {
 }
 
 /// A register (16-bit) or register pair (32-bit).
-#[derive(Clone, Debug, Deserialize)]
-#[serde(deny_unknown_fields)]
+#[derive(Clone, Debug, PartialEq)]
 pub struct Register {
     pub address: u16,
     pub width: u8,
     pub name: String,
     pub mnemonic: Option<String>,
+    /// For an unconfirmed entry that does not say, `Ro`: the harness never writes it.
     pub access: Access,
-    #[serde(default)]
     pub signed: bool,
     pub min: Option<i64>,
     pub max: Option<i64>,
     pub default: Option<i64>,
     pub unit: Option<String>,
-    #[serde(default)]
     pub table: Table,
-    #[serde(default)]
     pub motion: bool,
-    #[serde(default)]
     pub destructive: bool,
     pub group: Option<String>,
     pub description: Option<String>,
     pub note: Option<String>,
     pub line: Option<u32>,
+    /// False when discovered by a probe and not confirmed: the catalog only reads it.
+    pub confirmed: bool,
 }
 
 impl Register {
@@ -243,7 +303,7 @@ impl Register {
 }
 
 /// A reserved address range.
-#[derive(Clone, Debug, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Reserved {
     pub start: u16,
@@ -253,25 +313,20 @@ pub struct Reserved {
 }
 
 /// A coil or discrete input.
-#[derive(Clone, Debug, Deserialize)]
-#[serde(deny_unknown_fields)]
+#[derive(Clone, Debug, PartialEq)]
 pub struct Bit {
     pub address: u16,
     pub name: String,
-    #[serde(default = "rw")]
     pub access: Access,
-    #[serde(default)]
     pub motion: bool,
     pub note: Option<String>,
     pub line: Option<u32>,
-}
-
-fn rw() -> Access {
-    Access::Rw
+    /// False when discovered by a probe and not confirmed: the catalog only reads it.
+    pub confirmed: bool,
 }
 
 /// A vendor FC 0x41/0x42 mnemonic.
-#[derive(Clone, Debug, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct VendorMnemonic {
     pub name: String,
@@ -290,23 +345,29 @@ pub struct VendorMnemonic {
 }
 
 /// A device identification object (FC 2B/0E).
-#[derive(Clone, Debug, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct IdObject {
     pub object_id: u8,
     pub name: String,
     pub value: String,
+    /// False when discovered by a probe and not confirmed.
+    #[serde(default = "yes")]
+    pub confirmed: bool,
     pub note: Option<String>,
     pub line: Option<u32>,
 }
 
 /// An FC 08 sub-function.
-#[derive(Clone, Debug, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Diagnostic {
     pub sub_function: u16,
     pub name: String,
     pub counter: DiagCounter,
+    /// False when discovered by a probe and not confirmed.
+    #[serde(default = "yes")]
+    pub confirmed: bool,
     pub note: Option<String>,
     pub line: Option<u32>,
 }
@@ -345,7 +406,7 @@ impl ObjectType {
 }
 
 /// A CANopen object (FC 2B/0D).
-#[derive(Clone, Debug, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Object {
     pub index: u16,
@@ -369,7 +430,7 @@ pub struct Object {
 }
 
 /// The RxPDO watchdog (SD2x).
-#[derive(Clone, Debug, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Watchdog {
     pub register: u16,
@@ -415,7 +476,7 @@ impl WordOrder {
 /// Why a profile was rejected.
 #[derive(Debug, thiserror::Error)]
 pub enum ProfileError {
-    #[error("{path}: {source}")]
+    #[error("{path}: cannot read the profile file: {source}")]
     Io {
         path: String,
         source: std::io::Error,
@@ -446,20 +507,72 @@ pub fn toml_error_message(text: &str, e: &toml::de::Error) -> String {
 }
 
 impl Profile {
-    /// Parse and validate profile text; `name` is used in errors.
+    /// Parse and validate profile text (blocks expanded); `name` is used in errors.
     pub fn parse(name: &str, text: &str) -> Result<Self, ProfileError> {
-        let p: Profile = toml::from_str(text).map_err(|e| ProfileError::Invalid {
+        let invalid = |offset: usize, reason: String| ProfileError::Invalid {
+            path: name.to_string(),
+            line: line_of(text, offset),
+            reason,
+        };
+        let f: ProfileFile = toml::from_str(text).map_err(|e| ProfileError::Invalid {
             path: name.to_string(),
             line: e.span().map(|s| line_of(text, s.start)).unwrap_or(0),
             reason: e.message().to_string(),
         })?;
+        let p = Profile::from_file(f).map_err(|(offset, reason)| invalid(offset, reason))?;
         p.validate()
-            .map_err(|(offset, reason)| ProfileError::Invalid {
-                path: name.to_string(),
-                line: line_of(text, offset),
-                reason,
-            })?;
+            .map_err(|(offset, reason)| invalid(offset, reason))?;
         Ok(p)
+    }
+
+    /// Expand the blocks of a parsed file; the error carries the byte offset of the offending entry.
+    fn from_file(f: ProfileFile) -> Result<Self, (usize, String)> {
+        let draft = match f.draft {
+            Some(d) => {
+                let at = d.span().start;
+                let d = d.into_inner();
+                if d.scan[0] > d.scan[1] {
+                    return Err((
+                        at,
+                        format!("draft.scan {:?} is not an ascending range", d.scan),
+                    ));
+                }
+                if let Some(code) = d
+                    .unsupported_functions
+                    .iter()
+                    .find(|c| f.functions.iter().any(|fun| fun.code == **c))
+                {
+                    return Err((
+                        at,
+                        format!(
+                            "function 0x{:02X} is in draft.unsupported_functions and has a [[function]] entry",
+                            code.0
+                        ),
+                    ));
+                }
+                Some(d)
+            }
+            None => None,
+        };
+        Ok(Profile {
+            registers: expand_all(f.registers, RegisterEntry::expand)?,
+            coils: expand_all(f.coils, |b: &BitEntry| b.expand("coil"))?,
+            discrete_inputs: expand_all(f.discrete_inputs, |b: &BitEntry| {
+                b.expand("discrete input")
+            })?,
+            device: f.device,
+            serial: f.serial,
+            functions: f.functions,
+            exceptions: f.exceptions,
+            reserved: f.reserved,
+            mnemonics: f.mnemonics,
+            identification: f.identification,
+            diagnostics: f.diagnostics,
+            objects: f.objects,
+            sdo_errors: f.sdo_errors,
+            watchdog: f.watchdog,
+            draft,
+        })
     }
 
     /// Load and validate a profile file.

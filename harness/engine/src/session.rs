@@ -28,7 +28,8 @@ use drives::{self, FaultSet, Station};
 #[derive(Clone, Debug)]
 pub struct Options {
     pub target: TargetUrl,
-    /// A profile name, or `auto` to pick one from device identification.
+    /// A profile of the corpus by name, a profile file (a value with a `/` or ending in `.toml`, see
+    /// [`drives::corpus::is_profile_path`]), or `auto` to pick one from device identification.
     pub profile: Option<String>,
     pub corpus: Corpus,
     pub unit: Option<u8>,
@@ -114,7 +115,7 @@ pub enum SessionError {
     /// A profile or golden file could not be loaded.
     #[error(transparent)]
     Corpus(#[from] drives::corpus::CorpusError),
-    #[error("--profile is required for {target} (one of: {}, or auto to read the device identification)", known.join(", "))]
+    #[error("--profile is required for {target}: a profile file (./my.toml; draft one with `probe --write-profile`), one of {}, or auto to read the device identification", known.join(", "))]
     ProfileRequired { target: String, known: Vec<String> },
     /// `--profile auto` could not pick a profile.
     #[error("--profile auto: {0}")]
@@ -238,7 +239,8 @@ pub fn select(cases: Vec<Case>, include: &[String], exclude: &[String]) -> Vec<C
         .collect()
 }
 
-/// Resolve the profile a run uses: named, the sim's own, or read from the device (`auto`).
+/// Resolve the profile a run uses: named or a file (`--profile`), the sim's own, or read from the device
+/// (`auto`).
 pub fn resolve_profile(opts: &Options, log: &mut dyn Write) -> Result<Profile, SessionError> {
     let name = match (&opts.profile, &opts.target) {
         (Some(p), _) if p != "auto" => p.clone(),
@@ -251,7 +253,30 @@ pub fn resolve_profile(opts: &Options, log: &mut dyn Write) -> Result<Profile, S
             });
         }
     };
-    Ok(opts.corpus.profile(&name)?)
+    Ok(opts.corpus.load(&name)?)
+}
+
+/// The profile of the drive a `sim:` target runs: its own (`sim:NAME`, `sim:PATH`, named `own`), which a
+/// `--profile` naming another one judges; `profile` (the run's) when they are the same.
+fn simulated(
+    opts: &Options,
+    own: &str,
+    profile: &Profile,
+) -> Result<Profile, drives::corpus::CorpusError> {
+    match &opts.profile {
+        Some(p) if p != "auto" && p != own => opts.corpus.load(own),
+        _ => Ok(profile.clone()),
+    }
+}
+
+/// The framing of a run: the target's, or for a `sim:` target its drive's native one.
+fn run_framing(opts: &Options, profile: &Profile) -> Result<Framing, SessionError> {
+    Ok(match &opts.target {
+        TargetUrl::Sim { profile: own, .. } => {
+            framing_of(&opts.target, &simulated(opts, own, profile)?)
+        }
+        _ => framing_of(&opts.target, profile),
+    })
 }
 
 /// Read FC 2B/0E basic identification from the target and pick the profile whose objects match.
@@ -259,7 +284,7 @@ fn auto_profile(opts: &Options, log: &mut dyn Write) -> Result<Profile, SessionE
     let mut t = targets::open(
         &opts.target,
         |name| {
-            let p = opts.corpus.profile(name)?;
+            let p = opts.corpus.load(name)?;
             Ok(Station::new(
                 drives::build(p, FaultSet::none()),
                 FaultSet::none(),
@@ -358,7 +383,7 @@ fn catalog_plan(
         return Ok(Vec::new());
     }
     let golden = opts.corpus.golden(&profile.device.id)?;
-    let framing = framing_of(&opts.target, profile);
+    let framing = run_framing(opts, profile)?;
     let unit = opts.unit.unwrap_or(profile.device.default_unit);
     let mut all = crate::cases::catalog::build(profile, golden.as_ref(), framing, unit);
     all.extend(crate::cases::catalog::regressions(&opts.corpus, profile)?);
@@ -434,7 +459,7 @@ pub fn plan(
     let mut out = catalog_plan(opts, profile, &requirements)?;
     if let Some(g) = generator(opts, profile) {
         let cfg = config(opts, profile);
-        let framing = framing_of(&opts.target, profile);
+        let framing = run_framing(opts, profile)?;
         out.extend(
             g.cases(opts.generated)
                 .filter(|c| selected(c, &opts.include, &opts.exclude))
@@ -461,7 +486,8 @@ pub(crate) fn config(opts: &Options, profile: &Profile) -> RunConfig {
     }
 }
 
-/// Open the target and its reference drive (fault-free, in lockstep) and put a runner around them.
+/// Open the target and its reference drive (fault-free, in lockstep) and put a runner around them. A `sim:`
+/// target runs its own drive (with the run's faults); the reference drive is always the run's profile's.
 pub(crate) fn open_runner(
     opts: &Options,
     profile: &Profile,
@@ -474,9 +500,13 @@ pub(crate) fn open_runner(
     let unit = cfg.unit;
     let target = targets::open(
         &opts.target,
-        |_| {
+        |own| {
             Ok(Station::new(
-                drives::build_with(profile.clone(), faults.clone(), choices.clone()),
+                drives::build_with(
+                    simulated(opts, own, profile)?,
+                    faults.clone(),
+                    choices.clone(),
+                ),
                 faults.clone(),
                 unit,
             )

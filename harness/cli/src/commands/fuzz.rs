@@ -22,11 +22,12 @@ use engine::targets::TargetUrl;
 skipped unless --allow-motion / --allow-destructive, and --read-only skips every write, as for `run`."
 )]
 pub struct FuzzArgs {
-    /// The endpoint (tcp://, rtu+tcp://, rtu://, sim:).
+    /// The endpoint (tcp://, rtu+tcp://, rtu://, sim:PROFILE, sim:PATH.toml).
     #[arg(long)]
     target: String,
-    /// Drive profile (default: the simulator's own for sim:).
-    #[arg(long)]
+    /// Drive profile: a corpus profile's name, or a profile file (a value containing `/` or ending in
+    /// `.toml` is a file: ./my.toml). Default: the simulator's own for sim:.
+    #[arg(long, value_name = "NAME|PATH")]
     profile: Option<String>,
     /// Unit id / slave address (default: the profile's).
     #[arg(long)]

@@ -49,12 +49,16 @@ Snapshots:
 #[derive(Args)]
 #[command(after_help = GENERATED_HELP)]
 pub struct RunArgs {
-    /// The endpoint: tcp://HOST:PORT, rtu+tcp://HOST:PORT, rtu:///dev/ttyX?baud=19200&parity=even&stop=1, or sim:PROFILE.
+    /// The endpoint: tcp://HOST:PORT, rtu+tcp://HOST:PORT, rtu:///dev/ttyX?baud=19200&parity=even&stop=1,
+    /// or sim:PROFILE (the in-process reference drive of a corpus profile, or of a profile file:
+    /// sim:./my.toml, sim:/abs/x.toml?transport=rtu).
     #[arg(long, default_value = "sim:sd2x")]
     target: String,
-    /// Drive profile (mdrive, lmd, sd2x, generic, ...) or `auto` to read the device identification.
-    /// Defaults to the simulator's own profile for sim: targets.
-    #[arg(long)]
+    /// Drive profile: a corpus profile's name (mdrive, lmd, sd2x, generic, or those of --corpus), a profile
+    /// file (a value containing `/` or ending in `.toml` is a file: ./my.toml, /abs/drive.toml, my.toml), or
+    /// `auto` to read the device identification. Default for sim: targets: the simulator's own; with a sim:
+    /// target, --profile judges that simulator's drive.
+    #[arg(long, value_name = "NAME|PATH")]
     profile: Option<String>,
     /// Unit id (Modbus/TCP) or slave address (RTU); default: the profile's.
     #[arg(long)]

@@ -2,22 +2,28 @@
 
 use std::io::Write;
 use std::net::SocketAddr;
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::process::ExitCode;
 use std::time::Duration;
 
 use clap::{Args, ValueEnum};
 use codec::framer::Parity;
 use drives::corpus::Corpus;
-use drives::profile::{ParityName, Profile};
+use drives::profile::ParityName;
 use drives::{self, Fault, FaultSet, Station};
 use engine::servers::{self, SerialConfig, ServerConfig, ServerHandle};
 
 /// Arguments of `simulate`.
 #[derive(Args, Debug)]
 pub struct SimulateArgs {
-    /// Profile name in the corpus (e.g. sd2x, mdrive, lmd, generic) or a path to a profile .toml.
-    #[arg(long, required_unless_present = "list_faults")]
+    /// The drive to serve: a corpus profile's name (sd2x, mdrive, lmd, generic, or those of --corpus), or a
+    /// profile file (a value containing `/` or ending in `.toml` is a file: ./my.toml, /abs/drive.toml).
+    /// A profile whose device.id is sd2x, mdrive or lmd gets that drive's model; any other, the generic one.
+    #[arg(
+        long,
+        value_name = "NAME|PATH",
+        required_unless_present = "list_faults"
+    )]
     profile: Option<String>,
     /// Serve Modbus/TCP on this address (port 0: any free port; the bound one is printed).
     #[arg(long, value_name = "ADDR")]
@@ -194,7 +200,7 @@ impl StopSignals {
 fn prepare(args: &SimulateArgs) -> Result<(Station, ServerConfig, String), String> {
     let name = args.profile.as_deref().unwrap_or_default();
     let corpus = Corpus::from_option(args.corpus.as_deref());
-    let profile = load_profile(&corpus, name)?;
+    let profile = corpus.load(name).map_err(|e| e.to_string())?;
     if args.listen.is_none() && args.rtu_over_tcp.is_none() && args.serial.is_none() {
         return Err(
             "nothing to serve: give at least one of --listen ADDR, --rtu-over-tcp ADDR, --serial PATH"
@@ -261,13 +267,4 @@ fn prepare(args: &SimulateArgs) -> Result<(Station, ServerConfig, String), Strin
         ..ServerConfig::default()
     };
     Ok((station, config, summary))
-}
-
-/// A profile by corpus name, or from a file when `name` is a path to a .toml.
-fn load_profile(corpus: &Corpus, name: &str) -> Result<Profile, String> {
-    let path = Path::new(name);
-    if path.extension().is_some_and(|e| e == "toml") && path.is_file() {
-        return Profile::load(path).map_err(|e| e.to_string());
-    }
-    corpus.profile(name).map_err(|e| e.to_string())
 }

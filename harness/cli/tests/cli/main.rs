@@ -1,5 +1,7 @@
-//! The command line: decode, run (exit codes, reports, safety), generated-run snapshots.
+//! The command line: decode, run (exit codes, reports, safety), generated-run snapshots, profile files and
+//! drafts.
 
 mod decode;
 mod generated_snapshots;
+mod profiles;
 mod run;

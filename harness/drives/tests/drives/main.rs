@@ -6,6 +6,7 @@ mod generic;
 mod golden;
 mod golden_readme;
 mod mdrive;
+mod profiles;
 mod requirements;
 mod sd2x;
 mod support;

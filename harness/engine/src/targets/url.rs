@@ -1,4 +1,5 @@
-//! Target URLs: `tcp://host:port`, `rtu+tcp://host:port`, `rtu:///dev/ttyX?baud=..&parity=..&stop=..`, `sim:PROFILE`.
+//! Target URLs: `tcp://host:port`, `rtu+tcp://host:port`, `rtu:///dev/ttyX?baud=..&parity=..&stop=..`, `sim:PROFILE`
+//! (`PROFILE` a corpus profile's name or a profile file: `sim:./my.toml`, `sim:/abs/x.toml?transport=rtu`).
 
 use std::fmt;
 
@@ -18,14 +19,15 @@ pub enum TargetUrl {
         format: CharFormat,
     },
     /// The in-process reference drive of a profile (no sockets, virtual clock); `rtu` overrides the
-    /// profile's native framing (`sim:generic?transport=rtu`).
+    /// profile's native framing (`sim:generic?transport=rtu`). `profile` is a corpus name or a file path
+    /// (see `drives::corpus::is_profile_path`).
     Sim { profile: String, rtu: Option<bool> },
 }
 
 /// Why a target URL was rejected.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
 #[error(
-    "bad target `{url}`: {reason}\n  expected one of: tcp://HOST:PORT, rtu+tcp://HOST:PORT, rtu:///dev/ttyUSB0?baud=19200&parity=even&stop=1, sim:PROFILE"
+    "bad target `{url}`: {reason}\n  expected one of: tcp://HOST:PORT, rtu+tcp://HOST:PORT, rtu:///dev/ttyUSB0?baud=19200&parity=even&stop=1, sim:PROFILE, sim:PATH.toml"
 )]
 pub struct UrlError {
     pub url: String,
@@ -87,7 +89,9 @@ impl TargetUrl {
             let p = p.trim_start_matches("//");
             let (profile, query) = p.split_once('?').unwrap_or((p, ""));
             if profile.is_empty() {
-                return Err(err("no profile after `sim:` (e.g. sim:sd2x)".into()));
+                return Err(err(
+                    "no profile after `sim:` (e.g. sim:sd2x, or a file: sim:./my.toml)".into(),
+                ));
             }
             let rtu = match query {
                 "" => None,
@@ -208,5 +212,44 @@ impl fmt::Display for TargetUrl {
                 )
             }
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::TargetUrl;
+
+    #[test]
+    fn sim_targets_take_a_profile_name_or_a_file() {
+        let sim = |profile: &str, rtu| TargetUrl::Sim {
+            profile: profile.into(),
+            rtu,
+        };
+        for (url, want) in [
+            ("sim:sd2x", sim("sd2x", None)),
+            ("sim:./my.toml", sim("./my.toml", None)),
+            ("sim:my.toml", sim("my.toml", None)),
+            (
+                "sim:/abs/x.toml?transport=rtu",
+                sim("/abs/x.toml", Some(true)),
+            ),
+            (
+                "sim:../d/x.toml?transport=tcp",
+                sim("../d/x.toml", Some(false)),
+            ),
+            ("sim:///abs/x.toml", sim("/abs/x.toml", None)),
+        ] {
+            let got = TargetUrl::parse(url).unwrap_or_else(|e| panic!("{e}"));
+            assert_eq!(got, want, "{url}");
+            assert_eq!(
+                TargetUrl::parse(&got.to_string()).as_ref(),
+                Ok(&got),
+                "{url} prints as it parses"
+            );
+        }
+        let e = TargetUrl::parse("sim:").unwrap_err();
+        assert!(e.reason.contains("sim:./my.toml"), "{e}");
+        let e = TargetUrl::parse("sim:./my.toml?baud=9600").unwrap_err();
+        assert!(e.reason.contains("unknown sim option `baud=9600`"), "{e}");
     }
 }

@@ -6,6 +6,7 @@ extern crate modbus_harness_engine as engine;
 mod fault_matrix;
 mod fuzz_campaign;
 mod generated_cases;
+mod probe;
 mod report_files;
 mod requirements_cited;
 mod run_transports;

@@ -1,5 +1,8 @@
 //! Cases derived from the profile: every register, reserved range, coil, discrete input, vendor mnemonic
 //! and identification object of the drive's map, read and (where it is safe to undo) written.
+//!
+//! An entry marked `confirmed = false` (a probe saw it answer a read; nobody has said more) gets read cases
+//! only: its width, access and range are not known, so nothing is written to it and nothing is judged on them.
 
 use super::{APP, Ctx, capture, exchange, pdu, slug};
 use crate::cases::{Compare, Outgoing, Tag};
@@ -35,7 +38,7 @@ fn registers(cx: &mut Ctx) {
         {
             register_read(cx, r, &read);
         }
-        if !cx.can_write_registers() || Some(r.address) == watchdog {
+        if !r.confirmed || !cx.can_write_registers() || Some(r.address) == watchdog {
             continue;
         }
         if r.access.writable() {
@@ -231,16 +234,38 @@ fn reserved(cx: &mut Ctx) {
     }
 }
 
-/// Coils: write ON, read back, restore.
+/// Coils: write ON, read back, restore; an unconfirmed coil is only read.
 fn coils(cx: &mut Ctx) {
     let p = cx.p;
     let pid = &p.device.id;
+    if cx.supports(FunctionCode::READ_COILS) {
+        for c in p.coils.iter().map(|c| c.get_ref()).filter(|c| !c.confirmed) {
+            cx.push(
+                format!("profile/{pid}/coil-read/{}-{}", c.address, slug(&c.name)),
+                format!("read {}", c.name),
+                format!(
+                    "{}: coil {} {} (unconfirmed)",
+                    p.device.name, c.address, c.name
+                ),
+                "The coil is readable with Read Coils.",
+                vec![],
+                vec![exchange(
+                    Outgoing::Pdu(pdu(&Request::ReadCoils {
+                        address: c.address,
+                        quantity: 1,
+                    })),
+                    Compare::Structure,
+                    "read",
+                )],
+            );
+        }
+    }
     if cx.supports(FunctionCode::WRITE_SINGLE_COIL) && cx.supports(FunctionCode::READ_COILS) {
         for c in p
             .coils
             .iter()
             .map(|c| c.get_ref())
-            .filter(|c| c.access.writable())
+            .filter(|c| c.confirmed && c.access.writable())
         {
             let read = pdu(&Request::ReadCoils {
                 address: c.address,
@@ -359,7 +384,9 @@ fn mnemonics(cx: &mut Ctx) {
         }
     }
     let unknown = Mnemonic::from_name("QQ").expect("2 ASCII bytes");
-    if cx.supports(FunctionCode::VENDOR_READ) {
+    // Only a profile that lists mnemonics says what the drive does with one it does not know; a draft
+    // knows no mnemonics, and what the generic model answers to FC 0x41 is not the drive's.
+    if cx.supports(FunctionCode::VENDOR_READ) && !p.mnemonics.is_empty() {
         cx.push(
             format!("profile/{pid}/mnemonic/unknown/read"),
             "FC 0x41 read of an unknown mnemonic",
@@ -375,7 +402,8 @@ fn mnemonics(cx: &mut Ctx) {
     }
 }
 
-/// Device identification: the basic and regular streams, and an object the device does not have.
+/// Device identification: the basic and regular streams, and an object the device does not have (only when
+/// every object is confirmed: a probe cannot tell which objects a device lacks, nor how it refuses them).
 fn identification(cx: &mut Ctx) {
     let p = cx.p;
     let pid = &p.device.id;
@@ -393,6 +421,9 @@ fn identification(cx: &mut Ctx) {
                     label,
                 )],
             );
+        }
+        if p.identification.iter().any(|o| !o.confirmed) {
+            return;
         }
         cx.push(
             format!("profile/{pid}/identification/individual-missing"),

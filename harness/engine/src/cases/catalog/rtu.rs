@@ -10,9 +10,15 @@ use codec::codes::diag;
 pub(super) fn cases(cx: &mut Ctx) {
     crc_and_addressing(cx);
     framing(cx);
+    // FC 08 sub-functions as the profile lists them: a drive may implement some and not others.
+    let listed = |sub: u16| cx.p.diagnostics.iter().any(|d| d.sub_function == sub);
     if cx.supports(FunctionCode::DIAGNOSTICS) {
-        return_query_data(cx);
-        counters(cx);
+        if listed(diag::RETURN_QUERY_DATA) {
+            return_query_data(cx);
+        }
+        if listed(diag::CLEAR_COUNTERS) {
+            counters(cx);
+        }
     }
 }
 

@@ -258,9 +258,12 @@ pub mod event {
     pub const SEND_NAK_EXCEPTION: u8 = 0x08;
     /// Send event bit 4: write timeout error occurred.
     pub const SEND_WRITE_TIMEOUT: u8 = 0x10;
-    /// The server entered listen only mode (08/04).
+    /// The server entered listen only mode (08/04). The section's own example reads event 20 hex as "entered
+    /// the Listen Only Mode"; the definition above it says 04 hex, which is what is used (20 hex is none of the
+    /// four event types: neither bit 7 of a receive event nor bit 6 of a send event, nor 04 or 00).
     pub const ENTERED_LISTEN_ONLY: u8 = 0x04;
-    /// The server restarted its communications port (08/01).
+    /// The server restarted its communications port (08/01). With data FF 00 ("Stop on Error") the log is
+    /// cleared first, so this event is then the only one.
     pub const COMM_RESTART: u8 = 0x00;
     /// The log holds at most this many event bytes ("0-64 bytes").
     pub const LOG_CAPACITY: usize = 64;

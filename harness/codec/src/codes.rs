@@ -186,13 +186,99 @@ pub mod mei {
     pub const DEVICE_ID: u8 = 0x0E;
 }
 
-/// FC 08 sub-function codes used by the drives.
+/// FC 08 sub-function codes: the public ones of MODBUS Application Protocol v1.1b3 section 6.8.1 (their
+/// behaviour on a serial line is in MODBUS over Serial Line v1.02 and the same section). 05-09 and 13 are
+/// reserved, as is everything from 0x15 up (Annex A).
 pub mod diag {
     pub const RETURN_QUERY_DATA: u16 = 0x00;
+    pub const RESTART_COMMUNICATIONS: u16 = 0x01;
+    pub const RETURN_DIAGNOSTIC_REGISTER: u16 = 0x02;
+    pub const CHANGE_ASCII_DELIMITER: u16 = 0x03;
+    pub const FORCE_LISTEN_ONLY: u16 = 0x04;
     pub const CLEAR_COUNTERS: u16 = 0x0A;
     pub const BUS_MESSAGE_COUNT: u16 = 0x0B;
     pub const BUS_COMM_ERROR_COUNT: u16 = 0x0C;
     pub const BUS_EXCEPTION_ERROR_COUNT: u16 = 0x0D;
     pub const SERVER_MESSAGE_COUNT: u16 = 0x0E;
     pub const SERVER_NO_RESPONSE_COUNT: u16 = 0x0F;
+    pub const SERVER_NAK_COUNT: u16 = 0x10;
+    pub const SERVER_BUSY_COUNT: u16 = 0x11;
+    pub const BUS_CHARACTER_OVERRUN_COUNT: u16 = 0x12;
+    pub const CLEAR_OVERRUN: u16 = 0x14;
+
+    /// 08/01 data: restart and clear the communications event log too (00 00 keeps it).
+    pub const RESTART_CLEAR_LOG: u16 = 0xFF00;
+
+    /// The name section 6.8.1 gives a public sub-function.
+    pub fn name(sub_function: u16) -> Option<&'static str> {
+        Some(match sub_function {
+            RETURN_QUERY_DATA => "Return Query Data",
+            RESTART_COMMUNICATIONS => "Restart Communications Option",
+            RETURN_DIAGNOSTIC_REGISTER => "Return Diagnostic Register",
+            CHANGE_ASCII_DELIMITER => "Change ASCII Input Delimiter",
+            FORCE_LISTEN_ONLY => "Force Listen Only Mode",
+            CLEAR_COUNTERS => "Clear Counters and Diagnostic Register",
+            BUS_MESSAGE_COUNT => "Return Bus Message Count",
+            BUS_COMM_ERROR_COUNT => "Return Bus Communication Error Count",
+            BUS_EXCEPTION_ERROR_COUNT => "Return Bus Exception Error Count",
+            SERVER_MESSAGE_COUNT => "Return Server Message Count",
+            SERVER_NO_RESPONSE_COUNT => "Return Server No Response Count",
+            SERVER_NAK_COUNT => "Return Server NAK Count",
+            SERVER_BUSY_COUNT => "Return Server Busy Count",
+            BUS_CHARACTER_OVERRUN_COUNT => "Return Bus Character Overrun Count",
+            CLEAR_OVERRUN => "Clear Overrun Counter and Flag",
+            _ => return None,
+        })
+    }
+}
+
+/// The event bytes of the communications event log (FC 0C, MODBUS Application Protocol v1.1b3 section 6.10,
+/// "What the Event Bytes Contain").
+pub mod event {
+    /// Receive event: bit 7 set, stored when a query arrives, before it is processed.
+    pub const RECEIVE: u8 = 0x80;
+    /// Receive event bit 1: communication error.
+    pub const RECEIVE_COMM_ERROR: u8 = 0x02;
+    /// Receive event bit 4: character overrun.
+    pub const RECEIVE_OVERRUN: u8 = 0x10;
+    /// Receive event bit 5, send event bit 5: currently in listen only mode.
+    pub const LISTEN_ONLY: u8 = 0x20;
+    /// Receive event bit 6: broadcast received.
+    pub const RECEIVE_BROADCAST: u8 = 0x40;
+    /// Send event: bit 7 clear, bit 6 set, stored when the processing of a request ends (whether a normal
+    /// response, an exception or nothing was sent).
+    pub const SEND: u8 = 0x40;
+    /// Send event bit 0: read exception sent (exception codes 1-3).
+    pub const SEND_READ_EXCEPTION: u8 = 0x01;
+    /// Send event bit 1: server abort exception sent (exception code 4).
+    pub const SEND_ABORT_EXCEPTION: u8 = 0x02;
+    /// Send event bit 2: server busy exception sent (exception codes 5-6).
+    pub const SEND_BUSY_EXCEPTION: u8 = 0x04;
+    /// Send event bit 3: server program NAK exception sent (exception code 7).
+    pub const SEND_NAK_EXCEPTION: u8 = 0x08;
+    /// Send event bit 4: write timeout error occurred.
+    pub const SEND_WRITE_TIMEOUT: u8 = 0x10;
+    /// The server entered listen only mode (08/04). The section's own example reads event 20 hex as "entered
+    /// the Listen Only Mode"; the definition above it says 04 hex, which is what is used (20 hex is none of the
+    /// four event types: neither bit 7 of a receive event nor bit 6 of a send event, nor 04 or 00).
+    pub const ENTERED_LISTEN_ONLY: u8 = 0x04;
+    /// The server restarted its communications port (08/01). With data FF 00 ("Stop on Error") the log is
+    /// cleared first, so this event is then the only one.
+    pub const COMM_RESTART: u8 = 0x00;
+    /// The log holds at most this many event bytes ("0-64 bytes").
+    pub const LOG_CAPACITY: usize = 64;
+}
+
+/// FC 18: a FIFO queue answers at most 31 queued registers (MODBUS Application Protocol v1.1b3 section 6.18).
+pub const MAX_FIFO_COUNT: u16 = 31;
+
+/// FC 14/15 file records (MODBUS Application Protocol v1.1b3 sections 6.14, 6.15).
+pub mod file {
+    /// The only reference type the spec defines ("must be specified as 6").
+    pub const REFERENCE_TYPE: u8 = 6;
+    /// Records in a file: 0x0000 to 0x270F.
+    pub const RECORDS_PER_FILE: u32 = 10_000;
+    /// Bytes of one FC 14 sub-request (reference type, file, record, length) and of an FC 15 sub-request
+    /// before its data.
+    pub const SUB_REQUEST_LEN: usize = 7;
 }

@@ -1,8 +1,12 @@
 //! A decoded PDU as named fields: what the `decode` tool prints and what golden-frame expectations check.
 //! Field names are the keys of `[frame.expect]` in corpus/golden/SCHEMA.md.
+//!
+//! FC 14/15 sub-requests are shown column by column (`file_number = [4, 3]` for two sub-requests) and their
+//! register data joined in order in `values`; `record_length` says where each sub-request's part ends.
 
 use std::fmt;
 
+use super::file_record::FileRecordWrite;
 use super::pdu::{Pdu, Request, Response};
 
 /// A field value.
@@ -66,6 +70,46 @@ fn ints(name: &'static str, v: &[u16]) -> Field {
         name,
         value: FieldValue::Ints(v.iter().map(|x| *x as u64).collect()),
     }
+}
+
+fn column(name: &'static str, v: impl Iterator<Item = u64>) -> Field {
+    Field {
+        name,
+        value: FieldValue::Ints(v.collect()),
+    }
+}
+
+/// FC 15 sub-requests (request and response alike): data length, the columns, the data joined.
+fn file_writes(subs: &[FileRecordWrite], f: &mut Vec<Field>) {
+    let data_len: usize = subs.iter().map(|s| 7 + 2 * s.values.len()).sum();
+    f.push(int("byte_count", data_len as u64));
+    f.push(column(
+        "reference_type",
+        subs.iter().map(|s| u64::from(s.reference_type)),
+    ));
+    f.push(column(
+        "file_number",
+        subs.iter().map(|s| u64::from(s.file_number)),
+    ));
+    f.push(column(
+        "record_number",
+        subs.iter().map(|s| u64::from(s.record_number)),
+    ));
+    f.push(column(
+        "record_length",
+        subs.iter().map(|s| s.values.len() as u64),
+    ));
+    f.push(column(
+        "values",
+        subs.iter()
+            .flat_map(|s| s.values.iter().map(|v| u64::from(*v))),
+    ));
+}
+
+fn mask_write(address: u16, and_mask: u16, or_mask: u16, f: &mut Vec<Field>) {
+    f.push(int("address", address));
+    f.push(int("and_mask", and_mask));
+    f.push(int("or_mask", or_mask));
 }
 
 fn bits(data: &[u8], quantity: Option<u16>) -> Field {
@@ -154,6 +198,33 @@ fn describe_request(r: &Request, f: &mut Vec<Field>) {
             f.push(int("sub_function", *sub_function));
             diag_data(data, f);
         }
+        ReadExceptionStatus | GetCommEventCounter | GetCommEventLog | ReportServerId => {}
+        ReadFileRecord { sub_requests } => {
+            f.push(int("byte_count", 7 * sub_requests.len() as u64));
+            f.push(column(
+                "reference_type",
+                sub_requests.iter().map(|s| u64::from(s.reference_type)),
+            ));
+            f.push(column(
+                "file_number",
+                sub_requests.iter().map(|s| u64::from(s.file_number)),
+            ));
+            f.push(column(
+                "record_number",
+                sub_requests.iter().map(|s| u64::from(s.record_number)),
+            ));
+            f.push(column(
+                "record_length",
+                sub_requests.iter().map(|s| u64::from(s.record_length)),
+            ));
+        }
+        WriteFileRecord { sub_requests } => file_writes(sub_requests, f),
+        MaskWriteRegister {
+            address,
+            and_mask,
+            or_mask,
+        } => mask_write(*address, *and_mask, *or_mask, f),
+        ReadFifoQueue { address } => f.push(int("address", *address)),
         WriteMultipleCoils {
             address,
             quantity,
@@ -254,6 +325,62 @@ fn describe_response(r: &Response, f: &mut Vec<Field>) {
         WriteMultipleCoils { address, quantity } | WriteMultipleRegisters { address, quantity } => {
             f.push(int("address", *address));
             f.push(int("quantity", *quantity));
+        }
+        ReadExceptionStatus { status } => {
+            f.push(int("status", *status));
+            f.push(bits(&[*status], None));
+        }
+        GetCommEventCounter {
+            status,
+            event_count,
+        } => {
+            f.push(int("status", *status));
+            f.push(int("event_count", *event_count));
+        }
+        GetCommEventLog {
+            status,
+            event_count,
+            message_count,
+            events,
+        } => {
+            f.push(int("byte_count", 6 + events.len() as u64));
+            f.push(int("status", *status));
+            f.push(int("event_count", *event_count));
+            f.push(int("message_count", *message_count));
+            f.push(bytes("events", events));
+        }
+        ReportServerId { data } => {
+            f.push(int("byte_count", data.len() as u64));
+            f.push(bytes("server_id_data", data));
+        }
+        ReadFileRecord { sub_responses } => {
+            let len: usize = sub_responses.iter().map(|s| 2 + 2 * s.values.len()).sum();
+            f.push(int("byte_count", len as u64));
+            f.push(column(
+                "reference_type",
+                sub_responses.iter().map(|s| u64::from(s.reference_type)),
+            ));
+            f.push(column(
+                "record_length",
+                sub_responses.iter().map(|s| s.values.len() as u64),
+            ));
+            f.push(column(
+                "values",
+                sub_responses
+                    .iter()
+                    .flat_map(|s| s.values.iter().map(|v| u64::from(*v))),
+            ));
+        }
+        WriteFileRecord { sub_requests } => file_writes(sub_requests, f),
+        MaskWriteRegister {
+            address,
+            and_mask,
+            or_mask,
+        } => mask_write(*address, *and_mask, *or_mask, f),
+        ReadFifoQueue { values } => {
+            f.push(int("byte_count", 2 + 2 * values.len() as u64));
+            f.push(int("fifo_count", values.len() as u64));
+            f.push(ints("values", values));
         }
         CanOpen(a) => canopen(a, f),
         CanOpenError { sdo_code } => {

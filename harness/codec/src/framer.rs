@@ -152,13 +152,20 @@ pub fn expected_len(dir: Direction, buf: &[u8], vendor: &[VendorRule]) -> FrameL
     }
     use LengthRule::Fixed;
     let rule = match dir {
+        // Request layouts of MODBUS Application Protocol v1.1b3 section 6 (ADU = address + PDU + CRC).
         Direction::Request => match fc {
+            // FC 08: sub-function and one data word, as every sub-function but 00 carries (6.8.1); a 00
+            // with other data fails the CRC at 8 bytes and silence ends it.
             0x01..=0x06 | 0x08 | 0x41 => Fixed(8),
+            // 6.7, 6.9, 6.10, 6.13: the function code alone.
             0x07 | 0x0B | 0x0C | 0x11 => Fixed(4),
             0x0F | 0x10 => count_at(6),
+            // 6.14, 6.15: byte count / request data length right after the function code.
             0x14 | 0x15 => count_at(2),
+            // 6.16: address, AND mask, OR mask.
             0x16 => Fixed(10),
             0x17 => count_at(10),
+            // 6.18: the FIFO pointer address.
             0x18 => Fixed(6),
             0x42 => count_at(6),
             0x2B => match (buf.get(2), buf.get(3)) {
@@ -186,10 +193,16 @@ pub fn expected_len(dir: Direction, buf: &[u8], vendor: &[VendorRule]) -> FrameL
                 Some(_) => Fixed(5),
             },
             f if f & 0x80 != 0 => Fixed(5),
+            // A 1-byte count after the function code: 6.10 (FC 0C), 6.13 (FC 11), 6.14 (FC 14), 6.15 (FC 15's
+            // echo of the request data length).
             0x01..=0x04 | 0x0C | 0x11 | 0x14 | 0x15 | 0x17 | 0x41 => count_at(2),
+            // FC 0B (6.9): status and event count.
             0x05 | 0x06 | 0x08 | 0x0B | 0x0F | 0x10 => Fixed(8),
+            // FC 07 (6.7): one output data byte.
             0x07 => Fixed(5),
+            // FC 16 (6.16): the echo of the request.
             0x16 => Fixed(10),
+            // FC 18 (6.18): a 2-byte byte count.
             0x18 => LengthRule::ByteCountAt {
                 offset: 2,
                 width: 2,

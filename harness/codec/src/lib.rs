@@ -7,6 +7,7 @@ pub mod bits;
 pub mod codes;
 pub mod error;
 pub mod fields;
+pub mod file_record;
 pub mod framer;
 pub mod lenient;
 pub mod mei;
@@ -19,6 +20,7 @@ pub mod vendor;
 pub use codes::{ExceptionCode, FunctionCode};
 pub use error::{DecodeError, DecodeErrorKind, EncodeError};
 pub use fields::{Field, FieldValue, describe, hex_spaced};
+pub use file_record::{FileRecordData, FileRecordRef, FileRecordWrite};
 pub use framer::{
     CharFormat, FrameLen, FramerEvent, LengthRule, Parity, RtuFramer, RtuTiming, VendorRule,
 };

@@ -3,8 +3,9 @@
 //! Decoding is structural: a quantity of 0 or above a device limit decodes (the device answers it with
 //! exception 03); a byte count that disagrees with its quantity or with the bytes present does not.
 
-use super::codes::{ExceptionCode, FunctionCode, mei};
+use super::codes::{ExceptionCode, FunctionCode, MAX_FIFO_COUNT, event, mei};
 use super::error::{DecodeError, DecodeErrorKind, EncodeError};
+use super::file_record::{self, FileRecordData, FileRecordRef, FileRecordWrite};
 use super::mei::{CanOpenAccess, DeviceIdObject, DeviceIdResponse};
 use super::reader::{Reader, mismatch};
 use super::vendor::Mnemonic;
@@ -49,11 +50,19 @@ pub enum Request {
         address: u16,
         value: u16,
     },
-    /// FC 08; `data` is the data field (2 bytes for every sub-function the drives use).
+    /// FC 07 (spec 6.7): the function code alone.
+    ReadExceptionStatus,
+    /// FC 08; `data` is the data field as sent. Spec 6.8 gives it as N x 2 bytes, 2 for every sub-function but
+    /// 00, whose data of any length are echoed: the length per sub-function is the server's check (exception
+    /// 03, "Data Value == OK" in figure 18), not a framing rule, so any length decodes.
     Diagnostics {
         sub_function: u16,
         data: Vec<u8>,
     },
+    /// FC 0B (spec 6.9): the function code alone.
+    GetCommEventCounter,
+    /// FC 0C (spec 6.10): the function code alone.
+    GetCommEventLog,
     /// FC 0F; `data` packs the coils LSB-first; its length must be ceil(quantity / 8).
     WriteMultipleCoils {
         address: u16,
@@ -64,11 +73,31 @@ pub enum Request {
         address: u16,
         values: Vec<u16>,
     },
+    /// FC 11 (spec 6.13): the function code alone.
+    ReportServerId,
+    /// FC 14 (spec 6.14): the byte count is 7 x the sub-requests.
+    ReadFileRecord {
+        sub_requests: Vec<FileRecordRef>,
+    },
+    /// FC 15 (spec 6.15): the request data length counts every sub-request with its data.
+    WriteFileRecord {
+        sub_requests: Vec<FileRecordWrite>,
+    },
+    /// FC 16 (spec 6.16): result = (current AND and_mask) OR (or_mask AND NOT and_mask).
+    MaskWriteRegister {
+        address: u16,
+        and_mask: u16,
+        or_mask: u16,
+    },
     ReadWriteMultipleRegisters {
         read_address: u16,
         read_quantity: u16,
         write_address: u16,
         values: Vec<u16>,
+    },
+    /// FC 18 (spec 6.18): the FIFO pointer address.
+    ReadFifoQueue {
+        address: u16,
     },
     /// FC 2B / MEI 0D (SD2x object dictionary access).
     CanOpen(CanOpenAccess),
@@ -118,9 +147,26 @@ pub enum Response {
         address: u16,
         value: u16,
     },
+    /// FC 07 (spec 6.7): the eight exception status outputs, output 0 in bit 0.
+    ReadExceptionStatus {
+        status: u8,
+    },
     Diagnostics {
         sub_function: u16,
         data: Vec<u8>,
+    },
+    /// FC 0B (spec 6.9): `status` is 0xFFFF while a program command is in progress, else 0.
+    GetCommEventCounter {
+        status: u16,
+        event_count: u16,
+    },
+    /// FC 0C (spec 6.10): status and event count as FC 0B gives them, the bus message count, and up to 64
+    /// event bytes, the most recent first. The byte count is 6 + the events.
+    GetCommEventLog {
+        status: u16,
+        event_count: u16,
+        message_count: u16,
+        events: Vec<u8>,
     },
     WriteMultipleCoils {
         address: u16,
@@ -130,7 +176,32 @@ pub enum Response {
         address: u16,
         quantity: u16,
     },
+    /// FC 11 (spec 6.13): the bytes the byte count counts: the server id (device specific length), the run
+    /// indicator status (0x00 off, 0xFF on) and device specific additional data. Only the device knows where
+    /// its id ends; [`Response::report_server_id_parts`] splits them given the id's length.
+    ReportServerId {
+        data: Vec<u8>,
+    },
+    /// FC 14 (spec 6.14): one sub-response per sub-request.
+    ReadFileRecord {
+        sub_responses: Vec<FileRecordData>,
+    },
+    /// FC 15 (spec 6.15): an echo of the request.
+    WriteFileRecord {
+        sub_requests: Vec<FileRecordWrite>,
+    },
+    /// FC 16 (spec 6.16): an echo of the request.
+    MaskWriteRegister {
+        address: u16,
+        and_mask: u16,
+        or_mask: u16,
+    },
     ReadWriteMultipleRegisters {
+        values: Vec<u16>,
+    },
+    /// FC 18 (spec 6.18): the queued registers (at most 31), preceded on the wire by a 2-byte byte count and
+    /// the FIFO count.
+    ReadFifoQueue {
         values: Vec<u16>,
     },
     CanOpen(CanOpenAccess),
@@ -315,6 +386,167 @@ fn decode_extended_exception(r: &mut Reader<'_>) -> Result<Response, DecodeError
     })
 }
 
+/// A field that must hold one of a closed set of values.
+fn one_of(
+    r: &mut Reader<'_>,
+    field: &'static str,
+    allowed: &[u8],
+    rule: &'static str,
+) -> Result<u8, DecodeError> {
+    let at = r.pos();
+    let v = r.u8(field)?;
+    if !allowed.contains(&v) {
+        return Err(DecodeError::new(
+            at,
+            DecodeErrorKind::InvalidField {
+                field,
+                value: u32::from(v),
+                rule,
+            },
+        ));
+    }
+    Ok(v)
+}
+
+/// FC 2B/0E response after its MEI type (spec 6.21): the read device id code, conformity level and more follows
+/// fields hold one of the values the spec lists, and the next object id is 00 when no more follows.
+fn decode_device_id_response(r: &mut Reader<'_>) -> Result<DeviceIdResponse, DecodeError> {
+    let read_code = one_of(
+        r,
+        "read device id code",
+        &[1, 2, 3, 4],
+        "01 to 04 (spec 6.21)",
+    )?;
+    let conformity = one_of(
+        r,
+        "conformity level",
+        &[0x01, 0x02, 0x03, 0x81, 0x82, 0x83],
+        "0x01-0x03 or 0x81-0x83 (spec 6.21)",
+    )?;
+    let more_follows = one_of(r, "more follows", &[0x00, 0xFF], "0x00 or 0xFF (spec 6.21)")?;
+    let at = r.pos();
+    let next_object_id = r.u8("next object id")?;
+    if more_follows == 0 && next_object_id != 0 {
+        return Err(DecodeError::new(
+            at,
+            DecodeErrorKind::InvalidField {
+                field: "next object id",
+                value: u32::from(next_object_id),
+                rule: "must be 00 when more follows is 00 (spec 6.21)",
+            },
+        ));
+    }
+    let n = r.u8("number of objects")?;
+    let mut objects = Vec::with_capacity(n.min(32) as usize);
+    for _ in 0..n {
+        let id = r.u8("object id")?;
+        let len = r.u8("object length")? as usize;
+        let value = r.take("object value", len)?.to_vec();
+        objects.push(DeviceIdObject { id, value });
+    }
+    Ok(DeviceIdResponse {
+        read_code,
+        conformity,
+        more_follows,
+        next_object_id,
+        objects,
+    })
+}
+
+/// FC 0C response after its function code (spec 6.10): byte count N = 6 + the event bytes, at most 64 of them.
+fn decode_comm_event_log(r: &mut Reader<'_>) -> Result<Response, DecodeError> {
+    let at = r.pos();
+    let bc = r.u8("byte count")? as usize;
+    if bc != r.remaining() {
+        return Err(mismatch(
+            at,
+            "byte count",
+            bc,
+            r.remaining(),
+            "data bytes present",
+        ));
+    }
+    if bc > 6 + event::LOG_CAPACITY {
+        return Err(DecodeError::new(
+            at,
+            DecodeErrorKind::InvalidField {
+                field: "byte count",
+                value: bc as u32,
+                rule: "status, event count, message count (6 bytes) and 0-64 event bytes (spec 6.10)",
+            },
+        ));
+    }
+    Ok(Response::GetCommEventLog {
+        status: r.u16("status")?,
+        event_count: r.u16("event count")?,
+        message_count: r.u16("message count")?,
+        events: r.rest().to_vec(),
+    })
+}
+
+/// FC 11 response after its function code (spec 6.13): a byte count over at least the run indicator status.
+fn decode_report_server_id(r: &mut Reader<'_>) -> Result<Response, DecodeError> {
+    let at = r.pos();
+    let bc = r.u8("byte count")? as usize;
+    if bc != r.remaining() {
+        return Err(mismatch(
+            at,
+            "byte count",
+            bc,
+            r.remaining(),
+            "data bytes present",
+        ));
+    }
+    if bc == 0 {
+        return Err(DecodeError::new(
+            at,
+            DecodeErrorKind::InvalidField {
+                field: "byte count",
+                value: 0,
+                rule: "the data hold the run indicator status at least (spec 6.13)",
+            },
+        ));
+    }
+    Ok(Response::ReportServerId {
+        data: r.rest().to_vec(),
+    })
+}
+
+/// FC 18 response after its function code (spec 6.18): a 2-byte byte count of the bytes that follow, the FIFO
+/// count (at most 31), then that many registers.
+fn decode_fifo_response(r: &mut Reader<'_>) -> Result<Response, DecodeError> {
+    let at = r.pos();
+    let bc = r.u16("byte count")? as usize;
+    if bc != r.remaining() {
+        return Err(mismatch(
+            at,
+            "byte count",
+            bc,
+            r.remaining(),
+            "data bytes present",
+        ));
+    }
+    let count_at = r.pos();
+    let count = r.u16("FIFO count")?;
+    if count > MAX_FIFO_COUNT {
+        return Err(DecodeError::new(
+            count_at,
+            DecodeErrorKind::InvalidField {
+                field: "FIFO count",
+                value: u32::from(count),
+                rule: "at most 31 queued registers (spec 6.18)",
+            },
+        ));
+    }
+    let expected = 2 + 2 * usize::from(count);
+    if bc != expected {
+        return Err(mismatch(at, "byte count", bc, expected, "FIFO count"));
+    }
+    Ok(Response::ReadFifoQueue {
+        values: r.registers("FIFO value registers", 2 * usize::from(count))?,
+    })
+}
+
 /// A normal (non-exception) response after its function code.
 fn decode_normal_response(fc: FunctionCode, r: &mut Reader<'_>) -> Result<Response, DecodeError> {
     Ok(match fc.0 {
@@ -366,10 +598,18 @@ fn decode_normal_response(fc: FunctionCode, r: &mut Reader<'_>) -> Result<Respon
             address: r.u16("register address")?,
             value: r.u16("register value")?,
         },
+        0x07 => Response::ReadExceptionStatus {
+            status: r.u8("output data")?,
+        },
         0x08 => Response::Diagnostics {
             sub_function: r.u16("sub-function")?,
             data: r.rest().to_vec(),
         },
+        0x0B => Response::GetCommEventCounter {
+            status: r.u16("status")?,
+            event_count: r.u16("event count")?,
+        },
+        0x0C => decode_comm_event_log(r)?,
         0x0F => Response::WriteMultipleCoils {
             address: r.u16("starting address")?,
             quantity: r.u16("quantity of outputs")?,
@@ -378,31 +618,24 @@ fn decode_normal_response(fc: FunctionCode, r: &mut Reader<'_>) -> Result<Respon
             address: r.u16("starting address")?,
             quantity: r.u16("quantity of registers")?,
         },
+        0x11 => decode_report_server_id(r)?,
+        0x14 => Response::ReadFileRecord {
+            sub_responses: file_record::decode_read_response(r)?,
+        },
+        0x15 => Response::WriteFileRecord {
+            sub_requests: file_record::decode_write(r, "response data length")?,
+        },
+        0x16 => Response::MaskWriteRegister {
+            address: r.u16("reference address")?,
+            and_mask: r.u16("AND mask")?,
+            or_mask: r.u16("OR mask")?,
+        },
+        0x18 => decode_fifo_response(r)?,
         0x2B => {
             let m = r.u8("MEI type")?;
             match m {
                 mei::CANOPEN => Response::CanOpen(decode_canopen(r, Direction::Response)?),
-                mei::DEVICE_ID => {
-                    let read_code = r.u8("read device id code")?;
-                    let conformity = r.u8("conformity level")?;
-                    let more_follows = r.u8("more follows")?;
-                    let next_object_id = r.u8("next object id")?;
-                    let n = r.u8("number of objects")?;
-                    let mut objects = Vec::with_capacity(n.min(32) as usize);
-                    for _ in 0..n {
-                        let id = r.u8("object id")?;
-                        let len = r.u8("object length")? as usize;
-                        let value = r.take("object value", len)?.to_vec();
-                        objects.push(DeviceIdObject { id, value });
-                    }
-                    Response::ReadDeviceId(DeviceIdResponse {
-                        read_code,
-                        conformity,
-                        more_follows,
-                        next_object_id,
-                        objects,
-                    })
-                }
+                mei::DEVICE_ID => Response::ReadDeviceId(decode_device_id_response(r)?),
                 _ => {
                     let mut data = vec![m];
                     data.extend_from_slice(r.rest());
@@ -448,10 +681,18 @@ impl Request {
             ReadInputRegisters { .. } => FunctionCode::READ_INPUT_REGISTERS,
             WriteSingleCoil { .. } => FunctionCode::WRITE_SINGLE_COIL,
             WriteSingleRegister { .. } => FunctionCode::WRITE_SINGLE_REGISTER,
+            ReadExceptionStatus => FunctionCode::READ_EXCEPTION_STATUS,
             Diagnostics { .. } => FunctionCode::DIAGNOSTICS,
+            GetCommEventCounter => FunctionCode::GET_COMM_EVENT_COUNTER,
+            GetCommEventLog => FunctionCode::GET_COMM_EVENT_LOG,
             WriteMultipleCoils { .. } => FunctionCode::WRITE_MULTIPLE_COILS,
             WriteMultipleRegisters { .. } => FunctionCode::WRITE_MULTIPLE_REGISTERS,
+            ReportServerId => FunctionCode::REPORT_SERVER_ID,
+            ReadFileRecord { .. } => FunctionCode::READ_FILE_RECORD,
+            WriteFileRecord { .. } => FunctionCode::WRITE_FILE_RECORD,
+            MaskWriteRegister { .. } => FunctionCode::MASK_WRITE_REGISTER,
             ReadWriteMultipleRegisters { .. } => FunctionCode::READ_WRITE_MULTIPLE_REGISTERS,
+            ReadFifoQueue { .. } => FunctionCode::READ_FIFO_QUEUE,
             CanOpen(_) | ReadDeviceId { .. } => FunctionCode::ENCAPSULATED_INTERFACE,
             VendorRead { .. } => FunctionCode::VENDOR_READ,
             VendorWrite { .. } => FunctionCode::VENDOR_WRITE,
@@ -483,10 +724,13 @@ impl Request {
                 address: r.u16("register address")?,
                 value: r.u16("register value")?,
             },
+            0x07 => Request::ReadExceptionStatus,
             0x08 => Request::Diagnostics {
                 sub_function: r.u16("sub-function")?,
                 data: r.rest().to_vec(),
             },
+            0x0B => Request::GetCommEventCounter,
+            0x0C => Request::GetCommEventLog,
             0x0F => {
                 let address = r.u16("starting address")?;
                 let quantity = r.u16("quantity of outputs")?;
@@ -525,6 +769,18 @@ impl Request {
                 let values = r.registers("register values", bc)?;
                 Request::WriteMultipleRegisters { address, values }
             }
+            0x11 => Request::ReportServerId,
+            0x14 => Request::ReadFileRecord {
+                sub_requests: file_record::decode_read_request(&mut r)?,
+            },
+            0x15 => Request::WriteFileRecord {
+                sub_requests: file_record::decode_write(&mut r, "request data length")?,
+            },
+            0x16 => Request::MaskWriteRegister {
+                address: r.u16("reference address")?,
+                and_mask: r.u16("AND mask")?,
+                or_mask: r.u16("OR mask")?,
+            },
             0x17 => {
                 let read_address = r.u16("read starting address")?;
                 let read_quantity = r.u16("quantity to read")?;
@@ -549,6 +805,9 @@ impl Request {
                     values,
                 }
             }
+            0x18 => Request::ReadFifoQueue {
+                address: r.u16("FIFO pointer address")?,
+            },
             0x2B => {
                 let m = r.u8("MEI type")?;
                 match m {
@@ -622,10 +881,25 @@ impl Request {
                 put_u16(out, *address);
                 put_u16(out, *value);
             }
+            ReadExceptionStatus | GetCommEventCounter | GetCommEventLog | ReportServerId => {}
             Diagnostics { sub_function, data } => {
                 put_u16(out, *sub_function);
                 out.extend_from_slice(data);
             }
+            ReadFileRecord { sub_requests } => file_record::encode_read_request(out, sub_requests)?,
+            WriteFileRecord { sub_requests } => {
+                file_record::encode_write(out, "request data length", sub_requests)?
+            }
+            MaskWriteRegister {
+                address,
+                and_mask,
+                or_mask,
+            } => {
+                put_u16(out, *address);
+                put_u16(out, *and_mask);
+                put_u16(out, *or_mask);
+            }
+            ReadFifoQueue { address } => put_u16(out, *address),
             WriteMultipleCoils {
                 address,
                 quantity,
@@ -695,10 +969,18 @@ impl Response {
             ReadInputRegisters { .. } => FunctionCode::READ_INPUT_REGISTERS,
             WriteSingleCoil { .. } => FunctionCode::WRITE_SINGLE_COIL,
             WriteSingleRegister { .. } => FunctionCode::WRITE_SINGLE_REGISTER,
+            ReadExceptionStatus { .. } => FunctionCode::READ_EXCEPTION_STATUS,
             Diagnostics { .. } => FunctionCode::DIAGNOSTICS,
+            GetCommEventCounter { .. } => FunctionCode::GET_COMM_EVENT_COUNTER,
+            GetCommEventLog { .. } => FunctionCode::GET_COMM_EVENT_LOG,
             WriteMultipleCoils { .. } => FunctionCode::WRITE_MULTIPLE_COILS,
             WriteMultipleRegisters { .. } => FunctionCode::WRITE_MULTIPLE_REGISTERS,
+            ReportServerId { .. } => FunctionCode::REPORT_SERVER_ID,
+            ReadFileRecord { .. } => FunctionCode::READ_FILE_RECORD,
+            WriteFileRecord { .. } => FunctionCode::WRITE_FILE_RECORD,
+            MaskWriteRegister { .. } => FunctionCode::MASK_WRITE_REGISTER,
             ReadWriteMultipleRegisters { .. } => FunctionCode::READ_WRITE_MULTIPLE_REGISTERS,
+            ReadFifoQueue { .. } => FunctionCode::READ_FIFO_QUEUE,
             CanOpen(_) | ReadDeviceId(_) => FunctionCode::ENCAPSULATED_INTERFACE,
             CanOpenError { .. } => FunctionCode::ENCAPSULATED_INTERFACE.exception(),
             VendorRead { .. } => FunctionCode::VENDOR_READ,
@@ -719,6 +1001,17 @@ impl Response {
     /// True for exception responses (including the SD2x extended one).
     pub fn is_exception(&self) -> bool {
         self.function().is_exception()
+    }
+
+    /// An FC 11 response's data split as a device with a `server_id_len`-byte server id lays them out: (server
+    /// id, run indicator status, additional data); `None` for another response or data too short.
+    pub fn report_server_id_parts(&self, server_id_len: usize) -> Option<(&[u8], u8, &[u8])> {
+        let Response::ReportServerId { data } = self else {
+            return None;
+        };
+        let (id, rest) = data.split_at_checked(server_id_len)?;
+        let (run, additional) = rest.split_first()?;
+        Some((id, *run, additional))
     }
 
     /// Strictly decode one response PDU occupying all of `pdu`.
@@ -791,6 +1084,64 @@ impl Response {
                     | WriteMultipleRegisters { address, quantity } => {
                         put_u16(out, *address);
                         put_u16(out, *quantity);
+                    }
+                    ReadExceptionStatus { status } => out.push(*status),
+                    GetCommEventCounter {
+                        status,
+                        event_count,
+                    } => {
+                        put_u16(out, *status);
+                        put_u16(out, *event_count);
+                    }
+                    GetCommEventLog {
+                        status,
+                        event_count,
+                        message_count,
+                        events,
+                    } => {
+                        if events.len() > event::LOG_CAPACITY {
+                            return Err(EncodeError::TooLong {
+                                field: "events",
+                                len: events.len(),
+                                max: event::LOG_CAPACITY,
+                            });
+                        }
+                        out.push(6 + events.len() as u8);
+                        put_u16(out, *status);
+                        put_u16(out, *event_count);
+                        put_u16(out, *message_count);
+                        out.extend_from_slice(events);
+                    }
+                    // Empty data encode (11 00) but do not decode: spec 6.13 always has the run indicator.
+                    ReportServerId { data } => put_counted(out, "server id data", data)?,
+                    ReadFileRecord { sub_responses } => {
+                        file_record::encode_read_response(out, sub_responses)?
+                    }
+                    WriteFileRecord { sub_requests } => {
+                        file_record::encode_write(out, "response data length", sub_requests)?
+                    }
+                    MaskWriteRegister {
+                        address,
+                        and_mask,
+                        or_mask,
+                    } => {
+                        put_u16(out, *address);
+                        put_u16(out, *and_mask);
+                        put_u16(out, *or_mask);
+                    }
+                    ReadFifoQueue { values } => {
+                        if values.len() > usize::from(MAX_FIFO_COUNT) {
+                            return Err(EncodeError::TooLong {
+                                field: "FIFO values",
+                                len: values.len(),
+                                max: usize::from(MAX_FIFO_COUNT),
+                            });
+                        }
+                        put_u16(out, 2 + 2 * values.len() as u16);
+                        put_u16(out, values.len() as u16);
+                        for v in values {
+                            put_u16(out, *v);
+                        }
                     }
                     ReadDeviceId(d) => {
                         out.extend_from_slice(&[

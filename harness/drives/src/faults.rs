@@ -31,6 +31,15 @@ pub enum Fault {
     UnitNotEchoed,
     IllegalCoilValueAccepted,
     CrcUnchecked,
+    ExceptionStatusReversed,
+    ListenOnlyIgnored,
+    EventCounterCountsExceptions,
+    EventLogOldestFirst,
+    RunIndicatorOne,
+    FileRecordLengthWrong,
+    FileWriteFirstOnly,
+    MaskWriteWrong,
+    FifoOffByOne,
 }
 
 impl Fault {
@@ -150,6 +159,51 @@ impl Fault {
             Fault::CrcUnchecked,
             "crc-unchecked",
             "RTU: frames with a bad CRC are processed and answered",
+        ),
+        (
+            Fault::ExceptionStatusReversed,
+            "exception-status-reversed",
+            "FC 07: the exception status outputs are packed MSB-first (output 0 in bit 7)",
+        ),
+        (
+            Fault::ListenOnlyIgnored,
+            "listen-only-ignored",
+            "FC 08/04: force listen only mode is echoed and the drive keeps answering",
+        ),
+        (
+            Fault::EventCounterCountsExceptions,
+            "event-counter-counts-exceptions",
+            "FC 0B/0C: the comm event counter also counts exception responses",
+        ),
+        (
+            Fault::EventLogOldestFirst,
+            "event-log-oldest-first",
+            "FC 0C: the event bytes come oldest first instead of the most recent first",
+        ),
+        (
+            Fault::RunIndicatorOne,
+            "run-indicator-one",
+            "FC 11: the run indicator ON is sent as 0x01 instead of 0xFF",
+        ),
+        (
+            Fault::FileRecordLengthWrong,
+            "file-record-length-wrong",
+            "FC 14: each file response length counts the record data only, not the reference type byte",
+        ),
+        (
+            Fault::FileWriteFirstOnly,
+            "file-write-first-only",
+            "FC 15: only the first sub-request is written (the whole request is still echoed)",
+        ),
+        (
+            Fault::MaskWriteWrong,
+            "mask-write-wrong",
+            "FC 16: the result is (current AND and_mask) OR or_mask, without masking the OR by NOT and_mask",
+        ),
+        (
+            Fault::FifoOffByOne,
+            "fifo-off-by-one",
+            "FC 18: one queued register fewer than the queue holds is answered (count and byte count agree)",
         ),
     ];
 

@@ -37,6 +37,14 @@ pub struct Profile {
     pub watchdog: Option<Watchdog>,
     /// Present when the profile is a draft discovered by `probe --write-profile`: what the probe covered.
     pub draft: Option<Draft>,
+    /// FC 07: the exception status outputs.
+    pub exception_status: Option<Spanned<ExceptionStatus>>,
+    /// FC 11: the server id, run indicator and additional data.
+    pub server_id: Option<Spanned<ServerId>>,
+    /// FC 14/15: the files of records.
+    pub files: Vec<Spanned<RecordFile>>,
+    /// FC 18: the FIFO queues.
+    pub fifos: Vec<Spanned<Fifo>>,
 }
 
 /// A profile file as written: the tables of [`Profile`], with register and bit entries that may be blocks.
@@ -69,6 +77,12 @@ struct ProfileFile {
     sdo_errors: Vec<NamedCode32>,
     watchdog: Option<Watchdog>,
     draft: Option<Spanned<Draft>>,
+    exception_status: Option<Spanned<ExceptionStatus>>,
+    server_id: Option<Spanned<ServerId>>,
+    #[serde(rename = "file", default)]
+    files: Vec<Spanned<RecordFile>>,
+    #[serde(rename = "fifo", default)]
+    fifos: Vec<Spanned<Fifo>>,
 }
 
 /// What `probe --write-profile` covered when it drafted the profile. With it, the catalog takes only what
@@ -368,21 +382,214 @@ pub struct Diagnostic {
     /// False when discovered by a probe and not confirmed.
     #[serde(default = "yes")]
     pub confirmed: bool,
+    /// The request's data field must be what MODBUS Application Protocol v1.1b3 section 6.8.1 gives the
+    /// sub-function (00 00; 00 00 or FF 00 for 01; CHAR 00 for 03), else exception 03 ("Data Value == OK",
+    /// figure 18). Off by default: the SD2x manual only says a data word is always sent.
+    #[serde(default)]
+    pub check_data: bool,
+    /// `counter = "diagnostic_register"` only: the register's content at power-up and after a restart.
+    pub value: Option<u16>,
     pub note: Option<String>,
     pub line: Option<u32>,
 }
 
-/// What an FC 08 sub-function does.
+/// What an FC 08 sub-function does (MODBUS Application Protocol v1.1b3 section 6.8.1).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum DiagCounter {
+    /// 00: return query data.
     Echo,
+    /// 0A: clear counters and diagnostic register.
     Clear,
+    /// 0B: bus message count.
     BusMessage,
+    /// 0C: bus communication error (CRC) count.
     CrcError,
+    /// 0D: bus exception error count.
     Exception,
+    /// 0E: server message count.
     SlaveMessage,
+    /// 0F: server no response count.
     NoResponse,
+    /// 01: restart communications option.
+    Restart,
+    /// 02: return diagnostic register.
+    DiagnosticRegister,
+    /// 03: change ASCII input delimiter.
+    AsciiDelimiter,
+    /// 04: force listen only mode.
+    ListenOnly,
+    /// 10: server NAK count.
+    Nak,
+    /// 11: server busy count.
+    Busy,
+    /// 12: bus character overrun count.
+    Overrun,
+    /// 14: clear overrun counter and flag.
+    ClearOverrun,
+}
+
+impl DiagCounter {
+    /// The sub-function section 6.8.1 gives this behaviour.
+    pub fn sub_function(self) -> u16 {
+        use codec::codes::diag::*;
+        match self {
+            DiagCounter::Echo => RETURN_QUERY_DATA,
+            DiagCounter::Restart => RESTART_COMMUNICATIONS,
+            DiagCounter::DiagnosticRegister => RETURN_DIAGNOSTIC_REGISTER,
+            DiagCounter::AsciiDelimiter => CHANGE_ASCII_DELIMITER,
+            DiagCounter::ListenOnly => FORCE_LISTEN_ONLY,
+            DiagCounter::Clear => CLEAR_COUNTERS,
+            DiagCounter::BusMessage => BUS_MESSAGE_COUNT,
+            DiagCounter::CrcError => BUS_COMM_ERROR_COUNT,
+            DiagCounter::Exception => BUS_EXCEPTION_ERROR_COUNT,
+            DiagCounter::SlaveMessage => SERVER_MESSAGE_COUNT,
+            DiagCounter::NoResponse => SERVER_NO_RESPONSE_COUNT,
+            DiagCounter::Nak => SERVER_NAK_COUNT,
+            DiagCounter::Busy => SERVER_BUSY_COUNT,
+            DiagCounter::Overrun => BUS_CHARACTER_OVERRUN_COUNT,
+            DiagCounter::ClearOverrun => CLEAR_OVERRUN,
+        }
+    }
+
+    /// The name a profile gives it (`counter = "..."`).
+    pub fn key(self) -> &'static str {
+        match self {
+            DiagCounter::Echo => "echo",
+            DiagCounter::Clear => "clear",
+            DiagCounter::BusMessage => "bus_message",
+            DiagCounter::CrcError => "crc_error",
+            DiagCounter::Exception => "exception",
+            DiagCounter::SlaveMessage => "slave_message",
+            DiagCounter::NoResponse => "no_response",
+            DiagCounter::Restart => "restart",
+            DiagCounter::DiagnosticRegister => "diagnostic_register",
+            DiagCounter::AsciiDelimiter => "ascii_delimiter",
+            DiagCounter::ListenOnly => "listen_only",
+            DiagCounter::Nak => "nak",
+            DiagCounter::Busy => "busy",
+            DiagCounter::Overrun => "overrun",
+            DiagCounter::ClearOverrun => "clear_overrun",
+        }
+    }
+
+    /// Every behaviour, in sub-function order.
+    pub const ALL: [DiagCounter; 15] = [
+        DiagCounter::Echo,
+        DiagCounter::Restart,
+        DiagCounter::DiagnosticRegister,
+        DiagCounter::AsciiDelimiter,
+        DiagCounter::ListenOnly,
+        DiagCounter::Clear,
+        DiagCounter::BusMessage,
+        DiagCounter::CrcError,
+        DiagCounter::Exception,
+        DiagCounter::SlaveMessage,
+        DiagCounter::NoResponse,
+        DiagCounter::Nak,
+        DiagCounter::Busy,
+        DiagCounter::Overrun,
+        DiagCounter::ClearOverrun,
+    ];
+
+    /// The behaviour of a public sub-function; `None` for a reserved one.
+    pub fn of_sub_function(sub_function: u16) -> Option<Self> {
+        Self::ALL
+            .into_iter()
+            .find(|c| c.sub_function() == sub_function)
+    }
+
+    /// Sub-functions that act on a serial port itself: restarting it (01), the ASCII delimiter (03), leaving the
+    /// bus (04), character overruns (12, 14). A Modbus/TCP server answers them with exception 01; the others
+    /// (the echo, the diagnostic register, the counters) are answered on every transport.
+    pub fn serial_line_only(self) -> bool {
+        matches!(
+            self,
+            DiagCounter::Restart
+                | DiagCounter::AsciiDelimiter
+                | DiagCounter::ListenOnly
+                | DiagCounter::Overrun
+                | DiagCounter::ClearOverrun
+        )
+    }
+}
+
+/// The eight exception status outputs of FC 07 (MODBUS Application Protocol v1.1b3 section 6.7).
+#[derive(Clone, Debug, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ExceptionStatus {
+    /// The status byte (output 0 in bit 0) for the outputs no coil drives.
+    #[serde(default)]
+    pub value: u8,
+    /// Coils that drive outputs 0, 1, ... (at most 8): output i is the state of `coils[i]`.
+    #[serde(default)]
+    pub coils: Vec<u16>,
+    pub note: Option<String>,
+    pub line: Option<u32>,
+}
+
+/// What FC 11 reports (MODBUS Application Protocol v1.1b3 section 6.13).
+#[derive(Clone, Debug, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ServerId {
+    /// The server id bytes (device specific length).
+    pub id: Vec<u8>,
+    /// The run indicator status: ON (0xFF) or OFF (0x00).
+    #[serde(default = "yes")]
+    pub run_indicator: bool,
+    /// Device specific additional data after the run indicator, as text.
+    #[serde(default)]
+    pub additional_data: String,
+    pub note: Option<String>,
+    pub line: Option<u32>,
+}
+
+impl ServerId {
+    /// The data FC 11 answers after its byte count: id, run indicator (0xFF on, 0x00 off), additional data.
+    pub fn data(&self) -> Vec<u8> {
+        let mut d = self.id.clone();
+        d.push(if self.run_indicator { 0xFF } else { 0x00 });
+        d.extend_from_slice(self.additional_data.as_bytes());
+        d
+    }
+}
+
+/// A file of records for FC 14/15 (MODBUS Application Protocol v1.1b3 sections 6.14, 6.15).
+#[derive(Clone, Debug, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct RecordFile {
+    /// The file number, 1 to 0xFFFF.
+    pub number: u16,
+    pub name: Option<String>,
+    /// How many records (registers) the file holds, 1 to 10000; records 0 to `records - 1` exist.
+    pub records: u16,
+    /// The content from record 0 on; records past it start at 0.
+    #[serde(default)]
+    pub values: Vec<u16>,
+    /// `ro` files refuse FC 15 (exception 02), `wo` files FC 14.
+    #[serde(default = "read_write")]
+    pub access: Access,
+    pub note: Option<String>,
+    pub line: Option<u32>,
+}
+
+/// Files are readable and writable unless the profile says otherwise.
+fn read_write() -> Access {
+    Access::Rw
+}
+
+/// A FIFO queue for FC 18 (MODBUS Application Protocol v1.1b3 section 6.18).
+#[derive(Clone, Debug, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Fifo {
+    /// The FIFO pointer address a request names.
+    pub address: u16,
+    pub name: Option<String>,
+    /// The queued registers, oldest first. More than 31 is allowed: the server then answers exception 03.
+    #[serde(default)]
+    pub values: Vec<u16>,
+    pub note: Option<String>,
+    pub line: Option<u32>,
 }
 
 /// Data type of a CANopen object.
@@ -473,6 +680,17 @@ impl WordOrder {
     }
 }
 
+/// Where entries whose type carries no span start in the text (a second, lenient read of the same text).
+#[derive(Default, Deserialize)]
+struct EntrySpans {
+    #[serde(default)]
+    diagnostic: Vec<Spanned<toml::Value>>,
+    #[serde(default)]
+    identification: Vec<Spanned<toml::Value>>,
+    #[serde(default)]
+    function: Vec<Spanned<toml::Value>>,
+}
+
 /// Why a profile was rejected.
 #[derive(Debug, thiserror::Error)]
 pub enum ProfileError {
@@ -520,7 +738,10 @@ impl Profile {
             reason: e.message().to_string(),
         })?;
         let p = Profile::from_file(f).map_err(|(offset, reason)| invalid(offset, reason))?;
+        // Where the entries without a span of their own start, for the errors about them.
+        let spans: EntrySpans = toml::from_str(text).unwrap_or_default();
         p.validate()
+            .and_then(|()| p.validate_function_data(&spans))
             .map_err(|(offset, reason)| invalid(offset, reason))?;
         Ok(p)
     }
@@ -572,6 +793,10 @@ impl Profile {
             sdo_errors: f.sdo_errors,
             watchdog: f.watchdog,
             draft,
+            exception_status: f.exception_status,
+            server_id: f.server_id,
+            files: f.files,
+            fifos: f.fifos,
         })
     }
 
@@ -752,6 +977,208 @@ impl Profile {
         Ok(())
     }
 
+    /// Checks of the data the function codes 07, 08, 11, 14, 15, 18 and 2B/0E serve: each needs its function
+    /// declared, and holds only what the MODBUS Application Protocol v1.1b3 lets a server answer.
+    fn validate_function_data(&self, spans: &EntrySpans) -> Result<(), (usize, String)> {
+        let needs = |fcs: &[FunctionCode], at: usize, what: &str| {
+            if fcs.iter().any(|fc| self.function(*fc).is_some()) {
+                return Ok(());
+            }
+            let codes: Vec<String> = fcs
+                .iter()
+                .map(|fc| format!("0x{:02X} ({})", fc.0, fc.name().unwrap_or("?")))
+                .collect();
+            Err((
+                at,
+                format!(
+                    "{what} is served by function {}, which the profile does not declare in [[function]]",
+                    codes.join(" or ")
+                ),
+            ))
+        };
+        // The largest PDU the device answers.
+        let max_pdu = usize::from(self.device.max_pdu).min(codec::MAX_PDU_LEN);
+        self.validate_diagnostics(&spans.diagnostic, &needs)?;
+        if let Some(e) = &self.exception_status {
+            let at = e.span().start;
+            needs(
+                &[FunctionCode::READ_EXCEPTION_STATUS],
+                at,
+                "[exception_status]",
+            )?;
+            let coils = &e.get_ref().coils;
+            if coils.len() > 8 {
+                return Err((
+                    at,
+                    format!(
+                        "[exception_status]: {} coils for eight outputs (spec 6.7)",
+                        coils.len()
+                    ),
+                ));
+            }
+            if let Some(c) = coils
+                .iter()
+                .find(|c| !self.coils.iter().any(|b| b.get_ref().address == **c))
+            {
+                return Err((
+                    at,
+                    format!("[exception_status]: coil {c} is not a [[coil]] of the profile"),
+                ));
+            }
+        }
+        if let Some(i) = self
+            .functions
+            .iter()
+            .position(|f| f.code == FunctionCode::REPORT_SERVER_ID)
+            && self.server_id.is_none()
+        {
+            return Err((
+                spans.function.get(i).map_or(0, |s| s.span().start),
+                "function 0x11 (Report Server ID) needs a [server_id] table: what the device reports is device \
+                 specific (spec 6.13)"
+                    .to_string(),
+            ));
+        }
+        if let Some(sid) = &self.server_id {
+            let at = sid.span().start;
+            needs(&[FunctionCode::REPORT_SERVER_ID], at, "[server_id]")?;
+            // FC, byte count, then the data.
+            let n = sid.get_ref().data().len();
+            if n + 2 > max_pdu {
+                return Err((
+                    at,
+                    format!(
+                        "[server_id]: id, run indicator and additional data are {n} bytes; with the function code \
+                         and byte count they exceed the {max_pdu}-byte PDU (spec 6.13)"
+                    ),
+                ));
+            }
+        }
+        let mut numbers = BTreeMap::new();
+        for f in &self.files {
+            let at = f.span().start;
+            let file = f.get_ref();
+            let what = format!("[[file]] {}", file.number);
+            needs(
+                &[
+                    FunctionCode::READ_FILE_RECORD,
+                    FunctionCode::WRITE_FILE_RECORD,
+                ],
+                at,
+                &what,
+            )?;
+            if file.number == 0 {
+                return Err((
+                    at,
+                    format!("{what}: file numbers run from 1 to 0xFFFF (spec 6.14)"),
+                ));
+            }
+            if numbers.insert(file.number, ()).is_some() {
+                return Err((at, format!("{what} defined twice")));
+            }
+            if file.records == 0 || u32::from(file.records) > codec::codes::file::RECORDS_PER_FILE {
+                return Err((
+                    at,
+                    format!(
+                        "{what}: {} records; a file holds 1 to 10000 (records 0x0000-0x270F, spec 6.14)",
+                        file.records
+                    ),
+                ));
+            }
+            if file.values.len() > usize::from(file.records) {
+                return Err((
+                    at,
+                    format!(
+                        "{what}: {} values for {} records",
+                        file.values.len(),
+                        file.records
+                    ),
+                ));
+            }
+        }
+        let mut pointers = BTreeMap::new();
+        for q in &self.fifos {
+            let at = q.span().start;
+            let fifo = q.get_ref();
+            let what = format!("[[fifo]] 0x{:04X}", fifo.address);
+            needs(&[FunctionCode::READ_FIFO_QUEUE], at, &what)?;
+            if pointers.insert(fifo.address, ()).is_some() {
+                return Err((at, format!("{what} defined twice")));
+            }
+            if fifo.values.len() > usize::from(u16::MAX) {
+                return Err((at, format!("{what}: {} values", fifo.values.len())));
+            }
+        }
+        // Spec 6.21: "an object is indivisible": each must fit a response of its own (FC, MEI, read code,
+        // conformity, more follows, next object id, object count, then id and length).
+        let room = max_pdu.saturating_sub(9).min(255);
+        for (i, o) in self.identification.iter().enumerate() {
+            if o.value.len() > room {
+                return Err((
+                    spans.identification.get(i).map_or(0, |s| s.span().start),
+                    format!(
+                        "identification object 0x{:02X} `{}`: {} bytes do not fit one FC 2B/0E response (at most \
+                         {room} with max_pdu {max_pdu}); an object is indivisible (spec 6.21)",
+                        o.object_id,
+                        o.name,
+                        o.value.len()
+                    ),
+                ));
+            }
+        }
+        Ok(())
+    }
+
+    /// `[[diagnostic]]` entries: FC 08 declared, each public sub-function once with the behaviour section 6.8.1
+    /// gives it, no reserved sub-function.
+    fn validate_diagnostics(
+        &self,
+        spans: &[Spanned<toml::Value>],
+        needs: &impl Fn(&[FunctionCode], usize, &str) -> Result<(), (usize, String)>,
+    ) -> Result<(), (usize, String)> {
+        let mut seen = BTreeMap::new();
+        for (i, d) in self.diagnostics.iter().enumerate() {
+            let at = spans.get(i).map_or(0, |s| s.span().start);
+            let what = format!("[[diagnostic]] sub-function 0x{:02X}", d.sub_function);
+            needs(&[FunctionCode::DIAGNOSTICS], at, &what)?;
+            if seen.insert(d.sub_function, ()).is_some() {
+                return Err((at, format!("{what} defined twice")));
+            }
+            match DiagCounter::of_sub_function(d.sub_function) {
+                None => {
+                    return Err((
+                        at,
+                        format!(
+                            "{what} is reserved (MODBUS Application Protocol v1.1b3, 6.8.1 and Annex A): only the \
+                             public sub-functions 00-04, 0A-12 and 14 can be served"
+                        ),
+                    ));
+                }
+                Some(c) if c != d.counter => {
+                    return Err((
+                        at,
+                        format!(
+                            "{what} is {} (spec 6.8.1): counter must be \"{}\", not \"{}\"",
+                            codec::codes::diag::name(d.sub_function).unwrap_or("?"),
+                            c.key(),
+                            d.counter.key()
+                        ),
+                    ));
+                }
+                Some(_) => {}
+            }
+            if d.value.is_some() && d.counter != DiagCounter::DiagnosticRegister {
+                return Err((
+                    at,
+                    format!(
+                        "{what}: `value` is the diagnostic register's content, only for counter = \"diagnostic_register\""
+                    ),
+                ));
+            }
+        }
+        Ok(())
+    }
+
     /// The register entry covering `address` (either register of a 32-bit pair), holding or input table.
     pub fn register_at(&self, address: u16, input: bool) -> Option<&Register> {
         self.registers.iter().map(|r| r.get_ref()).find(|r| {
@@ -783,6 +1210,29 @@ impl Profile {
             .iter()
             .map(|m| m.get_ref())
             .find(|m| m.name.eq_ignore_ascii_case(name))
+    }
+
+    /// The FIFO queue whose pointer address is `address` (FC 18).
+    pub fn fifo(&self, address: u16) -> Option<&Fifo> {
+        self.fifos
+            .iter()
+            .map(|q| q.get_ref())
+            .find(|q| q.address == address)
+    }
+
+    /// The file numbered `number` (FC 14/15).
+    pub fn file(&self, number: u16) -> Option<&RecordFile> {
+        self.files
+            .iter()
+            .map(|f| f.get_ref())
+            .find(|f| f.number == number)
+    }
+
+    /// The FC 08 sub-function entry for `sub_function`.
+    pub fn diagnostic(&self, sub_function: u16) -> Option<&Diagnostic> {
+        self.diagnostics
+            .iter()
+            .find(|d| d.sub_function == sub_function)
     }
 
     /// The object at `index`/`subindex`.

@@ -1,15 +1,24 @@
 //! The wire side of a simulated drive, sans-IO: bytes in, bytes out with a delay.
 //!
 //! The station applies what the Modbus specs require of any server before the model sees a request
-//! (MBAP checks, unit/slave addressing, broadcast, supported function codes, quantity limits, FC 05 values,
-//! the FC 08 serial-line counters) and applies the wire-level faults to what goes out.
+//! (MBAP checks, unit/slave addressing, broadcast, supported function codes, quantity limits, FC 05 values),
+//! keeps the communication state the serial line functions report (the FC 08 diagnostic counters and
+//! sub-functions, the FC 0B event counter, the FC 0C event log, listen only mode) and applies the wire-level
+//! faults to what goes out.
+//!
+//! On Modbus/TCP, FC 08 answers every sub-function the profile lists except those that act on a serial port
+//! itself (01 restart, 03 ASCII delimiter, 04 listen only, 12 character overruns, 14 clear overrun: exception
+//! 01, see [`DiagCounter::serial_line_only`]); the bus counters (0B, 0C, 0E, 0F) only count RTU traffic, the
+//! exception, NAK and busy counts, the event counter and the event log count every transport's.
 
+use std::collections::VecDeque;
 use std::time::Duration;
 
 use crate::choices::{Choices, Decision, Rejection, ids};
 use crate::faults::{Fault, FaultSet};
 use crate::models::DriveModel;
 use crate::profile::{DiagCounter, Profile};
+use codec::codes::{diag, event};
 use codec::framer::{DiscardReason, FramerEvent, RtuFramer, RtuTiming};
 use codec::{Direction, ExceptionCode, FunctionCode, Request, Response, rtu, tcp};
 
@@ -23,7 +32,8 @@ pub struct Wire {
 /// How late the `late-response` fault answers.
 pub const LATE_RESPONSE_DELAY: Duration = Duration::from_millis(1500);
 
-/// The serial-line diagnostic counters of FC 08 (Modbus over serial line spec, 6.1.x).
+/// The serial-line diagnostic counters of FC 08 (MODBUS Application Protocol v1.1b3 section 6.8.1; Modbus over
+/// Serial Line v1.02 section 6.1). Cleared by 08/0A and 08/01; a listening-only drive counts only bus messages.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct Counters {
     /// Messages with a valid CRC seen on the line, for any address (sub-function 0x0B).
@@ -36,6 +46,77 @@ pub struct Counters {
     pub slave_message: u16,
     /// Messages addressed to this drive that got no response, broadcasts included (0x0F).
     pub no_response: u16,
+    /// Messages answered with exception 07, negative acknowledge (0x10).
+    pub nak: u16,
+    /// Messages answered with exception 06, server device busy (0x11).
+    pub busy: u16,
+    /// Frames lost to a character overrun (0x12): here, more than 256 bytes without a frame boundary, more than
+    /// the receive buffer stores.
+    pub overrun: u16,
+}
+
+/// The communication state the serial line functions report beyond the FC 08 counters (MODBUS Application
+/// Protocol v1.1b3 sections 6.8.1, 6.9, 6.10).
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct CommState {
+    /// FC 0B's event counter: incremented once per successful message completion, not for exception responses
+    /// nor for FC 0B itself (6.9); cleared by 08/01 and 08/0A.
+    pub event_count: u16,
+    /// FC 0C's event log, the most recent event first, at most 64 (6.10).
+    pub events: VecDeque<u8>,
+    /// Listen only mode (08/04): the drive monitors the line, answers nothing and processes only 08/01.
+    pub listen_only: bool,
+    /// The diagnostic register (08/02): the profile's value at power-up and restart, 0 after 08/0A.
+    pub diagnostic_register: u16,
+    /// The ASCII input delimiter (08/03): LF until changed; RTU framing does not use it.
+    pub ascii_delimiter: u8,
+    /// The overrun error flag, set with the overrun counter and reset by 08/14.
+    pub overrun_flag: bool,
+}
+
+impl CommState {
+    fn power_up(profile: &Profile) -> Self {
+        Self {
+            event_count: 0,
+            events: VecDeque::with_capacity(event::LOG_CAPACITY),
+            listen_only: false,
+            diagnostic_register: power_up_diagnostic_register(profile),
+            ascii_delimiter: b'\n',
+            overrun_flag: false,
+        }
+    }
+}
+
+/// The diagnostic register's content at power-up: the profile's `value` of sub-function 02, else 0.
+fn power_up_diagnostic_register(profile: &Profile) -> u16 {
+    profile
+        .diagnostic(diag::RETURN_DIAGNOSTIC_REGISTER)
+        .and_then(|d| d.value)
+        .unwrap_or(0)
+}
+
+/// Which port a request came in on.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Via {
+    Tcp,
+    Rtu { broadcast: bool },
+}
+
+/// What FC 08 did: its response (none for 08/04), and whether the message counts as a completion for the event
+/// counter (not when it cleared that counter itself, 08/0A).
+struct DiagOutcome {
+    resp: Option<Response>,
+    counted: bool,
+}
+
+impl DiagOutcome {
+    fn reply(resp: Response) -> Self {
+        let counted = !resp.is_exception();
+        Self {
+            resp: Some(resp),
+            counted,
+        }
+    }
 }
 
 /// One Modbus/TCP connection's receive buffer: cuts the stream into ADUs by the MBAP length field.
@@ -84,6 +165,9 @@ pub struct Station {
     faults: FaultSet,
     unit: u8,
     counters: Counters,
+    comm: CommState,
+    /// An 08/01 restart to execute once the current message is done (true: clear the event log too).
+    pending_restart: Option<bool>,
     dead: bool,
     /// The values taken where the freedoms leave the wire side a choice.
     choices: Choices,
@@ -94,11 +178,14 @@ pub struct Station {
 impl Station {
     /// A station answering as unit `unit` (RTU slave address; on TCP the unit ids of the profile are answered too).
     pub fn new(model: Box<dyn DriveModel>, faults: FaultSet, unit: u8) -> Self {
+        let comm = CommState::power_up(model.profile());
         Self {
             model,
             faults,
             unit,
             counters: Counters::default(),
+            comm,
+            pending_restart: None,
             dead: false,
             choices: Choices::reference(),
             decisions: Vec::new(),
@@ -139,6 +226,11 @@ impl Station {
         self.counters
     }
 
+    /// The event counter, event log, listen only mode and diagnostic register.
+    pub fn comm_state(&self) -> &CommState {
+        &self.comm
+    }
+
     /// True once `stop-after-malformed` has silenced the drive.
     pub fn is_dead(&self) -> bool {
         self.dead
@@ -148,6 +240,41 @@ impl Station {
         if !self.faults.has(Fault::CountersFrozen) {
             f(&mut self.counters);
         }
+    }
+
+    /// Add an event to the FC 0C log (the most recent first; each new byte flushes the oldest past 64).
+    fn log_event(&mut self, e: u8) {
+        self.comm.events.push_front(e);
+        self.comm.events.truncate(event::LOG_CAPACITY);
+    }
+
+    /// Bit 5 of receive and send events: currently in listen only mode.
+    fn listen_bit(&self) -> u8 {
+        if self.comm.listen_only {
+            event::LISTEN_ONLY
+        } else {
+            0
+        }
+    }
+
+    /// Execute an 08/01 restart accepted while handling the message just done (spec 6.8.1: the response goes
+    /// out before the restart): the port leaves listen only mode, every counter and the event counter are
+    /// cleared, the diagnostic register and the delimiter return to their power-up values, the log is cleared
+    /// on FF 00 and gets the restart event (6.10: "Remote device Initiated Communication Restart", 00).
+    fn finish_message(&mut self) {
+        let Some(clear_log) = self.pending_restart.take() else {
+            return;
+        };
+        self.counters = Counters::default();
+        self.comm.event_count = 0;
+        self.comm.listen_only = false;
+        self.comm.diagnostic_register = power_up_diagnostic_register(self.model.profile());
+        self.comm.ascii_delimiter = b'\n';
+        self.comm.overrun_flag = false;
+        if clear_log {
+            self.comm.events.clear();
+        }
+        self.log_event(event::COMM_RESTART);
     }
 
     fn malformed(&mut self) {
@@ -204,7 +331,9 @@ impl Station {
             return None;
         }
         let pdu = &adu[tcp::MBAP_LEN..];
-        let resp = self.answer(now, header.unit_id, pdu)?;
+        let resp = self.answer(now, header.unit_id, pdu, Via::Tcp);
+        self.finish_message();
+        let resp = resp?;
         let mut body = self.pdu_bytes(&resp);
         if self.faults.has(Fault::TruncatedResponse) && body.len() > 1 {
             body.pop();
@@ -270,6 +399,16 @@ impl Station {
                             | DiscardReason::Overlong
                     ) {
                         self.count(|c| c.crc_error = c.crc_error.wrapping_add(1));
+                        // A receive event with its condition (spec 6.10): more bytes than the buffer holds
+                        // is a character overrun, anything else a communication error.
+                        let condition = if reason == DiscardReason::Overlong {
+                            self.count(|c| c.overrun = c.overrun.wrapping_add(1));
+                            self.comm.overrun_flag = true;
+                            event::RECEIVE_OVERRUN
+                        } else {
+                            event::RECEIVE_COMM_ERROR
+                        };
+                        self.log_event(event::RECEIVE | condition | self.listen_bit());
                         self.malformed();
                     }
                 }
@@ -282,6 +421,7 @@ impl Station {
     pub fn rtu_frame(&mut self, now: Duration, frame: &[u8]) -> Option<Wire> {
         let Ok(adu) = rtu::decode_adu(frame) else {
             self.count(|c| c.crc_error = c.crc_error.wrapping_add(1));
+            self.log_event(event::RECEIVE | event::RECEIVE_COMM_ERROR | self.listen_bit());
             self.malformed();
             return None;
         };
@@ -294,16 +434,22 @@ impl Station {
         if self.dead {
             return None;
         }
+        if self.comm.listen_only {
+            self.listening(adu.pdu, broadcast);
+            return None;
+        }
         self.count(|c| c.slave_message = c.slave_message.wrapping_add(1));
         let pdu = adu.pdu.to_vec();
-        let resp = self.answer(now, adu.address, &pdu);
+        let resp = self.answer(now, adu.address, &pdu, Via::Rtu { broadcast });
         let resp = match resp {
             Some(r) if !broadcast || self.faults.has(Fault::BroadcastAnswered) => r,
             _ => {
                 self.count(|c| c.no_response = c.no_response.wrapping_add(1));
+                self.finish_message();
                 return None;
             }
         };
+        self.finish_message();
         let mut body = self.pdu_bytes(&resp);
         if self.faults.has(Fault::TruncatedResponse) && body.len() > 1 {
             body.pop();
@@ -344,6 +490,18 @@ impl Station {
         if b.is_empty() {
             return b;
         }
+        if let Response::ReadFileRecord { sub_responses } = resp
+            && self.faults.has(Fault::FileRecordLengthWrong)
+        {
+            // Each sub-response's length byte (after FC and the response data length) loses the reference type.
+            let mut at = 2;
+            for s in sub_responses {
+                if let Some(len) = b.get_mut(at) {
+                    *len = len.wrapping_sub(1);
+                }
+                at += 2 + 2 * s.values.len();
+            }
+        }
         if resp.is_exception() {
             if self.faults.has(Fault::ExceptionWithoutFc) {
                 b[0] = 0x80;
@@ -362,40 +520,145 @@ impl Station {
         b
     }
 
-    /// The spec-level checks every server makes, then the model. `None`: the drive stays silent.
-    fn answer(&mut self, now: Duration, unit: u8, pdu: &[u8]) -> Option<Response> {
+    /// A message for this drive (or a broadcast) in listen only mode (spec 6.8.1, 04): monitored, logged as a
+    /// receive event with bit 5 set, not processed and not answered; only an 08/01 restart is acted on.
+    fn listening(&mut self, pdu: &[u8], broadcast: bool) {
+        let bcast = if broadcast {
+            event::RECEIVE_BROADCAST
+        } else {
+            0
+        };
+        self.log_event(event::RECEIVE | event::LISTEN_ONLY | bcast);
+        let restart = match Request::decode(pdu) {
+            Ok(Request::Diagnostics { sub_function, data })
+                if sub_function == diag::RESTART_COMMUNICATIONS
+                    && self.profile().function(FunctionCode::DIAGNOSTICS).is_some() =>
+            {
+                self.profile()
+                    .diagnostic(sub_function)
+                    .filter(|d| !d.check_data || diag_data_ok(d.counter, &data))
+                    .map(|_| data == diag::RESTART_CLEAR_LOG.to_be_bytes())
+            }
+            _ => None,
+        };
+        if restart.is_some() {
+            self.pending_restart = restart;
+            self.finish_message();
+        }
+    }
+
+    /// The spec-level checks every server makes, then the model, with the bookkeeping of the serial line
+    /// functions around them: the receive event before, the exception/NAK/busy counts, the event counter and
+    /// the send event after. `None`: the drive stays silent.
+    fn answer(&mut self, now: Duration, unit: u8, pdu: &[u8], via: Via) -> Option<Response> {
         let fc = FunctionCode(*pdu.first()?);
+        // Spec 6.10: a receive event is stored when a query arrives, before it is processed.
+        let bcast = if via == (Via::Rtu { broadcast: true }) {
+            event::RECEIVE_BROADCAST
+        } else {
+            0
+        };
+        self.log_event(event::RECEIVE | bcast);
+        let (resp, completed) = self.process(now, unit, fc, pdu, via)?;
+        let exception = resp.as_ref().and_then(|r| match r {
+            Response::Exception { code, .. } => Some(*code),
+            Response::CanOpenError { .. } => Some(ExceptionCode::EXTENDED),
+            _ => None,
+        });
+        if let Some(code) = exception {
+            self.count(|c| c.exception = c.exception.wrapping_add(1));
+            match code {
+                ExceptionCode::SERVER_DEVICE_BUSY => {
+                    self.count(|c| c.busy = c.busy.wrapping_add(1));
+                }
+                ExceptionCode(0x07) => self.count(|c| c.nak = c.nak.wrapping_add(1)),
+                _ => {}
+            }
+        }
+        // Spec 6.9: the event counter counts successful completions, not exception responses nor FC 0B.
+        let counts = (completed
+            || (exception.is_some() && self.faults.has(Fault::EventCounterCountsExceptions)))
+            && fc != FunctionCode::GET_COMM_EVENT_COUNTER;
+        if counts {
+            self.comm.event_count = self.comm.event_count.wrapping_add(1);
+        }
+        // Spec 6.10: a send event when processing ends, with the kind of exception sent.
+        let sent = match exception.map(|c| c.0) {
+            Some(1..=3) => event::SEND_READ_EXCEPTION,
+            Some(4) => event::SEND_ABORT_EXCEPTION,
+            Some(5 | 6) => event::SEND_BUSY_EXCEPTION,
+            Some(7) => event::SEND_NAK_EXCEPTION,
+            _ => 0,
+        };
+        self.log_event(event::SEND | sent | self.listen_bit());
+        resp
+    }
+
+    /// Answer one request: (the response or silence, whether the message completed normally). `None` when the
+    /// drive went silent for good.
+    fn process(
+        &mut self,
+        now: Duration,
+        unit: u8,
+        fc: FunctionCode,
+        pdu: &[u8],
+        via: Via,
+    ) -> Option<(Option<Response>, bool)> {
         let supported = !fc.is_exception() && self.profile().function(fc).is_some();
-        let resp = if !supported {
+        if !supported {
             // A function the profile does not list: a drive may serve it anyway (a freedom of the spec).
             self.decisions.push(ids::SERVED_EXTRA_FUNCTION);
-            Some(Response::exception(fc, ExceptionCode::ILLEGAL_FUNCTION))
-        } else {
-            match Request::decode(pdu) {
-                Err(_) => {
-                    self.malformed();
-                    if self.dead {
-                        return None;
-                    }
-                    Some(Response::exception(fc, ExceptionCode::ILLEGAL_DATA_VALUE))
+            return Some((
+                Some(Response::exception(fc, ExceptionCode::ILLEGAL_FUNCTION)),
+                false,
+            ));
+        }
+        let req = match Request::decode(pdu) {
+            Ok(req) => req,
+            Err(_) => {
+                self.malformed();
+                if self.dead {
+                    return None;
                 }
-                Ok(req) => match self.spec_checks(&req) {
-                    Some(e) => {
-                        self.decisions.extend(e.freedom);
-                        Some(Response::exception(fc, e.code))
-                    }
-                    None if fc == FunctionCode::DIAGNOSTICS => Some(self.diagnostics(&req)),
-                    None => {
-                        self.model.advance(now);
-                        self.model.handle(now, unit, &req)
-                    }
-                },
+                return Some((
+                    Some(Response::exception(fc, ExceptionCode::ILLEGAL_DATA_VALUE)),
+                    false,
+                ));
             }
         };
-        if resp.as_ref().is_some_and(|r| r.is_exception()) {
-            self.count(|c| c.exception = c.exception.wrapping_add(1));
-        }
-        resp
+        let resp = if let Some(e) = self.spec_checks(&req) {
+            self.decisions.extend(e.freedom);
+            Some(Response::exception(fc, e.code))
+        } else {
+            match req {
+                Request::Diagnostics { .. } => {
+                    let d = self.diagnostics(&req, via);
+                    return Some((d.resp, d.counted));
+                }
+                Request::GetCommEventCounter => Some(Response::GetCommEventCounter {
+                    status: 0,
+                    event_count: self.comm.event_count,
+                }),
+                Request::GetCommEventLog => {
+                    let mut events: Vec<u8> = self.comm.events.iter().copied().collect();
+                    if self.faults.has(Fault::EventLogOldestFirst) {
+                        events.reverse();
+                    }
+                    Some(Response::GetCommEventLog {
+                        status: 0,
+                        event_count: self.comm.event_count,
+                        message_count: self.counters.bus_message,
+                        events,
+                    })
+                }
+                _ => {
+                    self.model.advance(now);
+                    self.model.handle(now, unit, &req)
+                }
+            }
+        };
+        let completed = resp.as_ref().is_some_and(|r| !r.is_exception());
+        Some((resp, completed))
     }
 
     /// Quantity limits and FC 05 values, per the application protocol spec's state diagrams.
@@ -467,50 +730,99 @@ impl Station {
         }
     }
 
-    /// FC 08 over the counters, for the sub-functions the profile lists.
-    fn diagnostics(&mut self, req: &Request) -> Response {
+    /// FC 08 for the sub-functions the profile lists (spec 6.8.1, figure 18): an unlisted sub-function, or a
+    /// serial-port one on Modbus/TCP, is exception 01; a data field of the wrong length (or, with
+    /// `check_data`, of the wrong value) is 03.
+    fn diagnostics(&mut self, req: &Request, via: Via) -> DiagOutcome {
+        let exc = |code| DiagOutcome::reply(Response::exception(FunctionCode::DIAGNOSTICS, code));
         let Request::Diagnostics { sub_function, data } = req else {
-            return Response::exception(FunctionCode::DIAGNOSTICS, ExceptionCode::ILLEGAL_FUNCTION);
+            return exc(ExceptionCode::ILLEGAL_FUNCTION);
         };
-        let Some(d) = self
+        let Some((d, check_data)) = self
             .profile()
-            .diagnostics
-            .iter()
-            .find(|d| d.sub_function == *sub_function)
-            .map(|d| d.counter)
+            .diagnostic(*sub_function)
+            .map(|d| (d.counter, d.check_data))
         else {
-            return Response::exception(FunctionCode::DIAGNOSTICS, ExceptionCode::ILLEGAL_FUNCTION);
+            return exc(ExceptionCode::ILLEGAL_FUNCTION);
         };
-        if d != DiagCounter::Echo && data.len() != 2 {
-            return Response::exception(
-                FunctionCode::DIAGNOSTICS,
-                ExceptionCode::ILLEGAL_DATA_VALUE,
-            );
+        if via == Via::Tcp && d.serial_line_only() {
+            return exc(ExceptionCode::ILLEGAL_FUNCTION);
         }
+        if d != DiagCounter::Echo && data.len() != 2 {
+            return exc(ExceptionCode::ILLEGAL_DATA_VALUE);
+        }
+        if check_data && !diag_data_ok(d, data) {
+            return exc(ExceptionCode::ILLEGAL_DATA_VALUE);
+        }
+        let echo = || {
+            DiagOutcome::reply(Response::Diagnostics {
+                sub_function: *sub_function,
+                data: data.clone(),
+            })
+        };
         let c = self.counters;
         let value = match d {
-            DiagCounter::Echo => {
-                return Response::Diagnostics {
-                    sub_function: *sub_function,
-                    data: data.clone(),
-                };
-            }
+            DiagCounter::Echo => return echo(),
             DiagCounter::Clear => {
+                // "Clear Counters and Diagnostic Register"; the event counter too (spec 6.9).
                 self.counters = Counters::default();
-                return Response::Diagnostics {
-                    sub_function: *sub_function,
-                    data: data.clone(),
+                self.comm.event_count = 0;
+                self.comm.diagnostic_register = 0;
+                return DiagOutcome {
+                    counted: false,
+                    ..echo()
                 };
             }
+            DiagCounter::Restart => {
+                // The normal response goes out before the restart is executed.
+                self.pending_restart = Some(data[..] == diag::RESTART_CLEAR_LOG.to_be_bytes());
+                return echo();
+            }
+            DiagCounter::AsciiDelimiter => {
+                self.comm.ascii_delimiter = data.first().copied().unwrap_or(b'\n');
+                return echo();
+            }
+            DiagCounter::ListenOnly => {
+                if self.faults.has(Fault::ListenOnlyIgnored) {
+                    return echo();
+                }
+                // No response; the mode starts now (event 04, spec 6.10).
+                self.comm.listen_only = true;
+                self.log_event(event::ENTERED_LISTEN_ONLY);
+                return DiagOutcome {
+                    resp: None,
+                    counted: true,
+                };
+            }
+            DiagCounter::ClearOverrun => {
+                self.counters.overrun = 0;
+                self.comm.overrun_flag = false;
+                return echo();
+            }
+            DiagCounter::DiagnosticRegister => self.comm.diagnostic_register,
             DiagCounter::BusMessage => c.bus_message,
             DiagCounter::CrcError => c.crc_error,
             DiagCounter::Exception => c.exception,
             DiagCounter::SlaveMessage => c.slave_message,
             DiagCounter::NoResponse => c.no_response,
+            DiagCounter::Nak => c.nak,
+            DiagCounter::Busy => c.busy,
+            DiagCounter::Overrun => c.overrun,
         };
-        Response::Diagnostics {
+        DiagOutcome::reply(Response::Diagnostics {
             sub_function: *sub_function,
             data: value.to_be_bytes().to_vec(),
-        }
+        })
+    }
+}
+
+/// The request data field section 6.8.1 gives a sub-function: any for 00, 00 00 or FF 00 for 01 (FF 00 also
+/// clears the event log), CHAR 00 for 03, 00 00 for the others.
+fn diag_data_ok(d: DiagCounter, data: &[u8]) -> bool {
+    match d {
+        DiagCounter::Echo => true,
+        DiagCounter::Restart => data == [0x00, 0x00] || data == [0xFF, 0x00],
+        DiagCounter::AsciiDelimiter => matches!(data, [_, 0x00]),
+        _ => data == [0x00, 0x00],
     }
 }

@@ -10,7 +10,8 @@ use codec::pdu::{Direction, MAX_PDU_LEN, Pdu, Request, Response};
 use codec::tcp::{self, Mbap};
 use codec::{
     CanOpenAccess, CharFormat, DecodeError, DeviceIdObject, DeviceIdResponse, ExceptionCode,
-    FramerEvent, Framing, FunctionCode, Mnemonic, Parity, RtuFramer, RtuTiming, decode_any, rtu,
+    FileRecordData, FileRecordRef, FileRecordWrite, FramerEvent, Framing, FunctionCode, Mnemonic,
+    Parity, RtuFramer, RtuTiming, decode_any, rtu,
 };
 use proptest::collection::vec;
 use proptest::prelude::*;
@@ -18,7 +19,8 @@ use proptest::sample::select;
 
 /// Function codes the codec decodes into a typed variant (in either direction).
 const TYPED: &[u8] = &[
-    0x01, 0x02, 0x03, 0x04, 0x05, 0x06, 0x08, 0x0F, 0x10, 0x17, 0x2B, 0x41, 0x42,
+    0x01, 0x02, 0x03, 0x04, 0x05, 0x06, 0x07, 0x08, 0x0B, 0x0C, 0x0F, 0x10, 0x11, 0x14, 0x15, 0x16,
+    0x17, 0x18, 0x2B, 0x41, 0x42,
 ];
 
 // ---------------------------------------------------------------------------------------------------------------
@@ -110,33 +112,114 @@ fn canopen_response() -> impl Strategy<Value = CanOpenAccess> {
     ]
 }
 
-/// Device identification objects that fit: FC, MEI, 4 header bytes, count, then (id, len, value) each.
+/// Device identification objects that fit: FC, MEI, 4 header bytes, count, then (id, len, value) each. The
+/// header holds values spec 6.21 allows (read code 1-4, conformity 01-03/81-83, more follows 00 with next
+/// object 00, or FF with any).
 fn device_id_response() -> impl Strategy<Value = DeviceIdResponse> {
     const BUDGET: usize = MAX_PDU_LEN - 7;
     let objects = prop_oneof![
         vec((any::<u8>(), vec(any::<u8>(), 0..=48)), 0..=12),
         (any::<u8>(), vec(any::<u8>(), 0..=BUDGET - 2)).prop_map(|o| vec![o]),
     ];
-    (any::<u8>(), any::<u8>(), any::<u8>(), any::<u8>(), objects).prop_map(
-        |(read_code, conformity, more_follows, next_object_id, objs)| {
-            let mut used = 0;
-            let objects = objs
-                .into_iter()
-                .take_while(|(_, v)| {
-                    used += 2 + v.len();
-                    used <= BUDGET
-                })
-                .map(|(id, value)| DeviceIdObject { id, value })
-                .collect();
-            DeviceIdResponse {
-                read_code,
-                conformity,
-                more_follows,
-                next_object_id,
-                objects,
-            }
-        },
+    let more = prop_oneof![Just((0u8, 0u8)), any::<u8>().prop_map(|next| (0xFF, next))];
+    (
+        1u8..=4,
+        select(vec![0x01u8, 0x02, 0x03, 0x81, 0x82, 0x83]),
+        more,
+        objects,
     )
+        .prop_map(
+            |(read_code, conformity, (more_follows, next_object_id), objs)| {
+                let mut used = 0;
+                let objects = objs
+                    .into_iter()
+                    .take_while(|(_, v)| {
+                        used += 2 + v.len();
+                        used <= BUDGET
+                    })
+                    .map(|(id, value)| DeviceIdObject { id, value })
+                    .collect();
+                DeviceIdResponse {
+                    read_code,
+                    conformity,
+                    more_follows,
+                    next_object_id,
+                    objects,
+                }
+            },
+        )
+}
+
+/// FC 14 sub-requests: up to 35 of 7 bytes (PDU = 2 + 7n <= 253), any values.
+fn file_read_request() -> impl Strategy<Value = Vec<FileRecordRef>> {
+    vec(
+        (any::<u8>(), any::<u16>(), any::<u16>(), any::<u16>()).prop_map(
+            |(reference_type, file_number, record_number, record_length)| FileRecordRef {
+                reference_type,
+                file_number,
+                record_number,
+                record_length,
+            },
+        ),
+        0..=(MAX_PDU_LEN - 2) / 7,
+    )
+}
+
+/// Take items while their wire sizes fit `budget` bytes.
+fn fitting<T>(items: Vec<T>, budget: usize, size: impl Fn(&T) -> usize) -> Vec<T> {
+    let mut used = 0;
+    items
+        .into_iter()
+        .take_while(|i| {
+            used += size(i);
+            used <= budget
+        })
+        .collect()
+}
+
+/// FC 14 sub-responses (1 + 1 + 2n bytes each) within the PDU's 251 bytes after FC and length.
+fn file_read_response() -> impl Strategy<Value = Vec<FileRecordData>> {
+    vec((any::<u8>(), vec(any::<u16>(), 0..=124)), 0..=8).prop_map(|subs| {
+        let subs = subs
+            .into_iter()
+            .map(|(reference_type, values)| FileRecordData {
+                reference_type,
+                values,
+            })
+            .collect();
+        fitting(subs, MAX_PDU_LEN - 2, |s: &FileRecordData| {
+            2 + 2 * s.values.len()
+        })
+    })
+}
+
+/// FC 15 sub-requests (7 + 2n bytes each) within 251 bytes.
+fn file_write() -> impl Strategy<Value = Vec<FileRecordWrite>> {
+    vec(
+        (
+            any::<u8>(),
+            any::<u16>(),
+            any::<u16>(),
+            vec(any::<u16>(), 0..=122),
+        ),
+        0..=8,
+    )
+    .prop_map(|subs| {
+        let subs = subs
+            .into_iter()
+            .map(
+                |(reference_type, file_number, record_number, values)| FileRecordWrite {
+                    reference_type,
+                    file_number,
+                    record_number,
+                    values,
+                },
+            )
+            .collect();
+        fitting(subs, MAX_PDU_LEN - 2, |s: &FileRecordWrite| {
+            7 + 2 * s.values.len()
+        })
+    })
 }
 
 /// Every request variant with valid contents. `framer_safe` limits Diagnostics to the 2 data bytes the RTU
@@ -162,6 +245,20 @@ fn request_strategy(framer_safe: bool) -> BoxedStrategy<Request> {
             .prop_map(|(address, value)| Request::WriteSingleRegister { address, value }),
         (any::<u16>(), vec(any::<u8>(), diag_len))
             .prop_map(|(sub_function, data)| Request::Diagnostics { sub_function, data }),
+        Just(Request::ReadExceptionStatus),
+        Just(Request::GetCommEventCounter),
+        Just(Request::GetCommEventLog),
+        Just(Request::ReportServerId),
+        file_read_request().prop_map(|sub_requests| Request::ReadFileRecord { sub_requests }),
+        file_write().prop_map(|sub_requests| Request::WriteFileRecord { sub_requests }),
+        (any::<u16>(), any::<u16>(), any::<u16>()).prop_map(|(address, and_mask, or_mask)| {
+            Request::MaskWriteRegister {
+                address,
+                and_mask,
+                or_mask,
+            }
+        }),
+        any::<u16>().prop_map(|address| Request::ReadFifoQueue { address }),
         // data = ceil(quantity / 8) bytes, PDU = 6 + data <= 253
         (any::<u16>(), 0u16..=((MAX_PDU_LEN as u16 - 6) * 8)).prop_flat_map(
             |(address, quantity)| {
@@ -203,7 +300,7 @@ fn request_strategy(framer_safe: bool) -> BoxedStrategy<Request> {
         typed.boxed()
     } else {
         prop_oneof![
-            14 => typed,
+            22 => typed,
             1 => (untyped_fc(), vec(any::<u8>(), 0..=MAX_PDU_LEN - 1))
                 .prop_map(|(function, data)| Request::Raw { function, data }),
             1 => raw_mei().prop_map(|data| Request::Raw {
@@ -245,6 +342,38 @@ fn response_strategy(framer_safe: bool) -> BoxedStrategy<Response> {
             .prop_map(|(address, value)| Response::WriteSingleRegister { address, value }),
         (any::<u16>(), vec(any::<u8>(), diag_len))
             .prop_map(|(sub_function, data)| Response::Diagnostics { sub_function, data }),
+        any::<u8>().prop_map(|status| Response::ReadExceptionStatus { status }),
+        (any::<u16>(), any::<u16>()).prop_map(|(status, event_count)| {
+            Response::GetCommEventCounter {
+                status,
+                event_count,
+            }
+        }),
+        (
+            any::<u16>(),
+            any::<u16>(),
+            any::<u16>(),
+            vec(any::<u8>(), 0..=64)
+        )
+            .prop_map(|(status, event_count, message_count, events)| {
+                Response::GetCommEventLog {
+                    status,
+                    event_count,
+                    message_count,
+                    events,
+                }
+            }),
+        vec(any::<u8>(), 1..=MAX_PDU_LEN - 2).prop_map(|data| Response::ReportServerId { data }),
+        file_read_response().prop_map(|sub_responses| Response::ReadFileRecord { sub_responses }),
+        file_write().prop_map(|sub_requests| Response::WriteFileRecord { sub_requests }),
+        (any::<u16>(), any::<u16>(), any::<u16>()).prop_map(|(address, and_mask, or_mask)| {
+            Response::MaskWriteRegister {
+                address,
+                and_mask,
+                or_mask,
+            }
+        }),
+        vec(any::<u16>(), 0..=31).prop_map(|values| Response::ReadFifoQueue { values }),
         (any::<u16>(), any::<u16>())
             .prop_map(|(address, quantity)| Response::WriteMultipleCoils { address, quantity }),
         (any::<u16>(), any::<u16>()).prop_map(|(address, quantity)| {
@@ -264,7 +393,7 @@ fn response_strategy(framer_safe: bool) -> BoxedStrategy<Response> {
         typed.boxed()
     } else {
         prop_oneof![
-            16 => typed,
+            24 => typed,
             1 => (untyped_fc(), vec(any::<u8>(), 0..=MAX_PDU_LEN - 1))
                 .prop_map(|(function, data)| Response::Raw { function, data }),
             1 => raw_mei().prop_map(|data| Response::Raw {
@@ -372,7 +501,7 @@ proptest! {
 /// Random bytes, a third of them starting with a typed function code (or an exception) to reach deeper rules.
 fn pdu_like() -> impl Strategy<Value = Vec<u8>> {
     let mut heads: Vec<u8> = TYPED.to_vec();
-    heads.extend([0x81, 0x83, 0xAB, 0x90]);
+    heads.extend([0x81, 0x83, 0xAB, 0x90, 0x94, 0x98]);
     prop_oneof![
         2 => vec(any::<u8>(), 0..=300),
         1 => (select(heads), vec(any::<u8>(), 0..=299)).prop_map(|(h, mut rest)| {

@@ -44,6 +44,12 @@ vector_files! {
     truncation_vectors => "truncation.toml",
     // FC 2B: SD2x CANopen access, its extended exception, device identification
     fc2b_vectors => "fc2b.toml",
+    // FC 07, 08, 0B, 0C, 11: the serial-line-only functions
+    serial_line_vectors => "serial_line.toml",
+    // FC 14 / FC 15: file records
+    file_record_vectors => "file_records.toml",
+    // FC 16 mask write, FC 18 FIFO queue
+    mask_write_fifo_vectors => "mask_write_fifo.toml",
     // IMS vendor codes 0x41/0x42 and mnemonics
     vendor_vectors => "vendor.toml",
     // RTU character formats and timing
@@ -270,6 +276,64 @@ fn framer_vendor_rule_cuts_without_silence() {
     assert_eq!(frames(&f.push(Duration::ZERO, &resp)), vec![resp]);
 }
 
+/// The length rules of FC 07, 0B, 0C, 11, 14, 15, 16, 18 (spec section 6) in both directions: the spec's example
+/// frames back to back are cut by length and CRC alone, with no silence between them.
+#[test]
+fn framer_cuts_the_serial_line_file_and_fifo_functions_without_silence() {
+    let requests: Vec<Vec<u8>> = [
+        &raw![0x07][..],
+        &raw![0x08, 0x00, 0x00, 0xA5, 0x37],
+        &raw![0x0B],
+        &raw![0x0C],
+        &raw![0x11],
+        &raw![
+            0x14, 0x0E, 0x06, 0x00, 0x04, 0x00, 0x01, 0x00, 0x02, 0x06, 0x00, 0x03, 0x00, 0x09,
+            0x00, 0x02
+        ],
+        &raw![
+            0x15, 0x0D, 0x06, 0x00, 0x04, 0x00, 0x07, 0x00, 0x03, 0x06, 0xAF, 0x04, 0xBE, 0x10,
+            0x0D
+        ],
+        &raw![0x16, 0x00, 0x04, 0x00, 0xF2, 0x00, 0x25],
+        &raw![0x18, 0x04, 0xDE],
+    ]
+    .iter()
+    .map(|pdu| rtu_frame(0x11, pdu))
+    .collect();
+    let responses: Vec<Vec<u8>> = [
+        &raw![0x07, 0x6D][..],
+        &raw![0x08, 0x00, 0x00, 0xA5, 0x37],
+        &raw![0x0B, 0xFF, 0xFF, 0x01, 0x08],
+        &raw![0x0C, 0x08, 0x00, 0x00, 0x01, 0x08, 0x01, 0x21, 0x20, 0x00],
+        &raw![0x11, 0x03, 0x42, 0xFF, 0x31],
+        &raw![
+            0x14, 0x0C, 0x05, 0x06, 0x0D, 0xFE, 0x00, 0x20, 0x05, 0x06, 0x33, 0xCD, 0x00, 0x40
+        ],
+        &raw![
+            0x15, 0x0D, 0x06, 0x00, 0x04, 0x00, 0x07, 0x00, 0x03, 0x06, 0xAF, 0x04, 0xBE, 0x10,
+            0x0D
+        ],
+        &raw![0x16, 0x00, 0x04, 0x00, 0xF2, 0x00, 0x25],
+        &raw![0x18, 0x00, 0x06, 0x00, 0x02, 0x01, 0xB8, 0x12, 0x84],
+        &raw![0x94, 0x02],
+    ]
+    .iter()
+    .map(|pdu| rtu_frame(0x11, pdu))
+    .collect();
+    for (dir, adus) in [
+        (Direction::Request, requests),
+        (Direction::Response, responses),
+    ] {
+        let mut f = RtuFramer::new(dir, timing(), Vec::new());
+        let ev = f.push(Duration::ZERO, &adus.concat());
+        assert_eq!(frames(&ev), adus, "{dir:?}");
+        assert!(f.pending().is_empty(), "{dir:?}: {:02X?}", f.pending());
+        for adu in &adus {
+            assert!(rtu::decode(adu, dir).is_ok(), "{dir:?} {adu:02X?}");
+        }
+    }
+}
+
 // ---------------------------------------------------------------------------------------------------------------
 // Encoding limits
 // ---------------------------------------------------------------------------------------------------------------
@@ -315,6 +379,46 @@ fn encode_refuses_a_pdu_over_253_bytes() {
             field: "PDU",
             len: 254,
             max: 253
+        })
+    );
+}
+
+/// The FIFO count (spec 6.18: at most 31) and the event log (6.10: at most 64 events) are limits of the encoder
+/// too: what it refuses, a strict decoder would refuse.
+#[test]
+fn encode_refuses_32_fifo_registers_and_65_events() {
+    use codec::EncodeError;
+    assert!(
+        Response::ReadFifoQueue {
+            values: vec![0; 31]
+        }
+        .to_bytes()
+        .is_ok()
+    );
+    assert_eq!(
+        Response::ReadFifoQueue {
+            values: vec![0; 32]
+        }
+        .to_bytes(),
+        Err(EncodeError::TooLong {
+            field: "FIFO values",
+            len: 32,
+            max: 31
+        })
+    );
+    let log = |n| Response::GetCommEventLog {
+        status: 0,
+        event_count: 0,
+        message_count: 0,
+        events: vec![0; n],
+    };
+    assert!(log(64).to_bytes().is_ok());
+    assert_eq!(
+        log(65).to_bytes(),
+        Err(EncodeError::TooLong {
+            field: "events",
+            len: 65,
+            max: 64
         })
     );
 }

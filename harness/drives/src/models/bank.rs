@@ -72,6 +72,10 @@ pub struct RegisterBank {
     choices: Choices,
     /// Freedoms that decided the answer being given (drained per request).
     decisions: Vec<crate::choices::Decision>,
+    /// FC 07: the status byte and the coils that drive outputs 0, 1, ...
+    exception_status: (u8, Vec<u16>),
+    exception_status_reversed: bool,
+    mask_write_wrong: bool,
 }
 
 /// The value a register starts with: its default, else 0 moved into its range.
@@ -146,6 +150,13 @@ impl RegisterBank {
             range_unchecked: faults.has(Fault::RangeUnchecked),
             choices: choices.clone(),
             decisions: Vec::new(),
+            exception_status: profile
+                .exception_status
+                .as_ref()
+                .map(|e| (e.get_ref().value, e.get_ref().coils.clone()))
+                .unwrap_or_default(),
+            exception_status_reversed: faults.has(Fault::ExceptionStatusReversed),
+            mask_write_wrong: faults.has(Fault::MaskWriteWrong),
         }
     }
 
@@ -443,6 +454,35 @@ impl RegisterBank {
         }
     }
 
+    /// FC 07 (spec 6.7): the profile's `[exception_status]` byte with each listed coil's state in its bit
+    /// (output i in bit i); all outputs off for a profile without the table.
+    pub fn exception_status(&self) -> u8 {
+        let (value, coils) = &self.exception_status;
+        let mut status = *value;
+        for (i, c) in coils.iter().enumerate().take(8) {
+            if self.coils.get(c).is_some_and(|b| b.state) {
+                status |= 1 << i;
+            } else {
+                status &= !(1 << i);
+            }
+        }
+        if self.exception_status_reversed {
+            status.reverse_bits()
+        } else {
+            status
+        }
+    }
+
+    /// FC 16's result (spec 6.16), or the faulty one under `Fault::MaskWriteWrong`: the OR mask applied
+    /// unmasked, a common slip.
+    pub fn masked(&self, current: u16, and_mask: u16, or_mask: u16) -> u16 {
+        if self.mask_write_wrong {
+            (current & and_mask) | or_mask
+        } else {
+            super::data_model::mask_write(current, and_mask, or_mask)
+        }
+    }
+
     /// The addresses of a bit table in ascending order.
     pub fn bit_addresses(&self, table: BitTable) -> Vec<u16> {
         self.bits(table).keys().copied().collect()
@@ -488,5 +528,13 @@ impl DataModel for RegisterBank {
 
     fn write_coils(&mut self, address: u16, states: &[bool]) -> Result<(), Rejection> {
         RegisterBank::write_coils(self, address, states)
+    }
+
+    fn exception_status(&self) -> Result<u8, Rejection> {
+        Ok(RegisterBank::exception_status(self))
+    }
+
+    fn masked(&self, current: u16, and_mask: u16, or_mask: u16) -> u16 {
+        RegisterBank::masked(self, current, and_mask, or_mask)
     }
 }

@@ -1,11 +1,11 @@
 //! The standard data-model function codes, implemented once for every drive model.
 //!
-//! FC 01/02 (read bits), 03/04 (read registers), 05/0F (write coils) and 06/10/17 (write registers) have the
-//! same shape on every drive: check the address range, validate the whole request, apply it all or nothing,
-//! answer. What differs is the storage behind them and what a write sets off (a move, a watchdog restart, a
-//! DS402 transition). A model implements [`DataModel`]: reading words and bits, planning a register write
-//! without applying it, committing the plan; [`serve`] does the rest, in the order the MODBUS Application
-//! Protocol v1.1b3 (section 6) gives.
+//! FC 01/02 (read bits), 03/04 (read registers), 05/0F (write coils), 06/10/17 (write registers), 16 (mask
+//! write a register) and 07 (the exception status outputs) have the same shape on every drive: check the
+//! address range, validate the whole request, apply it all or nothing, answer. What differs is the storage
+//! behind them and what a write sets off (a move, a watchdog restart, a DS402 transition). A model implements
+//! [`DataModel`]: reading words and bits, planning a register write without applying it, committing the plan;
+//! [`serve`] does the rest, in the order the MODBUS Application Protocol v1.1b3 (section 6) gives.
 
 use codec::{ExceptionCode, Request, Response, bits};
 
@@ -79,9 +79,27 @@ pub trait DataModel {
         self.commit(plan);
         Ok(())
     }
+
+    /// FC 07 (spec 6.7): the eight exception status outputs, output 0 in bit 0. A drive without them answers
+    /// "illegal function".
+    fn exception_status(&self) -> Result<u8, Rejection> {
+        Err(ExceptionCode::ILLEGAL_FUNCTION.into())
+    }
+
+    /// The value FC 16 stores for `current` (spec 6.16, [`mask_write`]); a model overrides it only to break it
+    /// (`Fault::MaskWriteWrong`).
+    fn masked(&self, current: u16, and_mask: u16, or_mask: u16) -> u16 {
+        mask_write(current, and_mask, or_mask)
+    }
 }
 
-/// Answer a data-model request (FC 01-06, 0F, 10, 17) from `model`; `None` for any other request.
+/// Spec 6.16: Result = (Current Contents AND And_Mask) OR (Or_Mask AND (NOT And_Mask)). The AND mask keeps
+/// the bits it sets, the OR mask sets the others.
+pub fn mask_write(current: u16, and_mask: u16, or_mask: u16) -> u16 {
+    (current & and_mask) | (or_mask & !and_mask)
+}
+
+/// Answer a data-model request (FC 01-07, 0F, 10, 16, 17) from `model`; `None` for any other request.
 ///
 /// The station has already checked the quantities (exception 03) and the FC 05 value; what is left is the
 /// model's address, access and value rules.
@@ -177,10 +195,51 @@ pub fn serve<M: DataModel + ?Sized>(model: &mut M, request: &Request) -> Option<
                 values,
             })
         }
+        Request::ReadExceptionStatus => model
+            .exception_status()
+            .map_or_else(exc, |status| Response::ReadExceptionStatus { status }),
+        Request::MaskWriteRegister {
+            address,
+            and_mask,
+            or_mask,
+        } => {
+            // Spec 6.16 (figure 26): the reference address must name a holding register the model can read and
+            // write (02); the result goes through the model's own write path, so its hooks and range checks (03)
+            // apply as to FC 06. The response, an echo, is sent after the register has been written.
+            let answer = model
+                .read_registers(RegTable::Holding, *address, 1)
+                .and_then(|current| {
+                    let current = current.first().copied().unwrap_or(0);
+                    let result = model.masked(current, *and_mask, *or_mask);
+                    model.write_registers(*address, &[result])
+                });
+            match answer {
+                Ok(()) => Response::MaskWriteRegister {
+                    address: *address,
+                    and_mask: *and_mask,
+                    or_mask: *or_mask,
+                },
+                Err(e) => exc(e),
+            }
+        }
         _ => return None,
     });
     if let Some(d) = decided {
         model.decided(d);
     }
     answer
+}
+
+#[cfg(test)]
+mod tests {
+    use super::mask_write;
+
+    /// The example of spec 6.16 and its note: OR mask 0 only ANDs, AND mask 0 gives the OR mask.
+    #[test]
+    fn mask_write_follows_the_spec_example() {
+        assert_eq!(mask_write(0x12, 0xF2, 0x25), 0x17);
+        assert_eq!(mask_write(0x1234, 0x00FF, 0), 0x0034);
+        assert_eq!(mask_write(0x1234, 0, 0xBEEF), 0xBEEF);
+        assert_eq!(mask_write(0x1234, 0xFFFF, 0xBEEF), 0x1234);
+    }
 }

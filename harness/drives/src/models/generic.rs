@@ -1,36 +1,219 @@
-//! A plain Modbus server over any profile: FC 01-06, 0F, 10, 17 on the profile's data model and FC 2B/0E
-//! device identification, answering as the MODBUS Application Protocol v1.1b3 requires.
+//! A plain Modbus server over any profile: FC 01-07, 0F, 10, 16, 17 on the profile's data model, FC 11 report
+//! server id, FC 14/15 file records, FC 18 FIFO queues and FC 2B/0E device identification, answering as the
+//! MODBUS Application Protocol v1.1b3 requires (FC 08, 0B and 0C are the station's).
 //!
 //! The station has already rejected unsupported function codes (01), malformed PDUs and bad quantities (03);
 //! what is left here is the address check of each state diagram (02) and the profile's access and range rules
 //! (see `bank`). Used for every profile that has no model of its own (`corpus/profiles/generic.toml` is the
 //! reference one); the device identification code is shared with the MDrive/LMD model.
 
+use std::collections::BTreeMap;
 use std::time::Duration;
 
 use super::DriveModel;
 use super::bank::RegisterBank;
 use super::data_model;
 use crate::choices::{Choices, Decision};
-use crate::faults::FaultSet;
-use crate::profile::Profile;
+use crate::faults::{Fault, FaultSet};
+use crate::profile::{Access, Profile};
+use codec::codes::{MAX_FIFO_COUNT, file};
 use codec::mei::read_code;
 use codec::{
-    DeviceIdObject, DeviceIdResponse, ExceptionCode, FunctionCode, MAX_PDU_LEN, Request, Response,
+    DeviceIdObject, DeviceIdResponse, ExceptionCode, FileRecordData, FileRecordRef,
+    FileRecordWrite, FunctionCode, MAX_PDU_LEN, Request, Response,
 };
 
-/// A spec-conforming Modbus server over a profile's registers, coils and discrete inputs.
+/// A spec-conforming Modbus server over a profile's registers, coils, discrete inputs, files and FIFO queues.
 pub struct Generic {
     profile: Profile,
     bank: RegisterBank,
+    /// Each file's access and records (all `records` of them), by file number.
+    files: BTreeMap<u16, (Access, Vec<u16>)>,
+    faults: FaultSet,
 }
 
 impl Generic {
     /// Build the model from its profile; model-level faults (word order, reserved-readable, read-only-writable,
-    /// range-unchecked) act through the register bank.
+    /// range-unchecked, the FC 07 and 16 ones) act through the register bank, those of FC 11, 14, 15 and 18
+    /// here.
     pub fn new(profile: Profile, faults: FaultSet, choices: Choices) -> Self {
         let bank = RegisterBank::new(&profile, &faults, &choices);
-        Self { profile, bank }
+        let files = profile
+            .files
+            .iter()
+            .map(|f| {
+                let f = f.get_ref();
+                let mut records = f.values.clone();
+                records.resize(usize::from(f.records), 0);
+                (f.number, (f.access, records))
+            })
+            .collect();
+        Self {
+            profile,
+            bank,
+            files,
+            faults,
+        }
+    }
+
+    /// The records of file `number` (tests inspect them).
+    pub fn file(&self, number: u16) -> Option<&[u16]> {
+        self.files.get(&number).map(|(_, r)| r.as_slice())
+    }
+
+    /// The largest PDU this device answers.
+    fn max_pdu(&self) -> usize {
+        usize::from(self.profile.device.max_pdu).min(MAX_PDU_LEN)
+    }
+
+    /// Report Server ID (FC 11, spec 6.13): the profile's id, run indicator and additional data.
+    fn report_server_id(&self) -> Response {
+        let Some(sid) = &self.profile.server_id else {
+            // Profile validation requires the table with FC 11; without it there is nothing to report.
+            return Response::exception(
+                FunctionCode::REPORT_SERVER_ID,
+                ExceptionCode::SERVER_DEVICE_FAILURE,
+            );
+        };
+        let sid = sid.get_ref();
+        let mut data = sid.data();
+        if sid.run_indicator && self.faults.has(Fault::RunIndicatorOne) {
+            data[sid.id.len()] = 0x01;
+        }
+        Response::ReportServerId { data }
+    }
+
+    /// The file and first record a sub-request names, if the state diagrams of spec 6.14/6.15 (figures 24,
+    /// 25) let it through: reference type 6, a file of the profile, record number 0x0000-0x270F, and the
+    /// group inside the file; else exception 02. `write` also needs a writable file, a read a readable one.
+    fn file_group(
+        &self,
+        reference_type: u8,
+        number: u16,
+        record: u16,
+        length: usize,
+        write: bool,
+    ) -> Result<(u16, usize), ExceptionCode> {
+        let bad = ExceptionCode::ILLEGAL_DATA_ADDRESS;
+        let (access, records) = self.files.get(&number).ok_or(bad)?;
+        let allowed = if write {
+            access.writable() || self.faults.has(Fault::ReadOnlyWritable)
+        } else {
+            access.readable()
+        };
+        let end = usize::from(record) + length;
+        if reference_type != file::REFERENCE_TYPE
+            || !allowed
+            || u32::from(record) >= file::RECORDS_PER_FILE
+            || end > records.len()
+        {
+            return Err(bad);
+        }
+        Ok((number, usize::from(record)))
+    }
+
+    /// Read File Record (FC 14, spec 6.14). Exception 03 for a byte count outside 0x07-0xF5 (figure 24), a
+    /// group of no registers or a response that would not fit the PDU (section 7, 03: "the implied length
+    /// is incorrect"); then 02 for any group outside its file; then every group is read.
+    fn read_file_record(&self, subs: &[FileRecordRef]) -> Response {
+        let exc = |e| Response::exception(FunctionCode::READ_FILE_RECORD, e);
+        let byte_count = 7 * subs.len();
+        // Each sub-response: its length byte, the reference type, 2 bytes per register; after FC and length.
+        let response_len: usize = 2 + subs
+            .iter()
+            .map(|s| 2 + 2 * usize::from(s.record_length))
+            .sum::<usize>();
+        if !(0x07..=0xF5).contains(&byte_count)
+            || subs.iter().any(|s| s.record_length == 0)
+            || response_len > self.max_pdu()
+        {
+            return exc(ExceptionCode::ILLEGAL_DATA_VALUE);
+        }
+        let mut groups = Vec::with_capacity(subs.len());
+        for s in subs {
+            match self.file_group(
+                s.reference_type,
+                s.file_number,
+                s.record_number,
+                usize::from(s.record_length),
+                false,
+            ) {
+                Ok(g) => groups.push((g, usize::from(s.record_length))),
+                Err(e) => return exc(e),
+            }
+        }
+        let sub_responses = groups
+            .into_iter()
+            .map(|((number, start), n)| FileRecordData {
+                reference_type: file::REFERENCE_TYPE,
+                values: self
+                    .files
+                    .get(&number)
+                    .and_then(|(_, r)| r.get(start..start + n))
+                    .unwrap_or_default()
+                    .to_vec(),
+            })
+            .collect();
+        Response::ReadFileRecord { sub_responses }
+    }
+
+    /// Write File Record (FC 15, spec 6.15): exception 03 for a request data length outside 0x09-0xFB (the
+    /// request table; figure 25 repeats FC 14's 0x07-0xF5, which would refuse requests the table allows) or a
+    /// group of no registers; then 02 for any group outside its file or in a read-only file; then every group
+    /// is written, all or nothing, and the request echoed.
+    fn write_file_record(&mut self, subs: &[FileRecordWrite]) -> Response {
+        let exc = |e| Response::exception(FunctionCode::WRITE_FILE_RECORD, e);
+        let data_len: usize = subs.iter().map(|s| 7 + 2 * s.values.len()).sum();
+        if !(0x09..=0xFB).contains(&data_len) || subs.iter().any(|s| s.values.is_empty()) {
+            return exc(ExceptionCode::ILLEGAL_DATA_VALUE);
+        }
+        let mut groups = Vec::with_capacity(subs.len());
+        for s in subs {
+            match self.file_group(
+                s.reference_type,
+                s.file_number,
+                s.record_number,
+                s.values.len(),
+                true,
+            ) {
+                Ok(g) => groups.push((g, &s.values)),
+                Err(e) => return exc(e),
+            }
+        }
+        let n = if self.faults.has(Fault::FileWriteFirstOnly) {
+            1
+        } else {
+            groups.len()
+        };
+        for ((number, start), values) in groups.into_iter().take(n) {
+            if let Some(dst) = self
+                .files
+                .get_mut(&number)
+                .and_then(|(_, r)| r.get_mut(start..start + values.len()))
+            {
+                dst.copy_from_slice(values);
+            }
+        }
+        Response::WriteFileRecord {
+            sub_requests: subs.to_vec(),
+        }
+    }
+
+    /// Read FIFO Queue (FC 18, spec 6.18, figure 28): exception 02 for a pointer address that is no queue of
+    /// the profile, 03 for a queue of more than 31 registers; else the queue, oldest first, left as it was.
+    fn read_fifo(&self, address: u16) -> Response {
+        let exc = |e| Response::exception(FunctionCode::READ_FIFO_QUEUE, e);
+        let Some(q) = self.profile.fifo(address) else {
+            return exc(ExceptionCode::ILLEGAL_DATA_ADDRESS);
+        };
+        if q.values.len() > usize::from(MAX_FIFO_COUNT) {
+            return exc(ExceptionCode::ILLEGAL_DATA_VALUE);
+        }
+        let mut values = q.values.clone();
+        if self.faults.has(Fault::FifoOffByOne) {
+            values.pop();
+        }
+        Response::ReadFifoQueue { values }
     }
 
     /// The data model (tests and the in-process target inspect it).
@@ -124,8 +307,9 @@ pub fn read_device_id(profile: &Profile, code: u8, object_id: u8) -> Response {
     for (id, v) in stream.into_iter().filter(|o| o.0 >= start) {
         let o = object(*id, v);
         let need = 2 + o.value.len();
-        // The first object always goes out (truncated to the PDU if need be), so a client paging with
-        // next_object_id always makes progress.
+        // The first object always goes out, so a client paging with next_object_id always makes progress.
+        // Profile validation keeps every object within one response (spec 6.21: an object is indivisible);
+        // the truncation above only guards a profile built in code.
         if !out.is_empty() && used + need > limit {
             next = Some(*id);
             break;
@@ -163,6 +347,10 @@ impl DriveModel for Generic {
                 read_code,
                 object_id,
             } => read_device_id(&self.profile, *read_code, *object_id),
+            Request::ReportServerId => self.report_server_id(),
+            Request::ReadFileRecord { sub_requests } => self.read_file_record(sub_requests),
+            Request::WriteFileRecord { sub_requests } => self.write_file_record(sub_requests),
+            Request::ReadFifoQueue { address } => self.read_fifo(*address),
             // MEI types other than 0x0E, vendor codes and anything else a profile may list but a plain server
             // does not implement: illegal function (spec 7, code 01).
             other => Response::exception(other.function(), ExceptionCode::ILLEGAL_FUNCTION),

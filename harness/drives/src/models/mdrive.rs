@@ -1062,6 +1062,14 @@ impl DataModel for Mdrive {
     fn write_coils(&mut self, address: u16, states: &[bool]) -> Result<(), Rejection> {
         self.bank.write_coils(address, states)
     }
+
+    fn exception_status(&self) -> Result<u8, Rejection> {
+        Ok(self.bank.exception_status())
+    }
+
+    fn masked(&self, current: u16, and_mask: u16, or_mask: u16) -> u16 {
+        self.bank.masked(current, and_mask, or_mask)
+    }
 }
 
 impl DriveModel for Mdrive {

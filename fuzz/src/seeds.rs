@@ -202,7 +202,7 @@ fn case_ops(p: &Profile, steps: &[Step]) -> Vec<u8> {
                     }
                     op_tcp(&mut out, &stream);
                 }
-                Outgoing::Restore { .. } => {}
+                Outgoing::Restore { .. } | Outgoing::RestoreRead { .. } => {}
             },
             Step::Wait(d) => {
                 out.push(OP_WAIT);

@@ -6,6 +6,7 @@
 //! ```
 
 pub mod campaign;
+pub mod capture;
 pub mod cases;
 pub mod expect;
 pub mod observe;

@@ -3,13 +3,13 @@
 
 use std::time::{Duration, Instant};
 
+use crate::capture::{self, Captured};
 use crate::cases::{Case, Compare, Mutation, Outgoing, Step, Tag, Verdict};
 use crate::expect::Expectations;
 use crate::observe::{CaseResult, Dir, StepResult, WireEvent};
-use crate::oracle::{self, Captured, ChoiceLog, Finding, Sent, Severity, StepContext};
+use crate::oracle::{self, ChoiceLog, Finding, Sent, Severity, StepContext};
 use crate::targets::sim::SimTarget;
 use crate::targets::{Received, Target, TargetError};
-use codec::FunctionCode;
 use codec::{Framing, Request, rtu, tcp};
 use drives::profile::Profile;
 use drives::requirements::Requirements;
@@ -127,7 +127,7 @@ impl Runner {
             cfg,
             profile,
             next_tid: 1,
-            slots: vec![None; 4],
+            slots: Vec::new(),
             last_send: None,
             expectations,
             requirements: Arc::default(),
@@ -243,33 +243,11 @@ impl Runner {
         }
     }
 
-    fn restore_pdu(&self, address: u16, slot: usize) -> Option<Vec<u8>> {
-        let req = match self.slots.get(slot)?.as_ref()? {
-            Captured::Registers(values) => {
-                if values.len() == 1
-                    && self
-                        .profile
-                        .function(FunctionCode::WRITE_MULTIPLE_REGISTERS)
-                        .is_none()
-                {
-                    Request::WriteSingleRegister {
-                        address,
-                        value: values[0],
-                    }
-                } else {
-                    Request::WriteMultipleRegisters {
-                        address,
-                        values: values.clone(),
-                    }
-                }
-            }
-            Captured::Bit(on) => Request::WriteSingleCoil {
-                address,
-                value: if *on { 0xFF00 } else { 0 },
-            },
-            Captured::Object(_) => return None,
-        };
-        req.to_bytes().ok()
+    /// The write that puts back what `slot` kept: at `address` for registers and coils (`None`: where they
+    /// were read). `None` when nothing was kept.
+    fn restore_pdu(&self, address: Option<u16>, slot: usize) -> Option<Vec<u8>> {
+        let kept = self.slots.get(slot)?.as_ref()?;
+        kept.restore(address, &self.profile)?.to_bytes().ok()
     }
 
     /// Run one case (already selected and allowed by the policy).
@@ -278,7 +256,8 @@ impl Runner {
         let mut wire = Vec::new();
         let mut steps = Vec::new();
         self.target.drain();
-        self.slots.iter_mut().for_each(|s| *s = None);
+        // One empty slot per capture the case names; a restore of a slot nothing filled is SKIPPED.
+        self.slots = vec![None; case.slots()];
         self.case_id.clone_from(&case.id);
         self.case_freedoms.clone_from(&case.freedoms);
         for step in &case.steps {
@@ -336,11 +315,12 @@ impl Runner {
     /// A register pair and its mirroring object must hold the same value.
     fn agree(&self, registers: usize, object: usize, note: &str) -> StepResult {
         let order = self.profile.device.word_order;
-        let regs = self.slots.get(registers).cloned().flatten();
-        let obj = self.slots.get(object).cloned().flatten();
+        let kept = |slot: usize| self.slots.get(slot).and_then(Option::as_ref);
+        let regs = kept(registers).and_then(Captured::registers);
+        let obj = kept(object).and_then(Captured::object_value);
         let findings = match (regs, obj) {
-            (Some(Captured::Registers(r)), Some(Captured::Object(o))) => {
-                let v = match r.as_slice() {
+            (Some(r), Some(o)) => {
+                let v = match r {
                     [a, b] => order.join(*a, *b),
                     [a] => u32::from(*a),
                     _ => u32::MAX,
@@ -348,7 +328,7 @@ impl Runner {
                 if v == o {
                     vec![]
                 } else {
-                    let swapped = matches!(r.as_slice(), [a, b] if order.join(*b, *a) == o);
+                    let swapped = matches!(r, [a, b] if order.join(*b, *a) == o);
                     vec![format!(
                         "the registers read 0x{v:08X} ({order:?}) but the object reads 0x{o:08X}{}",
                         if swapped {
@@ -433,14 +413,18 @@ impl Runner {
                     .collect();
                 (frames, vec![(all, Duration::ZERO)])
             }
-            Outgoing::Restore { address, slot } => match self.restore_pdu(*address, *slot) {
-                Some(p) => {
-                    let f = self.frame(&p, unit, None);
-                    let piece = vec![(f.bytes.clone(), Duration::ZERO)];
-                    (vec![f], piece)
-                }
-                None => return None,
-            },
+            Outgoing::Restore { address, slot } => {
+                let p = self.restore_pdu(Some(*address), *slot)?;
+                let f = self.frame(&p, unit, None);
+                let piece = vec![(f.bytes.clone(), Duration::ZERO)];
+                (vec![f], piece)
+            }
+            Outgoing::RestoreRead { slot } => {
+                let p = self.restore_pdu(None, *slot)?;
+                let f = self.frame(&p, unit, None);
+                let piece = vec![(f.bytes.clone(), Duration::ZERO)];
+                (vec![f], piece)
+            }
         })
     }
 
@@ -576,7 +560,7 @@ impl Runner {
                 }
             }
             if let (Some(slot), Received::Frame { bytes, .. }) = (capture, &got)
-                && let Some(c) = oracle::captured(framing, bytes)
+                && let Some(c) = capture::captured(framing, &sent.pdu, bytes)
                 && let Some(s) = self.slots.get_mut(slot)
             {
                 *s = Some(c);

@@ -67,6 +67,9 @@ pub struct Options {
     /// Apply the safety policy to the in-process simulator as to a real drive, so that a `sim:` run selects
     /// the same cases as a run against a server (for comparing their snapshots).
     pub policy_on_sim: bool,
+    /// Run the selected catalog cases (and regressions) in an order shuffled with this seed; reports keep
+    /// the case ids, generated cases follow in their own order.
+    pub shuffle: Option<u64>,
 }
 
 /// Where the run's snapshot goes.
@@ -105,6 +108,7 @@ impl Options {
             regressions_dir: None,
             snapshot: None,
             policy_on_sim: false,
+            shuffle: None,
         }
     }
 }
@@ -386,8 +390,12 @@ fn catalog_plan(
     let framing = run_framing(opts, profile)?;
     let unit = opts.unit.unwrap_or(profile.device.default_unit);
     let mut all = crate::cases::catalog::build(profile, golden.as_ref(), framing, unit);
-    all.extend(crate::cases::catalog::regressions(&opts.corpus, profile)?);
-    let cases = select(all, &opts.include, &opts.exclude);
+    all.extend(crate::cases::catalog::regressions(
+        &opts.corpus,
+        profile,
+        unit,
+    )?);
+    let cases = run_order(select(all, &opts.include, &opts.exclude), opts.shuffle);
     let cfg = config(opts, profile);
     Ok(cases
         .into_iter()
@@ -436,6 +444,32 @@ pub fn requirements_of(corpus: &Corpus) -> Result<Arc<Requirements>, SessionErro
         Corpus::Dir(d) if !d.join("requirements").is_dir() => embedded(),
         Corpus::Dir(_) => Ok(Arc::new(corpus.requirements()?)),
     }
+}
+
+/// The order a run takes its catalog cases in: as built, or shuffled with `seed`. Either way the cases that
+/// leave the drive changed for good ([`Tag::Irreversible`]) come last, in their own order.
+pub fn run_order(cases: Vec<Case>, shuffle: Option<u64>) -> Vec<Case> {
+    let cases = crate::cases::catalog::irreversible_last(cases);
+    let Some(seed) = shuffle else {
+        return cases;
+    };
+    let (mut free, last): (Vec<Case>, Vec<Case>) =
+        cases.into_iter().partition(|c| !c.has(Tag::Irreversible));
+    // Fisher-Yates with SplitMix64: the same seed gives the same order on every platform and version.
+    let mut state = seed;
+    let mut next = move || {
+        state = state.wrapping_add(0x9E37_79B9_7F4A_7C15);
+        let mut z = state;
+        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+        z ^ (z >> 31)
+    };
+    for i in (1..free.len()).rev() {
+        let j = (next() % (i as u64 + 1)) as usize;
+        free.swap(i, j);
+    }
+    free.extend(last);
+    free
 }
 
 /// The generator of a run's generated cases, if it has any (seed: the options', else the clock's).
@@ -632,6 +666,7 @@ fn run_info(
         started_unix_ms: unix_ms(),
         command_line: opts.command_line.clone(),
         seed: generator.map(Generator::seed).or(opts.seed),
+        shuffle: opts.shuffle,
         harness_version: env!("CARGO_PKG_VERSION").to_string(),
         report_dir: opts.report_dir.clone(),
     }
@@ -711,6 +746,16 @@ pub fn run(
         cfg.unit,
         total
     );
+    if let Some(seed) = opts.shuffle {
+        let _ = writeln!(
+            log,
+            "order: {} catalog case(s) shuffled with seed {seed} (replay with --shuffle {seed}):",
+            planned.len()
+        );
+        for (i, (c, _)) in planned.iter().enumerate() {
+            let _ = writeln!(log, "  {:>4} {}", i + 1, c.id);
+        }
+    }
     if let Some(g) = &generator {
         let _ = writeln!(
             log,

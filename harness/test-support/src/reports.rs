@@ -26,6 +26,7 @@ pub fn run_info(transport: Transport, server_port: u16) -> RunInfo {
         started_unix_ms: 1_795_402_213_123,
         command_line: "modbus-harness run --target x --report out/ <test>".to_string(),
         seed: Some(42),
+        shuffle: None,
         harness_version: "0.1.0-test".to_string(),
         report_dir: None,
     }

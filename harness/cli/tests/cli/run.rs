@@ -140,6 +140,62 @@ fn a_run_writes_every_report_and_exits_by_verdict() {
 }
 
 #[test]
+fn shuffle_prints_the_order_and_keeps_the_ids() {
+    let dir = TempDir::new("cli-shuffle");
+    let report = dir.path().join("r");
+    let (code, out, err) = harness(&[
+        "run",
+        "--target",
+        "sim:lmd",
+        "--no-progress",
+        "--shuffle",
+        "42",
+        "--report",
+        report.to_str().unwrap(),
+    ]);
+    assert_eq!(code, 0, "{out}{err}");
+    assert!(
+        err.contains("shuffled with seed 42 (replay with --shuffle 42)"),
+        "{err}"
+    );
+    assert!(out.contains("order shuffled with seed 42"), "{out}");
+    // The order printed is the order run, and the reports keep the catalog's ids.
+    let printed: Vec<&str> = err
+        .lines()
+        .skip_while(|l| !l.starts_with("order:"))
+        .skip(1)
+        .map_while(|l| l.trim_start().split_once(' ').map(|(_, id)| id))
+        .collect();
+    let index: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(report.join("index.json")).expect("index.json"),
+    )
+    .expect("json");
+    let reported: Vec<&str> = index["cases"]
+        .as_array()
+        .expect("cases")
+        .iter()
+        .filter_map(|c| c["id"].as_str())
+        .collect();
+    assert_eq!(printed, reported);
+    let (_, listed, _) = harness(&["run", "--list", "--target", "sim:lmd"]);
+    let mut catalog: Vec<&str> = listed
+        .lines()
+        .filter_map(|l| l.split_whitespace().next())
+        .filter(|id| id.contains('/'))
+        .collect();
+    assert_ne!(catalog, reported, "the order is shuffled");
+    assert_eq!(
+        reported.last(),
+        catalog.last(),
+        "what cannot be undone runs last"
+    );
+    catalog.sort_unstable();
+    let mut ids = reported.clone();
+    ids.sort_unstable();
+    assert_eq!(catalog, ids, "the same cases, the same ids");
+}
+
+#[test]
 fn dry_run_shows_the_safety_policy_without_touching_the_target() {
     // Nothing listens on port 1: a dry run must not connect.
     let (code, out, err) = harness(&[

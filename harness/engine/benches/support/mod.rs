@@ -543,6 +543,7 @@ pub fn catalog_loop(
                     started_unix_ms: 0,
                     command_line: "catalog-loop".into(),
                     seed: None,
+                    shuffle: None,
                     harness_version: env!("CARGO_PKG_VERSION").into(),
                     report_dir: Some(dir.to_path_buf()),
                 },

@@ -23,6 +23,10 @@ pub enum Tag {
     /// The case needs a transport feature (e.g. TCP segments, RTU silences) and is skipped on others.
     TcpOnly,
     RtuOnly,
+    /// The case leaves the drive in a state that no later case can undo and that later cases would see (the
+    /// stored program cleared, firmware-upgrade mode): it runs after every other case, in catalog order, also
+    /// with `--shuffle`.
+    Irreversible,
 }
 
 /// How a response is compared with what the reference model answers.
@@ -54,8 +58,13 @@ pub enum Outgoing {
     Mutated { pdu: Vec<u8>, mutation: Mutation },
     /// Several PDUs framed and sent in one write (pipelining / one TCP segment).
     Batch(Vec<Vec<u8>>),
-    /// Restore registers captured by an earlier step into `slot` with FC 16 at `address`.
+    /// Restore registers captured by an earlier step into `slot` with FC 16 at `address` (FC 06 for one
+    /// register when the profile has no FC 16); a captured coil with FC 05 at `address`.
     Restore { address: u16, slot: usize },
+    /// Write back what an earlier step captured into `slot`, where it was read from: registers with FC 16
+    /// (FC 06), coils with FC 05 / FC 15, a vendor setting read with FC 0x41 with FC 0x42 (`=` and its
+    /// values), an FC 43 object with an FC 43 write. See [`crate::capture`].
+    RestoreRead { slot: usize },
 }
 
 /// A deliberate alteration of a request: of the framed bytes, or (the PDU-level ones, see
@@ -116,7 +125,8 @@ pub enum Step {
     Exchange {
         send: Outgoing,
         compare: Compare,
-        /// Store the register values of the response in this slot (for `Outgoing::Restore`).
+        /// Keep what the response read (registers, coils, a vendor setting, an object) in this slot, for
+        /// `Outgoing::Restore`, `Outgoing::RestoreRead` and `Step::Agree`.
         capture: Option<usize>,
         /// What this step is about, for the report.
         note: String,
@@ -171,6 +181,23 @@ impl Case {
     /// True if the case carries `tag`.
     pub fn has(&self, tag: Tag) -> bool {
         self.tags.contains(&tag)
+    }
+
+    /// How many capture slots the case uses: one more than the highest it names, 0 for none.
+    pub fn slots(&self) -> usize {
+        self.steps
+            .iter()
+            .filter_map(|s| match s {
+                Step::Exchange {
+                    capture: Some(c), ..
+                } => Some(c + 1),
+                Step::Agree {
+                    registers, object, ..
+                } => Some(registers.max(object) + 1),
+                _ => None,
+            })
+            .max()
+            .unwrap_or(0)
     }
 }
 

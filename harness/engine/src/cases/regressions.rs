@@ -18,7 +18,7 @@
 //! # unit = 5                    # framed for this unit id instead
 //! # mutation = "bad_crc"        # or a table: [step.mutation] bit_flip = { bit = 3 }, …
 //! # batch = ["03 00 00 00 01", "03 00 01 00 01"]
-//! # capture = 0 / restore_address = 0 + restore_slot = 0
+//! # capture = 0 / restore_address = 0 + restore_slot = 0 / restore_slot = 0 alone (where it was read)
 //! # kind = "wait" + wait_us = 1000 | kind = "reconnect" | kind = "agree" + registers + object
 //!
 //! [origin]                      # where the reproducer came from (informational)
@@ -150,6 +150,7 @@ fn step_file(step: &Step) -> StepFile {
                     f.restore_address = Some(*address);
                     f.restore_slot = Some(*slot);
                 }
+                Outgoing::RestoreRead { slot } => f.restore_slot = Some(*slot),
             }
         }
         Step::Wait(d) => {
@@ -233,9 +234,12 @@ fn step_of(i: usize, f: &StepFile) -> Result<Step, RegressionError> {
                     address,
                     slot: f.restore_slot.unwrap_or(0),
                 },
+                (None, None, None) if f.restore_slot.is_some() => Outgoing::RestoreRead {
+                    slot: f.restore_slot.unwrap_or(0),
+                },
                 _ => {
                     return Err(at(
-                        "an exchange has exactly one of pdu, batch, restore_address",
+                        "an exchange has exactly one of pdu, batch, restore_address, restore_slot",
                     ));
                 }
             };

@@ -148,7 +148,7 @@ pub fn case_size(case: &Case) -> (usize, usize) {
                     mutation.apply_to_pdu(pdu).map_or(pdu.len(), |p| p.len())
                 }
                 Outgoing::Batch(ps) => ps.iter().map(Vec::len).sum(),
-                Outgoing::Restore { .. } => 0,
+                Outgoing::Restore { .. } | Outgoing::RestoreRead { .. } => 0,
             };
             largest = largest.max(n);
         }

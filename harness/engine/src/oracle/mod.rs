@@ -8,8 +8,7 @@ pub mod freedoms;
 use crate::cases::{Compare, Level, Verdict};
 use crate::targets::Received;
 use codec::{
-    Decoded, Direction, FieldValue, Framing, Pdu, Request, Response, decode_any, describe,
-    hex_spaced,
+    Direction, FieldValue, Framing, Pdu, Request, Response, decode_any, describe, hex_spaced,
 };
 use drives::profile::{Profile, Table, WordOrder};
 use drives::requirements::{Freedom, FreedomKind};
@@ -678,28 +677,4 @@ pub fn verdict(findings: &[Finding], level: Level) -> Verdict {
         (Some(Severity::Unimplemented), _) => Verdict::Unimplemented,
         (Some(_), _) => Verdict::NonStrict,
     }
-}
-
-/// Decoded response register values or bits, for captures.
-pub fn captured(framing: Framing, bytes: &[u8]) -> Option<Captured> {
-    let d: Decoded = decode_any(bytes, framing, Direction::Response).ok()?;
-    match d.pdu {
-        Pdu::Response(
-            Response::ReadHoldingRegisters { values } | Response::ReadInputRegisters { values },
-        ) => Some(Captured::Registers(values)),
-        Pdu::Response(Response::ReadCoils { data }) => {
-            Some(Captured::Bit(data.first().is_some_and(|b| b & 1 == 1)))
-        }
-        Pdu::Response(Response::CanOpen(a)) => a.value_le().map(Captured::Object),
-        _ => None,
-    }
-}
-
-/// What a capture step stored.
-#[derive(Clone, Debug, PartialEq, Eq)]
-pub enum Captured {
-    Registers(Vec<u16>),
-    Bit(bool),
-    /// An FC 43 object value, read little-endian.
-    Object(u32),
 }

@@ -88,6 +88,9 @@ pub struct RunInfo {
     pub command_line: String,
     /// The seed of any randomness in the run.
     pub seed: Option<u64>,
+    /// The seed the catalog's order was shuffled with (`run --shuffle`), if it was.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub shuffle: Option<u64>,
     /// The harness version.
     pub harness_version: String,
     /// The `--report` directory, if any (named in the terminal summary).
@@ -456,6 +459,12 @@ pub fn terminal_summary(summary: &Summary, info: &RunInfo) -> String {
     );
     if let Some(seed) = info.seed {
         let _ = writeln!(s, "seed: {seed}");
+    }
+    if let Some(seed) = info.shuffle {
+        let _ = writeln!(
+            s,
+            "order shuffled with seed {seed} (replay with --shuffle {seed})"
+        );
     }
     for v in Verdict::ALL {
         let _ = writeln!(s, "  {:<14}{:>8}", v.label(), summary.count(v));

@@ -54,7 +54,7 @@ fn pdus(c: &Case) -> Vec<Vec<u8>> {
                     out.push(mutation.apply_to_pdu(pdu).unwrap_or_else(|| pdu.clone()))
                 }
                 Outgoing::Batch(ps) => out.extend(ps.iter().cloned()),
-                Outgoing::Restore { .. } => {}
+                Outgoing::Restore { .. } | Outgoing::RestoreRead { .. } => {}
             }
         }
     }

@@ -10,4 +10,5 @@ mod probe;
 mod report_files;
 mod requirements_cited;
 mod run_transports;
+mod shuffle;
 mod station_streams;

@@ -20,7 +20,10 @@ fn every_catalog_case_cites_a_requirement_and_every_cite_is_used() {
         let golden = corpus.golden(&name).unwrap_or_else(|e| panic!("{e}"));
         for framing in [Framing::Tcp, Framing::Rtu] {
             let mut all = catalog::build(&p, golden.as_ref(), framing, p.device.default_unit);
-            all.extend(catalog::regressions(&corpus, &p).unwrap_or_else(|e| panic!("{e}")));
+            all.extend(
+                catalog::regressions(&corpus, &p, p.device.default_unit)
+                    .unwrap_or_else(|e| panic!("{e}")),
+            );
             for c in &all {
                 cases += 1;
                 let (r, _) = reqs.cited(&c.id, &name);

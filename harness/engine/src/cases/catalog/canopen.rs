@@ -1,6 +1,7 @@
 //! CANopen objects over FC 43 / MEI 0x0D (SD2x): reads, refused writes, SDO errors, and the objects that
 //! mirror a register pair.
 
+use super::around::Around;
 use super::{Ctx, capture, exchange, pdu, slug};
 use crate::cases::{Compare, Outgoing, Step, Tag};
 use codec::{CanOpenAccess, Request};
@@ -49,17 +50,23 @@ fn object_accesses(cx: &mut Ctx) {
         }
         if o.access == Access::Ro {
             let data = vec![0u8; o.ty.size()];
+            // Read first and written back after: a drive that wrongly accepts the write is left as it was.
+            let mut a = Around::new();
+            a.keep_object(cx, o);
+            let steps = a.wrap(vec![exchange(
+                Outgoing::Pdu(pdu(&Request::CanOpen(CanOpenAccess::write(
+                    node, o.index, o.subindex, data,
+                )))),
+                Compare::Exact,
+                "write",
+            )]);
             cx.push(
                 format!("profile/{}/object/{}-{}/write-read-only", p.device.id, o.index, slug(&o.name)),
                 format!("FC 43/0x0D write of read-only object {}", o.index),
                 MANUAL,
                 "A write to a read-only object is answered with the extended exception carrying SDO error 0xFFFF000A.",
                 vec![Tag::Write],
-                vec![exchange(
-                    Outgoing::Pdu(pdu(&Request::CanOpen(CanOpenAccess::write(node, o.index, o.subindex, data)))),
-                    Compare::Exact,
-                    "write",
-                )],
+                steps,
             );
         }
     }

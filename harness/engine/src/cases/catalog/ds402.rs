@@ -2,6 +2,7 @@
 
 use std::time::Duration;
 
+use super::around::Around;
 use super::{Ctx, exchange, pdu};
 use crate::cases::{Compare, Outgoing, Step, Tag};
 use codec::Request;
@@ -101,8 +102,18 @@ fn read(address: u16) -> Outgoing {
     }))
 }
 
+/// The RxPDO block kept before a case and written back after it (the case starts with a reset, so nothing
+/// that ran before matters; the write-back leaves the control word, speed, torque limit and watchdog as they
+/// were, the state machine where that control word leads from switch on disabled).
+fn kept_block(cx: &Ctx, pd: &ProcessData) -> Around {
+    let mut a = Around::new();
+    a.keep_registers(cx, pd.base, pd.n as u16);
+    a
+}
+
 /// The enable sequence and back: shutdown, switch on, enable operation, shutdown.
 fn enable_sequence(cx: &mut Ctx, pd: &ProcessData) {
+    let around = kept_block(cx, pd);
     let mut steps = pd.reset();
     steps.extend([
         exchange(pd.write(CMD_SHUTDOWN, 0), Compare::Exact, "shutdown (0x06)"),
@@ -130,6 +141,7 @@ fn enable_sequence(cx: &mut Ctx, pd: &ProcessData) {
             "status: ready to switch on",
         ),
     ]);
+    let steps = around.wrap(steps);
     cx.push(
         format!("profile/{}/ds402/enable-sequence", cx.p.device.id),
         "DS402: fault reset, shutdown, switch on, enable operation, disable",
@@ -142,6 +154,7 @@ fn enable_sequence(cx: &mut Ctx, pd: &ProcessData) {
 
 /// A watchdog time set and not rewritten: not faulted before it elapses, faulted after.
 fn watchdog(cx: &mut Ctx, pd: &ProcessData, w: &Watchdog) {
+    let around = kept_block(cx, pd);
     let mut steps = pd.reset();
     steps.extend([
         exchange(
@@ -169,6 +182,7 @@ fn watchdog(cx: &mut Ctx, pd: &ProcessData, w: &Watchdog) {
         ),
     ]);
     steps.extend(pd.reset());
+    let steps = around.wrap(steps);
     cx.push(
         format!("profile/{}/ds402/watchdog", cx.p.device.id),
         "RxPDO watchdog: a 100 ms watchdog not rewritten trips the drive",

@@ -1,11 +1,11 @@
 //! Golden replay: the manual's example requests, sent as the manual prints them (as corrected).
 
-use super::{Ctx, capture, exchange, pdu};
-use crate::cases::{Compare, Outgoing, Step, Tag};
-use codec::FunctionCode;
+use super::around::{self, Around};
+use super::{Ctx, exchange};
+use crate::cases::{Compare, Outgoing, Tag};
 use codec::{Request, rtu};
 use drives::golden::{Form, GoldenDirection, GoldenFile, GoldenFrame};
-use drives::profile::{Register, Table};
+use drives::profile::Register;
 
 /// One case per request frame of the golden file that decodes as a request.
 pub(super) fn cases(cx: &mut Ctx, g: &GoldenFile) {
@@ -22,8 +22,8 @@ pub(super) fn cases(cx: &mut Ctx, g: &GoldenFile) {
             .iter()
             .any(|r| r.request.as_deref() == Some(f.id.as_str()));
         let mut tags = Vec::new();
-        let mut steps = Vec::new();
-        let (compare, restore) = judge(cx, &req, &mut tags, &mut steps);
+        let mut around = Around::new();
+        let compare = judge(cx, &req, &mut tags, &mut around);
         let send = match addr {
             Some(u) if u != cx.unit => Outgoing::PduToUnit {
                 pdu: pdu_bytes.clone(),
@@ -31,21 +31,11 @@ pub(super) fn cases(cx: &mut Ctx, g: &GoldenFile) {
             },
             _ => Outgoing::Pdu(pdu_bytes.clone()),
         };
-        steps.push(exchange(
+        let steps = around.wrap(vec![exchange(
             send,
             compare,
             format!("golden request as corrected: {}", f.meaning),
-        ));
-        if let Some(a) = restore {
-            steps.push(exchange(
-                Outgoing::Restore {
-                    address: a,
-                    slot: 0,
-                },
-                Compare::Exact,
-                "restore the original value",
-            ));
-        }
+        )]);
         let id = format!("golden/{}", f.id);
         let reference = format!("{} line {} ({})", g.manual, f.line, f.section);
         let requirement = if has_response {
@@ -80,16 +70,10 @@ fn decode(f: &GoldenFrame) -> Option<(Vec<u8>, Option<u8>, Request)> {
     Some((pdu_bytes, addr, req))
 }
 
-/// How the golden request's answer is compared, and its safety tags. A register write that moves nothing
-/// is made harmless: the value is read first (a step pushed here) and the address to restore returned.
-fn judge(
-    cx: &Ctx,
-    req: &Request,
-    tags: &mut Vec<Tag>,
-    steps: &mut Vec<Step>,
-) -> (Compare, Option<u16>) {
+/// How the golden request's answer is compared, its safety tags, and what is established before it and put
+/// back after ([`around::around_write`]).
+fn judge(cx: &Ctx, req: &Request, tags: &mut Vec<Tag>, around: &mut Around) -> Compare {
     let p = cx.p;
-    let mut restore = None;
     let compare = match req {
         Request::WriteSingleRegister { address, .. }
         | Request::WriteMultipleRegisters { address, .. } => {
@@ -103,17 +87,6 @@ fn judge(
                 .collect();
             if regs.iter().any(|r| r.motion) {
                 tags.push(Tag::Motion);
-            } else if cx.supports(FunctionCode::READ_HOLDING_REGISTERS)
-                || cx.supports(FunctionCode::READ_INPUT_REGISTERS)
-            {
-                // Read what is there first, put it back after.
-                steps.push(capture(
-                    Outgoing::Pdu(pdu(&cx.read_request(*address, n, Table::Holding))),
-                    Compare::Structure,
-                    0,
-                    "read the value the golden write will change",
-                ));
-                restore = Some(*address);
             }
             if regs.iter().any(|r| r.destructive) {
                 tags.push(Tag::Destructive);
@@ -143,5 +116,6 @@ fn judge(
         Request::ReadDeviceId { .. } | Request::VendorRead { .. } => Compare::Structure,
         _ => Compare::InRange,
     };
-    (compare, restore)
+    around::around_write(cx, req, around, tags);
+    compare
 }

@@ -1,19 +1,26 @@
 //! The case catalog: golden replay, generic Modbus cases from the specs, and cases derived from the
 //! profile. Expected answers are not written here: the reference model (the oracle) gives them.
 //!
-//! One module per suite; [`build`] runs them in a fixed order, which is the order of the report.
+//! One module per suite; [`build`] runs them in a fixed order, which is the order of the report. No case
+//! depends on that order: each establishes its own precondition and puts back what it changed (`around`),
+//! and the few that leave the drive changed for good ([`Tag::Irreversible`]) come last.
 
+mod around;
 mod canopen;
 mod ds402;
 mod golden;
+mod mcode;
 mod profile;
 mod rtu;
 mod spec;
 mod tcp;
 
+use std::time::Duration;
+
 use crate::cases::{Case, Compare, Level, Outgoing, Step, Tag};
 use codec::FunctionCode;
-use codec::{Framing, Request};
+use codec::{Framing, Request, Response};
+use drives::FaultSet;
 use drives::golden::GoldenFile;
 use drives::profile::{Profile, Table};
 
@@ -130,6 +137,16 @@ impl Ctx<'_> {
         self.supports(FunctionCode::WRITE_MULTIPLE_REGISTERS)
             || self.supports(FunctionCode::WRITE_SINGLE_REGISTER)
     }
+
+    /// True when a reference drive fresh from power-up answers `req` normally (not with an exception): used to
+    /// pick values a conforming drive accepts (e.g. a microstep resolution from the MDrive's table), never to
+    /// write an expected answer into a case.
+    fn reference_accepts(&self, req: &Request) -> bool {
+        let mut drive = drives::build(self.p.clone(), FaultSet::none());
+        drive
+            .handle(Duration::ZERO, self.unit, req)
+            .is_some_and(|r| !matches!(r, Response::Exception { .. }))
+    }
 }
 
 /// A read of the first readable register: the liveness probe.
@@ -200,14 +217,59 @@ pub fn build(p: &Profile, golden: Option<&GoldenFile>, framing: Framing, unit: u
     if p.watchdog.is_some() {
         ds402::cases(&mut cx);
     }
-    cx.cases
+    irreversible_last(cx.cases)
+}
+
+/// The cases with the [`Tag::Irreversible`] ones moved after all others, each group in its own order.
+pub fn irreversible_last(cases: Vec<Case>) -> Vec<Case> {
+    let (mut cases, last): (Vec<Case>, Vec<Case>) =
+        cases.into_iter().partition(|c| !c.has(Tag::Irreversible));
+    cases.extend(last);
+    cases
 }
 
 /// The shrunk reproducers of a profile, `corpus/regressions/<profile>/*.toml`, as cases
-/// `regression/<profile>/<file name>` (see [`crate::cases::regressions`] for the file format).
+/// `regression/<profile>/<file name>` (see [`crate::cases::regressions`] for the file format). A
+/// reproducer is kept as shrunk; what its writes need is put around it as around a catalog write (what they
+/// write read first and put back after, their precondition established), so that it depends on no other case
+/// and leaves the drive as it found it even where it FAILs.
 pub fn regressions(
     corpus: &drives::corpus::Corpus,
     p: &Profile,
+    unit: u8,
 ) -> Result<Vec<Case>, crate::cases::regressions::RegressionError> {
-    crate::cases::regressions::load_regressions(corpus, &p.device.id)
+    let cases = crate::cases::regressions::load_regressions(corpus, &p.device.id)?;
+    let cx = Ctx {
+        p,
+        unit,
+        cases: Vec::new(),
+    };
+    Ok(cases.into_iter().map(|c| around_writes(&cx, c)).collect())
+}
+
+/// `case` with [`around::around_write`] applied to every request it sends, its own capture slots left alone.
+fn around_writes(cx: &Ctx, mut case: Case) -> Case {
+    let mut a = around::Around::from_slot(case.slots());
+    let requests: Vec<Request> = case
+        .steps
+        .iter()
+        .filter_map(|s| match s {
+            Step::Exchange { send, .. } => Some(send),
+            _ => None,
+        })
+        .flat_map(|send| match send {
+            Outgoing::Pdu(p) | Outgoing::PduToUnit { pdu: p, .. } => vec![p.clone()],
+            Outgoing::Mutated { pdu, mutation } => {
+                vec![mutation.apply_to_pdu(pdu).unwrap_or_else(|| pdu.clone())]
+            }
+            Outgoing::Batch(ps) => ps.clone(),
+            Outgoing::Restore { .. } | Outgoing::RestoreRead { .. } => vec![],
+        })
+        .filter_map(|p| Request::decode(&p).ok())
+        .collect();
+    for r in &requests {
+        around::around_write(cx, r, &mut a, &mut case.tags);
+    }
+    case.steps = a.wrap(std::mem::take(&mut case.steps));
+    case
 }

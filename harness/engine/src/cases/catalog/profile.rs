@@ -4,7 +4,9 @@
 //! An entry marked `confirmed = false` (a probe saw it answer a read; nobody has said more) gets read cases
 //! only: its width, access and range are not known, so nothing is written to it and nothing is judged on them.
 
-use super::{APP, Ctx, capture, exchange, pdu, slug};
+use super::around::Around;
+use super::mcode::{self, IoPoints};
+use super::{APP, Ctx, exchange, pdu, slug};
 use crate::cases::{Compare, Outgoing, Tag};
 use codec::FunctionCode;
 use codec::{Mnemonic, Request};
@@ -45,7 +47,8 @@ fn registers(cx: &mut Ctx) {
             let tags = write_tags(r);
             register_write(cx, r, &read, &tags);
             register_write_out_of_range(cx, r, &read, &tags);
-        } else {
+        } else if r.table != Table::Input {
+            // An input register (its own table) is written by no function: there is no rule to check.
             register_write_read_only(cx, r);
         }
     }
@@ -95,28 +98,41 @@ fn register_read(cx: &mut Ctx, r: &Register, read: &[u8]) {
     );
 }
 
-/// An in-range write is read back unchanged; the original value is put back when it can be read.
+/// The precondition every write to `r` needs on the drive, whatever the value: the I/O points it drives
+/// configured as outputs (MDrive), the drive enabled for a move (MCode MA, MR, SL).
+fn write_precondition(cx: &Ctx, a: &mut Around, r: &Register) {
+    if let Some(io) = IoPoints::of(cx.p) {
+        let points = io.of_register(r);
+        io.configure_outputs(cx, a, &points);
+    }
+    if mcode::starts_move(r) {
+        mcode::enable_drive(cx, a);
+    }
+}
+
+/// An in-range write is read back unchanged; the original value is read first and put back after (a move
+/// is undone by moving back, an MCode DC/IC by its inverse).
 fn register_write(cx: &mut Ctx, r: &Register, read: &[u8], tags: &[Tag]) {
     let p = cx.p;
     let pid = &p.device.id;
-    let v = write_value(r);
-    let mut steps = Vec::new();
-    let restorable = r.access.readable() && !r.motion;
-    if restorable {
-        steps.push(capture(
-            Outgoing::Pdu(read.to_vec()),
-            Compare::InRange,
-            0,
-            "read the current value",
-        ));
+    let v = write_value(cx, r);
+    let mut a = Around::new();
+    write_precondition(cx, &mut a, r);
+    mcode::free_partner(cx, &mut a, r);
+    if r.access.readable() {
+        a.keep_register(cx, r, Compare::InRange);
     }
-    steps.push(exchange(
+    if mcode::starts_move(r) {
+        mcode::undo_move(cx, &mut a, r);
+    }
+    mcode::undo_step_instruction(cx, &mut a, r, v);
+    let mut steps = vec![exchange(
         Outgoing::Pdu(pdu(
             &cx.write_request(r.address, r.words(p.device.word_order, v))
         )),
         Compare::Exact,
         format!("write {v}"),
-    ));
+    )];
     if r.access.readable() {
         steps.push(exchange(
             Outgoing::Pdu(read.to_vec()),
@@ -124,16 +140,7 @@ fn register_write(cx: &mut Ctx, r: &Register, read: &[u8], tags: &[Tag]) {
             format!("read back {v}"),
         ));
     }
-    if restorable {
-        steps.push(exchange(
-            Outgoing::Restore {
-                address: r.address,
-                slot: 0,
-            },
-            Compare::Exact,
-            "restore",
-        ));
-    }
+    let steps = a.wrap(steps);
     cx.push(
         format!("profile/{pid}/write/{}", reg_slug(r)),
         format!("write {} in range and read it back", r.name),
@@ -144,7 +151,8 @@ fn register_write(cx: &mut Ctx, r: &Register, read: &[u8], tags: &[Tag]) {
     );
 }
 
-/// A value just outside the register's range (where its width leaves room) is rejected and not stored.
+/// A value just outside the register's range (where its width leaves room) is rejected and not stored; the
+/// value is read first and put back after, so that a drive that wrongly stores it is left as it was.
 fn register_write_out_of_range(cx: &mut Ctx, r: &Register, read: &[u8], tags: &[Tag]) {
     let p = cx.p;
     let pid = &p.device.id;
@@ -158,6 +166,29 @@ fn register_write_out_of_range(cx: &mut Ctx, r: &Register, read: &[u8], tags: &[
         None
     };
     if let Some(b) = bad {
+        let mut a = Around::new();
+        write_precondition(cx, &mut a, r);
+        if r.access.readable() {
+            a.keep_register(cx, r, Compare::Structure);
+        }
+        if mcode::starts_move(r) {
+            mcode::undo_move(cx, &mut a, r);
+        }
+        let mut steps = vec![exchange(
+            Outgoing::Pdu(pdu(
+                &cx.write_request(r.address, r.words(p.device.word_order, b))
+            )),
+            Compare::Exact,
+            format!("write {b}"),
+        )];
+        if r.access.readable() {
+            steps.push(exchange(
+                Outgoing::Pdu(read.to_vec()),
+                Compare::InRange,
+                "the value is still in range",
+            ));
+        }
+        let steps = a.wrap(steps);
         cx.push(
             format!("profile/{pid}/write-out-of-range/{}", reg_slug(r)),
             format!("write {} = {b}, outside {min}..={max}", r.name),
@@ -167,29 +198,27 @@ fn register_write_out_of_range(cx: &mut Ctx, r: &Register, read: &[u8], tags: &[
             ),
             format!("A value outside {min}..={max} is rejected with an exception and not stored."),
             tags.to_vec(),
-            vec![
-                exchange(
-                    Outgoing::Pdu(pdu(
-                        &cx.write_request(r.address, r.words(p.device.word_order, b))
-                    )),
-                    Compare::Exact,
-                    format!("write {b}"),
-                ),
-                exchange(
-                    Outgoing::Pdu(read.to_vec()),
-                    Compare::InRange,
-                    "the value is still in range",
-                ),
-            ],
+            steps,
         );
     }
 }
 
-/// A write to a read-only register is rejected.
+/// A write to a read-only register (one that FC 06 / FC 16 address: holding or both tables) is rejected;
+/// the value is read first and put back after, so that a drive that wrongly accepts the write is left as it
+/// was (a conforming drive refuses the restore as it refused the write).
 fn register_write_read_only(cx: &mut Ctx, r: &Register) {
     let p = cx.p;
     let pid = &p.device.id;
     let v = r.default.unwrap_or(0);
+    let mut a = Around::new();
+    a.keep_register(cx, r, Compare::Structure);
+    let steps = a.wrap(vec![exchange(
+        Outgoing::Pdu(pdu(
+            &cx.write_request(r.address, r.words(p.device.word_order, v))
+        )),
+        Compare::Exact,
+        "write",
+    )]);
     cx.push(
         format!("profile/{pid}/write-read-only/{}", reg_slug(r)),
         format!("write read-only {}", r.name),
@@ -199,13 +228,7 @@ fn register_write_read_only(cx: &mut Ctx, r: &Register) {
         ),
         "A write to a read-only register is rejected with an exception.",
         vec![Tag::Write],
-        vec![exchange(
-            Outgoing::Pdu(pdu(
-                &cx.write_request(r.address, r.words(p.device.word_order, v))
-            )),
-            Compare::Exact,
-            "write",
-        )],
+        steps,
     );
 }
 
@@ -234,10 +257,12 @@ fn reserved(cx: &mut Ctx) {
     }
 }
 
-/// Coils: write ON, read back, restore; an unconfirmed coil is only read.
+/// Coils: write ON, read back, restore. On the MDrive the I/O point is configured as an output first (its
+/// setup read with FC 0x41 and put back after).
 fn coils(cx: &mut Ctx) {
     let p = cx.p;
     let pid = &p.device.id;
+    let io = IoPoints::of(p);
     if cx.supports(FunctionCode::READ_COILS) {
         for c in p.coils.iter().map(|c| c.get_ref()).filter(|c| !c.confirmed) {
             cx.push(
@@ -275,32 +300,29 @@ fn coils(cx: &mut Ctx) {
             if c.motion {
                 tags.push(Tag::Motion);
             }
+            let mut a = Around::new();
+            if let Some(io) = &io {
+                io.configure_outputs(cx, &mut a, &io.of_coils(c.address, 1));
+            }
+            a.keep_coils(cx, c.address, 1);
+            let steps = a.wrap(vec![
+                exchange(
+                    Outgoing::Pdu(pdu(&Request::WriteSingleCoil {
+                        address: c.address,
+                        value: 0xFF00,
+                    })),
+                    Compare::Exact,
+                    "ON",
+                ),
+                exchange(Outgoing::Pdu(read), Compare::Exact, "read back"),
+            ]);
             cx.push(
                 format!("profile/{pid}/coil/{}-{}", c.address, slug(&c.name)),
                 format!("switch {} on and read it back", c.name),
                 format!("{}: coil {} {}", p.device.name, c.address, c.name),
                 "Write Single Coil ON is echoed and Read Coils then shows the coil on.",
                 tags,
-                vec![
-                    capture(Outgoing::Pdu(read.clone()), Compare::Structure, 0, "read"),
-                    exchange(
-                        Outgoing::Pdu(pdu(&Request::WriteSingleCoil {
-                            address: c.address,
-                            value: 0xFF00,
-                        })),
-                        Compare::Exact,
-                        "ON",
-                    ),
-                    exchange(Outgoing::Pdu(read), Compare::Exact, "read back"),
-                    exchange(
-                        Outgoing::Restore {
-                            address: c.address,
-                            slot: 0,
-                        },
-                        Compare::Exact,
-                        "restore",
-                    ),
-                ],
+                steps,
             );
         }
     }
@@ -369,17 +391,26 @@ fn mnemonics(cx: &mut Ctx) {
             if m.destructive {
                 tags.push(Tag::Destructive);
             }
+            // A setting is read first and put back after; a program command starts from no program running
+            // and ends the program it started.
+            let mut a = Around::new();
+            a.keep_setting(cx, &m.name);
+            mcode::program_command(cx, &mut a, &mut tags, &m.name);
+            let steps = a.wrap(vec![exchange(
+                Outgoing::Pdu(pdu(&Request::VendorWrite {
+                    mnemonic: w,
+                    params: ex.as_bytes().to_vec(),
+                })),
+                Compare::Exact,
+                "write",
+            )]);
             cx.push(
                 format!("profile/{pid}/mnemonic/{}/write", slug(&m.name)),
                 format!("FC 0x42 write of {}{}", m.name, ex),
                 format!("{}: vendor FC 0x42, mnemonic {}", p.device.name, m.name),
                 "A writable mnemonic accepts the manual's example parameters and echoes the mnemonic.",
                 tags,
-                vec![exchange(
-                    Outgoing::Pdu(pdu(&Request::VendorWrite { mnemonic: w, params: ex.as_bytes().to_vec() })),
-                    Compare::Exact,
-                    "write",
-                )],
+                steps,
             );
         }
     }
@@ -448,13 +479,25 @@ fn reg_slug(r: &Register) -> String {
     }
 }
 
-/// The in-range value a write case uses: the smallest change from the default.
-fn write_value(r: &Register) -> i64 {
+/// The in-range value a write case uses: the smallest change from the default that a conforming drive
+/// accepts (some registers take only some values of their range: the MDrive's microstep resolution MS
+/// takes those of its table, so 255 next to the default 256 is refused); the reference drive says which.
+fn write_value(cx: &Ctx, r: &Register) -> i64 {
     let (min, max) = r.range();
-    match r.default {
-        Some(d) if d < max => d + 1,
-        Some(d) if d > min => d - 1,
-        Some(d) => d,
-        None => min + (max - min) / 2,
-    }
+    let candidates: Vec<i64> = match r.default {
+        Some(d) => vec![d + 1, d - 1, d / 2, d.saturating_mul(2), min, max, d],
+        None => vec![min + (max - min) / 2, min, max],
+    };
+    let accepted = |v: &i64| {
+        (min..=max).contains(v)
+            && cx.reference_accepts(
+                &cx.write_request(r.address, r.words(cx.p.device.word_order, *v)),
+            )
+    };
+    candidates
+        .iter()
+        .copied()
+        .find(|v| accepted(v) && Some(*v) != r.default)
+        .or(r.default.filter(|d| (min..=max).contains(d)))
+        .unwrap_or(candidates[0])
 }

@@ -1,8 +1,10 @@
 //! Generic cases from the Modbus application protocol: what every server must do with requests it
 //! cannot serve (exception codes 01, 02, 03), whatever its profile.
 
+use super::around::Around;
+use super::mcode::IoPoints;
 use super::{APP, Ctx, exchange, pdu};
-use crate::cases::{Compare, Outgoing, Tag};
+use crate::cases::{Compare, Outgoing, Step, Tag};
 use codec::FunctionCode;
 use codec::Request;
 use drives::profile::{Profile, Table};
@@ -45,13 +47,31 @@ fn unsupported_functions(cx: &mut Ctx) {
             0x18 => vec![fc, 0, 0],
             _ => vec![fc, 0, 0, 0, 1],
         };
+        // A code that writes (coil 0 or register 0) could change the drive if it were served after all:
+        // what it would change is kept and put back.
+        let mut a = Around::new();
+        match fc {
+            0x05 | 0x0F => a.keep_coils(cx, 0, 1),
+            0x06 | 0x16 | 0x17 => a.keep_registers(cx, 0, 1),
+            _ => {}
+        }
+        let tags = if matches!(fc, 0x05 | 0x06 | 0x0F | 0x16 | 0x17) {
+            vec![Tag::Write]
+        } else {
+            vec![]
+        };
+        let steps = a.wrap(vec![exchange(
+            Outgoing::Pdu(body),
+            Compare::Exact,
+            format!("FC 0x{fc:02X}"),
+        )]);
         cx.push(
             format!("spec/app-7/unsupported-function/fc-0x{fc:02X}"),
             format!("function code 0x{fc:02X} is not supported"),
             format!("{APP}, section 7 (exception codes), 6 (state diagrams)"),
             "A function code the server does not implement is answered with exception 01 (Illegal Function) in a response whose function code is the request's with the high bit set, and the exception response is exactly 2 bytes.",
-            vec![],
-            vec![exchange(Outgoing::Pdu(body), Compare::Exact, format!("FC 0x{fc:02X}"))],
+            tags,
+            steps,
         );
     }
 }
@@ -111,13 +131,26 @@ fn quantities_out_of_range(cx: &mut Ctx) {
                 }
             };
             let writes = matches!(fc, 0x0F | 0x10 | 0x17);
+            // What a drive that wrongly served the request would write is kept and put back.
+            let mut a = Around::new();
+            match fc {
+                0x0F => a.keep_coils(cx, 0, q),
+                0x10 => a.keep_registers(cx, first_reg(p, Table::Holding), q),
+                0x17 => a.keep_registers(cx, first_reg(p, Table::Holding), 1),
+                _ => {}
+            }
+            let steps = a.wrap(vec![exchange(
+                Outgoing::Pdu(bytes),
+                Compare::Exact,
+                format!("quantity {q}"),
+            )]);
             cx.push(
                 format!("spec/app-6/quantity/fc-0x{fc:02X}/{label}"),
                 format!("FC 0x{fc:02X} with quantity {q} (limit {max})"),
-                format!("{APP}, section 6.{} (state diagram: quantity out of range)", fc),
+                format!("{APP}, section {} (state diagram: quantity out of range)", section(fc)),
                 format!("A quantity of 0 or above the limit ({max} for this device) is answered with exception 03 (Illegal Data Value)."),
                 if writes { vec![Tag::Write] } else { vec![] },
-                vec![exchange(Outgoing::Pdu(bytes), Compare::Exact, format!("quantity {q}"))],
+                steps,
             );
         }
     }
@@ -147,7 +180,7 @@ fn addresses_beyond_map(cx: &mut Ctx) {
             cx.push(
                 format!("spec/app-6/address-beyond-map/fc-0x{fc:02X}"),
                 format!("FC 0x{fc:02X} at 0x{addr:04X}, past the last register"),
-                format!("{APP}, section 6.{fc} (state diagram: starting address + quantity out of range)"),
+                format!("{APP}, section {} (state diagram: starting address + quantity out of range)", section(fc)),
                 "A read of an address the device does not have is answered with exception 02 (Illegal Data Address).",
                 vec![],
                 vec![exchange(Outgoing::Pdu(pdu(&req)), Compare::Exact, format!("address 0x{addr:04X}"))],
@@ -166,16 +199,23 @@ fn byte_count_mismatches(cx: &mut Ctx) {
             values: vec![0, 0],
         });
         b[5] = 2; // says 2 bytes while quantity is 2 registers (4 bytes) and 4 bytes follow
+        let mut around = Around::new();
+        around.keep_registers(cx, a, 2);
+        let steps = around.wrap(vec![
+            exchange(
+                Outgoing::Pdu(b),
+                Compare::Exact,
+                "byte count 2 for 2 registers",
+            ),
+            cx.liveness(),
+        ]);
         cx.push(
             "spec/app-6.12/byte-count-mismatch/fc-0x10".into(),
             "FC 16 whose byte count disagrees with its quantity",
             format!("{APP}, section 6.12"),
             "A byte count that is not 2 x quantity is answered with exception 03 (Illegal Data Value); the drive keeps answering.",
             vec![Tag::Write],
-            vec![
-                exchange(Outgoing::Pdu(b), Compare::Exact, "byte count 2 for 2 registers"),
-                cx.liveness(),
-            ],
+            steps,
         );
     }
     if cx.supports(FunctionCode::WRITE_MULTIPLE_COILS) {
@@ -186,13 +226,19 @@ fn byte_count_mismatches(cx: &mut Ctx) {
         });
         b[5] = 1;
         b.pop();
+        let mut around = Around::new();
+        around.keep_coils(cx, 0, 9);
+        let steps = around.wrap(vec![
+            exchange(Outgoing::Pdu(b), Compare::Exact, "byte count 1 for 9 coils"),
+            cx.liveness(),
+        ]);
         cx.push(
             "spec/app-6.11/byte-count-mismatch/fc-0x0F".into(),
             "FC 15 whose byte count disagrees with its quantity",
             format!("{APP}, section 6.11"),
             "A byte count that is not ceil(quantity / 8) is answered with exception 03 (Illegal Data Value).",
             vec![Tag::Write],
-            vec![exchange(Outgoing::Pdu(b), Compare::Exact, "byte count 1 for 9 coils"), cx.liveness()],
+            steps,
         );
     }
 }
@@ -203,13 +249,27 @@ fn truncated_pdus(cx: &mut Ctx) {
         if !cx.supports(fc) {
             continue;
         }
+        // The PDU names address 1 and no value: a drive that wrote anything would write there.
+        let writes = matches!(fc, 0x06 | 0x10);
+        let mut a = Around::new();
+        if writes {
+            a.keep_registers(cx, 1, 1);
+        }
+        let steps = a.wrap(vec![
+            exchange(
+                Outgoing::Pdu(vec![fc, 0x00, 0x01]),
+                Compare::RejectOrIgnore,
+                "3-byte PDU",
+            ),
+            cx.liveness(),
+        ]);
         cx.push(
             format!("spec/app-6/truncated-pdu/fc-0x{fc:02X}"),
             format!("FC 0x{fc:02X} with its data cut to 2 bytes"),
             format!("{APP}, section 6 (request PDU layouts) and 7"),
             "A request too short for its function code is rejected (exception 03) or ignored, never answered as if valid; the drive keeps answering.",
-            if matches!(fc, 0x06 | 0x10) { vec![Tag::Write] } else { vec![] },
-            vec![exchange(Outgoing::Pdu(vec![fc, 0x00, 0x01]), Compare::RejectOrIgnore, "3-byte PDU"), cx.liveness()],
+            if writes { vec![Tag::Write] } else { vec![] },
+            steps,
         );
     }
 }
@@ -219,18 +279,46 @@ fn write_coil_illegal_value(cx: &mut Ctx) {
     let p = cx.p;
     if cx.supports(FunctionCode::WRITE_SINGLE_COIL) {
         let addr = p.coils.first().map_or(0, |c| c.get_ref().address);
+        // The coil must be writable for its value to be the only fault (MDrive: the point an output); a
+        // drive that wrongly accepts the value is left as it was.
+        let mut a = Around::new();
+        if let Some(io) = IoPoints::of(p) {
+            io.configure_outputs(cx, &mut a, &io.of_coils(addr, 1));
+        }
+        a.keep_coils(cx, addr, 1);
+        let steps: Vec<Step> = a.wrap(vec![exchange(
+            Outgoing::Pdu(pdu(&Request::WriteSingleCoil {
+                address: addr,
+                value: 0x1234,
+            })),
+            Compare::Exact,
+            "value 0x1234",
+        )]);
         cx.push(
             "spec/app-6.5/write-coil-illegal-value".into(),
             "FC 05 with value 0x1234",
             format!("{APP}, section 6.5"),
             "A Write Single Coil value other than 0xFF00 or 0x0000 is answered with exception 03 (Illegal Data Value).",
             vec![Tag::Write],
-            vec![exchange(
-                Outgoing::Pdu(pdu(&Request::WriteSingleCoil { address: addr, value: 0x1234 })),
-                Compare::Exact,
-                "value 0x1234",
-            )],
+            steps,
         );
+    }
+}
+
+/// The section of the application protocol specification that describes function `fc` (6.1 Read Coils ...
+/// 6.17 Read/Write Multiple registers): the sections are numbered in order, not by function code.
+fn section(fc: u8) -> &'static str {
+    match fc {
+        0x01 => "6.1",
+        0x02 => "6.2",
+        0x03 => "6.3",
+        0x04 => "6.4",
+        0x05 => "6.5",
+        0x06 => "6.6",
+        0x0F => "6.11",
+        0x10 => "6.12",
+        0x17 => "6.17",
+        _ => "6",
     }
 }
 

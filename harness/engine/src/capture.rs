@@ -1,0 +1,191 @@
+//! What a capture step keeps from the drive's answer, and the write that puts it back.
+//!
+//! A catalog case that changes the drive reads what it will change first (a step with `capture: Some(slot)`)
+//! and writes it back after (`Outgoing::Restore`, `Outgoing::RestoreRead`), so that no case depends on what
+//! another case left behind and a run leaves the drive as it found it. What is kept is the target's answer,
+//! never the reference's: the reference receives the same restoring bytes and so follows the target's state.
+
+use codec::{
+    CanOpenAccess, Decoded, Direction, Framing, FunctionCode, Mnemonic, Pdu, Request, Response,
+    decode_any,
+};
+use drives::profile::Profile;
+
+/// What a capture step kept, with where it was read from.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum Captured {
+    /// Registers read with FC 03 / FC 04 (or the read part of FC 23) from `address`.
+    Registers { address: u16, values: Vec<u16> },
+    /// Coils read with FC 01 from `address`, first coil first.
+    Coils { address: u16, states: Vec<bool> },
+    /// An FC 43 / MEI 0x0D object as read: node, index, subindex and little-endian data.
+    Object(CanOpenAccess),
+    /// A vendor setting read with FC 0x41: its mnemonic and the parameter string the drive returned.
+    Setting { mnemonic: Mnemonic, params: Vec<u8> },
+}
+
+impl Captured {
+    /// The register values, when registers were kept.
+    pub fn registers(&self) -> Option<&[u16]> {
+        match self {
+            Captured::Registers { values, .. } => Some(values),
+            _ => None,
+        }
+    }
+
+    /// An object's value read little-endian, when an object was kept.
+    pub fn object_value(&self) -> Option<u32> {
+        match self {
+            Captured::Object(a) => a.value_le(),
+            _ => None,
+        }
+    }
+
+    /// The request that writes this back: registers and coils at `at` (where they were read when `None`),
+    /// a setting as an FC 0x42 write of the same mnemonic, an object as an FC 43 write of the same object.
+    /// `None` when there is nothing to write (no coil states).
+    pub fn restore(&self, at: Option<u16>, p: &Profile) -> Option<Request> {
+        Some(match self {
+            Captured::Registers { address, values } => {
+                let address = at.unwrap_or(*address);
+                if values.len() == 1 && p.function(FunctionCode::WRITE_MULTIPLE_REGISTERS).is_none()
+                {
+                    Request::WriteSingleRegister {
+                        address,
+                        value: values[0],
+                    }
+                } else {
+                    Request::WriteMultipleRegisters {
+                        address,
+                        values: values.clone(),
+                    }
+                }
+            }
+            Captured::Coils { address, states } => {
+                let address = at.unwrap_or(*address);
+                match states.as_slice() {
+                    [] => return None,
+                    [on] if p.function(FunctionCode::WRITE_SINGLE_COIL).is_some() => {
+                        Request::WriteSingleCoil {
+                            address,
+                            value: if *on { 0xFF00 } else { 0 },
+                        }
+                    }
+                    _ => Request::WriteMultipleCoils {
+                        address,
+                        quantity: states.len() as u16,
+                        data: pack(states),
+                    },
+                }
+            }
+            Captured::Object(a) => Request::CanOpen(CanOpenAccess::write(
+                a.node_id,
+                a.index,
+                a.subindex,
+                a.data.clone(),
+            )),
+            Captured::Setting { mnemonic, params } => Request::VendorWrite {
+                mnemonic: *mnemonic,
+                params: setting_params(params),
+            },
+        })
+    }
+}
+
+/// What a response to `request` (a PDU) keeps for a later restore; `None` for an exception, silence, or an
+/// answer that reads nothing.
+pub fn captured(framing: Framing, request: &[u8], response: &[u8]) -> Option<Captured> {
+    let d: Decoded = decode_any(response, framing, Direction::Response).ok()?;
+    let Pdu::Response(resp) = d.pdu else {
+        return None;
+    };
+    let req = Request::decode(request).ok();
+    match (req, resp) {
+        (
+            Some(
+                Request::ReadHoldingRegisters { address, .. }
+                | Request::ReadInputRegisters { address, .. }
+                | Request::ReadWriteMultipleRegisters {
+                    read_address: address,
+                    ..
+                },
+            ),
+            Response::ReadHoldingRegisters { values }
+            | Response::ReadInputRegisters { values }
+            | Response::ReadWriteMultipleRegisters { values },
+        ) => Some(Captured::Registers { address, values }),
+        (Some(Request::ReadCoils { address, quantity }), Response::ReadCoils { data }) => {
+            let states = (0..usize::from(quantity))
+                .map(|i| data.get(i / 8).is_some_and(|b| b >> (i % 8) & 1 == 1))
+                .collect();
+            Some(Captured::Coils { address, states })
+        }
+        (Some(Request::VendorRead { mnemonic }), Response::VendorRead { params }) => {
+            Some(Captured::Setting { mnemonic, params })
+        }
+        (_, Response::CanOpen(a)) if !a.is_write() => Some(Captured::Object(a)),
+        _ => None,
+    }
+}
+
+/// An FC 0x42 parameter string from an FC 0x41 read-back: the drive may return the values as `0, 0, 0` (the
+/// manuals' only printed read-back) or as written (`=0,0,0`); a write wants `=` and the values without spaces.
+pub fn setting_params(read_back: &[u8]) -> Vec<u8> {
+    let values: Vec<u8> = read_back
+        .iter()
+        .copied()
+        .filter(|b| !b.is_ascii_whitespace())
+        .collect();
+    let values = values.strip_prefix(b"=").unwrap_or(&values);
+    let mut out = Vec::with_capacity(values.len() + 1);
+    out.push(b'=');
+    out.extend_from_slice(values);
+    out
+}
+
+/// Coil states packed LSB-first, as FC 0F carries them.
+fn pack(states: &[bool]) -> Vec<u8> {
+    let mut data = vec![0u8; states.len().div_ceil(8)];
+    for (i, on) in states.iter().enumerate() {
+        if *on {
+            data[i / 8] |= 1 << (i % 8);
+        }
+    }
+    data
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_read_back_setting_becomes_a_write() {
+        assert_eq!(setting_params(b"0, 1, 0"), b"=0,1,0");
+        assert_eq!(setting_params(b"=16,0,0"), b"=16,0,0");
+        assert_eq!(setting_params(b" 1.500 "), b"=1.500");
+    }
+
+    #[test]
+    fn coils_are_kept_and_packed_first_coil_first() {
+        let req = Request::ReadCoils {
+            address: 3,
+            quantity: 10,
+        }
+        .to_bytes()
+        .expect("request");
+        let mut frame = Vec::new();
+        codec::tcp::encode_adu(1, 1, &[0x01, 0x02, 0b0000_0101, 0b10], &mut frame).expect("adu");
+        let c = captured(Framing::Tcp, &req, &frame).expect("captured");
+        let Captured::Coils { address, states } = &c else {
+            panic!("{c:?}")
+        };
+        assert_eq!(*address, 3);
+        assert_eq!(
+            states,
+            &[
+                true, false, true, false, false, false, false, false, false, true
+            ]
+        );
+        assert_eq!(pack(states), vec![0b0000_0101, 0b10]);
+    }
+}

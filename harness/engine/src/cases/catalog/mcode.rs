@@ -1,0 +1,274 @@
+//! What the MCode drives (MDrive, LMD: profiles with the MCode mnemonics and registers) need around a case
+//! before it can be judged against the reference, from their manuals: MDrive `000_b25109cd5b573b4c.txt`
+//! ("000"), LMD `001_aafa6838846abfce.txt` ("001"); line numbers are lines of those files. Everything here is
+//! keyed by mnemonic and does nothing for a profile without it.
+
+use std::time::Duration;
+
+use super::around::Around;
+use super::{Ctx, exchange, pdu};
+use crate::cases::{Compare, Outgoing, Step, Tag};
+use codec::{FunctionCode, Mnemonic, Request};
+use drives::profile::{Access, Profile, Register};
+
+/// FC 0x42 setup of an I/O point as a general purpose output, active low, sinking (000 lines 743-759).
+const OUTPUT_SETUP: &str = "=16,0,0";
+
+/// How long a one-step move (or the stop of a slew) is given to end before the next move command: a drive
+/// refuses a move while one runs. One step takes 1 ms at the reference's initial velocity (VI = 1000).
+const MOVE_SETTLE: Duration = Duration::from_millis(250);
+
+/// The MDrive's I/O points, shared between inputs and outputs and configured with S1-S4 (FC 0x42): "The
+/// outputs must be configured as such" (000 lines 532, 579), "By default the I/O points are configured as
+/// general purpose inputs" (000 line 1263). Point k is coil k and discrete input k in address order, and
+/// registers Ik / Ok. A profile has them when it has a setup mnemonic S1..Sn for its n coils and n discrete
+/// inputs (the LMD's outputs are outputs of their own, set up per line with OS, which FC 0x41 cannot read
+/// back line by line: they are not reconfigured).
+pub(super) struct IoPoints {
+    coils: Vec<u16>,
+}
+
+impl IoPoints {
+    /// The profile's I/O points, if it has shared ones (and FC 0x41 / 0x42 to set them up and back).
+    pub(super) fn of(p: &Profile) -> Option<Self> {
+        let mut coils: Vec<u16> = p.coils.iter().map(|c| c.get_ref().address).collect();
+        coils.sort_unstable();
+        let n = coils.len();
+        let shared = n > 0
+            && p.function(FunctionCode::VENDOR_READ).is_some()
+            && p.function(FunctionCode::VENDOR_WRITE).is_some()
+            && p.discrete_inputs.len() == n
+            && (1..=n).all(|k| {
+                p.mnemonic(&format!("S{k}"))
+                    .is_some_and(|m| m.read && m.write)
+            });
+        shared.then_some(Self { coils })
+    }
+
+    /// The points (1-based) a coil write at `address` of `count` coils drives.
+    pub(super) fn of_coils(&self, address: u16, count: u16) -> Vec<usize> {
+        let end = u32::from(address) + u32::from(count);
+        self.coils
+            .iter()
+            .enumerate()
+            .filter(|(_, a)| u32::from(**a) >= u32::from(address) && u32::from(**a) < end)
+            .map(|(i, _)| i + 1)
+            .collect()
+    }
+
+    /// The points a register write drives: Ok → point k; OT and OL (all outputs as a group) → every point.
+    pub(super) fn of_register(&self, r: &Register) -> Vec<usize> {
+        let Some(m) = r.mnemonic.as_deref() else {
+            return vec![];
+        };
+        let m = m.to_ascii_uppercase();
+        if m == "OT" || m == "OL" {
+            return (1..=self.coils.len()).collect();
+        }
+        m.strip_prefix('O')
+            .and_then(|k| k.parse::<usize>().ok())
+            .filter(|k| (1..=self.coils.len()).contains(k))
+            .map_or_else(Vec::new, |k| vec![k])
+    }
+
+    /// Configure `points` as general purpose outputs for the case: keep each setup (FC 0x41), write the
+    /// output setup (FC 0x42), and put the setups back after.
+    pub(super) fn configure_outputs(&self, cx: &Ctx, a: &mut Around, points: &[usize]) {
+        for k in points {
+            let name = format!("S{k}");
+            let Some(mnemonic) = Mnemonic::from_name(&name) else {
+                continue;
+            };
+            a.keep_setting(cx, &name);
+            a.set(exchange(
+                Outgoing::Pdu(pdu(&Request::VendorWrite {
+                    mnemonic,
+                    params: OUTPUT_SETUP.as_bytes().to_vec(),
+                })),
+                Compare::Structure,
+                format!(
+                    "configure I/O point {k} as a general purpose output ({name}{OUTPUT_SETUP})"
+                ),
+            ));
+        }
+    }
+}
+
+/// The register entry with mnemonic `m`.
+fn register<'a>(p: &'a Profile, m: &str) -> Option<&'a Register> {
+    p.registers.iter().map(|r| r.get_ref()).find(|r| {
+        r.mnemonic
+            .as_deref()
+            .is_some_and(|x| x.eq_ignore_ascii_case(m))
+    })
+}
+
+fn is(r: &Register, m: &str) -> bool {
+    r.mnemonic
+        .as_deref()
+        .is_some_and(|x| x.eq_ignore_ascii_case(m))
+}
+
+/// A write of `value` to `r`, in the profile's word order.
+fn write(cx: &Ctx, r: &Register, value: i64, note: impl Into<String>) -> Step {
+    exchange(
+        Outgoing::Pdu(pdu(
+            &cx.write_request(r.address, r.words(cx.p.device.word_order, value))
+        )),
+        Compare::Exact,
+        note,
+    )
+}
+
+/// True for a register whose write starts a move: MA, MR, SL (000 lines 1072, 1074, 1114).
+pub(super) fn starts_move(r: &Register) -> bool {
+    ["MA", "MR", "SL"].iter().any(|m| is(r, m))
+}
+
+/// A move needs the drive enabled: the reference refuses MA/MR/SL while DE = 0 (exception 04). Keep DE,
+/// write DE = 1, and put DE back after.
+pub(super) fn enable_drive(cx: &Ctx, a: &mut Around) {
+    if let Some(de) = register(cx.p, "DE").filter(|r| r.access == Access::Rw) {
+        a.keep_register(cx, de, Compare::Structure);
+        a.set(write(cx, de, 1, "enable the drive (DE = 1)"));
+    }
+}
+
+/// Around a write of `value` to a move register (after [`enable_drive`]): a point move (MA, MR) starts from a
+/// known position (P kept, then set to 0, the reference point of moves, 000 line 1097: the move is short on any
+/// drive) and moves back to it with MA 0, an absolute move that cannot add to any error of the first;
+/// SL stops (SL 0). The position counter is put back after.
+pub(super) fn undo_move(cx: &Ctx, a: &mut Around, r: &Register) {
+    let settle = Step::Wait(MOVE_SETTLE);
+    if is(r, "MA") || is(r, "MR") {
+        let (Some(pos), Some(ma)) = (
+            register(cx.p, "P").filter(|p| p.access == Access::Rw),
+            register(cx.p, "MA").filter(|m| m.access.writable()),
+        ) else {
+            return;
+        };
+        a.keep_register(cx, pos, Compare::Structure);
+        a.set(write(
+            cx,
+            pos,
+            0,
+            "position counter P = 0 (the move is short)",
+        ));
+        a.undo(vec![
+            settle.clone(),
+            write(cx, ma, 0, "move back to position 0 (MA 0)"),
+            settle,
+        ]);
+    } else if is(r, "SL") {
+        let mut stop = vec![write(cx, r, 0, "stop the slew (SL 0)")];
+        match register(cx.p, "DE").filter(|d| d.access == Access::Rw) {
+            Some(de) => stop.push(write(cx, de, 0, "stop the axis at once (DE = 0)")),
+            None => stop.push(settle),
+        }
+        a.undo(stop);
+    }
+}
+
+/// DC and IC decrement and increment "the specified variable by one" (000 lines 1041, 1064): each is undone
+/// by the other with the same value.
+pub(super) fn undo_step_instruction(cx: &Ctx, a: &mut Around, r: &Register, value: i64) {
+    let inverse = if is(r, "DC") {
+        "IC"
+    } else if is(r, "IC") {
+        "DC"
+    } else {
+        return;
+    };
+    if let Some(inv) = register(cx.p, inverse).filter(|i| i.access.writable()) {
+        a.undo(vec![write(
+            cx,
+            inv,
+            value,
+            format!("undo with {inverse} {value}"),
+        )]);
+    }
+}
+
+/// Registers whose valid values depend on another's: VI < VM (000 lines 1123-1124), HT + MT ≤ 65535 and
+/// HT ≠ 1 (000 lines 1056, 1088). Before one of them is written, the other is kept and set to the end of
+/// its range that leaves the written one its whole range (VM to its maximum, VI, HT and MT to their minimum),
+/// so that the write does not depend on the drive's setting of the other; both are put back after, the
+/// written one first.
+pub(super) fn free_partner(cx: &Ctx, a: &mut Around, r: &Register) {
+    const PARTNERS: &[(&str, &str, bool)] = &[
+        ("VI", "VM", true),
+        ("VM", "VI", false),
+        ("HT", "MT", false),
+        ("MT", "HT", false),
+    ];
+    for (m, partner, to_max) in PARTNERS {
+        if !is(r, m) {
+            continue;
+        }
+        if let Some(other) = register(cx.p, partner).filter(|o| o.access == Access::Rw) {
+            let (min, max) = other.range();
+            let v = if *to_max { max } else { min };
+            a.keep_register(cx, other, Compare::Structure);
+            a.set(write(
+                cx,
+                other,
+                v,
+                format!("{partner} = {v}, so that any {m} is valid"),
+            ));
+        }
+    }
+}
+
+/// The MCode program commands (000 section 4.3, 001 sections 4.4.5, 4.4.10, 4.4.11, 4.4.13): a case that
+/// pauses or resumes a program first starts one (EX with the profile's example label), every case that
+/// starts one ends it (E) after, and each starts from no program running (E), so that no case depends on a
+/// program another left running or paused. The program's label must exist on the drive; CP, which clears
+/// the program, and UG, which stops normal operation for a firmware upgrade, are [`Tag::Irreversible`] and run
+/// after every other case.
+pub(super) fn program_command(cx: &Ctx, a: &mut Around, tags: &mut Vec<Tag>, name: &str) {
+    let command = |m: &str, params: &[u8], what: &str| -> Option<Step> {
+        cx.p.mnemonic(m)?;
+        Some(exchange(
+            Outgoing::Pdu(pdu(&Request::VendorWrite {
+                mnemonic: Mnemonic::from_name(m)?,
+                params: params.to_vec(),
+            })),
+            Compare::Structure,
+            format!("{what} ({m}{})", String::from_utf8_lossy(params)),
+        ))
+    };
+    if !cx.supports(FunctionCode::VENDOR_WRITE) {
+        return;
+    }
+    let name = name.to_ascii_uppercase();
+    if matches!(name.as_str(), "CP" | "UG") {
+        if !tags.contains(&Tag::Irreversible) {
+            tags.push(Tag::Irreversible);
+        }
+        return;
+    }
+    if !matches!(name.as_str(), "EX" | "PS" | "RS") {
+        return;
+    }
+    let label =
+        cx.p.mnemonic("EX")
+            .and_then(|m| m.example.clone())
+            .map(String::into_bytes)
+            .unwrap_or_default();
+    let mut start = vec![command("E", b"", "no program running")];
+    if name != "EX" {
+        start.push(command("EX", &label, "a program running"));
+        if !tags.contains(&Tag::Motion) {
+            tags.push(Tag::Motion);
+        }
+    }
+    if name == "RS" {
+        start.push(command("PS", b"", "the program paused"));
+    }
+    for s in start.into_iter().flatten() {
+        a.set(s);
+    }
+    if let Some(end) = command("E", b"", "end the program") {
+        a.undo(vec![end]);
+    }
+}

@@ -6,6 +6,7 @@
 //! (see `bank`). Used for every profile that has no model of its own (`corpus/profiles/generic.toml` is the
 //! reference one); the device identification code is shared with the MDrive/LMD model.
 
+use std::sync::Arc;
 use std::time::Duration;
 
 use super::DriveModel;
@@ -19,8 +20,9 @@ use codec::{
 };
 
 /// A spec-conforming Modbus server over a profile's registers, coils and discrete inputs.
+#[derive(Clone)]
 pub struct Generic {
-    profile: Profile,
+    profile: Arc<Profile>,
     bank: RegisterBank,
 }
 
@@ -29,7 +31,10 @@ impl Generic {
     /// range-unchecked) act through the register bank.
     pub fn new(profile: Profile, faults: FaultSet) -> Self {
         let bank = RegisterBank::new(&profile, &faults);
-        Self { profile, bank }
+        Self {
+            profile: Arc::new(profile),
+            bank,
+        }
     }
 
     /// The data model (tests and the in-process target inspect it).
@@ -144,6 +149,10 @@ pub fn read_device_id(profile: &Profile, code: u8, object_id: u8) -> Response {
 impl DriveModel for Generic {
     fn profile(&self) -> &Profile {
         &self.profile
+    }
+
+    fn box_clone(&self) -> Box<dyn DriveModel> {
+        Box::new(self.clone())
     }
 
     /// A plain server has no state that evolves on its own.

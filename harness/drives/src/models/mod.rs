@@ -28,6 +28,17 @@ pub trait DriveModel: Send {
     /// Answer a request addressed to this drive as unit `unit` at `now` (after `advance(now)`).
     /// `None` means the drive stays silent. Broadcasts are handled too; the station drops their answer.
     fn handle(&mut self, now: Duration, unit: u8, request: &Request) -> Option<Response>;
+
+    /// A copy of the model in its present state, which then evolves on its own. Cheap: the profile and
+    /// the register map are shared, only the state is copied (the in-process fuzz targets clone a pristine
+    /// model per input instead of building one).
+    fn box_clone(&self) -> Box<dyn DriveModel>;
+}
+
+impl Clone for Box<dyn DriveModel> {
+    fn clone(&self) -> Self {
+        self.box_clone()
+    }
 }
 
 /// Build the model a profile describes: sd2x, mdrive and lmd have their own models, anything else is generic.

@@ -42,6 +42,7 @@
 //!   live values instead ([`SIMULATED`]), with 17.0 °C at the power stage to agree with example 6.2.
 
 use std::collections::BTreeMap;
+use std::sync::Arc;
 use std::time::Duration;
 
 use super::DriveModel;
@@ -295,8 +296,9 @@ enum ObjectError {
 }
 
 /// The SD2x drive model.
+#[derive(Clone)]
 pub struct Sd2x {
-    profile: Profile,
+    profile: Arc<Profile>,
     faults: FaultSet,
     now: Duration,
     state: Ds402State,
@@ -349,7 +351,7 @@ impl Sd2x {
             }
         }
         let mut model = Self {
-            profile,
+            profile: Arc::new(profile),
             faults,
             now: Duration::ZERO,
             state: Ds402State::SwitchOnDisabled,
@@ -862,6 +864,10 @@ impl DataModel for Sd2x {
 impl DriveModel for Sd2x {
     fn profile(&self) -> &Profile {
         &self.profile
+    }
+
+    fn box_clone(&self) -> Box<dyn DriveModel> {
+        Box::new(self.clone())
     }
 
     fn advance(&mut self, now: Duration) {

@@ -2,6 +2,7 @@
 
 extern crate modbus_harness_drives as drives;
 
+mod clone;
 mod generic;
 mod golden;
 mod golden_readme;

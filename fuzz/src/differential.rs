@@ -419,3 +419,34 @@ pub(crate) fn differential_input(unit: u8, request: &Request, response: &[u8]) -
     out.extend_from_slice(response);
     Some(out)
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The in-memory peer hands tokio-modbus's client the answer and keeps what it sent, so both halves of
+    /// the comparison see real bytes: a valid answer is read, a cut one rejected, a wrong one read as such.
+    #[test]
+    fn the_peer_answers_and_keeps_the_request() {
+        let request = tokio_modbus::Request::ReadHoldingRegisters(0x0102, 2);
+        let ours = tcp::encode(
+            0,
+            7,
+            &Pdu::Request(Request::ReadHoldingRegisters {
+                address: 0x0102,
+                quantity: 2,
+            }),
+        )
+        .expect("encodes");
+        let answer = [0, 0, 0, 0, 0, 7, 7, 0x03, 4, 0x12, 0x34, 0x56, 0x78];
+        let (sent, result) = tokio_modbus_exchange(7, request.clone(), answer.to_vec());
+        assert_eq!(sent, ours);
+        assert_eq!(their_meaning(result), Meaning::Words(vec![0x1234, 0x5678]));
+        let (sent, result) = tokio_modbus_exchange(7, request.clone(), answer[..10].to_vec());
+        assert_eq!(sent, ours);
+        assert_eq!(their_meaning(result), Meaning::Rejected);
+        let exception = [0, 0, 0, 0, 0, 3, 7, 0x83, 0x02];
+        let (_, result) = tokio_modbus_exchange(7, request, exception.to_vec());
+        assert_eq!(their_meaning(result), Meaning::Exception(0x02));
+    }
+}

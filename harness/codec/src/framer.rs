@@ -348,16 +348,17 @@ impl RtuFramer {
         events
     }
 
-    /// How many more bytes can arrive before `cut` could emit or drop anything: none while the rules need more
-    /// bytes to know the length; else all but the one that brings the buffer to the next candidate length
-    /// (4..=256) or over 256 bytes. Every rule reads fixed positions, so once known a length (or its absence)
-    /// stays what it is as bytes are added; and `cut` has already run at the present length, so candidates
-    /// up to it failed their CRC and fail it again on the same bytes.
+    /// How many more bytes can arrive before `cut` could emit or drop anything: all but the one that brings the
+    /// buffer to the next length at which it could. While the rules need more bytes to know the length, that
+    /// is the next byte, or the 4th (no frame is shorter); once they know it (or know there is no rule), the
+    /// next candidate length (4..=256) or over 256 bytes. Every rule reads fixed positions, so once known a
+    /// length (or its absence) stays what it is as bytes are added; and `cut` has already run at the present
+    /// length, so candidates up to it failed their CRC and fail it again on the same bytes.
     fn quiet(&self) -> usize {
         let len = self.buf.len();
         let overlong = MAX_ADU_LEN + 1;
         let next = match expected_len(self.direction, &self.buf, &self.vendor) {
-            FrameLen::NeedMore => return 0,
+            FrameLen::NeedMore => MIN_ADU_LEN.max(len + 1),
             FrameLen::Unknown => overlong,
             FrameLen::Known(a, b) => [a, b]
                 .into_iter()
@@ -432,20 +433,20 @@ impl RtuFramer {
                 at: self.last,
                 reason: DiscardReason::TooShort,
             });
-        } else if crc_ok(&self.buf) {
-            let n = self.buf.len();
-            self.emit(n, events);
         } else {
+            // The CRC once, for the check and for the report (crc_ok would compute the same).
             let (body, c) = self.buf.split_at(self.buf.len() - 2);
-            let reason = DiscardReason::BadCrc {
-                expected: crc16(body),
-                received: u16::from_le_bytes([c[0], c[1]]),
-            };
-            events.push(FramerEvent::Discarded {
-                bytes: self.buf.drain(..).collect(),
-                at: self.last,
-                reason,
-            });
+            let (expected, received) = (crc16(body), u16::from_le_bytes([c[0], c[1]]));
+            if expected == received {
+                let n = self.buf.len();
+                self.emit(n, events);
+            } else {
+                events.push(FramerEvent::Discarded {
+                    bytes: self.buf.drain(..).collect(),
+                    at: self.last,
+                    reason: DiscardReason::BadCrc { expected, received },
+                });
+            }
         }
     }
 }

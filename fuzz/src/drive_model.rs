@@ -8,10 +8,11 @@ use codec::framer::RtuTiming;
 use codec::{Framing, Request, Response, hex_spaced};
 use drives::profile::Profile;
 use drives::{FaultSet, RtuPort, Station, TcpConn};
-use engine::cases::catalog;
 
 use crate::input::Input;
-use crate::reference::{check_reply, frame_request, line_timing, profiles, station};
+use crate::reference::{
+    check_reply, frame_request, fresh_station, line_timing, liveness_probe, profiles,
+};
 
 /// `drive_model` operation tags (the tag byte is taken modulo `OPS`).
 const OP_TYPED: u8 = 0;
@@ -70,6 +71,8 @@ pub(crate) fn parse_ops(data: &[u8]) -> Vec<Op<'_>> {
 
 /// One reference drive under a `drive_model` input, with its connection, line and clock.
 struct DriveRun<'p> {
+    /// The index of the drive in `DRIVES`.
+    drive: usize,
     profile: &'p Profile,
     station: Station,
     conn: TcpConn,
@@ -79,11 +82,12 @@ struct DriveRun<'p> {
 }
 
 impl<'p> DriveRun<'p> {
-    fn new(profile: &'p Profile, faults: &FaultSet) -> Self {
+    fn new(drive: usize, profile: &'p Profile, faults: &FaultSet) -> Self {
         let timing = line_timing();
         Self {
+            drive,
             profile,
-            station: station(profile, faults),
+            station: fresh_station(drive, faults),
             conn: TcpConn::default(),
             port: RtuPort::new(timing),
             timing,
@@ -174,22 +178,22 @@ impl<'p> DriveRun<'p> {
     /// After the sequence: the drive still answers a valid read on both transports, and its state holds.
     fn finish(&mut self) {
         self.wait(Duration::from_secs(1));
-        let probe = catalog::known_good_read(self.profile);
+        let probe = liveness_probe(self.drive);
         let unit = self.profile.device.default_unit;
-        let responses = self.request(unit, &probe);
+        let responses = self.request(unit, probe);
         assert_eq!(
             responses.len(),
             2,
             "{}: the liveness probe {} is not answered on both transports",
             self.profile.device.id,
-            hex_spaced(&probe)
+            hex_spaced(probe)
         );
         for r in responses {
             assert!(
                 !r.is_exception(),
                 "{}: the liveness probe {} is answered with {r:?}",
                 self.profile.device.id,
-                hex_spaced(&probe)
+                hex_spaced(probe)
             );
         }
         assert!(!self.station.is_dead(), "the drive went silent for good");
@@ -219,8 +223,8 @@ pub fn drive_model(data: &[u8]) {
 /// the wire-level faults (a check that cannot fail is a defect).
 pub fn drive_model_with_faults(data: &[u8], faults: &FaultSet) {
     let ops = parse_ops(data);
-    for profile in profiles() {
-        let mut run = DriveRun::new(profile, faults);
+    for (drive, profile) in profiles().iter().enumerate() {
+        let mut run = DriveRun::new(drive, profile, faults);
         for op in &ops {
             run.apply(op);
         }

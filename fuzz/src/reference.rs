@@ -1,6 +1,7 @@
 //! The reference drives the drive targets (`response_validation`, `drive_model`, `differential`) and the
 //! seeds use: the embedded profiles, fault-free or faulted stations, framing, and the checks of a reply.
 
+use std::cell::RefCell;
 use std::sync::OnceLock;
 use std::time::Duration;
 
@@ -12,6 +13,7 @@ use codec::{
 use drives::corpus::Corpus;
 use drives::profile::Profile;
 use drives::{FaultSet, Station, TcpConn, Wire};
+use engine::cases::catalog;
 
 /// The reference drives the drive targets exercise, in the order of their selector bits.
 pub const DRIVES: [&str; 4] = ["sd2x", "mdrive", "lmd", "generic"];
@@ -39,6 +41,32 @@ pub(crate) fn station(p: &Profile, faults: &FaultSet) -> Station {
         faults.clone(),
         p.device.default_unit,
     )
+}
+
+/// A fresh station of drive `drive` of [`DRIVES`] with `faults`: a clone of one built once per thread and
+/// never used (building one costs far more than cloning it, and a clone is in exactly the state a new one is).
+pub(crate) fn fresh_station(drive: usize, faults: &FaultSet) -> Station {
+    thread_local! {
+        /// Pristine stations by fault set, one per drive of `DRIVES`.
+        static PRISTINE: RefCell<Vec<(FaultSet, Vec<Station>)>> = const { RefCell::new(Vec::new()) };
+    }
+    PRISTINE.with_borrow_mut(|pristine| {
+        let at = match pristine.iter().position(|(f, _)| f == faults) {
+            Some(at) => at,
+            None => {
+                let stations = profiles().iter().map(|p| station(p, faults)).collect();
+                pristine.push((faults.clone(), stations));
+                pristine.len() - 1
+            }
+        };
+        pristine[at].1[drive].clone()
+    })
+}
+
+/// The liveness probe of drive `drive` of [`DRIVES`]: the catalog's known-good read, computed once.
+pub(crate) fn liveness_probe(drive: usize) -> &'static [u8] {
+    static PROBES: OnceLock<Vec<Vec<u8>>> = OnceLock::new();
+    &PROBES.get_or_init(|| profiles().iter().map(catalog::known_good_read).collect())[drive]
 }
 
 /// The serial line of the RTU side: 19200 baud 8E1, the default of the RTU profiles.

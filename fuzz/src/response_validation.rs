@@ -8,7 +8,7 @@ use engine::targets::Received;
 use engine::{Compare, Level, oracle};
 
 use crate::input::Input;
-use crate::reference::{TID, answer, frame_request, profiles, station};
+use crate::reference::{TID, answer, frame_request, fresh_station, profiles};
 
 pub(crate) const COMPARES: [Compare; 4] = [
     Compare::Exact,
@@ -33,7 +33,8 @@ pub(crate) const RV_WRAP: u8 = 0x80;
 pub fn response_validation(data: &[u8]) {
     let mut input = Input(data);
     let mode = input.u8();
-    let profile = &profiles()[usize::from(mode & 3)];
+    let drive = usize::from(mode & 3);
+    let profile = &profiles()[drive];
     let framing = if mode & RV_RTU != 0 {
         Framing::Rtu
     } else {
@@ -44,7 +45,7 @@ pub fn response_validation(data: &[u8]) {
     let observed = input.rest();
     let unit = profile.device.default_unit;
     let (expected, closed) = frame_request(framing, unit, request).map_or((None, false), |adu| {
-        answer(&mut station(profile, &FaultSet::none()), framing, &adu)
+        answer(&mut fresh_station(drive, &FaultSet::none()), framing, &adu)
     });
     let bytes = if mode & RV_WRAP != 0 {
         let mut out = Vec::new();
@@ -62,25 +63,24 @@ pub fn response_validation(data: &[u8]) {
     let at = Duration::ZERO;
     let received = match mode >> 5 & 3 {
         0 => Received::Frame {
-            bytes: bytes.clone(),
+            bytes,
             first_at: at,
             last_at: at,
             max_gap: at,
         },
-        1 => Received::Silence {
-            partial: bytes.clone(),
-            at,
-        },
-        2 => Received::Closed {
-            partial: bytes.clone(),
-            at,
-        },
+        1 => Received::Silence { partial: bytes, at },
+        2 => Received::Closed { partial: bytes, at },
         _ => Received::Garbage {
-            bytes: bytes.clone(),
+            bytes,
             at,
             reason: "fuzz".into(),
         },
     };
+    // The observed bytes, as the observation holds them (moved there, not copied).
+    let (Received::Frame { bytes, .. }
+    | Received::Garbage { bytes, .. }
+    | Received::Silence { partial: bytes, .. }
+    | Received::Closed { partial: bytes, .. }) = &received;
     let sent = oracle::Sent {
         tid: (framing == Framing::Tcp).then_some(TID),
         unit,
@@ -98,8 +98,8 @@ pub fn response_validation(data: &[u8]) {
     for level in [Level::Must, Level::Should, Level::Info] {
         let _ = oracle::verdict(&findings, level);
     }
-    let _ = oracle::brief(framing, &bytes);
-    let _ = engine::capture::captured(framing, &sent.pdu, &bytes);
+    let _ = oracle::brief(framing, bytes);
+    let _ = engine::capture::captured(framing, &sent.pdu, bytes);
     if let (Some(e), Received::Frame { bytes, .. }, Compare::Exact) =
         (&expected, &received, compare)
         && bytes != e

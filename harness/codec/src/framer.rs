@@ -336,21 +336,50 @@ impl RtuFramer {
     }
 
     /// Feed bytes that arrived at `now` (one timestamp per chunk).
+    ///
+    /// The outcome is that of taking the bytes one at a time and looking for a cut after each. The bytes after
+    /// which no cut can happen (see [`quiet`](Self::quiet)) go in together instead; later bytes of a chunk
+    /// add no gap, since they share its timestamp.
     pub fn push(&mut self, now: Duration, bytes: &[u8]) -> Vec<FramerEvent> {
         let mut events = Vec::new();
         self.poll_into(now, &mut events);
-        for &b in bytes {
+        let mut rest = bytes;
+        while !rest.is_empty() {
             if self.buf.is_empty() {
                 self.start = now;
                 self.max_gap = Duration::ZERO;
             } else {
                 self.max_gap = self.max_gap.max(now.saturating_sub(self.last));
             }
-            self.buf.push(b);
             self.last = now;
+            let n = (self.quiet() + 1).min(rest.len());
+            let (taken, left) = rest.split_at(n);
+            self.buf.extend_from_slice(taken);
+            rest = left;
             self.cut(&mut events);
         }
         events
+    }
+
+    /// How many more bytes can arrive before `cut` could emit or drop anything: all but the one that brings the
+    /// buffer to the next length at which it could. While the rules need more bytes to know the length, that
+    /// is the next byte, or the 4th (no frame is shorter); once they know it (or know there is no rule), the
+    /// next candidate length (4..=256) or over 256 bytes. Every rule reads fixed positions, so once known a
+    /// length (or its absence) stays what it is as bytes are added; and `cut` has already run at the present
+    /// length, so candidates up to it failed their CRC and fail it again on the same bytes.
+    fn quiet(&self) -> usize {
+        let len = self.buf.len();
+        let overlong = MAX_ADU_LEN + 1;
+        let next = match expected_len(self.direction, &self.buf, &self.vendor) {
+            FrameLen::NeedMore => MIN_ADU_LEN.max(len + 1),
+            FrameLen::Unknown => overlong,
+            FrameLen::Known(a, b) => [a, b]
+                .into_iter()
+                .filter(|&n| n > len && (MIN_ADU_LEN..=MAX_ADU_LEN).contains(&n))
+                .min()
+                .unwrap_or(overlong),
+        };
+        next.saturating_sub(len + 1)
     }
 
     /// Report what silence has delimited by `now`.
@@ -400,7 +429,7 @@ impl RtuFramer {
         }
         if self.buf.len() > MAX_ADU_LEN {
             events.push(FramerEvent::Discarded {
-                bytes: std::mem::take(&mut self.buf),
+                bytes: self.buf.drain(..).collect(),
                 at: self.last,
                 reason: DiscardReason::Overlong,
             });
@@ -413,24 +442,24 @@ impl RtuFramer {
         }
         if self.buf.len() < MIN_ADU_LEN {
             events.push(FramerEvent::Discarded {
-                bytes: std::mem::take(&mut self.buf),
+                bytes: self.buf.drain(..).collect(),
                 at: self.last,
                 reason: DiscardReason::TooShort,
             });
-        } else if crc_ok(&self.buf) {
-            let n = self.buf.len();
-            self.emit(n, events);
         } else {
+            // The CRC once, for the check and for the report (crc_ok would compute the same).
             let (body, c) = self.buf.split_at(self.buf.len() - 2);
-            let reason = DiscardReason::BadCrc {
-                expected: crc16(body),
-                received: u16::from_le_bytes([c[0], c[1]]),
-            };
-            events.push(FramerEvent::Discarded {
-                bytes: std::mem::take(&mut self.buf),
-                at: self.last,
-                reason,
-            });
+            let (expected, received) = (crc16(body), u16::from_le_bytes([c[0], c[1]]));
+            if expected == received {
+                let n = self.buf.len();
+                self.emit(n, events);
+            } else {
+                events.push(FramerEvent::Discarded {
+                    bytes: self.buf.drain(..).collect(),
+                    at: self.last,
+                    reason: DiscardReason::BadCrc { expected, received },
+                });
+            }
         }
     }
 }

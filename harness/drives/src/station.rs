@@ -159,7 +159,9 @@ impl RtuPort {
     }
 }
 
-/// A simulated drive on the wire.
+/// A simulated drive on the wire. A clone is an independent copy in the same state (see
+/// [`DriveModel::box_clone`]).
+#[derive(Clone)]
 pub struct Station {
     model: Box<dyn DriveModel>,
     faults: FaultSet,

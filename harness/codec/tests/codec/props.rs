@@ -5,7 +5,7 @@
 
 use std::time::Duration;
 
-use codec::framer::DiscardReason;
+use codec::framer::{DiscardReason, FrameLen, LengthRule, VendorRule, expected_len};
 use codec::pdu::{Direction, MAX_PDU_LEN, Pdu, Request, Response};
 use codec::tcp::{self, Mbap};
 use codec::{
@@ -865,6 +865,181 @@ proptest! {
             at += n;
             i += 1;
             prop_assert_eq!(out + framer.pending().len(), at, "bytes lost or invented");
+        }
+    }
+}
+
+/// The framer as it was first written, one byte at a time with a cut after each: `RtuFramer::push` takes the
+/// bytes after which no cut can happen in one go, and must decide exactly as this does.
+struct BytewiseFramer {
+    direction: Direction,
+    t3_5: Duration,
+    vendor: Vec<VendorRule>,
+    buf: Vec<u8>,
+    start: Duration,
+    last: Duration,
+    max_gap: Duration,
+}
+
+impl BytewiseFramer {
+    fn push(&mut self, now: Duration, bytes: &[u8], events: &mut Vec<FramerEvent>) {
+        self.poll(now, events);
+        for &b in bytes {
+            if self.buf.is_empty() {
+                self.start = now;
+                self.max_gap = Duration::ZERO;
+            } else {
+                self.max_gap = self.max_gap.max(now.saturating_sub(self.last));
+            }
+            self.buf.push(b);
+            self.last = now;
+            self.cut(events);
+        }
+    }
+
+    fn poll(&mut self, now: Duration, events: &mut Vec<FramerEvent>) {
+        if !self.buf.is_empty() && now.saturating_sub(self.last) >= self.t3_5 {
+            self.finish(events);
+        }
+    }
+
+    fn emit(&mut self, n: usize, events: &mut Vec<FramerEvent>) {
+        events.push(FramerEvent::Frame {
+            bytes: self.buf.drain(..n).collect(),
+            start: self.start,
+            end: self.last,
+            max_gap: self.max_gap,
+        });
+        self.start = self.last;
+        self.max_gap = Duration::ZERO;
+    }
+
+    fn cut(&mut self, events: &mut Vec<FramerEvent>) {
+        if let FrameLen::Known(a, b) = expected_len(self.direction, &self.buf, &self.vendor) {
+            for n in [a, b] {
+                if n >= rtu::MIN_ADU_LEN
+                    && n <= self.buf.len()
+                    && n <= rtu::MAX_ADU_LEN
+                    && rtu::crc_ok(&self.buf[..n])
+                {
+                    self.emit(n, events);
+                    return;
+                }
+            }
+        }
+        if self.buf.len() > rtu::MAX_ADU_LEN {
+            events.push(FramerEvent::Discarded {
+                bytes: std::mem::take(&mut self.buf),
+                at: self.last,
+                reason: DiscardReason::Overlong,
+            });
+        }
+    }
+
+    fn finish(&mut self, events: &mut Vec<FramerEvent>) {
+        if self.buf.is_empty() {
+            return;
+        }
+        if self.buf.len() < rtu::MIN_ADU_LEN {
+            events.push(FramerEvent::Discarded {
+                bytes: std::mem::take(&mut self.buf),
+                at: self.last,
+                reason: DiscardReason::TooShort,
+            });
+        } else if rtu::crc_ok(&self.buf) {
+            let n = self.buf.len();
+            self.emit(n, events);
+        } else {
+            let (body, c) = self.buf.split_at(self.buf.len() - 2);
+            let reason = DiscardReason::BadCrc {
+                expected: rtu::crc16(body),
+                received: u16::from_le_bytes([c[0], c[1]]),
+            };
+            events.push(FramerEvent::Discarded {
+                bytes: std::mem::take(&mut self.buf),
+                at: self.last,
+                reason,
+            });
+        }
+    }
+}
+
+fn length_rule() -> impl Strategy<Value = LengthRule> {
+    prop_oneof![
+        (0usize..300).prop_map(LengthRule::Fixed),
+        (0usize..16, 1usize..=2, 0usize..=3).prop_map(|(offset, width, trailer)| {
+            LengthRule::ByteCountAt {
+                offset,
+                width,
+                trailer,
+            }
+        }),
+    ]
+}
+
+/// One step of a stream: what arrives (valid ADUs, random bytes, a run of one byte value), after how long a
+/// silence (in hundredths of t3.5, so both sides of t1.5 and t3.5), and whether the framer is polled first
+/// or the stream ends after it.
+fn framer_step(dir: Direction) -> impl Strategy<Value = (Vec<u8>, u32, bool, bool)> {
+    let bytes = prop_oneof![
+        vec(framer_adu(dir), 1..=3).prop_map(|a| a.concat()),
+        vec(any::<u8>(), 0..=40),
+        (any::<u8>(), 1usize..=300).prop_map(|(b, n)| vec![b; n]),
+        (framer_adu(dir), 0usize..=40).prop_map(|(a, cut)| a[..cut.min(a.len())].to_vec()),
+    ];
+    (
+        bytes,
+        0u32..=250,
+        any::<bool>(),
+        proptest::bool::weighted(0.1),
+    )
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(512))]
+
+    /// `push` taking the bytes that cannot trigger a cut in one go decides exactly as cutting after every byte
+    /// does: the same events (frames, discards, reasons, times) and the same bytes pending, after every step.
+    #[test]
+    fn framer_decides_as_bytewise(
+        (dir, steps) in direction().prop_flat_map(|d| (Just(d), vec(framer_step(d), 1..=24))),
+        vendor in vec((any::<u8>(), length_rule(), length_rule()), 0..=2),
+        timing in timing(),
+        split in 1usize..=64,
+    ) {
+        let vendor: Vec<VendorRule> = vendor
+            .into_iter()
+            .map(|(function, request, response)| VendorRule { function, request, response })
+            .collect();
+        let mut framer = RtuFramer::new(dir, timing, vendor.clone());
+        let mut bytewise = BytewiseFramer {
+            direction: dir,
+            t3_5: timing.t3_5,
+            vendor,
+            buf: Vec::new(),
+            start: Duration::ZERO,
+            last: Duration::ZERO,
+            max_gap: Duration::ZERO,
+        };
+        let mut t = Duration::ZERO;
+        for (bytes, silence, poll, end) in steps {
+            t += timing.t3_5 * silence / 100;
+            let (mut ours, mut theirs) = (Vec::new(), Vec::new());
+            if poll {
+                ours.extend(framer.poll(t));
+                bytewise.poll(t, &mut theirs);
+            }
+            // Pushed in pieces of `split` bytes at the same instant, then as one chunk: both are streams.
+            for piece in bytes.chunks(split) {
+                ours.extend(framer.push(t, piece));
+                bytewise.push(t, piece, &mut theirs);
+            }
+            if end {
+                ours.extend(framer.finish());
+                bytewise.finish(&mut theirs);
+            }
+            prop_assert_eq!(&ours, &theirs);
+            prop_assert_eq!(framer.pending(), &bytewise.buf[..]);
         }
     }
 }

@@ -334,6 +334,42 @@ fn framer_cuts_the_serial_line_file_and_fifo_functions_without_silence() {
     }
 }
 
+/// Frames of the shortest and the longest length a rule may give (4 and 256 bytes) are cut as their last byte
+/// arrives, whether the rest of the chunk follows at once or only later.
+#[test]
+fn framer_cuts_at_the_extreme_lengths_as_the_last_byte_arrives() {
+    use codec::{LengthRule, VendorRule};
+    for len in [rtu::MIN_ADU_LEN, rtu::MAX_ADU_LEN] {
+        let body: Vec<u8> = (0..len - 4).map(|i| i as u8).collect();
+        let frame = rtu_frame(1, &[&[0x65][..], &body].concat());
+        assert_eq!(frame.len(), len);
+        let rule = VendorRule {
+            function: 0x65,
+            request: LengthRule::Fixed(len),
+            response: LengthRule::Fixed(len),
+        };
+        let t = timing().t1_5 / 2;
+        // alone: the frame is out when its last byte is in, nothing is pending
+        let mut f = RtuFramer::new(Direction::Request, timing(), vec![rule]);
+        assert_eq!(frames(&f.push(Duration::ZERO, &frame)), vec![frame.clone()]);
+        assert!(f.pending().is_empty());
+        // a byte more in the same chunk starts the next frame, at the same instant
+        let mut f = RtuFramer::new(Direction::Request, timing(), vec![rule]);
+        let ev = f.push(Duration::ZERO, &[&frame[..], &[0x01]].concat());
+        assert_eq!(frames(&ev), vec![frame.clone()]);
+        assert_eq!(f.pending(), &[0x01]);
+        // the last byte late: the frame ends then
+        let mut f = RtuFramer::new(Direction::Request, timing(), vec![rule]);
+        assert!(f.push(Duration::ZERO, &frame[..len - 1]).is_empty());
+        let ev = f.push(t, &frame[len - 1..]);
+        assert!(
+            matches!(&ev[..], [FramerEvent::Frame { bytes, start, end, max_gap }]
+                if *bytes == frame && *start == Duration::ZERO && *end == t && *max_gap == t),
+            "{ev:?}"
+        );
+    }
+}
+
 // ---------------------------------------------------------------------------------------------------------------
 // Encoding limits
 // ---------------------------------------------------------------------------------------------------------------

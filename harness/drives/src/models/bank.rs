@@ -25,6 +25,7 @@
 //! - Registers without a default start at 0, or at their minimum when 0 is outside their range.
 
 use std::collections::BTreeMap;
+use std::sync::Arc;
 
 use super::data_model::DataModel;
 pub use super::data_model::{BitTable, RegTable};
@@ -42,28 +43,57 @@ pub struct Change {
     pub value: i64,
 }
 
-#[derive(Clone, Debug)]
-struct Slot {
-    reg: Register,
+/// A register of the map and its value.
+#[derive(Clone, Copy, Debug)]
+struct Slot<'a> {
+    reg: &'a Register,
     value: i64,
 }
 
+/// Where the value of a register is kept, found once with [`RegisterBank::index_of`] so that
+/// [`RegisterBank::set_value_at`] skips the address lookup (a model refreshing the same status registers on
+/// every request). Valid for the bank it came from and its clones.
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct RegIndex(usize);
+
+/// Where the state of a coil or discrete input is kept, found once with [`RegisterBank::bit_index`].
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct BitIndex(usize);
+
+/// One coil or discrete input of the map: its access, and where its state is kept.
 #[derive(Clone, Copy, Debug)]
 struct BitCell {
     access: Access,
-    state: bool,
+    /// Index into the bank's state vector of the bit's table.
+    state: usize,
 }
 
-/// Register, coil and discrete-input storage with the profile's map, access modes and ranges.
-#[derive(Clone, Debug)]
-pub struct RegisterBank {
-    slots: Vec<Slot>,
-    /// Every address a holding-visible register covers → its slot.
+/// What a bank's profile fixes: the registers and bits, their addresses and access modes. It never changes
+/// after the bank is built, so clones of a bank share it.
+#[derive(Debug)]
+struct Layout {
+    /// Every register of the profile; `RegisterBank::values` holds their values at the same indices.
+    regs: Vec<Register>,
+    /// Every address a holding-visible register covers → its index.
     holding: BTreeMap<u16, usize>,
-    /// Every address an input-visible register covers → its slot.
+    /// Every address an input-visible register covers → its index.
     input: BTreeMap<u16, usize>,
     coils: BTreeMap<u16, BitCell>,
     discrete: BTreeMap<u16, BitCell>,
+}
+
+/// Register, coil and discrete-input storage with the profile's map, access modes and ranges.
+///
+/// Cloning is cheap: the map is shared, only the values are copied.
+#[derive(Clone, Debug)]
+pub struct RegisterBank {
+    layout: Arc<Layout>,
+    /// The value of each register of `layout.regs`.
+    values: Vec<i64>,
+    /// The state of each coil (`BitCell::state` of `layout.coils` indexes it).
+    coil_states: Vec<bool>,
+    /// The state of each discrete input (`BitCell::state` of `layout.discrete` indexes it).
+    discrete_states: Vec<bool>,
     order: WordOrder,
     reserved_readable: bool,
     read_only_writable: bool,
@@ -98,12 +128,13 @@ fn wrap_to_width(reg: &Register, value: i64) -> i64 {
 impl RegisterBank {
     /// Build the bank: every register at its default, every bit off; faults that change the data model apply.
     pub fn new(profile: &Profile, faults: &FaultSet, choices: &Choices) -> Self {
-        let mut slots = Vec::with_capacity(profile.registers.len());
+        let mut regs = Vec::with_capacity(profile.registers.len());
+        let mut values = Vec::with_capacity(profile.registers.len());
         let mut holding = BTreeMap::new();
         let mut input = BTreeMap::new();
         for r in &profile.registers {
             let reg = r.get_ref().clone();
-            let idx = slots.len();
+            let idx = regs.len();
             for a in u32::from(reg.address)..reg.end().min(0x1_0000) {
                 let a = a as u16;
                 if matches!(reg.table, Table::Holding | Table::Both) {
@@ -113,23 +144,32 @@ impl RegisterBank {
                     input.insert(a, idx);
                 }
             }
-            let value = initial_value(&reg);
-            slots.push(Slot { reg, value });
+            values.push(initial_value(&reg));
+            regs.push(reg);
         }
+        // By address (a later entry for the same address replaces an earlier one), each bit's state at the
+        // index of its address in ascending order.
         let bits = |list: &[toml::Spanned<crate::profile::Bit>]| {
-            list.iter()
+            let mut map = list
+                .iter()
                 .map(|b| {
                     let b = b.get_ref();
                     (
                         b.address,
                         BitCell {
                             access: b.access,
-                            state: false,
+                            state: 0,
                         },
                     )
                 })
-                .collect::<BTreeMap<_, _>>()
+                .collect::<BTreeMap<_, _>>();
+            for (i, cell) in map.values_mut().enumerate() {
+                cell.state = i;
+            }
+            map
         };
+        let coils = bits(&profile.coils);
+        let discrete = bits(&profile.discrete_inputs);
         let order = if faults.has(Fault::WordOrder) {
             match profile.device.word_order {
                 WordOrder::HighFirst => WordOrder::LowFirst,
@@ -139,11 +179,16 @@ impl RegisterBank {
             profile.device.word_order
         };
         Self {
-            slots,
-            holding,
-            input,
-            coils: bits(&profile.coils),
-            discrete: bits(&profile.discrete_inputs),
+            values,
+            coil_states: vec![false; coils.len()],
+            discrete_states: vec![false; discrete.len()],
+            layout: Arc::new(Layout {
+                regs,
+                holding,
+                input,
+                coils,
+                discrete,
+            }),
             order,
             reserved_readable: faults.has(Fault::ReservedReadable),
             read_only_writable: faults.has(Fault::ReadOnlyWritable),
@@ -182,8 +227,8 @@ impl RegisterBank {
 
     fn map(&self, table: RegTable) -> &BTreeMap<u16, usize> {
         match table {
-            RegTable::Holding => &self.holding,
-            RegTable::Input => &self.input,
+            RegTable::Holding => &self.layout.holding,
+            RegTable::Input => &self.layout.input,
         }
     }
 
@@ -233,10 +278,10 @@ impl RegisterBank {
         let mut out = Vec::with_capacity(usize::from(quantity));
         for a in u32::from(address)..end {
             let a = a as u16;
-            match map.get(&a).and_then(|&i| self.slots.get(i)) {
+            match map.get(&a).and_then(|&i| self.slot(i)) {
                 Some(slot) if slot.reg.access.readable() => {
                     let half = usize::from(a.wrapping_sub(slot.reg.address));
-                    let w = self.words(&slot.reg, slot.value);
+                    let w = self.words(slot.reg, slot.value);
                     out.push(w.get(half).copied().unwrap_or(0));
                 }
                 Some(_) => return Err(ExceptionCode::ILLEGAL_DATA_ADDRESS.into()),
@@ -253,7 +298,7 @@ impl RegisterBank {
         let inside = |a: u32| {
             u16::try_from(a)
                 .ok()
-                .and_then(|a| map.get(&a).and_then(|&i| self.slots.get(i)).map(|s| (a, s)))
+                .and_then(|a| map.get(&a).and_then(|&i| self.slot(i)).map(|s| (a, s)))
                 .is_some_and(|(a, s)| s.reg.width == 2 && s.reg.address != a)
         };
         let end = u32::from(address) + u32::from(quantity);
@@ -271,10 +316,10 @@ impl RegisterBank {
         let mut spans = Vec::new();
         let mut a = u32::from(address);
         while a < end {
-            let Some(&idx) = self.holding.get(&(a as u16)) else {
+            let Some(&idx) = self.layout.holding.get(&(a as u16)) else {
                 return Err(ExceptionCode::ILLEGAL_DATA_ADDRESS.into());
             };
-            let Some(slot) = self.slots.get(idx) else {
+            let Some(slot) = self.slot(idx) else {
                 return Err(ExceptionCode::ILLEGAL_DATA_ADDRESS.into());
             };
             if u32::from(slot.reg.address) != a || slot.reg.end() > end {
@@ -294,11 +339,11 @@ impl RegisterBank {
         // Pass 2: every value within the register's range.
         let mut changes = Vec::with_capacity(spans.len());
         for (idx, off) in spans {
-            let Some(slot) = self.slots.get(idx) else {
+            let Some(slot) = self.slot(idx) else {
                 return Err(ExceptionCode::ILLEGAL_DATA_ADDRESS.into());
             };
             let w = words.get(off..).unwrap_or(&[]);
-            let value = self.value_of_words(&slot.reg, w);
+            let value = self.value_of_words(slot.reg, w);
             let (lo, hi) = slot.reg.range();
             if (value < lo || value > hi) && !self.range_unchecked {
                 return Err(self
@@ -327,14 +372,34 @@ impl RegisterBank {
         Ok(changes)
     }
 
-    fn slot_at(&self, address: u16) -> Option<&Slot> {
-        let idx = *self.holding.get(&address).or(self.input.get(&address))?;
-        self.slots.get(idx).filter(|s| s.reg.address == address)
+    fn slot(&self, idx: usize) -> Option<Slot<'_>> {
+        Some(Slot {
+            reg: self.layout.regs.get(idx)?,
+            value: *self.values.get(idx)?,
+        })
+    }
+
+    /// The index of the register starting at `address` (either table).
+    fn index_at(&self, address: u16) -> Option<usize> {
+        let layout = &*self.layout;
+        let idx = *layout
+            .holding
+            .get(&address)
+            .or_else(|| layout.input.get(&address))?;
+        layout
+            .regs
+            .get(idx)
+            .is_some_and(|r| r.address == address)
+            .then_some(idx)
+    }
+
+    fn slot_at(&self, address: u16) -> Option<Slot<'_>> {
+        self.slot(self.index_at(address)?)
     }
 
     /// The register starting at `address` (either table).
     pub fn register(&self, address: u16) -> Option<&Register> {
-        self.slot_at(address).map(|s| &s.reg)
+        self.slot_at(address).map(|s| s.reg)
     }
 
     /// The value of the register starting at `address` (either table).
@@ -345,44 +410,65 @@ impl RegisterBank {
     /// Set the register starting at `address` from inside the drive (status, counters): no access or range
     /// check; the value wraps to the register's width. False when no register starts there.
     pub fn set_value(&mut self, address: u16, value: i64) -> bool {
-        let idx = self
-            .holding
-            .get(&address)
-            .or(self.input.get(&address))
-            .copied();
-        match idx.and_then(|i| self.slots.get_mut(i)) {
-            Some(slot) if slot.reg.address == address => {
-                slot.value = wrap_to_width(&slot.reg, value);
+        let Some(idx) = self.index_at(address) else {
+            return false;
+        };
+        match (self.layout.regs.get(idx), self.values.get_mut(idx)) {
+            (Some(reg), Some(v)) => {
+                *v = wrap_to_width(reg, value);
                 true
             }
             _ => false,
         }
     }
 
-    /// First address of the register with MCode mnemonic `mnemonic` (case-insensitive).
-    pub fn address_of(&self, mnemonic: &str) -> Option<u16> {
-        self.slots
-            .iter()
-            .find(|s| {
-                s.reg
-                    .mnemonic
-                    .as_deref()
-                    .is_some_and(|m| m.eq_ignore_ascii_case(mnemonic))
-            })
-            .map(|s| s.reg.address)
+    /// The register starting at `address` (either table), as [`set_value`](Self::set_value) finds it.
+    pub(crate) fn index_of(&self, address: u16) -> Option<RegIndex> {
+        self.index_at(address).map(RegIndex)
     }
 
-    fn bits(&self, table: BitTable) -> &BTreeMap<u16, BitCell> {
-        match table {
-            BitTable::Coils => &self.coils,
-            BitTable::DiscreteInputs => &self.discrete,
+    /// [`set_value`](Self::set_value) of the register at `at`.
+    pub(crate) fn set_value_at(&mut self, at: RegIndex, value: i64) {
+        if let (Some(reg), Some(v)) = (self.layout.regs.get(at.0), self.values.get_mut(at.0)) {
+            *v = wrap_to_width(reg, value);
         }
     }
 
-    fn bits_mut(&mut self, table: BitTable) -> &mut BTreeMap<u16, BitCell> {
+    /// The bit at `address` of `table`, as [`bit`](Self::bit) finds it.
+    pub(crate) fn bit_index(&self, table: BitTable, address: u16) -> Option<BitIndex> {
+        self.bits(table).0.get(&address).map(|c| BitIndex(c.state))
+    }
+
+    /// [`bit`](Self::bit) of the bit at `at` of `table`.
+    pub(crate) fn bit_at(&self, table: BitTable, at: BitIndex) -> bool {
+        self.bits(table).1.get(at.0).copied().unwrap_or(false)
+    }
+
+    /// First address of the register with MCode mnemonic `mnemonic` (case-insensitive).
+    pub fn address_of(&self, mnemonic: &str) -> Option<u16> {
+        self.layout
+            .regs
+            .iter()
+            .find(|r| {
+                r.mnemonic
+                    .as_deref()
+                    .is_some_and(|m| m.eq_ignore_ascii_case(mnemonic))
+            })
+            .map(|r| r.address)
+    }
+
+    /// The map of a bit table and the states its cells index.
+    fn bits(&self, table: BitTable) -> (&BTreeMap<u16, BitCell>, &[bool]) {
         match table {
-            BitTable::Coils => &mut self.coils,
-            BitTable::DiscreteInputs => &mut self.discrete,
+            BitTable::Coils => (&self.layout.coils, &self.coil_states),
+            BitTable::DiscreteInputs => (&self.layout.discrete, &self.discrete_states),
+        }
+    }
+
+    fn bits_mut(&mut self, table: BitTable) -> (&BTreeMap<u16, BitCell>, &mut [bool]) {
+        match table {
+            BitTable::Coils => (&self.layout.coils, &mut self.coil_states),
+            BitTable::DiscreteInputs => (&self.layout.discrete, &mut self.discrete_states),
         }
     }
 
@@ -397,11 +483,11 @@ impl RegisterBank {
         if end > 0x1_0000 {
             return Err(ExceptionCode::ILLEGAL_DATA_ADDRESS.into());
         }
-        let map = self.bits(table);
+        let (map, states) = self.bits(table);
         let mut out = vec![0u8; usize::from(quantity).div_ceil(8)];
         for (i, a) in (u32::from(address)..end).enumerate() {
             let on = match map.get(&(a as u16)) {
-                Some(c) if c.access.readable() => c.state,
+                Some(c) if c.access.readable() => states.get(c.state).copied().unwrap_or(false),
                 Some(_) => return Err(ExceptionCode::ILLEGAL_DATA_ADDRESS.into()),
                 None if self.reserved_readable => false,
                 None => return Err(ExceptionCode::ILLEGAL_DATA_ADDRESS.into()),
@@ -420,7 +506,7 @@ impl RegisterBank {
             return Err(ExceptionCode::ILLEGAL_DATA_ADDRESS.into());
         }
         for a in u32::from(address)..end {
-            match self.coils.get(&(a as u16)) {
+            match self.layout.coils.get(&(a as u16)) {
                 Some(c) if c.access.writable() || self.read_only_writable => {}
                 Some(_) => {
                     return Err(self
@@ -431,8 +517,10 @@ impl RegisterBank {
             }
         }
         for (a, &s) in (u32::from(address)..end).zip(states) {
-            if let Some(c) = self.coils.get_mut(&(a as u16)) {
-                c.state = s;
+            if let Some(c) = self.layout.coils.get(&(a as u16))
+                && let Some(state) = self.coil_states.get_mut(c.state)
+            {
+                *state = s;
             }
         }
         Ok(())
@@ -440,14 +528,16 @@ impl RegisterBank {
 
     /// The state of one bit, if it exists.
     pub fn bit(&self, table: BitTable, address: u16) -> Option<bool> {
-        self.bits(table).get(&address).map(|c| c.state)
+        let (map, states) = self.bits(table);
+        map.get(&address).and_then(|c| states.get(c.state).copied())
     }
 
     /// Set one bit from inside the drive (input levels, outputs driven by registers); false if it does not exist.
     pub fn set_bit(&mut self, table: BitTable, address: u16, on: bool) -> bool {
-        match self.bits_mut(table).get_mut(&address) {
-            Some(c) => {
-                c.state = on;
+        let (map, states) = self.bits_mut(table);
+        match map.get(&address).and_then(|c| states.get_mut(c.state)) {
+            Some(state) => {
+                *state = on;
                 true
             }
             None => false,
@@ -460,7 +550,12 @@ impl RegisterBank {
         let (value, coils) = &self.exception_status;
         let mut status = *value;
         for (i, c) in coils.iter().enumerate().take(8) {
-            if self.coils.get(c).is_some_and(|b| b.state) {
+            if self
+                .layout
+                .coils
+                .get(c)
+                .is_some_and(|b| self.coil_states.get(b.state).copied().unwrap_or(false))
+            {
                 status |= 1 << i;
             } else {
                 status &= !(1 << i);
@@ -485,7 +580,7 @@ impl RegisterBank {
 
     /// The addresses of a bit table in ascending order.
     pub fn bit_addresses(&self, table: BitTable) -> Vec<u16> {
-        self.bits(table).keys().copied().collect()
+        self.bits(table).0.keys().copied().collect()
     }
 }
 

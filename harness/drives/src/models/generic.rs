@@ -8,6 +8,7 @@
 //! reference one); the device identification code is shared with the MDrive/LMD model.
 
 use std::collections::BTreeMap;
+use std::sync::Arc;
 use std::time::Duration;
 
 use super::DriveModel;
@@ -24,8 +25,9 @@ use codec::{
 };
 
 /// A spec-conforming Modbus server over a profile's registers, coils, discrete inputs, files and FIFO queues.
+#[derive(Clone)]
 pub struct Generic {
-    profile: Profile,
+    profile: Arc<Profile>,
     bank: RegisterBank,
     /// Each file's access and records (all `records` of them), by file number.
     files: BTreeMap<u16, (Access, Vec<u16>)>,
@@ -49,7 +51,7 @@ impl Generic {
             })
             .collect();
         Self {
-            profile,
+            profile: Arc::new(profile),
             bank,
             files,
             faults,
@@ -329,6 +331,10 @@ pub fn read_device_id(profile: &Profile, code: u8, object_id: u8) -> Response {
 impl DriveModel for Generic {
     fn profile(&self) -> &Profile {
         &self.profile
+    }
+
+    fn box_clone(&self) -> Box<dyn DriveModel> {
+        Box::new(self.clone())
     }
 
     /// A plain server has no state that evolves on its own.

@@ -54,10 +54,11 @@
 //!   Program commands (E, EX, PS, RS, ESC, CP) change a recorded program state; ESC also stops the axis.
 
 use std::collections::BTreeMap;
+use std::sync::Arc;
 use std::time::Duration;
 
 use super::DriveModel;
-use super::bank::{Change, RegisterBank};
+use super::bank::{BitIndex, Change, RegIndex, RegisterBank};
 use super::data_model::{self, BitTable, DataModel, RegTable};
 use super::generic::read_device_id;
 use crate::choices::{Choices, Decision, Rejection, ids};
@@ -309,6 +310,54 @@ struct Addrs {
     input_groups: Vec<u16>,
 }
 
+/// Where `refresh` writes, found once in the bank (its register map never changes): the status registers
+/// and the I/O mirrors of [`Addrs`].
+#[derive(Debug)]
+struct StatusSlots {
+    p: Option<RegIndex>,
+    c1: Option<RegIndex>,
+    v: Option<RegIndex>,
+    mv: Option<RegIndex>,
+    vc: Option<RegIndex>,
+    mp: Option<RegIndex>,
+    /// Each input's bit and the register mirroring it, in input order.
+    inputs: Vec<(Option<BitIndex>, Option<RegIndex>)>,
+    input_groups: Vec<RegIndex>,
+    /// Each output's bit and the register mirroring it, in output order.
+    outputs: Vec<(Option<BitIndex>, Option<RegIndex>)>,
+    output_groups: Vec<RegIndex>,
+}
+
+impl StatusSlots {
+    fn new(bank: &RegisterBank, addrs: &Addrs, inputs: &[u16], outputs: &[u16]) -> Self {
+        let reg = |a: Option<u16>| a.and_then(|a| bank.index_of(a));
+        let bits = |table: BitTable, bits: &[u16], mirrors: &[Option<u16>]| {
+            bits.iter()
+                .enumerate()
+                .map(|(i, &a)| {
+                    (
+                        bank.bit_index(table, a),
+                        reg(mirrors.get(i).copied().flatten()),
+                    )
+                })
+                .collect()
+        };
+        let groups = |g: &[u16]| g.iter().filter_map(|&a| bank.index_of(a)).collect();
+        Self {
+            p: reg(addrs.p),
+            c1: reg(addrs.c1),
+            v: reg(addrs.v),
+            mv: reg(addrs.mv),
+            vc: reg(addrs.vc),
+            mp: reg(addrs.mp),
+            inputs: bits(BitTable::DiscreteInputs, inputs, &addrs.inputs),
+            input_groups: groups(&addrs.input_groups),
+            outputs: bits(BitTable::Coils, outputs, &addrs.outputs),
+            output_groups: groups(&addrs.output_groups),
+        }
+    }
+}
+
 /// One piece of a velocity profile: constant acceleration from a starting velocity.
 #[derive(Clone, Debug)]
 struct Segment {
@@ -492,14 +541,16 @@ fn steps(x: f64) -> i64 {
 }
 
 /// The MDrive/LMD reference model.
+#[derive(Clone)]
 pub struct Mdrive {
-    profile: Profile,
+    profile: Arc<Profile>,
     bank: RegisterBank,
-    addrs: Addrs,
+    addrs: Arc<Addrs>,
     /// Coil addresses in order: output 1, 2, ...
-    outputs: Vec<u16>,
+    outputs: Arc<[u16]>,
     /// Discrete-input addresses in order: input 1, 2, ...
-    inputs: Vec<u16>,
+    inputs: Arc<[u16]>,
+    status: Arc<StatusSlots>,
     now: Duration,
     motion: Option<Motion>,
     /// Displacement (steps) while no move runs.
@@ -509,7 +560,8 @@ pub struct Mdrive {
     /// C1 = c1_origin + displacement.
     c1_origin: i64,
     /// Stored vendor parameters by upper-case mnemonic.
-    params: BTreeMap<String, Vec<String>>,
+    /// Shared with clones until one of them stores a parameter.
+    params: Arc<BTreeMap<String, Vec<String>>>,
     program: Program,
     nvm_writes: u32,
     /// The values taken where the freedoms leave a choice.
@@ -562,18 +614,20 @@ impl Mdrive {
                 params.insert(m.name.to_ascii_uppercase(), Self::initial_params(m, count));
             }
         }
+        let status = StatusSlots::new(&bank, &addrs, &inputs, &outputs);
         let mut model = Self {
-            profile,
+            profile: Arc::new(profile),
             bank,
-            addrs,
-            outputs,
-            inputs,
+            addrs: Arc::new(addrs),
+            outputs: outputs.into(),
+            inputs: inputs.into(),
+            status: Arc::new(status),
             now: Duration::ZERO,
             motion: None,
             rest: 0.0,
             p_origin,
             c1_origin,
-            params,
+            params: Arc::new(params),
             program: Program::Idle,
             nvm_writes: 0,
             choices,
@@ -626,12 +680,6 @@ impl Mdrive {
         addr.and_then(|a| self.bank.value(a))
     }
 
-    fn set_reg(&mut self, addr: Option<u16>, value: i64) {
-        if let Some(a) = addr {
-            self.bank.set_value(a, value);
-        }
-    }
-
     fn ramp(&self) -> Ramp {
         let get = |a: Option<u16>, dflt: f64| self.reg(a).map_or(dflt, |v| v as f64);
         let vm = get(self.addrs.vm, 768_000.0).max(1.0);
@@ -662,31 +710,38 @@ impl Mdrive {
 
     /// Bring the status registers up to date: position, velocity, motion flags, I/O mirrors.
     fn refresh(&mut self) {
+        // Through the slots found at construction: this runs three times per request (the station advances
+        // the model, which advances itself again in `handle` and refreshes after answering).
         let k = self.kinematics();
         let d = steps(k.disp);
-        self.set_reg(self.addrs.p, self.p_origin.wrapping_add(d));
-        self.set_reg(self.addrs.c1, self.c1_origin.wrapping_add(d));
-        self.set_reg(self.addrs.v, steps(k.vel));
-        self.set_reg(self.addrs.mv, i64::from(k.moving.is_some()));
-        self.set_reg(self.addrs.vc, i64::from(k.changing));
-        self.set_reg(self.addrs.mp, i64::from(k.moving == Some(MoveKind::Point)));
-        let mut group = 0i64;
-        for (i, a) in self.inputs.clone().into_iter().enumerate() {
-            let on = self.bank.bit(BitTable::DiscreteInputs, a).unwrap_or(false);
-            group |= i64::from(on) << i.min(62);
-            self.set_reg(self.addrs.inputs.get(i).copied().flatten(), i64::from(on));
-        }
-        for g in self.addrs.input_groups.clone() {
-            self.bank.set_value(g, group);
-        }
-        let mut group = 0i64;
-        for (i, a) in self.outputs.clone().into_iter().enumerate() {
-            let on = self.bank.bit(BitTable::Coils, a).unwrap_or(false);
-            group |= i64::from(on) << i.min(62);
-            self.set_reg(self.addrs.outputs.get(i).copied().flatten(), i64::from(on));
-        }
-        for g in self.addrs.output_groups.clone() {
-            self.bank.set_value(g, group);
+        let s = &*self.status;
+        let bank = &mut self.bank;
+        let mut set = |at: Option<RegIndex>, value: i64| {
+            if let Some(at) = at {
+                bank.set_value_at(at, value);
+            }
+        };
+        set(s.p, self.p_origin.wrapping_add(d));
+        set(s.c1, self.c1_origin.wrapping_add(d));
+        set(s.v, steps(k.vel));
+        set(s.mv, i64::from(k.moving.is_some()));
+        set(s.vc, i64::from(k.changing));
+        set(s.mp, i64::from(k.moving == Some(MoveKind::Point)));
+        for (table, bits, groups) in [
+            (BitTable::DiscreteInputs, &s.inputs, &s.input_groups),
+            (BitTable::Coils, &s.outputs, &s.output_groups),
+        ] {
+            let mut group = 0i64;
+            for (i, &(bit, mirror)) in bits.iter().enumerate() {
+                let on = bit.is_some_and(|b| bank.bit_at(table, b));
+                group |= i64::from(on) << i.min(62);
+                if let Some(at) = mirror {
+                    bank.set_value_at(at, i64::from(on));
+                }
+            }
+            for &at in groups {
+                bank.set_value_at(at, group);
+            }
         }
     }
 
@@ -797,7 +852,7 @@ impl Mdrive {
                 self.bank.set_bit(BitTable::Coils, coil, c.value != 0);
             }
         } else if self.addrs.output_groups.contains(&c.address) {
-            for (i, coil) in self.outputs.clone().into_iter().enumerate() {
+            for (i, &coil) in Arc::clone(&self.outputs).iter().enumerate() {
                 let on = i < 63 && (c.value >> i) & 1 == 1;
                 self.bank.set_bit(BitTable::Coils, coil, on);
             }
@@ -889,7 +944,7 @@ impl Mdrive {
             VendorKind::Setting { count } => self.write_setting(&m, &key, text, count),
             VendorKind::Status => {
                 // Only under `read-only-writable`: the "measurement" takes whatever was written.
-                self.params.insert(key, split_values(text));
+                Arc::make_mut(&mut self.params).insert(key, split_values(text));
                 Ok(())
             }
         };
@@ -1008,7 +1063,7 @@ impl Mdrive {
             }
             self.bank.set_value(reg, v);
         }
-        self.params.insert(key.to_string(), merged);
+        Arc::make_mut(&mut self.params).insert(key.to_string(), merged);
         Ok(())
     }
 }
@@ -1079,6 +1134,10 @@ impl DriveModel for Mdrive {
 
     fn take_decisions(&mut self) -> Vec<Decision> {
         std::mem::take(&mut self.decisions)
+    }
+
+    fn box_clone(&self) -> Box<dyn DriveModel> {
+        Box::new(self.clone())
     }
 
     fn advance(&mut self, now: Duration) {

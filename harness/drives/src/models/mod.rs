@@ -30,9 +30,20 @@ pub trait DriveModel: Send {
     /// `None` means the drive stays silent. Broadcasts are handled too; the station drops their answer.
     fn handle(&mut self, now: Duration, unit: u8, request: &Request) -> Option<Response>;
 
+    /// A copy of the model in its present state, which then evolves on its own. Cheap: the profile and
+    /// the register map are shared, only the state is copied (the in-process fuzz targets clone a pristine
+    /// model per input instead of building one).
+    fn box_clone(&self) -> Box<dyn DriveModel>;
+
     /// The freedoms that decided the answers since the last call (see [`crate::choices`]).
     fn take_decisions(&mut self) -> Vec<Decision> {
         Vec::new()
+    }
+}
+
+impl Clone for Box<dyn DriveModel> {
+    fn clone(&self) -> Self {
+        self.box_clone()
     }
 }
 

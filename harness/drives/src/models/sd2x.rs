@@ -42,6 +42,7 @@
 //!   live values instead ([`SIMULATED`]), with 17.0 °C at the power stage to agree with example 6.2.
 
 use std::collections::BTreeMap;
+use std::sync::Arc;
 use std::time::Duration;
 
 use super::DriveModel;
@@ -296,8 +297,9 @@ enum ObjectError {
 }
 
 /// The SD2x drive model.
+#[derive(Clone)]
 pub struct Sd2x {
-    profile: Profile,
+    profile: Arc<Profile>,
     faults: FaultSet,
     now: Duration,
     state: Ds402State,
@@ -354,7 +356,7 @@ impl Sd2x {
             }
         }
         let mut model = Self {
-            profile,
+            profile: Arc::new(profile),
             faults,
             now: Duration::ZERO,
             state: Ds402State::SwitchOnDisabled,
@@ -887,6 +889,10 @@ impl DriveModel for Sd2x {
 
     fn take_decisions(&mut self) -> Vec<Decision> {
         std::mem::take(&mut self.decisions)
+    }
+
+    fn box_clone(&self) -> Box<dyn DriveModel> {
+        Box::new(self.clone())
     }
 
     fn advance(&mut self, now: Duration) {

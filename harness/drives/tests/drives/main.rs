@@ -2,6 +2,7 @@
 
 extern crate modbus_harness_drives as drives;
 
+mod clone;
 mod full_fc;
 mod generic;
 mod golden;

@@ -8,6 +8,7 @@
 
 use std::collections::BTreeMap;
 use std::fmt;
+use std::sync::Arc;
 
 use codec::ExceptionCode;
 
@@ -101,6 +102,12 @@ pub enum ChoiceError {
         profile: String,
         applies: Vec<String>,
     },
+    #[error("the reference drives cannot take `{id}={value}` yet (a simulator choice must change what the drive answers); simulated: {}", simulated.join(", "))]
+    NotSimulated {
+        id: String,
+        value: String,
+        simulated: Vec<String>,
+    },
     #[error("`{value}` is not an admissible value of `{id}`; admissible: {}", admissible.join(", "))]
     NotAdmissible {
         id: String,
@@ -110,8 +117,22 @@ pub enum ChoiceError {
 }
 
 /// The values a drive takes for freedoms; a freedom not set takes the reference's value (its first).
-#[derive(Clone, Debug, Default, PartialEq, Eq)]
-pub struct Choices(BTreeMap<String, FreedomValue>);
+///
+/// A choice made with [`Choices::choose`] keeps the freedom's definition too, so that a model can act on its
+/// items (the registers and mnemonics a product lacks, the access it gives them).
+#[derive(Clone, Debug, Default)]
+pub struct Choices {
+    values: BTreeMap<String, FreedomValue>,
+    defs: BTreeMap<String, Arc<Freedom>>,
+}
+
+impl PartialEq for Choices {
+    fn eq(&self, other: &Self) -> bool {
+        self.values == other.values
+    }
+}
+
+impl Eq for Choices {}
 
 impl Choices {
     /// The reference drive's choices: every freedom at its first value.
@@ -121,7 +142,7 @@ impl Choices {
 
     /// True when nothing departs from the reference.
     pub fn is_reference(&self) -> bool {
-        self.0.is_empty()
+        self.values.is_empty()
     }
 
     /// Parse `FREEDOM=VALUE` and check it against the freedoms of `profile`.
@@ -163,24 +184,73 @@ impl Choices {
                 value: value.to_string(),
                 admissible: f.values.iter().map(|v| v.to_string()).collect(),
             })?;
+        if !simulated(f, &chosen) {
+            return Err(ChoiceError::NotSimulated {
+                id: id.to_string(),
+                value: chosen.to_string(),
+                simulated: requirements
+                    .freedoms_for(profile)
+                    .flat_map(|f| {
+                        f.values
+                            .iter()
+                            .skip(1)
+                            .filter(|v| simulated(f, v))
+                            .map(|v| format!("{}={v}", f.id))
+                            .collect::<Vec<_>>()
+                    })
+                    .collect(),
+            });
+        }
         Ok((id.to_string(), chosen))
     }
 
     /// Set `freedom` to `value` (the value the data lists, see [`Choices::parse_one`]).
     pub fn set(&mut self, freedom: impl Into<String>, value: FreedomValue) {
-        self.0.insert(freedom.into(), value);
+        self.values.insert(freedom.into(), value);
+    }
+
+    /// Set `freedom` to `value`, keeping its definition for the models (items, register).
+    pub fn choose(&mut self, freedom: &Freedom, value: FreedomValue) {
+        self.values.insert(freedom.id.clone(), value);
+        self.defs
+            .insert(freedom.id.clone(), Arc::new(freedom.clone()));
+    }
+
+    /// The choices made with their definitions: (freedom, value chosen).
+    pub fn defined(&self) -> impl Iterator<Item = (&Freedom, &FreedomValue)> {
+        self.defs
+            .iter()
+            .filter_map(|(id, f)| Some((f.as_ref(), self.values.get(id)?)))
+    }
+
+    /// The choices made of `kind`, with their definitions.
+    pub fn defined_of(&self, kind: FreedomKind) -> impl Iterator<Item = (&Freedom, &FreedomValue)> {
+        self.defined().filter(move |(f, _)| f.kind == kind)
+    }
+
+    /// The exception code a named value `exception-XX` stands for.
+    pub fn exception_value(value: &FreedomValue) -> Option<ExceptionCode> {
+        match value {
+            FreedomValue::Text(t) => t
+                .strip_prefix("exception-")
+                .and_then(|h| u8::from_str_radix(h, 16).ok())
+                .map(ExceptionCode),
+            FreedomValue::Int(_) => None,
+        }
     }
 
     /// The value set for `freedom`, if any.
     pub fn get(&self, freedom: &str) -> Option<&FreedomValue> {
-        self.0.get(freedom)
+        self.values.get(freedom)
     }
 
-    /// The exception code chosen for an `exception-code` freedom, else `reference`.
+    /// The exception code chosen for an `exception-code` freedom (or an `outcome` one chosen
+    /// `exception-XX`), else `reference`.
     pub fn code(&self, freedom: &str, reference: ExceptionCode) -> ExceptionCode {
-        match self.0.get(freedom) {
+        match self.values.get(freedom) {
             Some(FreedomValue::Int(c)) => u8::try_from(*c).map_or(reference, ExceptionCode),
-            _ => reference,
+            Some(v) => Self::exception_value(v).unwrap_or(reference),
+            None => reference,
         }
     }
 
@@ -191,7 +261,7 @@ impl Choices {
 
     /// The name chosen for a freedom with named values, else `None` (the reference's).
     pub fn name(&self, freedom: &str) -> Option<&str> {
-        match self.0.get(freedom) {
+        match self.values.get(freedom) {
             Some(FreedomValue::Text(t)) => Some(t),
             _ => None,
         }
@@ -199,17 +269,39 @@ impl Choices {
 
     /// Every choice set.
     pub fn iter(&self) -> impl Iterator<Item = (&String, &FreedomValue)> {
-        self.0.iter()
+        self.values.iter()
     }
 }
 
 impl fmt::Display for Choices {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        if self.0.is_empty() {
+        if self.values.is_empty() {
             return f.write_str("reference");
         }
-        let parts: Vec<String> = self.0.iter().map(|(k, v)| format!("{k}={v}")).collect();
+        let parts: Vec<String> = self
+            .values
+            .iter()
+            .map(|(k, v)| format!("{k}={v}"))
+            .collect();
         f.write_str(&parts.join(" "))
+    }
+}
+
+/// True when the reference drive models can take `value` for `f` (`simulate --choose`, `run --choose`): the
+/// items of optional groups and their access, the word order, functions served beyond the profile, reads
+/// inside a 32-bit register, and every freedom the models decide at (see [`ids`]). The reference's own
+/// value always is. Others (the transport outcomes, pipelining, counters, readings of vendor fields, status
+/// bits) the oracle admits but no simulator shows yet.
+pub fn simulated(f: &Freedom, value: &FreedomValue) -> bool {
+    if f.values.first() == Some(value) {
+        return true;
+    }
+    match f.kind {
+        FreedomKind::Optional | FreedomKind::Access | FreedomKind::WordOrder => true,
+        FreedomKind::ServedExtra => value_matches(value, "served"),
+        // Refusals are simulated; accepting half a register is not.
+        _ if f.id == ids::PARTIAL_REGISTER_WRITE => Choices::exception_value(value).is_some(),
+        _ => ids::ALL.contains(&f.id.as_str()),
     }
 }
 

@@ -14,6 +14,7 @@ use toml::Spanned;
 
 use crate::corpus::Corpus;
 use crate::profile::line_of;
+use codec::{Mnemonic, Request};
 
 /// Why the requirements could not be had from a corpus.
 #[derive(Debug, thiserror::Error)]
@@ -183,6 +184,76 @@ pub struct Item {
     pub name: Option<String>,
     /// Line of the item in the manual of the freedom's profile.
     pub line: Option<u32>,
+}
+
+impl Item {
+    /// True when the request reads or writes the item (a register by every address it occupies in the
+    /// profile, a mnemonic by name, an object by index).
+    pub fn touched_by(&self, req: &Request, profile: &crate::profile::Profile) -> bool {
+        let item = self;
+        if let Some(r) = item.register {
+            let width = profile
+                .register_at(r, false)
+                .or_else(|| profile.register_at(r, true))
+                .filter(|reg| reg.address == r)
+                .map_or(1, |reg| reg.width);
+            let hit =
+                |(a, q): (u16, u16)| (0..u16::from(width)).any(|i| covers(a, q, r.wrapping_add(i)));
+            return registers_read(req).is_some_and(hit) || registers_written(req).is_some_and(hit);
+        }
+        if let Some(m) = &item.mnemonic {
+            let name = |mn: &Mnemonic| mn.name().eq_ignore_ascii_case(m);
+            return match req {
+                Request::VendorRead { mnemonic } | Request::VendorWrite { mnemonic, .. } => {
+                    name(mnemonic)
+                }
+                _ => false,
+            };
+        }
+        if let Some(o) = item.object {
+            return matches!(req, Request::CanOpen(a) if a.index == o);
+        }
+        false
+    }
+}
+
+/// The (address, quantity) a request reads, for register reads.
+pub fn registers_read(req: &Request) -> Option<(u16, u16)> {
+    match req {
+        Request::ReadHoldingRegisters { address, quantity }
+        | Request::ReadInputRegisters { address, quantity } => Some((*address, *quantity)),
+        Request::ReadWriteMultipleRegisters {
+            read_address,
+            read_quantity,
+            ..
+        } => Some((*read_address, *read_quantity)),
+        _ => None,
+    }
+}
+
+/// The (address, quantity) a request writes, for register writes.
+pub fn registers_written(req: &Request) -> Option<(u16, u16)> {
+    match req {
+        Request::WriteSingleRegister { address, .. } => Some((*address, 1)),
+        Request::WriteMultipleRegisters { address, values } => {
+            Some((*address, u16::try_from(values.len()).unwrap_or(u16::MAX)))
+        }
+        Request::ReadWriteMultipleRegisters {
+            write_address,
+            values,
+            ..
+        } => Some((
+            *write_address,
+            u16::try_from(values.len()).unwrap_or(u16::MAX),
+        )),
+        _ => None,
+    }
+}
+
+/// True when the range `address`, `quantity` covers `register`.
+pub fn covers(address: u16, quantity: u16, register: u16) -> bool {
+    u32::from(address) <= u32::from(register)
+        && u32::from(register) < u32::from(address) + u32::from(quantity)
 }
 
 /// The text of a document that leaves the choice open.

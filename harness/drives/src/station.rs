@@ -18,6 +18,7 @@ use crate::choices::{Choices, Decision, Rejection, ids};
 use crate::faults::{Fault, FaultSet};
 use crate::models::DriveModel;
 use crate::profile::{DiagCounter, Profile};
+use crate::requirements::FreedomKind;
 use codec::codes::{diag, event};
 use codec::framer::{DiscardReason, FramerEvent, RtuFramer, RtuTiming};
 use codec::{Direction, ExceptionCode, FunctionCode, Request, Response, rtu, tcp};
@@ -607,7 +608,17 @@ impl Station {
         via: Via,
     ) -> Option<(Option<Response>, bool)> {
         let supported = !fc.is_exception() && self.profile().function(fc).is_some();
-        if !supported {
+        // A drive that serves public functions beyond its profile (the freedom's `functions`).
+        let served_extra = !fc.is_exception()
+            && self
+                .choices
+                .name(ids::SERVED_EXTRA_FUNCTION)
+                .is_some_and(|v| v == "served")
+            && self
+                .choices
+                .defined_of(FreedomKind::ServedExtra)
+                .all(|(f, _)| f.functions.contains(&fc.0));
+        if !supported && !served_extra {
             // A function the profile does not list: a drive may serve it anyway (a freedom of the spec).
             self.decisions.push(ids::SERVED_EXTRA_FUNCTION);
             return Some((
@@ -631,6 +642,11 @@ impl Station {
         let resp = if let Some(e) = self.spec_checks(&req) {
             self.decisions.extend(e.freedom);
             Some(Response::exception(fc, e.code))
+        } else if let Some(code) = self.lacks(&req) {
+            Some(Response::exception(fc, code))
+        } else if let Some(code) = self.partial_read_refused(&req) {
+            self.decisions.push(ids::PARTIAL_REGISTER_READ);
+            Some(Response::exception(fc, code))
         } else {
             match req {
                 Request::Diagnostics { .. } => {
@@ -661,6 +677,46 @@ impl Station {
         };
         let completed = resp.as_ref().is_some_and(|r| !r.is_exception());
         Some((resp, completed))
+    }
+
+    /// The exception a product that lacks an item the request touches answers with (the `optional`
+    /// freedoms chosen `exception-XX`), if any.
+    fn lacks(&self, req: &Request) -> Option<ExceptionCode> {
+        self.choices
+            .defined_of(FreedomKind::Optional)
+            .find_map(|(f, value)| {
+                let code = Choices::exception_value(value)?;
+                f.items
+                    .iter()
+                    .any(|item| item.touched_by(req, self.model.profile()))
+                    .then_some(code)
+            })
+    }
+
+    /// The exception a drive that refuses reads starting or ending inside a 32-bit register answers with
+    /// (`partial-register-read` chosen `exception-XX`), when the request is such a read.
+    fn partial_read_refused(&self, req: &Request) -> Option<ExceptionCode> {
+        let code = Choices::exception_value(self.choices.get(ids::PARTIAL_REGISTER_READ)?)?;
+        let (input, address, quantity) = match req {
+            Request::ReadHoldingRegisters { address, quantity } => (false, *address, *quantity),
+            Request::ReadInputRegisters { address, quantity } => (true, *address, *quantity),
+            Request::ReadWriteMultipleRegisters {
+                read_address,
+                read_quantity,
+                ..
+            } => (false, *read_address, *read_quantity),
+            _ => return None,
+        };
+        let profile = self.model.profile();
+        let inside = |a: u32| {
+            u16::try_from(a).ok().is_some_and(|a| {
+                profile
+                    .register_at(a, input)
+                    .is_some_and(|r| r.width == 2 && r.address != a)
+            })
+        };
+        let end = u32::from(address) + u32::from(quantity);
+        (quantity > 0 && (inside(u32::from(address)) || inside(end))).then_some(code)
     }
 
     /// Quantity limits and FC 05 values, per the application protocol spec's state diagrams.

@@ -423,7 +423,10 @@ pub fn choices_of(
     }
     for spec in &opts.choose {
         let (id, value) = drives::Choices::parse_one(spec, requirements, &profile.device.id)?;
-        choices.set(id, value);
+        match requirements.freedom(&id) {
+            Some(f) => choices.choose(f, value),
+            None => choices.set(id, value),
+        }
     }
     Ok(choices)
 }

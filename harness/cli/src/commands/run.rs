@@ -78,6 +78,10 @@ pub struct RunArgs {
     /// List the selected cases and exit.
     #[arg(long)]
     list: bool,
+    /// List the requirements the selected cases check (per source document, with the cases citing each)
+    /// and the freedoms of the profile, and exit.
+    #[arg(long)]
+    list_requirements: bool,
     /// Run the selected catalog cases in an order shuffled with this seed (printed, with the order; the
     /// reports keep the case ids). Cases that leave the drive changed for good still run last.
     #[arg(long, value_name = "SEED")]
@@ -224,6 +228,9 @@ pub fn run(args: &RunArgs) -> ExitCode {
     opts.policy_on_sim = args.policy_on_sim;
     opts.shuffle = args.shuffle;
 
+    if args.list_requirements {
+        return list_requirements(&opts);
+    }
     if args.list || args.dry_run {
         return list(&opts, args.dry_run);
     }
@@ -328,6 +335,102 @@ pub fn run(args: &RunArgs) -> ExitCode {
             ExitCode::from(2)
         }
     }
+}
+
+/// `run --list-requirements`: every requirement of the documents the selected cases cite (and the profile's
+/// manual), marked `x` when a selected case checks it, then the profile's freedoms.
+fn list_requirements(opts: &Options) -> ExitCode {
+    let mut log = std::io::stderr();
+    let planned = session::resolve_profile(opts, &mut log)
+        .map_err(|e| e.to_string())
+        .and_then(|profile| {
+            let planned = session::plan(opts, &profile).map_err(|e| e.to_string())?;
+            let requirements = session::requirements_of(&opts.corpus).map_err(|e| e.to_string())?;
+            Ok((profile, planned, requirements))
+        });
+    let (profile, planned, requirements) = match planned {
+        Ok(x) => x,
+        Err(e) => {
+            eprintln!("error: {e}");
+            return ExitCode::from(2);
+        }
+    };
+    let mut cited: std::collections::BTreeMap<&str, Vec<&str>> = std::collections::BTreeMap::new();
+    for (c, _) in &planned {
+        for r in &c.requirements {
+            cited.entry(r.as_str()).or_default().push(c.id.as_str());
+        }
+    }
+    let own = profile.device.id.as_str();
+    for cov in requirements.coverage(cited.keys().copied()) {
+        if cov.exercised == 0 && cov.document != own {
+            continue;
+        }
+        println!(
+            "{} ({}): {}/{} checked by the {} selected case(s)",
+            cov.document,
+            cov.title,
+            cov.exercised,
+            cov.listed,
+            planned.len()
+        );
+        for r in requirements
+            .requirements()
+            .iter()
+            .filter(|r| r.document == cov.document)
+        {
+            let place = match r.line {
+                Some(l) => format!("line {l}"),
+                None => format!("§{}", r.section),
+            };
+            let cases = cited.get(r.id.as_str()).map_or(String::new(), |c| {
+                let more = if c.len() > 2 {
+                    format!(" and {} more", c.len() - 2)
+                } else {
+                    String::new()
+                };
+                format!(
+                    "  <- {}{more}",
+                    c.iter().take(2).copied().collect::<Vec<_>>().join(", ")
+                )
+            });
+            let mark = if cases.is_empty() { ' ' } else { 'x' };
+            let text: String = r.text.chars().take(90).collect();
+            let cut = if r.text.chars().count() > 90 {
+                "..."
+            } else {
+                ""
+            };
+            println!(
+                "  [{mark}] {} {:?} {place}: {text}{cut}{cases}",
+                r.id, r.level
+            );
+        }
+        println!();
+    }
+    println!(
+        "freedoms of profile {own} (the first value is the reference drive's; any value passes):"
+    );
+    for f in requirements.freedoms_for(own) {
+        let values: Vec<String> = f.values.iter().map(|v| v.to_string()).collect();
+        let source = f
+            .sources
+            .first()
+            .map(|s| match (s.line, &s.section) {
+                (Some(l), _) => format!("{} line {l}", s.doc),
+                (None, Some(sec)) => format!("{} §{sec}", s.doc),
+                (None, None) => s.doc.clone(),
+            })
+            .unwrap_or_default();
+        println!(
+            "  {} ({:?}): {}  [{source}] {}",
+            f.id,
+            f.kind,
+            values.join(" | "),
+            f.title
+        );
+    }
+    ExitCode::SUCCESS
 }
 
 fn list(opts: &Options, dry: bool) -> ExitCode {

@@ -49,6 +49,11 @@ pub struct SimulateArgs {
     /// Inject a fault (repeatable); see --list-faults.
     #[arg(long = "fault", value_name = "NAME", value_parser = parse_fault)]
     faults: Vec<Fault>,
+    /// Take VALUE where the specs and manuals leave a choice (repeatable), e.g.
+    /// `value-out-of-range=4`, `mdrive-hybrid-only=exception-02`: a drive of independent authorship that
+    /// conforms all the same. The freedoms are in corpus/freedoms/; `run --list-requirements` lists them.
+    #[arg(long = "choose", value_name = "FREEDOM=VALUE")]
+    choose: Vec<String>,
     /// Print every fault with what it does, and exit.
     #[arg(long)]
     list_faults: bool,
@@ -255,11 +260,28 @@ fn prepare(args: &SimulateArgs) -> Result<(Station, ServerConfig, String), Strin
             .collect::<Vec<_>>()
             .join(", ")
     };
+    let mut choices = drives::Choices::reference();
+    if !args.choose.is_empty() {
+        let requirements = corpus.requirements().map_err(|e| e.to_string())?;
+        for spec in &args.choose {
+            let (id, value) = drives::Choices::parse_one(spec, &requirements, &profile.device.id)
+                .map_err(|e| e.to_string())?;
+            match requirements.freedom(&id) {
+                Some(f) => choices.choose(f, value),
+                None => choices.set(id, value),
+            }
+        }
+    }
     let summary = format!(
-        "profile {} ({}), unit {unit}, faults: {fault_names}",
+        "profile {} ({}), unit {unit}, faults: {fault_names}, choices: {choices}",
         profile.device.id, profile.device.name
     );
-    let station = Station::new(drives::build(profile, faults.clone()), faults, unit);
+    let station = Station::new(
+        drives::build_with(profile, faults.clone(), choices.clone()),
+        faults,
+        unit,
+    )
+    .with_choices(choices);
     let config = ServerConfig {
         tcp: args.listen,
         rtu_over_tcp: args.rtu_over_tcp,

@@ -71,10 +71,11 @@ impl Generic {
     /// Report Server ID (FC 11, spec 6.13): the profile's id, run indicator and additional data.
     fn report_server_id(&self) -> Response {
         let Some(sid) = &self.profile.server_id else {
-            // Profile validation requires the table with FC 11; without it there is nothing to report.
+            // Profile validation requires the table with FC 11, so only a drive serving functions beyond
+            // its profile (`served-extra-function`) gets here: with nothing to report, it has no FC 11.
             return Response::exception(
                 FunctionCode::REPORT_SERVER_ID,
-                ExceptionCode::SERVER_DEVICE_FAILURE,
+                ExceptionCode::ILLEGAL_FUNCTION,
             );
         };
         let sid = sid.get_ref();

@@ -55,9 +55,56 @@ pub fn build(profile: Profile, faults: FaultSet) -> Box<dyn DriveModel> {
 
 /// Build the model a profile describes, taking `choices` where the freedoms leave one.
 pub fn build_with(profile: Profile, faults: FaultSet, choices: Choices) -> Box<dyn DriveModel> {
+    let profile = shaped(profile, &choices);
     match profile.device.id.as_str() {
         "sd2x" => Box::new(sd2x::Sd2x::new(profile, faults, choices)),
         "mdrive" | "lmd" => Box::new(mdrive::Mdrive::new(profile, faults, choices)),
         _ => Box::new(generic::Generic::new(profile, faults, choices)),
     }
+}
+
+/// The profile as a drive that made `choices` has it: the access it gives the items of the `access`
+/// freedoms, the word order of a `word-order` freedom. (Optional items a product lacks are refused by the
+/// station, see [`crate::station`]; the other freedoms act inside the models.)
+pub fn shaped(mut profile: Profile, choices: &Choices) -> Profile {
+    use crate::profile::{Access, WordOrder};
+    use crate::requirements::{FreedomKind, FreedomValue};
+    for (f, value) in choices.defined_of(FreedomKind::Access) {
+        let access = match value {
+            FreedomValue::Text(t) if t == "ro" => Access::Ro,
+            FreedomValue::Text(t) if t == "rw" => Access::Rw,
+            FreedomValue::Text(t) if t == "wo" => Access::Wo,
+            _ => continue,
+        };
+        for item in &f.items {
+            if let Some(address) = item.register {
+                for r in &mut profile.registers {
+                    if r.get_ref().address == address {
+                        r.get_mut().access = access;
+                    }
+                }
+            }
+            if let Some(name) = &item.mnemonic {
+                for m in &mut profile.mnemonics {
+                    let m = m.get_mut();
+                    if m.name.eq_ignore_ascii_case(name) {
+                        m.read = access.readable();
+                        m.write = access.writable();
+                    }
+                }
+            }
+        }
+    }
+    for (_, value) in choices.defined_of(FreedomKind::WordOrder) {
+        match value {
+            FreedomValue::Text(t) if t == "high-first" => {
+                profile.device.word_order = WordOrder::HighFirst;
+            }
+            FreedomValue::Text(t) if t == "low-first" => {
+                profile.device.word_order = WordOrder::LowFirst;
+            }
+            _ => {}
+        }
+    }
+    profile
 }

@@ -11,8 +11,9 @@
 //! when the case cites it (`corpus/requirements/cases.toml`), or when the request touches what the freedom is
 //! about (an optional register, a status word, a unit id); always only for the profiles it lists.
 
-use codec::{ExceptionCode, FunctionCode, Mnemonic, Request, Response};
+use codec::{ExceptionCode, FunctionCode, Request, Response};
 use drives::requirements::{Freedom, FreedomKind, FreedomValue, Item, Requirements};
+use drives::requirements::{covers, registers_read, registers_written};
 
 /// A value a drive showed for a freedom, at one step.
 #[derive(Clone, Debug, PartialEq, Eq, serde::Serialize)]
@@ -107,70 +108,8 @@ fn touches(f: &Freedom, cx: &StepContext<'_>) -> bool {
     }
 }
 
-/// The (address, quantity) a request reads, for register reads.
-fn registers_read(req: &Request) -> Option<(u16, u16)> {
-    match req {
-        Request::ReadHoldingRegisters { address, quantity }
-        | Request::ReadInputRegisters { address, quantity } => Some((*address, *quantity)),
-        Request::ReadWriteMultipleRegisters {
-            read_address,
-            read_quantity,
-            ..
-        } => Some((*read_address, *read_quantity)),
-        _ => None,
-    }
-}
-
-/// The (address, quantity) a request writes, for register writes.
-fn registers_written(req: &Request) -> Option<(u16, u16)> {
-    match req {
-        Request::WriteSingleRegister { address, .. } => Some((*address, 1)),
-        Request::WriteMultipleRegisters { address, values } => {
-            Some((*address, u16::try_from(values.len()).unwrap_or(u16::MAX)))
-        }
-        Request::ReadWriteMultipleRegisters {
-            write_address,
-            values,
-            ..
-        } => Some((
-            *write_address,
-            u16::try_from(values.len()).unwrap_or(u16::MAX),
-        )),
-        _ => None,
-    }
-}
-
-fn covers(address: u16, quantity: u16, register: u16) -> bool {
-    u32::from(address) <= u32::from(register)
-        && u32::from(register) < u32::from(address) + u32::from(quantity)
-}
-
-/// True when the request reads or writes the item (a register by every address it occupies in the
-/// profile, a mnemonic by name, an object by index).
 fn item_touched(item: &Item, req: &Request, profile: &drives::profile::Profile) -> bool {
-    if let Some(r) = item.register {
-        let width = profile
-            .register_at(r, false)
-            .or_else(|| profile.register_at(r, true))
-            .filter(|reg| reg.address == r)
-            .map_or(1, |reg| reg.width);
-        let hit =
-            |(a, q): (u16, u16)| (0..u16::from(width)).any(|i| covers(a, q, r.wrapping_add(i)));
-        return registers_read(req).is_some_and(hit) || registers_written(req).is_some_and(hit);
-    }
-    if let Some(m) = &item.mnemonic {
-        let name = |mn: &Mnemonic| mn.name().eq_ignore_ascii_case(m);
-        return match req {
-            Request::VendorRead { mnemonic } | Request::VendorWrite { mnemonic, .. } => {
-                name(mnemonic)
-            }
-            _ => false,
-        };
-    }
-    if let Some(o) = item.object {
-        return matches!(req, Request::CanOpen(a) if a.index == o);
-    }
-    false
+    item.touched_by(req, profile)
 }
 
 fn item_name(item: &Item) -> String {
@@ -258,9 +197,11 @@ pub fn reference_shown(
             _ => None,
         },
         FreedomKind::Optional => {
+            // Only an answer the item's presence gives shows it: a refusal (a write to a read-only item)
+            // is what a product lacking the item answers too.
             let req = cx.request?;
             let item = f.items.iter().find(|i| item_touched(i, req, cx.profile))?;
-            Some(shown(f, item_name(item), first))
+            (!expected?.is_exception()).then(|| shown(f, item_name(item), first))
         }
         FreedomKind::Access => {
             // Only the access a request exercises shows it: a write whether an item is read-only, a read

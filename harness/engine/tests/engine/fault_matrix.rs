@@ -8,7 +8,7 @@ use engine::targets::TargetUrl;
 use test_support::run_quietly;
 
 /// (fault, target, the case that must FAIL with it).
-const WITNESSES: &[(&str, &str, &str)] = &[
+pub(crate) const WITNESSES: &[(&str, &str, &str)] = &[
     (
         "wrong-exception-code",
         "sim:generic",

@@ -4,6 +4,7 @@
 extern crate modbus_harness_engine as engine;
 
 mod fault_matrix;
+mod freedom_space;
 mod fuzz_campaign;
 mod generated_cases;
 mod probe;

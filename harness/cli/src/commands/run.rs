@@ -321,7 +321,7 @@ pub fn run(args: &RunArgs) -> ExitCode {
                     "the observations drifted: exit code 1 (accept them with --update-snapshot)"
                 );
             }
-            print!("{}", engine::reports::terminal_summary(&o.summary, &o.info));
+            println!("{}", engine::reports::terminal_summary(&o.summary, &o.info));
             if o.summary.count(Verdict::Fail) > 0 || drift {
                 ExitCode::from(1)
             } else if o.summary.interrupted {

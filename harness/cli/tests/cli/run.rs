@@ -121,6 +121,8 @@ fn a_run_writes_every_report_and_exits_by_verdict() {
             .starts_with("RESULT: PASS"),
         "summary last: {out}"
     );
+    // The result line is a whole line: a shell prompt or the next command's output starts on its own.
+    assert!(out.ends_with(")\n"), "no newline after the result: {out:?}");
     for f in ["index.json", "junit.xml", "report.html", "session.pcapng"] {
         assert!(report.join(f).is_file(), "{f} missing");
     }

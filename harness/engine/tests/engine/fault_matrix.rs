@@ -12,7 +12,7 @@ const WITNESSES: &[(&str, &str, &str)] = &[
     (
         "wrong-exception-code",
         "sim:generic",
-        "spec/app-7/unsupported-function/fc-0x07",
+        "spec/app-7/unsupported-function/fc-0x09",
     ),
     (
         "wrong-function-code",
@@ -64,7 +64,7 @@ const WITNESSES: &[(&str, &str, &str)] = &[
     (
         "exception-without-fc",
         "sim:generic",
-        "spec/app-7/unsupported-function/fc-0x07",
+        "spec/app-7/unsupported-function/fc-0x09",
     ),
     (
         "broadcast-answered",
@@ -105,7 +105,7 @@ const WITNESSES: &[(&str, &str, &str)] = &[
     (
         "unit-not-echoed",
         "sim:generic",
-        "spec/app-7/unsupported-function/fc-0x07",
+        "spec/app-7/unsupported-function/fc-0x09",
     ),
     (
         "illegal-coil-value-accepted",

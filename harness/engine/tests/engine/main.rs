@@ -7,6 +7,7 @@ mod fault_matrix;
 mod fuzz_campaign;
 mod generated_cases;
 mod probe;
+mod public_fc;
 mod report_files;
 mod requirements_cited;
 mod run_transports;

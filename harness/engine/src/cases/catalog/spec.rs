@@ -17,6 +17,7 @@ pub(super) fn cases(cx: &mut Ctx) {
     byte_count_mismatches(cx);
     truncated_pdus(cx);
     write_coil_illegal_value(cx);
+    super::public_fc::cases(cx);
 }
 
 /// Unsupported function codes: exception 01 (a handful that the profile lacks, plus an undefined one). A
@@ -24,7 +25,7 @@ pub(super) fn cases(cx: &mut Ctx) {
 fn unsupported_functions(cx: &mut Ctx) {
     let candidates = [
         0x07u8, 0x0B, 0x0C, 0x11, 0x14, 0x16, 0x18, 0x01, 0x02, 0x05, 0x06, 0x0F, 0x17, 0x08, 0x04,
-        0x55, 0x7F,
+        0x09, 0x55, 0x7F,
     ];
     let mut n = 0;
     for fc in candidates {

@@ -709,6 +709,18 @@ fn field_value(
                 _ => vec![],
             }
         }
+        (
+            "event-counter-clear-counted",
+            Response::GetCommEventCounter {
+                status: es,
+                event_count: ec,
+            },
+            Response::GetCommEventCounter {
+                status: os,
+                event_count: oc,
+            },
+            _,
+        ) if es == os && *oc == ec.wrapping_add(1) => one(o.clone(), "counted"),
         ("sd2x-watchdog-trip-state", _, _, Some(req)) => {
             // Fault (xxxx 1000 in bits 0-3 and 6) or fault reaction active (xxxx 1111).
             let Some(register) = f.register else {

@@ -182,6 +182,11 @@ const WITNESSES: &[(&str, &str, &str)] = &[
     ),
     (
         "event-counter-counts-exceptions",
+        "sim:generic",
+        "spec/app-6.9/get-comm-event-counter/after-clear",
+    ),
+    (
+        "event-counter-counts-exceptions",
         "sim:generic?transport=rtu",
         "spec/app-6.9/get-comm-event-counter/after-restart",
     ),

@@ -84,3 +84,35 @@ fn file_records_are_captured_and_restored_with_fc15() {
         ]
     );
 }
+
+/// `event-counter-clear-counted`: one more than the reference after 08/0A is admissible (the clearing request
+/// counted), two more (the exceptions counted, fault `event-counter-counts-exceptions`) is not.
+#[test]
+fn event_counter_may_count_the_clear_but_nothing_more() {
+    let reqs = Corpus::Embedded
+        .requirements()
+        .unwrap_or_else(|e| panic!("{e}"));
+    let f = reqs
+        .freedom("event-counter-clear-counted")
+        .expect("freedom in the corpus");
+    let p = Corpus::Embedded.profile("generic").expect("generic");
+    let req = Request::GetCommEventCounter;
+    let cx = StepContext {
+        request: Some(&req),
+        unit: 1,
+        run_unit: 1,
+        profile: &p,
+        malformed: false,
+        batch: false,
+        decided: &[],
+    };
+    let count = |n| Response::GetCommEventCounter {
+        status: 0,
+        event_count: n,
+    };
+    let one_more = alternatives(f, &cx, Some(&count(1)), Some(&count(2)));
+    assert_eq!(one_more.len(), 1);
+    assert_eq!(one_more[0].shown.value, "counted");
+    assert!(alternatives(f, &cx, Some(&count(1)), Some(&count(3))).is_empty());
+    assert!(alternatives(f, &cx, Some(&count(1)), Some(&count(0))).is_empty());
+}

@@ -37,10 +37,10 @@ fn declares_sub(cx: &Ctx, sub: u16) -> bool {
     cx.p.diagnostics.iter().any(|d| d.sub_function == sub)
 }
 
-/// A request the server answers with an exception: an unassigned public function code (0x09) when the
-/// profile leaves it out, else a read past the last holding register address.
+/// A request the server answers with an exception: a read past the last holding register address (exception
+/// 02), or, without FC 03, an unassigned public function code (0x09, exception 01).
 fn exception_request(cx: &Ctx) -> Vec<u8> {
-    if cx.supports(0x09u8) {
+    if cx.supports(FunctionCode::READ_HOLDING_REGISTERS) || cx.supports(0x09u8) {
         pdu(&Request::ReadHoldingRegisters {
             address: 0xFFFF,
             quantity: 1,
@@ -336,6 +336,31 @@ fn comm_event_counter_and_log(cx: &mut Ctx) {
                 },
                 vec![Tag::RtuOnly, Tag::Destructive],
                 steps,
+            );
+        }
+        if fc == 0x0B
+            && cx.supports(FunctionCode::DIAGNOSTICS)
+            && declares_sub(cx, diag::CLEAR_COUNTERS)
+        {
+            // Over Modbus/TCP the counter is cleared with 08/0A; whether the clearing request then counts as
+            // a completion is the freedom `event-counter-clear-counted` (one more, never two).
+            cx.push(
+                format!("spec/app-{section}/{name}/after-clear"),
+                "FC 0B after a clear, a read and two exceptions".to_string(),
+                format!("{APP}, sections 6.9 and 6.8.1 (sub-function 0A)"),
+                "The event counter counts each successful message completion, not exception responses nor FC 0B itself; Clear Counters and Diagnostic Register clears it.",
+                vec![Tag::TcpOnly],
+                vec![
+                    exchange(
+                        Outgoing::Pdu(diag_pdu(diag::CLEAR_COUNTERS, 0)),
+                        Compare::Exact,
+                        "08/0A: clear the counters",
+                    ),
+                    exchange(Outgoing::Pdu(read.clone()), Compare::Structure, "one successful read"),
+                    exchange(Outgoing::Pdu(bad.clone()), Compare::Structure, "an exception response"),
+                    exchange(Outgoing::Pdu(bad.clone()), Compare::Structure, "another exception response"),
+                    exchange(Outgoing::Pdu(vec![fc]), Compare::Exact, "FC 0B"),
+                ],
             );
         }
         cx.push(

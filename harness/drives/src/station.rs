@@ -606,7 +606,10 @@ impl Station {
         pdu: &[u8],
         via: Via,
     ) -> Option<(Option<Response>, bool)> {
-        let supported = !fc.is_exception() && self.profile().function(fc).is_some();
+        let supported = !fc.is_exception()
+            && (self.profile().function(fc).is_some()
+                || (self.faults.has(Fault::UndeclaredFunctionServed)
+                    && matches!(fc.0, 0x01..=0x06 | 0x0F | 0x10 | 0x16 | 0x17)));
         if !supported {
             // A function the profile does not list: a drive may serve it anyway (a freedom of the spec).
             self.decisions.push(ids::SERVED_EXTRA_FUNCTION);

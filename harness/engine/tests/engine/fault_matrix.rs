@@ -113,6 +113,22 @@ const WITNESSES: &[(&str, &str, &str)] = &[
         "spec/app-6.5/write-coil-illegal-value",
     ),
     ("crc-unchecked", "sim:sd2x", "rtu/crc/bad-crc-silence"),
+    // Every public function code a profile leaves out is probed (issue 15, item 1: FC 06 on an MDrive).
+    (
+        "undeclared-function-served",
+        "sim:mdrive",
+        "spec/app-7/unsupported-function/fc-0x06",
+    ),
+    (
+        "undeclared-function-served",
+        "sim:lmd",
+        "spec/app-7/unsupported-function/fc-0x06",
+    ),
+    (
+        "undeclared-function-served",
+        "sim:sd2x",
+        "spec/app-7/unsupported-function/fc-0x16",
+    ),
     // The public function code set of the generic profile (issue 15, item 3), over both of its transports
     // where the function works on both; listen only mode and the counts after a restart only on a serial line.
     (

@@ -40,6 +40,7 @@ pub enum Fault {
     FileWriteFirstOnly,
     MaskWriteWrong,
     FifoOffByOne,
+    UndeclaredFunctionServed,
 }
 
 impl Fault {
@@ -204,6 +205,11 @@ impl Fault {
             Fault::FifoOffByOne,
             "fifo-off-by-one",
             "FC 18: one queued register fewer than the queue holds is answered (count and byte count agree)",
+        ),
+        (
+            Fault::UndeclaredFunctionServed,
+            "undeclared-function-served",
+            "the data-model functions (FC 01-06, 0F, 10, 16, 17) are served even where the profile does not declare them (FC 06 on an MDrive)",
         ),
     ];
 

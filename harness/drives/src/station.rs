@@ -607,7 +607,10 @@ impl Station {
         pdu: &[u8],
         via: Via,
     ) -> Option<(Option<Response>, bool)> {
-        let supported = !fc.is_exception() && self.profile().function(fc).is_some();
+        let supported = !fc.is_exception()
+            && (self.profile().function(fc).is_some()
+                || (self.faults.has(Fault::UndeclaredFunctionServed)
+                    && matches!(fc.0, 0x01..=0x06 | 0x0F | 0x10 | 0x16 | 0x17)));
         // A drive that serves public functions beyond its profile (the freedom's `functions`).
         let served_extra = !fc.is_exception()
             && self

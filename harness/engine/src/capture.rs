@@ -6,8 +6,8 @@
 //! never the reference's: the reference receives the same restoring bytes and so follows the target's state.
 
 use codec::{
-    CanOpenAccess, Decoded, Direction, Framing, FunctionCode, Mnemonic, Pdu, Request, Response,
-    decode_any,
+    CanOpenAccess, Decoded, Direction, FileRecordWrite, Framing, FunctionCode, Mnemonic, Pdu,
+    Request, Response, decode_any,
 };
 use drives::profile::Profile;
 
@@ -22,6 +22,13 @@ pub enum Captured {
     Object(CanOpenAccess),
     /// A vendor setting read with FC 0x41: its mnemonic and the parameter string the drive returned.
     Setting { mnemonic: Mnemonic, params: Vec<u8> },
+    /// One group of file records read with FC 14 (one sub-request): written back with FC 15.
+    FileRecords {
+        reference_type: u8,
+        file_number: u16,
+        record_number: u16,
+        values: Vec<u16>,
+    },
 }
 
 impl Captured {
@@ -88,6 +95,19 @@ impl Captured {
                 mnemonic: *mnemonic,
                 params: setting_params(params),
             },
+            Captured::FileRecords {
+                reference_type,
+                file_number,
+                record_number,
+                values,
+            } => Request::WriteFileRecord {
+                sub_requests: vec![FileRecordWrite {
+                    reference_type: *reference_type,
+                    file_number: *file_number,
+                    record_number: *record_number,
+                    values: values.clone(),
+                }],
+            },
         })
     }
 }
@@ -124,6 +144,18 @@ pub fn captured(framing: Framing, request: &[u8], response: &[u8]) -> Option<Cap
             Some(Captured::Setting { mnemonic, params })
         }
         (_, Response::CanOpen(a)) if !a.is_write() => Some(Captured::Object(a)),
+        (
+            Some(Request::ReadFileRecord { sub_requests }),
+            Response::ReadFileRecord { sub_responses },
+        ) if sub_requests.len() == 1 && sub_responses.len() == 1 => {
+            let (r, d) = (&sub_requests[0], &sub_responses[0]);
+            (d.values.len() == usize::from(r.record_length)).then(|| Captured::FileRecords {
+                reference_type: r.reference_type,
+                file_number: r.file_number,
+                record_number: r.record_number,
+                values: d.values.clone(),
+            })
+        }
         _ => None,
     }
 }

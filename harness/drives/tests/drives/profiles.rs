@@ -43,8 +43,10 @@ fn the_generic_profile_written_with_blocks_is_the_one_written_out() {
         include_str!("../data/generic_one_entry_per_line.toml"),
     )
     .unwrap_or_else(|e| panic!("{e}"));
+    // The full function code set (FC 07-18 and their tables) is written the same way in both files: the
+    // blocks save the 400 entries of the data model, some 380 lines.
     assert!(
-        text.lines().count() * 3
+        text.lines().count() + 350
             < include_str!("../data/generic_one_entry_per_line.toml")
                 .lines()
                 .count(),

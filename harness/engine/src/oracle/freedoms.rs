@@ -630,6 +630,38 @@ fn field_value(
                 vec![]
             }
         }
+        (
+            "run-indicator-status",
+            Response::ReportServerId { data: ed },
+            Response::ReportServerId { data: od },
+            _,
+        ) => {
+            // The same bytes but one, where the reference has a run indicator and the drive the other one.
+            let differ: Vec<usize> = (0..ed.len().min(od.len()))
+                .filter(|i| ed[*i] != od[*i])
+                .collect();
+            match differ.as_slice() {
+                [i] if ed.len() == od.len()
+                    && matches!(ed[*i], 0x00 | 0xFF)
+                    && matches!(od[*i], 0x00 | 0xFF) =>
+                {
+                    one(o.clone(), if od[*i] == 0xFF { "on" } else { "off" })
+                }
+                _ => vec![],
+            }
+        }
+        (
+            "event-counter-clear-counted",
+            Response::GetCommEventCounter {
+                status: es,
+                event_count: ec,
+            },
+            Response::GetCommEventCounter {
+                status: os,
+                event_count: oc,
+            },
+            _,
+        ) if es == os && *oc == ec.wrapping_add(1) => one(o.clone(), "counted"),
         ("sd2x-watchdog-trip-state", _, _, Some(req)) => {
             // Fault (xxxx 1000 in bits 0-3 and 6) or fault reaction active (xxxx 1111).
             let Some(register) = f.register else {

@@ -597,6 +597,30 @@ fn structure(e: &Response, o: &Response, out: &mut Vec<Finding>) {
             })
         }
         (VendorRead { .. }, VendorRead { .. }) => None,
+        // Answers, not echoes, of the serial-line and file functions (6.7-6.18): their lengths are the
+        // structure, their values the device's (output states, counts, ids, record and queue contents).
+        (ReadExceptionStatus { .. }, ReadExceptionStatus { .. })
+        | (ReportServerId { .. }, ReportServerId { .. })
+        | (ReadFifoQueue { .. }, ReadFifoQueue { .. }) => None,
+        (GetCommEventCounter { .. }, GetCommEventCounter { status, .. })
+        | (GetCommEventLog { .. }, GetCommEventLog { status, .. }) => {
+            (!matches!(status, 0x0000 | 0xFFFF))
+                .then(|| format!("status 0x{status:04X}: only 0x0000 and 0xFFFF are defined (6.9)"))
+        }
+        (ReadFileRecord { sub_responses: a }, ReadFileRecord { sub_responses: b }) => {
+            let lens = |v: &[codec::FileRecordData]| {
+                v.iter()
+                    .map(|d| (d.reference_type, d.values.len()))
+                    .collect::<Vec<_>>()
+            };
+            (lens(a) != lens(b)).then(|| {
+                format!(
+                    "file sub-responses (reference type, records) {:?}, expected {:?}",
+                    lens(b),
+                    lens(a)
+                )
+            })
+        }
         (a, b) if std::mem::discriminant(a) == std::mem::discriminant(b) => {
             // Echo responses (FC 05, 06, 0F, 10, 42) carry the request's fields: they must match exactly.
             (a != b).then(|| format!("echo differs: expected {a:?}, got {b:?}"))

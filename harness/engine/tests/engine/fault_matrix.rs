@@ -12,7 +12,7 @@ pub(crate) const WITNESSES: &[(&str, &str, &str)] = &[
     (
         "wrong-exception-code",
         "sim:generic",
-        "spec/app-7/unsupported-function/fc-0x07",
+        "spec/app-7/unsupported-function/fc-0x09",
     ),
     (
         "wrong-function-code",
@@ -64,7 +64,7 @@ pub(crate) const WITNESSES: &[(&str, &str, &str)] = &[
     (
         "exception-without-fc",
         "sim:generic",
-        "spec/app-7/unsupported-function/fc-0x07",
+        "spec/app-7/unsupported-function/fc-0x09",
     ),
     (
         "broadcast-answered",
@@ -105,7 +105,7 @@ pub(crate) const WITNESSES: &[(&str, &str, &str)] = &[
     (
         "unit-not-echoed",
         "sim:generic",
-        "spec/app-7/unsupported-function/fc-0x07",
+        "spec/app-7/unsupported-function/fc-0x09",
     ),
     (
         "illegal-coil-value-accepted",
@@ -113,6 +113,104 @@ pub(crate) const WITNESSES: &[(&str, &str, &str)] = &[
         "spec/app-6.5/write-coil-illegal-value",
     ),
     ("crc-unchecked", "sim:sd2x", "rtu/crc/bad-crc-silence"),
+    // Every public function code a profile leaves out is probed (issue 15, item 1: FC 06 on an MDrive).
+    (
+        "undeclared-function-served",
+        "sim:mdrive",
+        "spec/app-7/unsupported-function/fc-0x06",
+    ),
+    (
+        "undeclared-function-served",
+        "sim:lmd",
+        "spec/app-7/unsupported-function/fc-0x06",
+    ),
+    (
+        "undeclared-function-served",
+        "sim:sd2x",
+        "spec/app-7/unsupported-function/fc-0x16",
+    ),
+    // The public function code set of the generic profile (issue 15, item 3), over both of its transports
+    // where the function works on both; listen only mode and the counts after a restart only on a serial line.
+    (
+        "exception-status-reversed",
+        "sim:generic",
+        "spec/app-6.7/read-exception-status/outputs",
+    ),
+    (
+        "exception-status-reversed",
+        "sim:generic?transport=rtu",
+        "spec/app-6.7/read-exception-status/outputs",
+    ),
+    (
+        "run-indicator-one",
+        "sim:generic",
+        "spec/app-6.13/report-server-id",
+    ),
+    (
+        "run-indicator-one",
+        "sim:generic?transport=rtu",
+        "spec/app-6.13/report-server-id",
+    ),
+    (
+        "file-record-length-wrong",
+        "sim:generic",
+        "spec/app-6.14/read-file-record",
+    ),
+    (
+        "file-record-length-wrong",
+        "sim:generic?transport=rtu",
+        "spec/app-6.14/read-file-record",
+    ),
+    (
+        "file-write-first-only",
+        "sim:generic",
+        "spec/app-6.15/write-file-record/read-back",
+    ),
+    (
+        "file-write-first-only",
+        "sim:generic?transport=rtu",
+        "spec/app-6.15/write-file-record/read-back",
+    ),
+    (
+        "mask-write-wrong",
+        "sim:generic",
+        "spec/app-6.16/mask-write/0x0000",
+    ),
+    (
+        "mask-write-wrong",
+        "sim:generic?transport=rtu",
+        "spec/app-6.16/mask-write/0x0000",
+    ),
+    (
+        "fifo-off-by-one",
+        "sim:generic",
+        "spec/app-6.18/read-fifo-queue/0x04DE",
+    ),
+    (
+        "fifo-off-by-one",
+        "sim:generic?transport=rtu",
+        "spec/app-6.18/read-fifo-queue/0x04DE",
+    ),
+    (
+        "listen-only-ignored",
+        "sim:generic?transport=rtu",
+        "spec/app-6.8.1/04-force-listen-only",
+    ),
+    (
+        "event-counter-counts-exceptions",
+        "sim:generic",
+        "spec/app-6.9/get-comm-event-counter/after-clear",
+    ),
+    (
+        "event-counter-counts-exceptions",
+        "sim:generic?transport=rtu",
+        "spec/app-6.9/get-comm-event-counter/after-restart",
+    ),
+    (
+        "event-log-oldest-first",
+        "sim:generic?transport=rtu",
+        "spec/app-6.10/get-comm-event-log/after-restart",
+    ),
 ];
 
 fn verdict_of(target: &str, case: &str, faults: FaultSet) -> Verdict {
@@ -148,32 +246,9 @@ fn every_fault_fails_its_witness_case_and_the_healthy_drive_passes_it() {
     assert!(problems.is_empty(), "{problems:#?}");
 }
 
-/// Faults of the functions the built-in profiles do not declare yet (FC 07, 08/04, 0B, 0C, 11, 14, 15, 16, 18;
-/// issue 15, item 3): their witness cases come with the catalog cases of those functions and the generic
-/// profile's declarations (corpus/profiles/generic-full-fc.toml.draft). Until then each is shown to change
-/// the answer that reveals it in harness/drives/tests/drives/full_fc.rs. Remove a name when its witness lands.
-const AWAITING_CATALOG_CASES: &[&str] = &[
-    "exception-status-reversed",
-    "listen-only-ignored",
-    "event-counter-counts-exceptions",
-    "event-log-oldest-first",
-    "run-indicator-one",
-    "file-record-length-wrong",
-    "file-write-first-only",
-    "mask-write-wrong",
-    "fifo-off-by-one",
-];
-
 #[test]
 fn every_fault_has_a_witness() {
     for (f, name, _) in Fault::ALL {
-        if AWAITING_CATALOG_CASES.contains(name) {
-            assert!(
-                !WITNESSES.iter().any(|(n, _, _)| n == name),
-                "fault {name} has a witness now: take it off AWAITING_CATALOG_CASES"
-            );
-            continue;
-        }
         assert!(
             WITNESSES.iter().any(|(n, _, _)| n == name),
             "fault {f:?} ({name}) has no witness case: add one that FAILs with it"

@@ -8,6 +8,7 @@ mod freedom_space;
 mod fuzz_campaign;
 mod generated_cases;
 mod probe;
+mod public_fc;
 mod report_files;
 mod requirements_cited;
 mod run_transports;

@@ -11,6 +11,7 @@ mod ds402;
 mod golden;
 mod mcode;
 mod profile;
+mod public_fc;
 mod rtu;
 mod spec;
 mod tcp;

@@ -1,0 +1,606 @@
+//! Positive cases for the rest of the public function code set (MODBUS Application Protocol v1.1b3 sections
+//! 6.7-6.18): FC 07, 08 (the public sub-functions the profile declares), 0B, 0C, 11, 14, 15, 16 and 18, each
+//! built only when the profile declares the function, each putting back what it changes.
+//!
+//! Values a drive chooses itself (the diagnostic register, the counters of Modbus/TCP traffic, the server id
+//! of a profile that declares none) are compared in structure only; values the spec or the profile fixes
+//! (an echo, the exception status outputs mapped to coils, the file records and FIFO contents the profile
+//! declares, a mask write's result read back, the counters after a restart on a serial line) exactly.
+
+use super::around::Around;
+use super::{APP, Ctx, capture, exchange, pdu};
+use crate::cases::{Compare, Outgoing, Step, Tag};
+use codec::codes::diag;
+use codec::{FileRecordRef, FileRecordWrite, FunctionCode, Request};
+use drives::profile::Table;
+
+/// The family, function by function.
+pub(super) fn cases(cx: &mut Ctx) {
+    read_exception_status(cx);
+    diagnostics(cx);
+    comm_event_counter_and_log(cx);
+    report_server_id(cx);
+    file_records(cx);
+    mask_write(cx);
+    fifo(cx);
+}
+
+/// An FC 08 request with sub-function `sub` and one data word.
+fn diag_pdu(sub: u16, data: u16) -> Vec<u8> {
+    pdu(&Request::Diagnostics {
+        sub_function: sub,
+        data: data.to_be_bytes().to_vec(),
+    })
+}
+
+fn declares_sub(cx: &Ctx, sub: u16) -> bool {
+    cx.p.diagnostics.iter().any(|d| d.sub_function == sub)
+}
+
+/// A request the server answers with an exception: a read past the last holding register address (exception
+/// 02), or, without FC 03, an unassigned public function code (0x09, exception 01).
+fn exception_request(cx: &Ctx) -> Vec<u8> {
+    if cx.supports(FunctionCode::READ_HOLDING_REGISTERS) || cx.supports(0x09u8) {
+        pdu(&Request::ReadHoldingRegisters {
+            address: 0xFFFF,
+            quantity: 1,
+        })
+    } else {
+        vec![0x09, 0, 0, 0, 1]
+    }
+}
+
+/// FC 07 (6.7): the eight exception status outputs. Where the profile maps them to coils, the coils are set
+/// to a pattern that reads differently bit-reversed (outputs 1 and 2 on) and the status must show it;
+/// otherwise the contents are device specific and only the format is checked.
+fn read_exception_status(cx: &mut Ctx) {
+    if !cx.supports(FunctionCode::READ_EXCEPTION_STATUS) {
+        return;
+    }
+    let coils: Vec<u16> =
+        cx.p.exception_status
+            .as_ref()
+            .map(|e| e.get_ref().coils.clone())
+            .unwrap_or_default();
+    let mapped = coils.len() == 8
+        && coils.windows(2).all(|w| w[1] == w[0] + 1)
+        && cx.supports(FunctionCode::WRITE_MULTIPLE_COILS)
+        && cx.supports(FunctionCode::READ_COILS);
+    if mapped {
+        let first = coils[0];
+        let mut a = Around::new();
+        a.keep_coils(cx, first, 8);
+        let steps = a.wrap(vec![
+            exchange(
+                Outgoing::Pdu(pdu(&Request::WriteMultipleCoils {
+                    address: first,
+                    quantity: 8,
+                    data: vec![0b0000_0110],
+                })),
+                Compare::Exact,
+                format!("coils {first}..+8 set to 0b00000110 (outputs 1 and 2 on)"),
+            ),
+            exchange(
+                Outgoing::Pdu(vec![0x07]),
+                Compare::Exact,
+                "FC 07: output 0 in the least significant bit",
+            ),
+        ]);
+        cx.push(
+            "spec/app-6.7/read-exception-status/outputs".into(),
+            "FC 07 reports the exception status outputs, output 0 in bit 0",
+            format!("{APP}, section 6.7; the profile's [exception_status] coils"),
+            "Read Exception Status returns the eight exception status outputs in one byte, the output of the lowest number in the least significant bit.",
+            vec![Tag::Write],
+            steps,
+        );
+    } else {
+        cx.push(
+            "spec/app-6.7/read-exception-status/format".into(),
+            "FC 07 answers one status byte",
+            format!("{APP}, section 6.7"),
+            "Read Exception Status returns the eight exception status outputs in one byte; their contents are device specific.",
+            vec![],
+            vec![exchange(Outgoing::Pdu(vec![0x07]), Compare::Structure, "FC 07")],
+        );
+    }
+}
+
+/// FC 08 (6.8.1): the public sub-functions the profile declares. The echo and the diagnostic register on
+/// every transport; the counters of Modbus/TCP traffic in structure (the spec defines them for a serial
+/// line); on a serial line the NAK, busy and overrun counts after a clear exactly, the delimiter change, the
+/// restart and listen only mode (whose exit is a restart: tagged destructive, skipped on a real drive unless
+/// allowed).
+fn diagnostics(cx: &mut Ctx) {
+    if !cx.supports(FunctionCode::DIAGNOSTICS) {
+        return;
+    }
+    let read = super::known_good_read(cx.p);
+    if declares_sub(cx, diag::RETURN_QUERY_DATA) {
+        cx.push(
+            "spec/app-6.8.1/00-return-query-data".into(),
+            "FC 08/00 echoes data of any length",
+            format!("{APP}, section 6.8.1 (sub-function 00)"),
+            "Return Query Data echoes the request's data field unchanged.",
+            vec![],
+            vec![exchange(
+                Outgoing::Pdu(pdu(&Request::Diagnostics {
+                    sub_function: diag::RETURN_QUERY_DATA,
+                    data: vec![0x5A, 0xA5, 0x12, 0x34],
+                })),
+                Compare::Exact,
+                "data 5A A5 12 34",
+            )],
+        );
+    }
+    if declares_sub(cx, diag::RETURN_DIAGNOSTIC_REGISTER) {
+        cx.push(
+            "spec/app-6.8.1/02-diagnostic-register".into(),
+            "FC 08/02 returns the diagnostic register",
+            format!("{APP}, section 6.8.1 (sub-function 02)"),
+            "Return Diagnostic Register returns the 16-bit diagnostic register (its contents are device specific) under the echoed sub-function.",
+            vec![],
+            vec![exchange(
+                Outgoing::Pdu(diag_pdu(diag::RETURN_DIAGNOSTIC_REGISTER, 0)),
+                Compare::Structure,
+                "08/02",
+            )],
+        );
+    }
+    if declares_sub(cx, diag::CLEAR_COUNTERS) {
+        // Over Modbus/TCP the counters are the device's to define: the format only.
+        let mut steps = vec![exchange(
+            Outgoing::Pdu(diag_pdu(diag::CLEAR_COUNTERS, 0)),
+            Compare::Exact,
+            "clear counters (echo)",
+        )];
+        for sub in diag::BUS_MESSAGE_COUNT..=diag::BUS_CHARACTER_OVERRUN_COUNT {
+            if declares_sub(cx, sub) && sub != diag::BUS_CHARACTER_OVERRUN_COUNT {
+                steps.push(exchange(
+                    Outgoing::Pdu(diag_pdu(sub, 0)),
+                    Compare::Structure,
+                    format!("08/{sub:02X}"),
+                ));
+            }
+        }
+        cx.push(
+            "spec/app-6.8.1/counters/format-tcp".into(),
+            "FC 08 counters over Modbus/TCP: one 16-bit count each",
+            format!("{APP}, section 6.8.1 (sub-functions 0A-11)"),
+            "Clear Counters is echoed; each counter sub-function returns one 16-bit count under the echoed sub-function.",
+            vec![Tag::TcpOnly],
+            steps,
+        );
+        let mut steps = vec![exchange(
+            Outgoing::Pdu(diag_pdu(diag::CLEAR_COUNTERS, 0)),
+            Compare::Exact,
+            "clear counters",
+        )];
+        let mut any = false;
+        for (sub, what) in [
+            (diag::SERVER_NAK_COUNT, "NAK count"),
+            (diag::SERVER_BUSY_COUNT, "busy count"),
+            (diag::BUS_CHARACTER_OVERRUN_COUNT, "character overrun count"),
+        ] {
+            if declares_sub(cx, sub) {
+                any = true;
+                steps.push(exchange(
+                    Outgoing::Pdu(diag_pdu(sub, 0)),
+                    Compare::Exact,
+                    what,
+                ));
+            }
+        }
+        if declares_sub(cx, diag::CLEAR_OVERRUN) {
+            any = true;
+            steps.push(exchange(
+                Outgoing::Pdu(diag_pdu(diag::CLEAR_OVERRUN, 0)),
+                Compare::Exact,
+                "08/14 clear overrun counter and flag (echo)",
+            ));
+        }
+        if any {
+            cx.push(
+                "spec/app-6.8.1/counters/nak-busy-overrun".into(),
+                "FC 08/10, 11, 12 after a clear, and 08/14",
+                format!("{APP}, section 6.8.1 (sub-functions 0A, 10, 11, 12, 14)"),
+                "After Clear Counters, a server that sent no NAK or busy exception and had no character overrun returns 0 for the NAK, busy and overrun counts; Clear Overrun Counter and Flag is echoed.",
+                vec![Tag::RtuOnly],
+                steps,
+            );
+        }
+    }
+    if declares_sub(cx, diag::CHANGE_ASCII_DELIMITER) {
+        cx.push(
+            "spec/app-6.8.1/03-change-ascii-delimiter".into(),
+            "FC 08/03 is echoed; the delimiter is put back to LF",
+            format!("{APP}, section 6.8.1 (sub-function 03)"),
+            "Change ASCII Input Delimiter (data CHAR 00) is echoed. The delimiter cannot be read: it is set back to LF, the spec's default.",
+            vec![Tag::RtuOnly, Tag::Write],
+            vec![
+                exchange(
+                    Outgoing::Pdu(diag_pdu(diag::CHANGE_ASCII_DELIMITER, 0x3A00)),
+                    Compare::Exact,
+                    "delimiter ':'",
+                ),
+                exchange(
+                    Outgoing::Pdu(diag_pdu(diag::CHANGE_ASCII_DELIMITER, 0x0A00)),
+                    Compare::Exact,
+                    "put back LF",
+                ),
+            ],
+        );
+    }
+    if declares_sub(cx, diag::RESTART_COMMUNICATIONS) {
+        cx.push(
+            "spec/app-6.8.1/01-restart-communications".into(),
+            "FC 08/01 is echoed and the port keeps serving",
+            format!("{APP}, section 6.8.1 (sub-function 01)"),
+            "Restart Communications Option (data 00 00) outside listen only mode is answered with a normal response (an echo) before the restart, and the server answers requests after it.",
+            vec![Tag::RtuOnly, Tag::Destructive],
+            vec![
+                exchange(
+                    Outgoing::Pdu(diag_pdu(diag::RESTART_COMMUNICATIONS, 0)),
+                    Compare::Exact,
+                    "08/01 00 00",
+                ),
+                exchange(Outgoing::Pdu(read.clone()), Compare::Structure, "a read after the restart"),
+            ],
+        );
+    }
+    if declares_sub(cx, diag::FORCE_LISTEN_ONLY) && declares_sub(cx, diag::RESTART_COMMUNICATIONS) {
+        cx.push(
+            "spec/app-6.8.1/04-force-listen-only".into(),
+            "FC 08/04 silences the port until 08/01",
+            format!("{APP}, section 6.8.1 (sub-functions 04 and 01)"),
+            "Force Listen Only Mode gets no response, and no request addressed to the server is answered until Restart Communications Option, which itself gets no response in listen only mode; afterwards the server answers again.",
+            vec![Tag::RtuOnly, Tag::Destructive],
+            vec![
+                exchange(
+                    Outgoing::Pdu(diag_pdu(diag::FORCE_LISTEN_ONLY, 0)),
+                    Compare::Exact,
+                    "08/04: no response",
+                ),
+                exchange(Outgoing::Pdu(read.clone()), Compare::Exact, "a read in listen only mode: no response"),
+                exchange(
+                    Outgoing::Pdu(diag_pdu(diag::RESTART_COMMUNICATIONS, 0)),
+                    Compare::Exact,
+                    "08/01 in listen only mode: no response, the port restarts",
+                ),
+                exchange(Outgoing::Pdu(read), Compare::Structure, "a read after the restart is answered"),
+            ],
+        );
+    }
+}
+
+/// FC 0B (6.9) and FC 0C (6.10). On a serial line the port is restarted first (08/01 with FF 00 clears the
+/// counters, the event counter and the log, spec 6.8.1), so that the counts and the events that follow are
+/// fixed by the spec: one successful read, two exception responses (not counted as completions), then FC
+/// 0B, then FC 0C (its events the most recent first). Over Modbus/TCP the format only.
+fn comm_event_counter_and_log(cx: &mut Ctx) {
+    let fc0b = cx.supports(FunctionCode::GET_COMM_EVENT_COUNTER);
+    let fc0c = cx.supports(FunctionCode::GET_COMM_EVENT_LOG);
+    if !fc0b && !fc0c {
+        return;
+    }
+    let read = super::known_good_read(cx.p);
+    let bad = exception_request(cx);
+    let restart =
+        cx.supports(FunctionCode::DIAGNOSTICS) && declares_sub(cx, diag::RESTART_COMMUNICATIONS);
+    for (fc, ok, section, name) in [
+        (0x0Bu8, fc0b, "6.9", "get-comm-event-counter"),
+        (0x0C, fc0c, "6.10", "get-comm-event-log"),
+    ] {
+        if !ok {
+            continue;
+        }
+        if restart {
+            let steps = vec![
+                exchange(
+                    Outgoing::Pdu(diag_pdu(
+                        diag::RESTART_COMMUNICATIONS,
+                        diag::RESTART_CLEAR_LOG,
+                    )),
+                    Compare::Exact,
+                    "08/01 FF 00: restart, clear the counters and the log",
+                ),
+                exchange(
+                    Outgoing::Pdu(read.clone()),
+                    Compare::Structure,
+                    "one successful read",
+                ),
+                exchange(
+                    Outgoing::Pdu(bad.clone()),
+                    Compare::Structure,
+                    "an exception response",
+                ),
+                exchange(
+                    Outgoing::Pdu(bad.clone()),
+                    Compare::Structure,
+                    "another exception response",
+                ),
+                exchange(
+                    Outgoing::Pdu(vec![fc]),
+                    Compare::Exact,
+                    format!("FC {fc:02X}"),
+                ),
+            ];
+            cx.push(
+                format!("spec/app-{section}/{name}/after-restart"),
+                format!("FC {fc:02X} after a restart, a read and two exceptions"),
+                format!("{APP}, sections {section} and 6.8.1 (sub-function 01)"),
+                if fc == 0x0B {
+                    "The event counter counts each successful message completion, not exception responses nor FC 0B itself; a restart clears it."
+                } else {
+                    "The event log returns status, the event counter, the message count and the events, the most recent first; a restart with FF 00 clears the log and logs the restart."
+                },
+                vec![Tag::RtuOnly, Tag::Destructive],
+                steps,
+            );
+        }
+        if fc == 0x0B
+            && cx.supports(FunctionCode::DIAGNOSTICS)
+            && declares_sub(cx, diag::CLEAR_COUNTERS)
+        {
+            // Over Modbus/TCP the counter is cleared with 08/0A; whether the clearing request then counts as
+            // a completion is the freedom `event-counter-clear-counted` (one more, never two).
+            cx.push(
+                format!("spec/app-{section}/{name}/after-clear"),
+                "FC 0B after a clear, a read and two exceptions".to_string(),
+                format!("{APP}, sections 6.9 and 6.8.1 (sub-function 0A)"),
+                "The event counter counts each successful message completion, not exception responses nor FC 0B itself; Clear Counters and Diagnostic Register clears it.",
+                vec![Tag::TcpOnly],
+                vec![
+                    exchange(
+                        Outgoing::Pdu(diag_pdu(diag::CLEAR_COUNTERS, 0)),
+                        Compare::Exact,
+                        "08/0A: clear the counters",
+                    ),
+                    exchange(Outgoing::Pdu(read.clone()), Compare::Structure, "one successful read"),
+                    exchange(Outgoing::Pdu(bad.clone()), Compare::Structure, "an exception response"),
+                    exchange(Outgoing::Pdu(bad.clone()), Compare::Structure, "another exception response"),
+                    exchange(Outgoing::Pdu(vec![fc]), Compare::Exact, "FC 0B"),
+                ],
+            );
+        }
+        cx.push(
+            format!("spec/app-{section}/{name}/format"),
+            format!("FC {fc:02X}: the answer's format"),
+            format!("{APP}, section {section}"),
+            if fc == 0x0B {
+                "Get Comm Event Counter returns a 2-byte status and a 2-byte event count."
+            } else {
+                "Get Comm Event Log returns a byte count, the status, the event count, the message count and 0-64 event bytes."
+            },
+            vec![Tag::TcpOnly],
+            vec![exchange(Outgoing::Pdu(vec![fc]), Compare::Structure, format!("FC {fc:02X}"))],
+        );
+    }
+}
+
+/// FC 11 (6.13): the server id, the run indicator (00 or FF) and the additional data the profile declares;
+/// without a declaration, the format only.
+fn report_server_id(cx: &mut Ctx) {
+    if !cx.supports(FunctionCode::REPORT_SERVER_ID) {
+        return;
+    }
+    let declared = cx.p.server_id.is_some();
+    cx.push(
+        "spec/app-6.13/report-server-id".into(),
+        "FC 11 reports the server id and the run indicator",
+        format!("{APP}, section 6.13"),
+        "Report Server ID returns the device specific server id, the run indicator status (0x00 OFF, 0xFF ON) and device specific additional data.",
+        vec![],
+        vec![exchange(
+            Outgoing::Pdu(vec![0x11]),
+            if declared { Compare::Exact } else { Compare::Structure },
+            "FC 11",
+        )],
+    );
+}
+
+/// FC 14 (6.14) and FC 15 (6.15) on the files the profile declares.
+fn file_records(cx: &mut Ctx) {
+    let files: Vec<(u16, u16, bool)> =
+        cx.p.files
+            .iter()
+            .map(|f| f.get_ref())
+            .map(|f| (f.number, f.records, f.access.writable()))
+            .collect();
+    if files.is_empty() {
+        return;
+    }
+    let group = |file: u16, record: u16, len: u16| FileRecordRef {
+        reference_type: 6,
+        file_number: file,
+        record_number: record,
+        record_length: len,
+    };
+    if cx.supports(FunctionCode::READ_FILE_RECORD) {
+        // Two groups from the first two files (their first records): one request, two sub-responses.
+        let subs: Vec<FileRecordRef> = files
+            .iter()
+            .take(2)
+            .map(|(n, records, _)| group(*n, 0, (*records).min(4)))
+            .collect();
+        cx.push(
+            "spec/app-6.14/read-file-record".into(),
+            format!("FC 14 reads {} groups of file records", subs.len()),
+            format!("{APP}, section 6.14; the profile's [[file]] tables"),
+            "Read File Record returns one sub-response per group: its file response length (the reference type byte and the records), reference type 6 and the records' values.",
+            vec![],
+            vec![exchange(
+                Outgoing::Pdu(pdu(&Request::ReadFileRecord { sub_requests: subs })),
+                Compare::Exact,
+                "two groups",
+            )],
+        );
+    }
+    let writable: Vec<(u16, u16)> = files
+        .iter()
+        .filter(|f| f.2 && f.1 >= 3)
+        .map(|f| (f.0, f.1))
+        .collect();
+    if cx.supports(FunctionCode::WRITE_FILE_RECORD)
+        && cx.supports(FunctionCode::READ_FILE_RECORD)
+        && !writable.is_empty()
+    {
+        // Two groups: records 1-2 of the first writable file and records 0-2 of the last one (the same file
+        // when there is only one). What they hold is read first and written back after.
+        let (fa, _) = writable[0];
+        let (fb, nb) = *writable.last().expect("not empty");
+        let (ra, rb) = if fa == fb { (0, nb - 3) } else { (1, 0) };
+        let groups = [(fa, ra, 2u16), (fb, rb, 3u16)];
+        let mut a = Around::new();
+        let mut before = Vec::new();
+        let mut undo = Vec::new();
+        for (file, record, len) in groups {
+            let slot = a.slot();
+            before.push(capture(
+                Outgoing::Pdu(pdu(&Request::ReadFileRecord {
+                    sub_requests: vec![group(file, record, len)],
+                })),
+                Compare::Structure,
+                slot,
+                format!("read file {file} records {record}..+{len} first"),
+            ));
+            undo.push(exchange(
+                Outgoing::RestoreRead { slot },
+                Compare::Exact,
+                format!("put back file {file} records {record}..+{len}"),
+            ));
+        }
+        for s in before {
+            a.set(s);
+        }
+        a.undo(undo);
+        let write = Request::WriteFileRecord {
+            sub_requests: vec![
+                FileRecordWrite {
+                    reference_type: 6,
+                    file_number: groups[0].0,
+                    record_number: groups[0].1,
+                    values: vec![0x06AF, 0x04BE],
+                },
+                FileRecordWrite {
+                    reference_type: 6,
+                    file_number: groups[1].0,
+                    record_number: groups[1].1,
+                    values: vec![0x100D, 0xA55A, 0x0001],
+                },
+            ],
+        };
+        let read_back: Vec<Step> = groups
+            .iter()
+            .map(|(file, record, len)| {
+                exchange(
+                    Outgoing::Pdu(pdu(&Request::ReadFileRecord {
+                        sub_requests: vec![group(*file, *record, *len)],
+                    })),
+                    Compare::Exact,
+                    format!("read back file {file} records {record}..+{len}"),
+                )
+            })
+            .collect();
+        let mut body = vec![exchange(
+            Outgoing::Pdu(pdu(&write)),
+            Compare::Exact,
+            "FC 15, two groups: the request echoed",
+        )];
+        body.extend(read_back);
+        cx.push(
+            "spec/app-6.15/write-file-record/read-back".into(),
+            "FC 15 writes every group of a request (read back with FC 14)",
+            format!("{APP}, sections 6.15 and 6.14; the profile's [[file]] tables"),
+            "Write File Record writes every group of the request and returns an echo of the request; FC 14 reads the values written.",
+            vec![Tag::Write],
+            a.wrap(body),
+        );
+    }
+}
+
+/// FC 16 (6.16): the spec's example on the first writable holding register, read back, then put back.
+fn mask_write(cx: &mut Ctx) {
+    if !cx.supports(FunctionCode::MASK_WRITE_REGISTER) || !cx.can_write_registers() {
+        return;
+    }
+    let Some(address) =
+        cx.p.registers
+            .iter()
+            .map(|r| r.get_ref())
+            .find(|r| {
+                r.width == 1
+                    && r.table != Table::Input
+                    && r.access == drives::profile::Access::Rw
+                    && r.min.is_none_or(|m| m <= 0)
+                    && r.max.is_none_or(|m| m >= 0xFFFF)
+            })
+            .map(|r| r.address)
+    else {
+        return;
+    };
+    let mut a = Around::new();
+    a.keep_registers(cx, address, 1);
+    let steps = a.wrap(vec![
+        exchange(
+            Outgoing::Pdu(pdu(&cx.write_request(address, vec![0x0012]))),
+            Compare::Exact,
+            "current contents 0x0012",
+        ),
+        exchange(
+            Outgoing::Pdu(pdu(&Request::MaskWriteRegister {
+                address,
+                and_mask: 0x00F2,
+                or_mask: 0x0025,
+            })),
+            Compare::Exact,
+            "AND 0x00F2, OR 0x0025: the request echoed",
+        ),
+        exchange(
+            Outgoing::Pdu(pdu(&cx.read_request(address, 1, Table::Holding))),
+            Compare::Exact,
+            "read back: 0x0017",
+        ),
+    ]);
+    cx.push(
+        format!("spec/app-6.16/mask-write/0x{address:04X}"),
+        "FC 16 with the spec's example masks, read back",
+        format!("{APP}, section 6.16"),
+        "Mask Write Register sets the register to (current AND And_Mask) OR (Or_Mask AND (NOT And_Mask)) and echoes the request.",
+        vec![Tag::Write],
+        steps,
+    );
+}
+
+/// FC 18 (6.18): every queue the profile declares, read whole; a queue of more than 31 registers is
+/// answered with exception 03.
+fn fifo(cx: &mut Ctx) {
+    if !cx.supports(FunctionCode::READ_FIFO_QUEUE) {
+        return;
+    }
+    let queues: Vec<(u16, usize)> =
+        cx.p.fifos
+            .iter()
+            .map(|f| f.get_ref())
+            .map(|f| (f.address, f.values.len()))
+            .collect();
+    for (address, n) in queues {
+        let over = n > usize::from(codec::codes::MAX_FIFO_COUNT);
+        cx.push(
+            format!("spec/app-6.18/read-fifo-queue/0x{address:04X}"),
+            format!("FC 18 reads the queue at 0x{address:04X} ({n} registers)"),
+            format!("{APP}, section 6.18; the profile's [[fifo]] queues"),
+            if over {
+                "A queue of more than 31 registers is answered with exception 03 (Illegal Data Value)."
+            } else {
+                "Read FIFO Queue returns the byte count, the FIFO count and every queued register, the count first."
+            },
+            vec![],
+            vec![exchange(
+                Outgoing::Pdu(pdu(&Request::ReadFifoQueue { address })),
+                Compare::Exact,
+                format!("{n} queued"),
+            )],
+        );
+    }
+}

@@ -1,0 +1,118 @@
+//! The catalog cases of the public function code set (FC 07-18, spec 6.7-6.18): the freedom that lets a
+//! server report its run indicator OFF, and the FC 14 capture that an FC 15 case writes back.
+
+use codec::{FileRecordRef, Framing, Request, Response, rtu};
+use drives::corpus::Corpus;
+use engine::capture::{Captured, captured};
+use engine::oracle::StepContext;
+use engine::oracle::freedoms::alternatives;
+
+fn server_id(run: u8) -> Response {
+    let mut data = vec![0x47, run];
+    data.extend_from_slice(b"modbus-harness generic");
+    Response::ReportServerId { data }
+}
+
+/// `run-indicator-status`: OFF (0x00) is admissible where the reference answers ON; 0x01, or another byte
+/// changed, is not.
+#[test]
+fn run_indicator_off_is_admissible_and_0x01_is_not() {
+    let reqs = Corpus::Embedded
+        .requirements()
+        .unwrap_or_else(|e| panic!("{e}"));
+    let f = reqs
+        .freedom("run-indicator-status")
+        .expect("freedom in the corpus");
+    let p = Corpus::Embedded.profile("generic").expect("generic");
+    let req = Request::ReportServerId;
+    let cx = StepContext {
+        request: Some(&req),
+        unit: 1,
+        run_unit: 1,
+        profile: &p,
+        malformed: false,
+        batch: false,
+        decided: &[],
+    };
+    let on = server_id(0xFF);
+    let off = alternatives(f, &cx, Some(&on), Some(&server_id(0x00)));
+    assert_eq!(off.len(), 1);
+    assert_eq!(off[0].shown.value, "off");
+    assert_eq!(off[0].answer.as_ref(), Some(&server_id(0x00)));
+    assert!(alternatives(f, &cx, Some(&on), Some(&server_id(0x01))).is_empty());
+    let mut other_id = server_id(0x00);
+    if let Response::ReportServerId { data } = &mut other_id {
+        data[0] = 0x48;
+    }
+    assert!(alternatives(f, &cx, Some(&on), Some(&other_id)).is_empty());
+}
+
+/// A one-group FC 14 answer is kept and written back with FC 15 at the same records.
+#[test]
+fn file_records_are_captured_and_restored_with_fc15() {
+    let req = Request::ReadFileRecord {
+        sub_requests: vec![FileRecordRef {
+            reference_type: 6,
+            file_number: 4,
+            record_number: 1,
+            record_length: 2,
+        }],
+    };
+    let req_pdu = req.to_bytes().expect("encodes");
+    let mut adu = Vec::new();
+    rtu::encode_adu(
+        1,
+        &[0x14, 0x06, 0x05, 0x06, 0x0D, 0xFE, 0x00, 0x20],
+        &mut adu,
+    )
+    .expect("encodes");
+    let kept = captured(Framing::Rtu, &req_pdu, &adu).expect("captured");
+    assert!(matches!(
+        kept,
+        Captured::FileRecords {
+            file_number: 4,
+            record_number: 1,
+            ..
+        }
+    ));
+    let p = Corpus::Embedded.profile("generic").expect("generic");
+    let back = kept.restore(None, &p).expect("a restore");
+    assert_eq!(
+        back.to_bytes().expect("encodes"),
+        vec![
+            0x15, 0x0B, 0x06, 0x00, 0x04, 0x00, 0x01, 0x00, 0x02, 0x0D, 0xFE, 0x00, 0x20
+        ]
+    );
+}
+
+/// `event-counter-clear-counted`: one more than the reference after 08/0A is admissible (the clearing request
+/// counted), two more (the exceptions counted, fault `event-counter-counts-exceptions`) is not.
+#[test]
+fn event_counter_may_count_the_clear_but_nothing_more() {
+    let reqs = Corpus::Embedded
+        .requirements()
+        .unwrap_or_else(|e| panic!("{e}"));
+    let f = reqs
+        .freedom("event-counter-clear-counted")
+        .expect("freedom in the corpus");
+    let p = Corpus::Embedded.profile("generic").expect("generic");
+    let req = Request::GetCommEventCounter;
+    let cx = StepContext {
+        request: Some(&req),
+        unit: 1,
+        run_unit: 1,
+        profile: &p,
+        malformed: false,
+        batch: false,
+        decided: &[],
+    };
+    let count = |n| Response::GetCommEventCounter {
+        status: 0,
+        event_count: n,
+    };
+    let one_more = alternatives(f, &cx, Some(&count(1)), Some(&count(2)));
+    assert_eq!(one_more.len(), 1);
+    assert_eq!(one_more[0].shown.value, "counted");
+    assert!(alternatives(f, &cx, Some(&count(1)), Some(&count(3))).is_empty());
+    assert!(alternatives(f, &cx, Some(&count(1)), Some(&count(0))).is_empty());
+}

@@ -14,6 +14,7 @@ pub mod oracle;
 pub mod probe;
 pub mod reports;
 pub mod runner;
+pub mod safety;
 pub mod servers;
 pub mod session;
 pub mod targets;

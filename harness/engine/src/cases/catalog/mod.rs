@@ -217,7 +217,9 @@ pub fn build(p: &Profile, golden: Option<&GoldenFile>, framing: Framing, unit: u
     if p.watchdog.is_some() {
         ds402::cases(&mut cx);
     }
-    irreversible_last(cx.cases)
+    // The tags the classifier gives each case's own bytes: the hand tags can only add to them.
+    let cases = cx.cases.into_iter().map(|c| c.retagged(p, unit)).collect();
+    irreversible_last(cases)
 }
 
 /// The cases with the [`Tag::Irreversible`] ones moved after all others, each group in its own order.
@@ -244,7 +246,10 @@ pub fn regressions(
         unit,
         cases: Vec::new(),
     };
-    Ok(cases.into_iter().map(|c| around_writes(&cx, c)).collect())
+    Ok(cases
+        .into_iter()
+        .map(|c| around_writes(&cx, c).retagged(p, unit))
+        .collect())
 }
 
 /// `case` with [`around::around_write`] applied to every request it sends, its own capture slots left alone.

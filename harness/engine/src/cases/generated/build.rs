@@ -1144,6 +1144,8 @@ impl Spec {
             requirements: Vec::new(),
             freedoms: Vec::new(),
         }
+        // Restores and the whole of each request rated again by the classifier.
+        .retagged(&cx.profile, cx.unit)
     }
 }
 

@@ -401,11 +401,18 @@ impl Runner {
     /// catalog's tags are checked on every CI run.
     fn refusal(&self, frames: &[Framed]) -> Option<StepResult> {
         for f in frames {
-            let rated =
-                crate::safety::classify_to_unit(&self.profile, &f.sent.pdu, f.sent.unit, self.cfg.unit);
+            let rated = crate::safety::classify_to_unit(
+                &self.profile,
+                &f.sent.pdu,
+                f.sent.unit,
+                self.cfg.unit,
+            );
             let missing = crate::safety::exceeds(&rated, &self.case_tags);
             if !missing.is_empty() {
-                let names: Vec<String> = missing.iter().map(|t| format!("{t:?}").to_lowercase()).collect();
+                let names: Vec<String> = missing
+                    .iter()
+                    .map(|t| format!("{t:?}").to_lowercase())
+                    .collect();
                 return Some(StepResult {
                     note: "safety check before sending".into(),
                     sent: None,

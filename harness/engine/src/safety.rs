@@ -32,9 +32,8 @@ pub fn classify(p: &Profile, pdu: &[u8]) -> BTreeSet<Tag> {
     let Some(&fc) = pdu.first() else {
         return BTreeSet::new();
     };
-    let be16 = |at: usize| -> Option<u16> {
-        Some(u16::from_be_bytes([*pdu.get(at)?, *pdu.get(at + 1)?]))
-    };
+    let be16 =
+        |at: usize| -> Option<u16> { Some(u16::from_be_bytes([*pdu.get(at)?, *pdu.get(at + 1)?])) };
     let data_len = |from: usize| pdu.len().saturating_sub(from);
     match fc {
         0x05 => r.coils(p, be16(1), 1),
@@ -47,13 +46,21 @@ pub fn classify(p: &Profile, pdu: &[u8]) -> BTreeSet<Tag> {
         0x10 => {
             let quantity = be16(3).map_or(0, usize::from);
             let count = pdu.get(5).map_or(0, |b| usize::from(*b).div_ceil(2));
-            r.registers(p, be16(1), quantity.max(count).max(data_len(6).div_ceil(2)).max(1));
+            r.registers(
+                p,
+                be16(1),
+                quantity.max(count).max(data_len(6).div_ceil(2)).max(1),
+            );
         }
         // FC 17 writes even with a write quantity of 0: a drive that does not check it writes what follows.
         0x17 => {
             let quantity = be16(7).map_or(0, usize::from);
             let count = pdu.get(9).map_or(0, |b| usize::from(*b).div_ceil(2));
-            r.registers(p, be16(5), quantity.max(count).max(data_len(10).div_ceil(2)).max(1));
+            r.registers(
+                p,
+                be16(5),
+                quantity.max(count).max(data_len(10).div_ceil(2)).max(1),
+            );
         }
         // File records are outside the register map: what a write to them does is unknown (often
         // non-volatile storage), and the harness does not read them back.

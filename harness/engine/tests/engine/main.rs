@@ -10,5 +10,6 @@ mod probe;
 mod report_files;
 mod requirements_cited;
 mod run_transports;
+mod safety;
 mod shuffle;
 mod station_streams;

@@ -5,6 +5,7 @@
 //! corpus (drives) -> cases -> runner -> targets -> observation -> oracle -> verdicts -> reports
 //! ```
 
+pub mod auto_profile;
 pub mod campaign;
 pub mod capture;
 pub mod cases;

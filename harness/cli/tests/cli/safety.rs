@@ -154,3 +154,61 @@ fn writes_are_seen_when_allowed_and_never_motion_without_the_flag() {
         "motion/destructive sent: {dangerous:#?}"
     );
 }
+
+/// A drive of your own (the SCHEMA.md example) that identifies as ACME / X1 revision "1.0": `--profile auto`
+/// matched generic on the revision's "1.0" before; now it is exit 2 with the identification read and how to
+/// name a profile, and nothing is sent after the identification request.
+#[test]
+fn profile_auto_without_an_exact_match_is_exit_2_with_the_identification() {
+    let dir = test_support::TempDir::new("auto-nomatch");
+    let mut text = include_str!("../data/my_drive.toml").to_string();
+    text.push_str(
+        "\n[[function]]\ncode = 0x2B\nname = \"Read Device Identification\"\n\n\
+         [[identification]]\nobject_id = 0x00\nname = \"VendorName\"\nvalue = \"ACME\"\n\n\
+         [[identification]]\nobject_id = 0x01\nname = \"ProductCode\"\nvalue = \"X1\"\n\n\
+         [[identification]]\nobject_id = 0x02\nname = \"MajorMinorRevision\"\nvalue = \"1.0\"\n",
+    );
+    let file = dir.path().join("acme.toml");
+    std::fs::write(&file, text).expect("write profile");
+    let sim = SimProcess::start(&[
+        "--profile",
+        file.to_str().unwrap(),
+        "--listen",
+        "127.0.0.1:0",
+    ]);
+    let proxy = RecordingProxy::start(sim.tcp.expect("tcp"));
+    let target = format!("tcp://{}", proxy.addr);
+    for cmd in ["run", "fuzz"] {
+        let mut args = vec![cmd, "--target", &target, "--profile", "auto"];
+        if cmd == "fuzz" {
+            args.extend_from_slice(&["--duration", "1s"]);
+        }
+        let (code, _, err) = harness(&args);
+        assert_eq!(code, 2, "{cmd}: {err}");
+        for want in [
+            "\"ACME\"",
+            "\"X1\"",
+            "\"1.0\"",
+            "no profile matches",
+            "--profile NAME|PATH",
+        ] {
+            assert!(err.contains(want), "{cmd}: `{want}` missing: {err}");
+        }
+        assert!(!err.contains("picked"), "{cmd}: {err}");
+    }
+    // Only identification requests reached the drive.
+    let pdus = proxy.request_pdus();
+    assert!(!pdus.is_empty());
+    assert!(pdus.iter().all(|p| p.first() == Some(&0x2B)), "{pdus:?}");
+    // The same drive, named: the run goes ahead.
+    let (code, _, err) = harness(&[
+        "run",
+        "--target",
+        &target,
+        "--profile",
+        file.to_str().unwrap(),
+        "--read-only",
+        "--no-progress",
+    ]);
+    assert_eq!(code, 0, "{err}");
+}

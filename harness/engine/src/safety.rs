@@ -147,6 +147,19 @@ pub fn exceeds(rated: &BTreeSet<Tag>, tags: &[Tag]) -> Vec<Tag> {
         .collect()
 }
 
+/// True when `pdu` writes on any drive: the `write` part of [`classify`], which needs no profile (used where
+/// none is known, as in `probe`).
+pub fn is_write(pdu: &[u8]) -> bool {
+    match pdu {
+        [] => false,
+        [fc, ..] if is_write_fc(*fc) => true,
+        [0x08, rest @ ..] => !matches!(rest, [0x00, 0x00 | 0x02 | 0x0B..=0x12, ..]),
+        [0x2B, 0x0D] => true,
+        [0x2B, 0x0D, control, ..] => control & codec::CanOpenAccess::WRITE != 0,
+        _ => false,
+    }
+}
+
 /// True when `fc` is a function code that can write (the FC 08 and FC 43 ones depend on their fields).
 pub fn is_write_fc(fc: u8) -> bool {
     matches!(fc, 0x05 | 0x06 | 0x0F | 0x10 | 0x15 | 0x16 | 0x17 | 0x42)

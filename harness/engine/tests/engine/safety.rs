@@ -216,3 +216,38 @@ fn the_runner_refuses_a_request_rated_above_its_case() {
         assert!(!r.wire.is_empty(), "a correctly tagged case sends");
     }
 }
+
+/// The profile-free `is_write` (used by `probe`) agrees with the classifier's `write` on every profile, for
+/// every function code with short, truncated and long bodies.
+#[test]
+fn is_write_agrees_with_the_classifier() {
+    let profiles: Vec<Profile> = PROFILES.iter().map(|n| profile(n)).collect();
+    let mut n = 0;
+    for fc in 0..=255u8 {
+        for body in [
+            vec![],
+            vec![0x00],
+            vec![0x00, 0x00],
+            vec![0x00, 0x01, 0x00, 0x00],
+            vec![0x00, 0x0A, 0x00, 0x00],
+            vec![0x0D],
+            vec![0x0D, 0x00, 0x00, 0x00, 0x44, 0x00],
+            vec![0x0D, 0x80, 0x00, 0x00, 0x44, 0x00],
+            vec![0x0E, 0x01, 0x00],
+            vec![0x00, 0x14, 0xFF, 0x00, 0x00, 0x00, 0x00, 0x00, 0x00, 0x00],
+        ] {
+            let mut pdu = vec![fc];
+            pdu.extend(body);
+            for p in &profiles {
+                n += 1;
+                assert_eq!(
+                    engine::safety::is_write(&pdu),
+                    classify(p, &pdu).contains(&Tag::Write),
+                    "{pdu:02X?} on {}",
+                    p.device.id
+                );
+            }
+        }
+    }
+    assert!(n > 10_000);
+}

@@ -238,6 +238,16 @@ impl Case {
         self
     }
 
+    /// The case with its safety tags (`write`, `motion`, `destructive`) exactly the classifier's rating of its
+    /// own bytes: what the catalog and the regressions carry, whatever their authors wrote.
+    pub fn classified(mut self, p: &drives::profile::Profile, run_unit: u8) -> Self {
+        let rated = self.rated(p, run_unit);
+        self.tags
+            .retain(|t| !matches!(t, Tag::Write | Tag::Motion | Tag::Destructive));
+        self.tags.extend(rated);
+        self
+    }
+
     /// How many capture slots the case uses: one more than the highest it names, 0 for none.
     pub fn slots(&self) -> usize {
         self.steps

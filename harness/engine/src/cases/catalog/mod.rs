@@ -217,8 +217,8 @@ pub fn build(p: &Profile, golden: Option<&GoldenFile>, framing: Framing, unit: u
     if p.watchdog.is_some() {
         ds402::cases(&mut cx);
     }
-    // The tags the classifier gives each case's own bytes: the hand tags can only add to them.
-    let cases = cx.cases.into_iter().map(|c| c.retagged(p, unit)).collect();
+    // The safety tags are the classifier's rating of each case's own bytes, not what the case's code wrote.
+    let cases = cx.cases.into_iter().map(|c| c.classified(p, unit)).collect();
     irreversible_last(cases)
 }
 
@@ -248,7 +248,7 @@ pub fn regressions(
     };
     Ok(cases
         .into_iter()
-        .map(|c| around_writes(&cx, c).retagged(p, unit))
+        .map(|c| around_writes(&cx, c).classified(p, unit))
         .collect())
 }
 

@@ -693,12 +693,15 @@ pub fn failures_of(out: &RunOutcome) -> Vec<String> {
         .collect()
 }
 
+/// The bytes one connection's client sent, shared with its pump thread.
+type ClientLog = std::sync::Arc<std::sync::Mutex<Vec<u8>>>;
+
 /// A Modbus/TCP proxy on 127.0.0.1 (port 0) in front of `upstream` that keeps every byte its clients sent,
 /// connection by connection: what a drive behind it received, for tests that assert what went on the wire.
 /// Its threads end when the connections close; the listener ends on drop.
 pub struct RecordingProxy {
     pub addr: SocketAddr,
-    streams: std::sync::Arc<std::sync::Mutex<Vec<std::sync::Arc<std::sync::Mutex<Vec<u8>>>>>>,
+    streams: std::sync::Arc<std::sync::Mutex<Vec<ClientLog>>>,
     stop: std::sync::Arc<std::sync::atomic::AtomicBool>,
 }
 
@@ -710,7 +713,7 @@ impl RecordingProxy {
         use std::sync::{Arc, Mutex};
         let listener = TcpListener::bind("127.0.0.1:0").expect("bind proxy");
         let addr = listener.local_addr().expect("proxy address");
-        let streams: Arc<Mutex<Vec<Arc<Mutex<Vec<u8>>>>>> = Arc::default();
+        let streams: Arc<Mutex<Vec<ClientLog>>> = Arc::default();
         let stop = Arc::new(AtomicBool::new(false));
         let (s, st) = (streams.clone(), stop.clone());
         std::thread::spawn(move || {
@@ -724,7 +727,7 @@ impl RecordingProxy {
                 };
                 let _ = client.set_nodelay(true);
                 let _ = server.set_nodelay(true);
-                let log: Arc<Mutex<Vec<u8>>> = Arc::default();
+                let log: ClientLog = Arc::default();
                 s.lock().expect("streams").push(log.clone());
                 let pump =
                     |mut from: TcpStream, mut to: TcpStream, log: Option<Arc<Mutex<Vec<u8>>>>| {

@@ -218,7 +218,11 @@ pub fn build(p: &Profile, golden: Option<&GoldenFile>, framing: Framing, unit: u
         ds402::cases(&mut cx);
     }
     // The safety tags are the classifier's rating of each case's own bytes, not what the case's code wrote.
-    let cases = cx.cases.into_iter().map(|c| c.classified(p, unit)).collect();
+    let cases = cx
+        .cases
+        .into_iter()
+        .map(|c| c.classified(p, unit))
+        .collect();
     irreversible_last(cases)
 }
 

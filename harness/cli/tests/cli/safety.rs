@@ -1,4 +1,5 @@
-//! Safe on real drives, on the wire: a `simulate` process behind a recording proxy on loopback (port 0)
+//! Safe on real drives, on the wire: a `simulate` process (MDrive, LMD, SD2x over Modbus/TCP) behind a
+//! recording proxy on loopback (port 0)
 //! receives no write function code from `run --read-only`, `fuzz --read-only`, a default `fuzz` and `probe`,
 //! while a default `run` and `fuzz --allow-writes` (the controls) are seen writing, so the check can fail.
 
@@ -54,8 +55,22 @@ fn through_proxy(name: &str, args: &[&str]) -> (i32, String, Vec<String>, Vec<Ve
 }
 
 #[test]
-fn read_only_run_fuzz_and_probe_put_no_write_on_the_wire() {
-    for name in ["mdrive", "lmd"] {
+fn read_only_run_fuzz_and_probe_put_no_write_on_the_mdrive_wire() {
+    read_only_puts_no_write_on_the_wire("mdrive");
+}
+
+#[test]
+fn read_only_run_fuzz_and_probe_put_no_write_on_the_lmd_wire() {
+    read_only_puts_no_write_on_the_wire("lmd");
+}
+
+#[test]
+fn read_only_run_fuzz_and_probe_put_no_write_on_the_sd2x_wire() {
+    read_only_puts_no_write_on_the_wire("sd2x");
+}
+
+fn read_only_puts_no_write_on_the_wire(name: &str) {
+    {
         let cases: [(&str, Vec<&str>); 4] = [
             (
                 "run --read-only",
@@ -72,6 +87,8 @@ fn read_only_run_fuzz_and_probe_put_no_write_on_the_wire() {
                     "2s",
                     "--max-cases",
                     "400",
+                    "--timeout",
+                    "300",
                     "--seed",
                     "7",
                 ],
@@ -87,6 +104,8 @@ fn read_only_run_fuzz_and_probe_put_no_write_on_the_wire() {
                     "2s",
                     "--max-cases",
                     "400",
+                    "--timeout",
+                    "300",
                     "--seed",
                     "7",
                 ],

@@ -1,6 +1,7 @@
 //! Safe on real drives, on the wire: a `simulate` process (MDrive, LMD, SD2x over Modbus/TCP) behind a
 //! recording proxy on loopback (port 0)
-//! receives no write function code from `run --read-only`, `fuzz --read-only`, a default `fuzz` and `probe`,
+//! receives no write function code from `run --read-only`, `fuzz --read-only`, a default `fuzz`, `probe` and
+//! `probe --read-only`,
 //! while a default `run` and `fuzz --allow-writes` (the controls) are seen writing, so the check can fail.
 
 use std::process::Command;
@@ -71,7 +72,7 @@ fn read_only_run_fuzz_and_probe_put_no_write_on_the_sd2x_wire() {
 
 fn read_only_puts_no_write_on_the_wire(name: &str) {
     {
-        let cases: [(&str, Vec<&str>); 4] = [
+        let cases: [(&str, Vec<&str>); 5] = [
             (
                 "run --read-only",
                 vec!["run", "--profile", name, "--read-only", "--no-progress"],
@@ -111,6 +112,10 @@ fn read_only_puts_no_write_on_the_wire(name: &str) {
                 ],
             ),
             ("probe", vec!["probe", "--profile", name]),
+            (
+                "probe --read-only",
+                vec!["probe", "--profile", name, "--read-only"],
+            ),
         ];
         for (what, args) in cases {
             let (code, err, w, pdus) = through_proxy(name, &args);

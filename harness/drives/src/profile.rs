@@ -276,6 +276,8 @@ pub struct Register {
     pub table: Table,
     pub motion: bool,
     pub destructive: bool,
+    /// Why `motion` / `destructive` are set (or deliberately not): the manual line (`file:line`) that justifies it.
+    pub why: Option<String>,
     pub group: Option<String>,
     pub description: Option<String>,
     pub note: Option<String>,
@@ -333,6 +335,10 @@ pub struct Bit {
     pub name: String,
     pub access: Access,
     pub motion: bool,
+    /// Writing it cannot be put back (an action, a counter reset).
+    pub destructive: bool,
+    /// Why `motion` / `destructive` are set (or deliberately not): the manual line (`file:line`) that justifies it.
+    pub why: Option<String>,
     pub note: Option<String>,
     pub line: Option<u32>,
     /// False when discovered by a probe and not confirmed: the catalog only reads it.
@@ -354,6 +360,8 @@ pub struct VendorMnemonic {
     pub motion: bool,
     #[serde(default)]
     pub destructive: bool,
+    /// Why `motion` / `destructive` are set (or deliberately not): the manual line (`file:line`) that justifies it.
+    pub why: Option<String>,
     pub note: Option<String>,
     pub line: Option<u32>,
 }
@@ -629,6 +637,11 @@ pub struct Object {
     pub max: Option<i64>,
     #[serde(default)]
     pub motion: bool,
+    /// Writing it cannot be put back (a store, a reset).
+    #[serde(default)]
+    pub destructive: bool,
+    /// Why `motion` / `destructive` are set (or deliberately not): the manual line (`file:line`) that justifies it.
+    pub why: Option<String>,
     /// The PDO register (first of a pair) this object mirrors: both views must agree.
     pub register: Option<u16>,
     pub description: Option<String>,

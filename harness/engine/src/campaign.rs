@@ -31,6 +31,24 @@ pub struct CampaignOptions {
     pub keep_going: bool,
     /// Where reproducers go: `<dir>/<profile>/<name>.toml`.
     pub regressions: PathBuf,
+    /// Against anything but `sim:`, send generated writes (with a banner first); without it the campaign
+    /// sends reads only. Motion and destructive writes still need their own flags (`base.safety`).
+    pub allow_writes: bool,
+}
+
+/// Why the campaign does not send `case` (already rated by the classifier), if it does not: the run's
+/// safety policy ([`skip_reason`]), and, against a real target, no write without `allow_writes`.
+pub fn campaign_skip(
+    case: &Case,
+    cfg: &crate::runner::RunConfig,
+    framing: codec::Framing,
+    allow_writes: bool,
+) -> Option<String> {
+    if let Some(r) = skip_reason(case, cfg, framing) {
+        return Some(r);
+    }
+    (!cfg.is_sim && !allow_writes && case.has(crate::cases::Tag::Write))
+        .then(|| "writes, and fuzz sends writes to a real target only with --allow-writes".into())
 }
 
 /// What kind of thing went wrong.
@@ -275,6 +293,27 @@ pub fn campaign(
     let cfg = config(base, &profile);
     let mut runner = open_runner(base, &profile, &cfg, &Expectations::default())?;
     let framing = runner.framing();
+    if !cfg.is_sim && !cfg.safety.read_only && opts.allow_writes {
+        let allowed = |yes: bool| if yes { "ALLOWED" } else { "not sent" };
+        let _ = writeln!(
+            log,
+            "\n*** FUZZ WRITES AHEAD: generated writes will be sent to this {} ({}) ***\n  motion writes: {} (--allow-motion), destructive writes: {} (--allow-destructive)\n  the drive's settings may be left changed: restore them before using it\n",
+            profile.device.name,
+            runner.target().describe(),
+            allowed(cfg.safety.allow_motion),
+            allowed(cfg.safety.allow_destructive),
+        );
+    } else if !cfg.is_sim {
+        let _ = writeln!(
+            log,
+            "fuzz: read requests only (no write function code is sent{})",
+            if cfg.safety.read_only {
+                ": --read-only"
+            } else {
+                "; --allow-writes sends generated writes"
+            }
+        );
+    }
     let generator = Generator::new(&profile, cfg.unit, opts.seed);
     let probe = probe_case(&profile);
     let _ = writeln!(
@@ -298,9 +337,11 @@ pub fn campaign(
         && !interrupt.load(Ordering::SeqCst)
         && index < u64::MAX / 2
     {
-        let case = generator.case(index);
+        // Every generated input is rated by the classifier before the policy decides; the runner rates
+        // the bytes again just before sending.
+        let case = generator.case(index).retagged(&profile, cfg.unit);
         index += 1;
-        if skip_reason(&case, &cfg, framing).is_some() {
+        if campaign_skip(&case, &cfg, framing, opts.allow_writes).is_some() {
             continue;
         }
         let result = runner.run_case(&case)?;

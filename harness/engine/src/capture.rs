@@ -112,6 +112,36 @@ impl Captured {
     }
 }
 
+/// What a capture of `request` (a read PDU) would keep, with placeholder values: what a restore of it
+/// writes, for rating a case's restores before any answer exists. `None` for a request that keeps nothing.
+pub fn placeholder(request: &[u8]) -> Option<Captured> {
+    Some(match Request::decode(request).ok()? {
+        Request::ReadHoldingRegisters { address, quantity }
+        | Request::ReadInputRegisters { address, quantity }
+        | Request::ReadWriteMultipleRegisters {
+            read_address: address,
+            read_quantity: quantity,
+            ..
+        } => Captured::Registers {
+            address,
+            values: vec![0; usize::from(quantity.clamp(1, 125))],
+        },
+        Request::ReadCoils { address, quantity } => Captured::Coils {
+            address,
+            states: vec![false; usize::from(quantity.clamp(1, 2000))],
+        },
+        Request::VendorRead { mnemonic } => Captured::Setting {
+            mnemonic,
+            params: b"0".to_vec(),
+        },
+        Request::CanOpen(mut a) if !a.is_write() => {
+            a.data = vec![0; usize::from(a.byte_count.clamp(1, 4))];
+            Captured::Object(a)
+        }
+        _ => return None,
+    })
+}
+
 /// What a response to `request` (a PDU) keeps for a later restore; `None` for an exception, silence, or an
 /// answer that reads nothing.
 pub fn captured(framing: Framing, request: &[u8], response: &[u8]) -> Option<Captured> {

@@ -5,6 +5,7 @@
 //! corpus (drives) -> cases -> runner -> targets -> observation -> oracle -> verdicts -> reports
 //! ```
 
+pub mod auto_profile;
 pub mod campaign;
 pub mod capture;
 pub mod cases;
@@ -14,6 +15,7 @@ pub mod oracle;
 pub mod probe;
 pub mod reports;
 pub mod runner;
+pub mod safety;
 pub mod servers;
 pub mod session;
 pub mod targets;

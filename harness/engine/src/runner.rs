@@ -110,6 +110,10 @@ pub struct Runner {
     /// The case being run: its id and the freedoms it cites.
     case_id: String,
     case_freedoms: Vec<String>,
+    /// The case's tags: every request is rated again before it is sent and must not exceed them.
+    case_tags: Vec<Tag>,
+    /// A request of the case was refused by that check: the case stops there.
+    refused: bool,
 }
 
 impl Runner {
@@ -134,6 +138,8 @@ impl Runner {
             choices: ChoiceLog::default(),
             case_id: String::new(),
             case_freedoms: Vec::new(),
+            case_tags: Vec::new(),
+            refused: false,
         }
     }
 
@@ -260,7 +266,12 @@ impl Runner {
         self.slots = vec![None; case.slots()];
         self.case_id.clone_from(&case.id);
         self.case_freedoms.clone_from(&case.freedoms);
+        self.case_tags.clone_from(&case.tags);
+        self.refused = false;
         for step in &case.steps {
+            if self.refused {
+                break;
+            }
             match step {
                 Step::Wait(d) => {
                     self.target.idle(*d);
@@ -303,7 +314,9 @@ impl Runner {
             duration: self.target.now().saturating_sub(started),
             reason: None,
         };
+        // A request refused by the safety check is a harness bug: no expectations file hides it.
         if verdict != Verdict::Pass
+            && !self.refused
             && let Some((v, reason)) = self.expectations.lookup(&case.id)
         {
             result.expected_deviation = Some((verdict, reason.to_string()));
@@ -374,9 +387,51 @@ impl Runner {
                 findings: vec!["nothing was captured to restore".into()],
             });
         };
+        if let Some(refusal) = self.refusal(&frames) {
+            self.refused = true;
+            return Ok(refusal);
+        }
         self.sync_shadow();
         let sent = self.send_pieces(&frames, &pieces, wire)?;
         self.receive_and_judge(&frames, &pieces, sent, compare, capture, note, wire)
+    }
+
+    /// The safety assertion, immediately before sending: every frame is rated by the classifier on the bytes
+    /// that will go out (after mutations, restores filled in), and a frame rated more dangerous than the case's
+    /// tags is not sent. The policy decided on the tags, so such a case is a harness bug: it is reported as a
+    /// FAIL with the reason, never sent, never silent. The in-process simulator is held to it too, so that the
+    /// catalog's tags are checked on every CI run.
+    fn refusal(&self, frames: &[Framed]) -> Option<StepResult> {
+        for f in frames {
+            let rated = crate::safety::classify_to_unit(
+                &self.profile,
+                &f.sent.pdu,
+                f.sent.unit,
+                self.cfg.unit,
+            );
+            let missing = crate::safety::exceeds(&rated, &self.case_tags);
+            if !missing.is_empty() {
+                let names: Vec<String> = missing
+                    .iter()
+                    .map(|t| format!("{t:?}").to_lowercase())
+                    .collect();
+                return Some(StepResult {
+                    note: "safety check before sending".into(),
+                    sent: None,
+                    expected: None,
+                    observed: vec![],
+                    verdict: Verdict::Fail,
+                    findings: vec![format!(
+                        "harness bug, request NOT sent: the classifier rates {} as {} but case {} is tagged {:?}; fix the case's tags",
+                        hex::encode(&f.sent.pdu),
+                        names.join("+"),
+                        self.case_id,
+                        self.case_tags
+                    )],
+                });
+            }
+        }
+        None
     }
 
     /// What a step puts on the wire: its frames, and the writes (pieces, each with a gap after it).

@@ -331,44 +331,32 @@ fn auto_profile(opts: &Options, log: &mut dyn Write) -> Result<Profile, SessionE
         .iter()
         .map(|o| (o.id, String::from_utf8_lossy(&o.value).trim().to_string()))
         .collect();
-    let _ = writeln!(log, "device identification: {found:?}");
-    let lower = |s: &str| s.to_ascii_lowercase();
-    let mut best: Option<(usize, Profile)> = None;
-    for name in opts.corpus.profile_names() {
-        let Ok(p) = opts.corpus.profile(&name) else {
-            continue;
-        };
-        let score = p
-            .identification
+    let _ = writeln!(
+        log,
+        "device identification: {}",
+        crate::auto_profile::describe(&found)
+    );
+    let profiles: Vec<Profile> = opts
+        .corpus
+        .profile_names()
+        .iter()
+        .filter_map(|n| opts.corpus.profile(n).ok())
+        .collect();
+    let m = crate::auto_profile::pick(&found, &profiles).map_err(SessionError::AutoProfile)?;
+    let _ = writeln!(
+        log,
+        "--profile auto: picked `{}`: {}",
+        m.profile,
+        m.matched
             .iter()
-            .filter(|o| o.object_id <= 2)
-            .filter(|o| {
-                found.iter().any(|(id, v)| {
-                    *id == o.object_id
-                        && !v.is_empty()
-                        && (lower(v).contains(&lower(&o.value))
-                            || lower(&o.value).contains(&lower(v)))
-                })
-            })
-            .count();
-        if score > 0 && best.as_ref().is_none_or(|(s, _)| score > *s) {
-            best = Some((score, p));
-        }
-    }
-    match best {
-        Some((score, p)) => {
-            let _ = writeln!(
-                log,
-                "--profile auto: picked `{}` ({score} identification object(s) match)",
-                p.device.id
-            );
-            Ok(p)
-        }
-        None => Err(SessionError::AutoProfile(format!(
-            "no profile matches the identification {found:?}; known profiles: {}",
-            opts.corpus.profile_names().join(", ")
-        ))),
-    }
+            .map(|(id, name, v)| format!("{name} (0x{id:02X}) = {v:?}"))
+            .collect::<Vec<_>>()
+            .join(" and ")
+    );
+    profiles
+        .into_iter()
+        .find(|p| p.device.id == m.profile)
+        .ok_or_else(|| SessionError::AutoProfile(format!("profile `{}` vanished", m.profile)))
 }
 
 /// True when the catalog runs: always, unless only generated cases were asked for.

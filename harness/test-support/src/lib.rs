@@ -692,3 +692,111 @@ pub fn failures_of(out: &RunOutcome) -> Vec<String> {
         .map(|f| format!("{}: {:?}", f.id, f.findings().collect::<Vec<_>>()))
         .collect()
 }
+
+/// The bytes one connection's client sent, shared with its pump thread.
+type ClientLog = std::sync::Arc<std::sync::Mutex<Vec<u8>>>;
+
+/// A Modbus/TCP proxy on 127.0.0.1 (port 0) in front of `upstream` that keeps every byte its clients sent,
+/// connection by connection: what a drive behind it received, for tests that assert what went on the wire.
+/// Its threads end when the connections close; the listener ends on drop.
+pub struct RecordingProxy {
+    pub addr: SocketAddr,
+    streams: std::sync::Arc<std::sync::Mutex<Vec<ClientLog>>>,
+    stop: std::sync::Arc<std::sync::atomic::AtomicBool>,
+}
+
+impl RecordingProxy {
+    /// Listen on 127.0.0.1:0 and forward each connection to `upstream`.
+    pub fn start(upstream: SocketAddr) -> Self {
+        use std::net::{Shutdown, TcpListener, TcpStream};
+        use std::sync::atomic::AtomicBool;
+        use std::sync::{Arc, Mutex};
+        let listener = TcpListener::bind("127.0.0.1:0").expect("bind proxy");
+        let addr = listener.local_addr().expect("proxy address");
+        let streams: Arc<Mutex<Vec<ClientLog>>> = Arc::default();
+        let stop = Arc::new(AtomicBool::new(false));
+        let (s, st) = (streams.clone(), stop.clone());
+        std::thread::spawn(move || {
+            for conn in listener.incoming() {
+                if st.load(Ordering::SeqCst) {
+                    break;
+                }
+                let Ok(client) = conn else { continue };
+                let Ok(server) = TcpStream::connect_timeout(&upstream, STEP) else {
+                    continue;
+                };
+                let _ = client.set_nodelay(true);
+                let _ = server.set_nodelay(true);
+                let log: ClientLog = Arc::default();
+                s.lock().expect("streams").push(log.clone());
+                let pump =
+                    |mut from: TcpStream, mut to: TcpStream, log: Option<Arc<Mutex<Vec<u8>>>>| {
+                        std::thread::spawn(move || {
+                            let mut buf = [0u8; 4096];
+                            loop {
+                                match std::io::Read::read(&mut from, &mut buf) {
+                                    Ok(0) | Err(_) => break,
+                                    Ok(n) => {
+                                        if let Some(l) = &log {
+                                            l.lock().expect("log").extend_from_slice(&buf[..n]);
+                                        }
+                                        if to.write_all(&buf[..n]).is_err() {
+                                            break;
+                                        }
+                                    }
+                                }
+                            }
+                            let _ = to.shutdown(Shutdown::Both);
+                            let _ = from.shutdown(Shutdown::Both);
+                        });
+                    };
+                let (c2, s2) = (
+                    client.try_clone().expect("clone"),
+                    server.try_clone().expect("clone"),
+                );
+                pump(client, server, Some(log));
+                pump(s2, c2, None);
+            }
+        });
+        Self {
+            addr,
+            streams,
+            stop,
+        }
+    }
+
+    /// The request PDUs the clients sent, split by each connection's MBAP length fields as a server reads
+    /// them (a frame cut short at the end of a connection is kept as far as it went).
+    pub fn request_pdus(&self) -> Vec<Vec<u8>> {
+        let mut out = Vec::new();
+        for s in self.streams.lock().expect("streams").iter() {
+            let bytes = s.lock().expect("log").clone();
+            let mut at = 0;
+            while at + 7 <= bytes.len() {
+                let len = usize::from(u16::from_be_bytes([bytes[at + 4], bytes[at + 5]]));
+                let end = (at + 6 + len.max(1)).min(bytes.len());
+                out.push(bytes[at + 7..end.max(at + 7)].to_vec());
+                at = end.max(at + 7);
+            }
+        }
+        out
+    }
+
+    /// How many bytes the clients sent in all.
+    pub fn bytes_sent(&self) -> usize {
+        self.streams
+            .lock()
+            .expect("streams")
+            .iter()
+            .map(|s| s.lock().expect("log").len())
+            .sum()
+    }
+}
+
+impl Drop for RecordingProxy {
+    fn drop(&mut self) {
+        self.stop.store(true, Ordering::SeqCst);
+        // Wake the accept loop so that it sees the flag.
+        let _ = std::net::TcpStream::connect_timeout(&self.addr, Duration::from_millis(200));
+    }
+}

@@ -18,8 +18,9 @@ use engine::targets::TargetUrl;
 /// Arguments of `fuzz`.
 #[derive(Args)]
 #[command(
-    after_help = "Safety: against anything but sim:, generated cases tagged motion or destructive are \
-skipped unless --allow-motion / --allow-destructive, and --read-only skips every write, as for `run`."
+    after_help = "Safety: against anything but sim:, fuzz sends reads only unless --allow-writes (a banner \
+then says so); cases the classifier rates motion or destructive are skipped unless --allow-motion / \
+--allow-destructive, as for `run`; --read-only sends no write function code at all."
 )]
 pub struct FuzzArgs {
     /// The endpoint (tcp://, rtu+tcp://, rtu://, sim:PROFILE, sim:PATH.toml).
@@ -62,9 +63,13 @@ pub struct FuzzArgs {
     /// Allow cases that change non-volatile state (real targets).
     #[arg(long)]
     allow_destructive: bool,
-    /// Skip every case that writes.
-    #[arg(long)]
+    /// Skip every case that writes: no write function code goes on the wire.
+    #[arg(long, conflicts_with = "allow_writes")]
     read_only: bool,
+    /// Send generated writes to a real target (not needed for sim:); a banner says so first. Motion and
+    /// destructive writes also need --allow-motion / --allow-destructive.
+    #[arg(long)]
+    allow_writes: bool,
 }
 
 /// Parse 30s / 10m / 1h / 500ms / a bare number of seconds.
@@ -133,6 +138,7 @@ pub fn run(args: &FuzzArgs) -> ExitCode {
         probe_every: args.probe_every.max(1),
         keep_going: args.keep_going,
         regressions,
+        allow_writes: args.allow_writes,
     };
     let interrupt = Arc::new(AtomicBool::new(false));
     {

@@ -54,6 +54,9 @@ pub struct ProbeArgs {
     /// request a drive must reject before writing (see below).
     #[arg(long)]
     probe_writes: bool,
+    /// Read requests only (the default, said explicitly as for `run` and `fuzz`; refuses --probe-writes).
+    #[arg(long, conflicts_with = "probe_writes")]
+    read_only: bool,
     /// Write a draft profile of what the probe found to FILE (every entry `confirmed = false`).
     #[arg(long, value_name = "FILE")]
     write_profile: Option<PathBuf>,

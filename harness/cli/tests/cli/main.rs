@@ -5,3 +5,4 @@ mod decode;
 mod generated_snapshots;
 mod profiles;
 mod run;
+mod safety;

@@ -266,6 +266,11 @@ fn profile_auto_reads_the_identification() {
             String::from_utf8_lossy(&log).contains("picked"),
             "says what it found"
         );
+        let log = String::from_utf8_lossy(&log);
+        assert!(
+            log.contains("VendorName (0x00)") && log.contains("ProductCode (0x01)"),
+            "says which objects matched: {log}"
+        );
     }
 }
 

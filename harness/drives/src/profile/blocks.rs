@@ -42,6 +42,7 @@ pub(super) struct RegisterEntry {
     motion: bool,
     #[serde(default)]
     destructive: bool,
+    why: Option<String>,
     group: Option<String>,
     description: Option<String>,
     note: Option<String>,
@@ -62,6 +63,9 @@ pub(super) struct BitEntry {
     access: Option<Access>,
     #[serde(default)]
     motion: bool,
+    #[serde(default)]
+    destructive: bool,
+    why: Option<String>,
     note: Option<String>,
     line: Option<u32>,
     #[serde(default = "super::yes")]
@@ -284,6 +288,7 @@ impl RegisterEntry {
                 table: self.table,
                 motion: self.motion,
                 destructive: self.destructive,
+                why: self.why.clone(),
                 group: fill_opt(&self.group, i, address).map_err(err)?,
                 description: fill_opt(&self.description, i, address).map_err(err)?,
                 note: fill_opt(&self.note, i, address).map_err(err)?,
@@ -325,6 +330,8 @@ impl BitEntry {
                     Access::Ro
                 }),
                 motion: self.motion,
+                destructive: self.destructive,
+                why: self.why.clone(),
                 note: fill_opt(&self.note, i, address).map_err(err)?,
                 line: self.line,
                 confirmed: self.confirmed,

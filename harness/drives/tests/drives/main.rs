@@ -11,6 +11,7 @@ mod mdrive;
 mod profile_function_data;
 mod profiles;
 mod requirements;
+mod safety_flags;
 mod sd2x;
 mod support;
 

@@ -5,6 +5,7 @@ pub mod generated;
 pub mod regressions;
 pub mod shrink;
 
+use std::collections::BTreeSet;
 use std::fmt;
 use std::time::Duration;
 
@@ -183,6 +184,70 @@ impl Case {
         self.tags.contains(&tag)
     }
 
+    /// The safety classifier's rating of every request the case sends ([`crate::safety::classify`]): fixed
+    /// requests as they go on the wire (PDU-level mutations applied, to their unit), restores as the write of
+    /// what their capture step read.
+    pub fn rated(&self, p: &drives::profile::Profile, run_unit: u8) -> BTreeSet<Tag> {
+        use crate::safety::classify_to_unit;
+        let mut captures: Vec<Option<&[u8]>> = vec![None; self.slots()];
+        let mut out = BTreeSet::new();
+        for step in &self.steps {
+            let Step::Exchange { send, capture, .. } = step else {
+                continue;
+            };
+            let mut pdus: Vec<(Vec<u8>, u8)> = Vec::new();
+            match send {
+                Outgoing::Pdu(pdu) => pdus.push((pdu.clone(), run_unit)),
+                Outgoing::PduToUnit { pdu, unit } => pdus.push((pdu.clone(), *unit)),
+                Outgoing::Mutated { pdu, mutation } => {
+                    let altered = mutation.apply_to_pdu(pdu).unwrap_or_else(|| pdu.clone());
+                    pdus.push((altered, run_unit));
+                }
+                Outgoing::Batch(ps) => pdus.extend(ps.iter().map(|p| (p.clone(), run_unit))),
+                Outgoing::Restore { address, slot } => {
+                    if let Some(w) = restore_of(captures.get(*slot), Some(*address), p) {
+                        pdus.push((w, run_unit));
+                    }
+                }
+                Outgoing::RestoreRead { slot } => {
+                    if let Some(w) = restore_of(captures.get(*slot), None, p) {
+                        pdus.push((w, run_unit));
+                    }
+                }
+            }
+            for (pdu, unit) in &pdus {
+                out.extend(classify_to_unit(p, pdu, *unit, run_unit));
+            }
+            if let (Some(c), Step::Exchange { send, .. }) = (capture, step)
+                && let Some(slot) = captures.get_mut(*c)
+                && let Outgoing::Pdu(pdu) | Outgoing::PduToUnit { pdu, .. } = send
+            {
+                *slot = Some(pdu.as_slice());
+            }
+        }
+        out
+    }
+
+    /// The case with the classifier's rating of its own bytes added to its tags (never removing one).
+    pub fn retagged(mut self, p: &drives::profile::Profile, run_unit: u8) -> Self {
+        for t in self.rated(p, run_unit) {
+            if !self.tags.contains(&t) {
+                self.tags.push(t);
+            }
+        }
+        self
+    }
+
+    /// The case with its safety tags (`write`, `motion`, `destructive`) exactly the classifier's rating of its
+    /// own bytes: what the catalog and the regressions carry, whatever their authors wrote.
+    pub fn classified(mut self, p: &drives::profile::Profile, run_unit: u8) -> Self {
+        let rated = self.rated(p, run_unit);
+        self.tags
+            .retain(|t| !matches!(t, Tag::Write | Tag::Motion | Tag::Destructive));
+        self.tags.extend(rated);
+        self
+    }
+
     /// How many capture slots the case uses: one more than the highest it names, 0 for none.
     pub fn slots(&self) -> usize {
         self.steps
@@ -253,4 +318,17 @@ impl std::str::FromStr for Verdict {
             .find(|v| v.label().eq_ignore_ascii_case(s))
             .ok_or_else(|| format!("unknown verdict `{s}` (PASS, NON-STRICT, INFORMATIONAL, FAIL, UNIMPLEMENTED, SKIPPED)"))
     }
+}
+
+/// The write that restores what a capture of `read` kept (placeholder values), as a PDU.
+fn restore_of(
+    read: Option<&Option<&[u8]>>,
+    at: Option<u16>,
+    p: &drives::profile::Profile,
+) -> Option<Vec<u8>> {
+    let read = (*read?)?;
+    crate::capture::placeholder(read)?
+        .restore(at, p)?
+        .to_bytes()
+        .ok()
 }

@@ -69,6 +69,8 @@ pub struct ProbeReport {
     pub requests: usize,
     /// Of those, requests with a write function code (05, 0F, 10, 17, 42; `--probe-writes` only).
     pub write_requests: usize,
+    /// Requests the safety classifier rated `write` without `--probe-writes`: not sent (a harness bug).
+    pub refused: Vec<Vec<u8>>,
 }
 
 impl ProbeReport {
@@ -169,10 +171,19 @@ struct Prober<'t> {
     timeout: Duration,
     tid: u16,
     requests: usize,
+    /// `--probe-writes`: without it, a request the classifier rates `write` is not sent.
+    writes: bool,
+    refused: Vec<Vec<u8>>,
 }
 
 impl Prober<'_> {
     fn exchange(&mut self, unit: u8, pdu: &[u8]) -> Result<Option<Response>, TargetError> {
+        // The safety assertion before sending: a read-only probe puts no write on the wire, whatever the
+        // code above built.
+        if !self.writes && crate::safety::is_write(pdu) {
+            self.refused.push(pdu.to_vec());
+            return Ok(None);
+        }
         let mut frame = Vec::new();
         let framing = self.t.framing();
         self.tid = self.tid.wrapping_add(1);
@@ -229,6 +240,8 @@ pub fn probe(t: &mut dyn Target, o: &ProbeOptions) -> Result<ProbeReport, Target
         timeout: o.timeout,
         tid: 0,
         requests: 0,
+        writes: o.writes,
+        refused: Vec::new(),
     };
     let unit = o.unit;
     let mut basic_id = None;
@@ -348,6 +361,7 @@ pub fn probe(t: &mut dyn Target, o: &ProbeOptions) -> Result<ProbeReport, Target
         }
     }
     report.requests = p.requests;
+    report.refused = std::mem::take(&mut p.refused);
     Ok(report)
 }
 
@@ -575,6 +589,19 @@ pub fn render(report: &ProbeReport, profile: Option<&Profile>, scan: (u16, u16))
             "\nother unit ids: answered {}; not answered {}",
             list(true),
             list(false)
+        );
+    }
+    if !report.refused.is_empty() {
+        let _ = writeln!(
+            s,
+            "\nHARNESS BUG: {} request(s) the safety classifier rates as writes were built without --probe-writes and NOT sent: {}",
+            report.refused.len(),
+            report
+                .refused
+                .iter()
+                .map(hex::encode)
+                .collect::<Vec<_>>()
+                .join(", ")
         );
     }
     if report.write_requests == 0 {

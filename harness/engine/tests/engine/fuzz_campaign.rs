@@ -22,6 +22,7 @@ fn options(faults: &[Fault], dir: &std::path::Path, keep_going: bool) -> Campaig
         probe_every: 10,
         keep_going,
         regressions: dir.to_path_buf(),
+        allow_writes: false,
     }
 }
 

@@ -12,5 +12,6 @@ mod public_fc;
 mod report_files;
 mod requirements_cited;
 mod run_transports;
+mod safety;
 mod shuffle;
 mod station_streams;

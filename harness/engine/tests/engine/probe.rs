@@ -142,6 +142,11 @@ fn a_default_probe_sends_no_write_function_code() {
                 "{url}: the safety classifier rates {pdu:02X?} {tags:?}"
             );
         }
+        assert!(
+            report.refused.is_empty(),
+            "{url}: refused {:?}",
+            report.refused
+        );
         let text = probe::render(&report, Some(&p), *scan);
         assert!(text.contains("none of them writes"), "{url}: {text}");
         assert!(

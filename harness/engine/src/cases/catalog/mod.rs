@@ -218,7 +218,13 @@ pub fn build(p: &Profile, golden: Option<&GoldenFile>, framing: Framing, unit: u
     if p.watchdog.is_some() {
         ds402::cases(&mut cx);
     }
-    irreversible_last(cx.cases)
+    // The safety tags are the classifier's rating of each case's own bytes, not what the case's code wrote.
+    let cases = cx
+        .cases
+        .into_iter()
+        .map(|c| c.classified(p, unit))
+        .collect();
+    irreversible_last(cases)
 }
 
 /// The cases with the [`Tag::Irreversible`] ones moved after all others, each group in its own order.
@@ -245,7 +251,10 @@ pub fn regressions(
         unit,
         cases: Vec::new(),
     };
-    Ok(cases.into_iter().map(|c| around_writes(&cx, c)).collect())
+    Ok(cases
+        .into_iter()
+        .map(|c| around_writes(&cx, c).classified(p, unit))
+        .collect())
 }
 
 /// `case` with [`around::around_write`] applied to every request it sends, its own capture slots left alone.

@@ -795,136 +795,17 @@ fn byte_count_offset(pdu: &[u8]) -> Option<usize> {
     (at < pdu.len()).then_some(at)
 }
 
-fn is_write_fc(fc: u8) -> bool {
-    matches!(fc, 0x05 | 0x06 | 0x0F | 0x10 | 0x15 | 0x16 | 0x17 | 0x42)
-}
-
-/// Tags of a write to `n` registers from `address`: the registers' own, and the watchdog's.
-fn tag_registers(p: &Profile, tags: &mut BTreeSet<Tag>, address: u16, n: usize) {
-    tags.insert(Tag::Write);
-    for i in 0..n.min(0x1_0000) {
-        let a = address.wrapping_add(i as u16);
-        if let Some(r) = p.register_at(a, false) {
-            if r.motion {
-                tags.insert(Tag::Motion);
-            }
-            if r.destructive {
-                tags.insert(Tag::Destructive);
-            }
-        }
-        // A watchdog left armed faults the drive when it runs out.
-        if p.watchdog.as_ref().is_some_and(|w| w.register == a) {
-            tags.insert(Tag::Destructive);
-        }
-    }
-}
-
-/// Tags of a write to `n` coils from `address`.
-fn tag_coils(p: &Profile, tags: &mut BTreeSet<Tag>, address: u16, n: u16) {
-    tags.insert(Tag::Write);
-    let end = u32::from(address) + u32::from(n);
-    if p.coils.iter().map(|c| c.get_ref()).any(|c| {
-        c.motion && u32::from(c.address) >= u32::from(address) && u32::from(c.address) < end
-    }) {
-        tags.insert(Tag::Motion);
-    }
-}
-
-/// Safety tags of a request PDU, from what it would do on a drive of profile `p`.
+/// Safety tags of a request PDU, from what it would do on a drive of profile `p`: the one classifier,
+/// [`crate::safety::classify`].
 pub fn pdu_tags(p: &Profile, pdu: &[u8]) -> BTreeSet<Tag> {
-    let mut tags = BTreeSet::new();
-    match Request::decode(pdu) {
-        Ok(Request::WriteSingleCoil { address, .. }) => tag_coils(p, &mut tags, address, 1),
-        Ok(Request::WriteMultipleCoils {
-            address, quantity, ..
-        }) => tag_coils(p, &mut tags, address, quantity),
-        Ok(Request::WriteSingleRegister { address, .. }) => tag_registers(p, &mut tags, address, 1),
-        Ok(Request::WriteMultipleRegisters { address, values }) => {
-            tag_registers(p, &mut tags, address, values.len())
-        }
-        Ok(Request::ReadWriteMultipleRegisters {
-            write_address,
-            values,
-            ..
-        }) => tag_registers(p, &mut tags, write_address, values.len()),
-        // FC 16 writes one holding register, whatever its masks.
-        Ok(Request::MaskWriteRegister { address, .. }) => tag_registers(p, &mut tags, address, 1),
-        // File records are outside the register map: what a write to them does is unknown (often
-        // non-volatile storage).
-        Ok(Request::WriteFileRecord { .. }) => {
-            tags.extend([Tag::Write, Tag::Motion, Tag::Destructive]);
-        }
-        Ok(Request::CanOpen(a)) if a.is_write() => {
-            tags.insert(Tag::Write);
-            match p.object(a.index, a.subindex) {
-                Some(o) => {
-                    if o.motion {
-                        tags.insert(Tag::Motion);
-                    }
-                    if let Some(r) = o.register {
-                        tag_registers(p, &mut tags, r, 1);
-                    }
-                }
-                None => {
-                    tags.insert(Tag::Motion);
-                    tags.insert(Tag::Destructive);
-                }
-            }
-        }
-        Ok(Request::VendorWrite { mnemonic, .. }) => {
-            tags.insert(Tag::Write);
-            match p.mnemonic(&mnemonic.name()) {
-                Some(m) => {
-                    if m.motion {
-                        tags.insert(Tag::Motion);
-                    }
-                    if m.destructive {
-                        tags.insert(Tag::Destructive);
-                    }
-                }
-                // A mnemonic the profile does not know may do anything.
-                None => {
-                    tags.insert(Tag::Motion);
-                    tags.insert(Tag::Destructive);
-                }
-            }
-        }
-        // Restart communications and listen-only mode take the drive off the bus.
-        Ok(Request::Diagnostics {
-            sub_function: 0x01 | 0x04,
-            ..
-        }) => {
-            tags.insert(Tag::Destructive);
-        }
-        Ok(Request::Raw { function, .. }) if is_write_fc(function.0) => {
-            tags.extend([Tag::Write, Tag::Motion, Tag::Destructive]);
-        }
-        Ok(_) => {}
-        // Malformed: a lenient drive might still act on it; what it would write is unknown.
-        Err(_) => {
-            let write = match pdu {
-                [fc, ..] if is_write_fc(*fc) => true,
-                [0x2B, 0x0D, control, ..] => control & CanOpenAccess::WRITE != 0,
-                _ => false,
-            };
-            if write {
-                tags.extend([Tag::Write, Tag::Motion, Tag::Destructive]);
-            }
-        }
-    }
-    tags
+    crate::safety::classify(p, pdu)
 }
 
-/// The tags of an altered PDU: what the alteration left intact keeps the original's tags; a malformed
-/// write whose function code and address are unchanged is tagged like the original, not as unknown.
+/// The tags of an altered PDU: the original's and the altered bytes' own (a malformed write is rated by
+/// the worst register it could reach).
 fn altered_tags(p: &Profile, original: &[u8], altered: &[u8]) -> BTreeSet<Tag> {
     let mut tags = pdu_tags(p, original);
-    let keeps_address = altered.len() >= 3 && original.len() >= 3 && altered[..3] == original[..3];
-    if Request::decode(altered).is_err() && keeps_address && is_write_fc(altered[0]) {
-        tags.insert(Tag::Write);
-    } else {
-        tags.extend(pdu_tags(p, altered));
-    }
+    tags.extend(pdu_tags(p, altered));
     tags
 }
 
@@ -1263,6 +1144,8 @@ impl Spec {
             requirements: Vec::new(),
             freedoms: Vec::new(),
         }
+        // Restores and the whole of each request rated again by the classifier.
+        .retagged(&cx.profile, cx.unit)
     }
 }
 

@@ -13,6 +13,7 @@ pub mod observe;
 pub mod oracle;
 pub mod probe;
 pub mod reports;
+pub mod restore;
 pub mod runner;
 pub mod servers;
 pub mod session;

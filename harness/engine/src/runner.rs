@@ -586,6 +586,35 @@ impl Runner {
     }
 }
 
+/// The restore's reads and writes (leave as found): sent to the target and to the reference drive, so that the
+/// reference follows what the target is put back to; not judged, not in the case reports.
+impl crate::restore::Link for Runner {
+    fn transact(&mut self, req: &Request) -> Result<Option<codec::Response>, TargetError> {
+        let Ok(pdu) = req.to_bytes() else {
+            return Ok(None);
+        };
+        let f = self.frame(&pdu, self.cfg.unit, None);
+        self.sync_shadow();
+        self.pace();
+        self.target.send(&f.bytes)?;
+        self.shadow.send(&f.bytes)?;
+        let _ = self.shadow.settle();
+        let _ = self.shadow.take_decisions();
+        let got = self.target.recv(self.cfg.timing.timeout)?;
+        let Received::Frame { bytes, .. } = got else {
+            return Ok(None);
+        };
+        Ok(
+            match codec::decode_any(&bytes, self.target.framing(), codec::Direction::Response)
+                .map(|d| d.pdu)
+            {
+                Ok(codec::Pdu::Response(r)) => Some(r),
+                _ => None,
+            },
+        )
+    }
+}
+
 fn record(r: &Received, wire: &mut Vec<WireEvent>) {
     let (bytes, at) = match r {
         Received::Frame {

@@ -1,0 +1,958 @@
+//! Leave as found: the parameters a session keeps, the snapshot taken before its first write, the plan that
+//! puts back what differs, and the journal that makes a killed run recoverable.
+//!
+//! The core is sans-IO: [`inventory`] lists what the profile knows that can be read and written back (and
+//! why the rest cannot), [`plan`] compares a read-back with the snapshot and gives the writes that restore
+//! it. The thin I/O around it ([`Keeper`]) sends those requests through a [`Link`] (the runner) and writes
+//! the [`Journal`] file, atomically and synced, before the first write is sent and as the run goes.
+
+use std::collections::{BTreeMap, BTreeSet};
+use std::io::Write as _;
+use std::path::{Path, PathBuf};
+
+use codec::{CanOpenAccess, FunctionCode, Mnemonic, Request, Response};
+use drives::profile::{Access, Profile, Table};
+use drives::tell::Written;
+use serde::{Deserialize, Serialize};
+
+use crate::capture::setting_params;
+use crate::cases::{Case, Outgoing, Step};
+use crate::runner::Safety;
+use crate::targets::TargetError;
+
+/// The exit code of a run (or `restore`) that could not leave the drive as found.
+pub const EXIT_NOT_RESTORED: u8 = 3;
+
+/// The journal file's format tag.
+pub const JOURNAL_FORMAT: &str = "modbus-harness-journal/1";
+
+/// Where a parameter lives.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(tag = "table", rename_all = "snake_case")]
+pub enum Place {
+    /// Holding registers `address .. address + width`.
+    Holding { address: u16, width: u8 },
+    Coil { address: u16 },
+    /// A vendor setting read with FC 0x41 and written with FC 0x42.
+    Mnemonic { mnemonic: String },
+    /// An FC 43 / MEI 0x0D object.
+    Object {
+        node: u8,
+        index: u16,
+        subindex: u8,
+        size: u16,
+    },
+}
+
+/// One parameter of the drive that a session reads before its first write and puts back.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Item {
+    /// Stable key: `holding:0x0010`, `coil:3`, `mnemonic:S1`, `object:68.0`.
+    pub key: String,
+    pub name: String,
+    #[serde(flatten)]
+    pub place: Place,
+}
+
+/// A parameter left out of the restore, with the reason.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Excluded {
+    pub key: String,
+    pub name: String,
+    pub reason: String,
+}
+
+/// A value as read from the drive.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Value {
+    Words(Vec<u16>),
+    Bit(bool),
+    /// A vendor setting's parameter string as FC 0x41 returned it.
+    Text(String),
+    /// An object's data bytes, little-endian.
+    Bytes(Vec<u8>),
+}
+
+impl Value {
+    /// The same value as another read, as the drive means it (a setting read back as `0, 1, 0` is `=0,1,0`).
+    pub fn same(&self, other: &Value) -> bool {
+        match (self, other) {
+            (Value::Text(a), Value::Text(b)) => {
+                setting_params(a.as_bytes()) == setting_params(b.as_bytes())
+            }
+            _ => self == other,
+        }
+    }
+}
+
+impl std::fmt::Display for Value {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Value::Words(w) => {
+                let hex: Vec<String> = w.iter().map(|w| format!("0x{w:04X}")).collect();
+                write!(f, "[{}]", hex.join(" "))
+            }
+            Value::Bit(b) => write!(f, "{}", u8::from(*b)),
+            Value::Text(t) => write!(f, "{t:?}"),
+            Value::Bytes(b) => write!(f, "{}", codec::hex_spaced(b)),
+        }
+    }
+}
+
+/// What a session keeps and what it leaves out.
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub struct Inventory {
+    pub items: Vec<Item>,
+    pub excluded: Vec<Excluded>,
+}
+
+fn gate(motion: bool, destructive: bool, safety: &Safety) -> Option<String> {
+    if motion && !safety.allow_motion {
+        return Some("motion: writing it back could move the motor (this run does not write it without --allow-motion)".into());
+    }
+    if destructive && !safety.allow_destructive {
+        return Some("destructive: not written back without --allow-destructive".into());
+    }
+    None
+}
+
+/// The parameters of `profile` a session reads before its first write and restores: holding registers,
+/// coils, readable vendor settings and objects that are read/write; the others with the reason they are left
+/// out (read-only, write-only, actions, motion or destructive without their flags, unconfirmed drafts,
+/// objects that mirror a register).
+pub fn inventory(profile: &Profile, safety: &Safety) -> Inventory {
+    let mut inv = Inventory::default();
+    let mut exclude = |key: String, name: &str, reason: String| {
+        inv.excluded.push(Excluded {
+            key,
+            name: name.to_string(),
+            reason,
+        })
+    };
+    let mut items = Vec::new();
+    for r in profile.registers.iter().map(|r| r.get_ref()) {
+        if r.table == Table::Input {
+            continue;
+        }
+        let key = format!("holding:0x{:04X}", r.address);
+        let reason = if !r.confirmed {
+            Some("unconfirmed draft entry: width and access unknown, never written".to_string())
+        } else {
+            match r.access {
+                Access::Ro => Some("read-only".to_string()),
+                Access::Wo => Some("write-only: cannot be read back".to_string()),
+                Access::Rw => gate(r.motion, r.destructive, safety),
+            }
+        };
+        match reason {
+            Some(reason) => exclude(key, &r.name, reason),
+            None => items.push(Item {
+                key,
+                name: r.name.clone(),
+                place: Place::Holding {
+                    address: r.address,
+                    width: r.width.max(1),
+                },
+            }),
+        }
+    }
+    for b in profile.coils.iter().map(|b| b.get_ref()) {
+        let key = format!("coil:{}", b.address);
+        let reason = if !b.confirmed {
+            Some("unconfirmed draft entry, never written".to_string())
+        } else {
+            match b.access {
+                Access::Ro => Some("read-only".to_string()),
+                Access::Wo => Some("write-only: cannot be read back".to_string()),
+                Access::Rw => gate(b.motion, false, safety),
+            }
+        };
+        match reason {
+            Some(reason) => exclude(key, &b.name, reason),
+            None => items.push(Item {
+                key,
+                name: b.name.clone(),
+                place: Place::Coil { address: b.address },
+            }),
+        }
+    }
+    for m in profile.mnemonics.iter().map(|m| m.get_ref()) {
+        let key = format!("mnemonic:{}", m.name);
+        let reason = match (m.read, m.write) {
+            (_, false) => Some("read-only".to_string()),
+            (false, true) => {
+                Some("an action or write-only setting: FC 0x41 cannot read it back".to_string())
+            }
+            (true, true) if Mnemonic::from_name(&m.name).is_none() => {
+                Some("not a wire mnemonic".to_string())
+            }
+            (true, true) => gate(m.motion, m.destructive, safety),
+        };
+        match reason {
+            Some(reason) => exclude(key, &m.name, reason),
+            None => items.push(Item {
+                key,
+                name: m.name.clone(),
+                place: Place::Mnemonic {
+                    mnemonic: m.name.clone(),
+                },
+            }),
+        }
+    }
+    for o in profile.objects.iter().map(|o| o.get_ref()) {
+        let key = format!("object:{}.{}", o.index, o.subindex);
+        let reason = match (o.access, o.register) {
+            (Access::Ro, _) => Some("read-only".to_string()),
+            (Access::Wo, _) => Some("write-only: cannot be read back".to_string()),
+            (Access::Rw, Some(r)) => Some(format!(
+                "mirrors holding register {r}, restored there"
+            )),
+            (Access::Rw, None) => gate(o.motion, false, safety),
+        };
+        match reason {
+            Some(reason) => exclude(key, &o.name, reason),
+            None => items.push(Item {
+                key,
+                name: o.name.clone(),
+                place: Place::Object {
+                    node: 0,
+                    index: o.index,
+                    subindex: o.subindex,
+                    size: o.ty.size() as u16,
+                },
+            }),
+        }
+    }
+    inv.items = items;
+    inv
+}
+
+/// The read that shows an item's value.
+pub fn read_request(item: &Item) -> Option<Request> {
+    Some(match &item.place {
+        Place::Holding { address, width } => Request::ReadHoldingRegisters {
+            address: *address,
+            quantity: u16::from(*width),
+        },
+        Place::Coil { address } => Request::ReadCoils {
+            address: *address,
+            quantity: 1,
+        },
+        Place::Mnemonic { mnemonic } => Request::VendorRead {
+            mnemonic: Mnemonic::from_name(mnemonic)?,
+        },
+        Place::Object {
+            node,
+            index,
+            subindex,
+            size,
+        } => Request::CanOpen(CanOpenAccess::read(*node, *index, *subindex, *size)),
+    })
+}
+
+/// The value an answer to [`read_request`] shows; `None` for an exception or an answer of another kind.
+pub fn value_of(item: &Item, resp: &Response) -> Option<Value> {
+    match (&item.place, resp) {
+        (Place::Holding { width, .. }, Response::ReadHoldingRegisters { values })
+            if values.len() == usize::from(*width) =>
+        {
+            Some(Value::Words(values.clone()))
+        }
+        (Place::Coil { .. }, Response::ReadCoils { data }) => {
+            Some(Value::Bit(data.first().is_some_and(|b| b & 1 == 1)))
+        }
+        (Place::Mnemonic { .. }, Response::VendorRead { params }) => {
+            Some(Value::Text(String::from_utf8_lossy(params).into_owned()))
+        }
+        (Place::Object { .. }, Response::CanOpen(a)) if !a.is_write() => {
+            Some(Value::Bytes(a.data.clone()))
+        }
+        _ => None,
+    }
+}
+
+/// The write that puts `value` back into `item`, with the function codes the profile has.
+pub fn write_request(item: &Item, value: &Value, profile: Option<&Profile>) -> Option<Request> {
+    let has = |fc: FunctionCode| profile.is_none_or(|p| p.function(fc).is_some());
+    Some(match (&item.place, value) {
+        (Place::Holding { address, .. }, Value::Words(w)) => {
+            if w.len() == 1 && !has(FunctionCode::WRITE_MULTIPLE_REGISTERS) {
+                Request::WriteSingleRegister {
+                    address: *address,
+                    value: w[0],
+                }
+            } else {
+                Request::WriteMultipleRegisters {
+                    address: *address,
+                    values: w.clone(),
+                }
+            }
+        }
+        (Place::Coil { address }, Value::Bit(on)) => {
+            if has(FunctionCode::WRITE_SINGLE_COIL) {
+                Request::WriteSingleCoil {
+                    address: *address,
+                    value: if *on { 0xFF00 } else { 0 },
+                }
+            } else {
+                Request::WriteMultipleCoils {
+                    address: *address,
+                    quantity: 1,
+                    data: vec![u8::from(*on)],
+                }
+            }
+        }
+        (Place::Mnemonic { mnemonic }, Value::Text(t)) => Request::VendorWrite {
+            mnemonic: Mnemonic::from_name(mnemonic)?,
+            params: setting_params(t.as_bytes()),
+        },
+        (
+            Place::Object {
+                node,
+                index,
+                subindex,
+                ..
+            },
+            Value::Bytes(b),
+        ) => Request::CanOpen(CanOpenAccess::write(*node, *index, *subindex, b.clone())),
+        _ => return None,
+    })
+}
+
+/// An item whose value differs from the snapshot: what it was and what it is now (`None`: unreadable now).
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Difference {
+    pub key: String,
+    pub name: String,
+    pub before: Value,
+    pub now: Option<Value>,
+}
+
+/// The restore plan: every item of `keys` whose read-back differs from the snapshot.
+pub fn plan(
+    items: &[Item],
+    snapshot: &BTreeMap<String, Value>,
+    read_back: &BTreeMap<String, Option<Value>>,
+) -> Vec<Difference> {
+    items
+        .iter()
+        .filter_map(|item| {
+            let before = snapshot.get(&item.key)?;
+            let now = read_back.get(&item.key)?;
+            let same = now.as_ref().is_some_and(|n| n.same(before));
+            (!same).then(|| Difference {
+                key: item.key.clone(),
+                name: item.name.clone(),
+                before: before.clone(),
+                now: now.clone(),
+            })
+        })
+        .collect()
+}
+
+/// What a case can have changed: items whose place its requests write, or everything when a request that
+/// may write cannot be decoded (malformed on purpose).
+pub fn touched(items: &[Item], case: &Case) -> BTreeSet<String> {
+    let mut pdus: Vec<&[u8]> = Vec::new();
+    for s in &case.steps {
+        if let Step::Exchange { send, .. } = s {
+            match send {
+                Outgoing::Pdu(p) => pdus.push(p),
+                Outgoing::PduToUnit { pdu, .. } | Outgoing::Mutated { pdu, .. } => pdus.push(pdu),
+                Outgoing::Batch(ps) => pdus.extend(ps.iter().map(Vec::as_slice)),
+                // A restore writes back what the case read before its own writes.
+                Outgoing::Restore { .. } | Outgoing::RestoreRead { .. } => {}
+            }
+        }
+    }
+    let mut keys = BTreeSet::new();
+    for pdu in pdus {
+        match Request::decode(pdu).ok().as_ref().and_then(Written::of) {
+            Some(w) => keys.extend(items.iter().filter(|i| covers(&w, i)).map(|i| i.key.clone())),
+            None if may_write(pdu) => {
+                return items.iter().map(|i| i.key.clone()).collect();
+            }
+            None => {}
+        }
+    }
+    keys
+}
+
+/// A function code that writes (or an FC 43 that may), for bytes the codec does not take as a request.
+fn may_write(pdu: &[u8]) -> bool {
+    matches!(
+        pdu.first(),
+        Some(0x05 | 0x06 | 0x0F | 0x10 | 0x15 | 0x16 | 0x17 | 0x2B | 0x42)
+    )
+}
+
+fn covers(w: &Written, item: &Item) -> bool {
+    match (w, &item.place) {
+        (Written::Holding { address, quantity }, Place::Holding { address: a, width }) => {
+            let (s, e) = (u32::from(*address), u32::from(*address) + u32::from(*quantity));
+            let (ia, ie) = (u32::from(*a), u32::from(*a) + u32::from(*width));
+            s < ie && ia < e
+        }
+        (Written::Coils { address, quantity }, Place::Coil { address: a }) => {
+            *address <= *a && u32::from(*a) < u32::from(*address) + u32::from(*quantity)
+        }
+        (Written::Setting(m), Place::Mnemonic { mnemonic }) => {
+            Mnemonic::from_name(mnemonic).is_some_and(|x| x == *m)
+        }
+        (
+            Written::Object {
+                index, subindex, ..
+            },
+            Place::Object {
+                index: i,
+                subindex: s,
+                ..
+            },
+        ) => index == i && subindex == s,
+        (Written::Other, _) => true,
+        _ => false,
+    }
+}
+
+/// A parameter that could not be put back.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Unrestored {
+    pub key: String,
+    pub name: String,
+    pub before: Value,
+    /// What it reads after the restore (`None`: it could not be read).
+    pub after: Option<Value>,
+    pub reason: String,
+}
+
+/// The account of leaving the drive as found, for the reports.
+#[derive(Clone, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Account {
+    /// Parameters read before the first write.
+    pub kept: usize,
+    /// Parameters left out, with the reason.
+    pub excluded: Vec<Excluded>,
+    /// Writes sent to put parameters back (after cases and at the end).
+    pub restore_writes: usize,
+    /// Parameters that differ from the snapshot after the final restore.
+    pub unrestored: Vec<Unrestored>,
+    /// The snapshot was taken (a run with no write takes none).
+    pub snapshot_taken: bool,
+    /// The journal file, when one was written.
+    pub journal: Option<PathBuf>,
+}
+
+impl Account {
+    /// True when every kept parameter reads as before.
+    pub fn clean(&self) -> bool {
+        self.unrestored.is_empty()
+    }
+
+    /// Terminal lines: one for the account, one per unrestored parameter.
+    pub fn lines(&self) -> Vec<String> {
+        let mut out = Vec::new();
+        if !self.snapshot_taken {
+            out.push("leave as found: nothing was written, no snapshot needed".to_string());
+            return out;
+        }
+        out.push(format!(
+            "leave as found: {} parameter(s) kept, {} restore write(s), {} left out (see the report), {}",
+            self.kept,
+            self.restore_writes,
+            self.excluded.len(),
+            if self.clean() {
+                "every kept parameter reads as before".to_string()
+            } else {
+                format!(
+                    "{} NOT RESTORED (exit code {EXIT_NOT_RESTORED})",
+                    self.unrestored.len()
+                )
+            }
+        ));
+        for u in &self.unrestored {
+            out.push(format!(
+                "  NOT RESTORED {} ({}): before {}, after {}: {}",
+                u.key,
+                u.name,
+                u.before,
+                u.after
+                    .as_ref()
+                    .map_or_else(|| "unreadable".to_string(), ToString::to_string),
+                u.reason
+            ));
+        }
+        if let Some(j) = &self.journal {
+            out.push(format!(
+                "  journal: {} (modbus-harness restore --journal {} puts the drive back)",
+                j.display(),
+                j.display()
+            ));
+        }
+        out
+    }
+}
+
+/// The state journal: the snapshot and where the run stands, so that a killed run can be undone.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Journal {
+    pub format: String,
+    pub target: String,
+    /// The profile the run used (a corpus name or a file path).
+    pub profile: String,
+    pub unit: u8,
+    pub started_unix_ms: u64,
+    pub updated_unix_ms: u64,
+    /// `running`, `restored` or `unrestored`.
+    pub state: String,
+    pub items: Vec<JournalItem>,
+    pub excluded: Vec<Excluded>,
+    pub unrestored: Vec<Unrestored>,
+}
+
+/// A kept parameter and its value before the first write.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct JournalItem {
+    #[serde(flatten)]
+    pub item: Item,
+    pub before: Value,
+}
+
+/// Why the journal could not be written or read.
+#[derive(Debug, thiserror::Error)]
+pub enum JournalError {
+    #[error("journal {}: {source}", path.display())]
+    Io {
+        path: PathBuf,
+        source: std::io::Error,
+    },
+    #[error("journal {}: {reason}", path.display())]
+    Format { path: PathBuf, reason: String },
+}
+
+impl Journal {
+    /// The snapshot as a map from key to value.
+    pub fn snapshot(&self) -> BTreeMap<String, Value> {
+        self.items
+            .iter()
+            .map(|j| (j.item.key.clone(), j.before.clone()))
+            .collect()
+    }
+
+    /// The kept items.
+    pub fn kept(&self) -> Vec<Item> {
+        self.items.iter().map(|j| j.item.clone()).collect()
+    }
+
+    /// Write the journal to `path` atomically: a temporary file beside it, synced, renamed over it, the
+    /// directory synced. A reader sees the old journal or the new one, never a part.
+    pub fn save(&self, path: &Path) -> Result<(), JournalError> {
+        let io = |source| JournalError::Io {
+            path: path.to_path_buf(),
+            source,
+        };
+        let dir = match path.parent() {
+            Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
+            _ => PathBuf::from("."),
+        };
+        std::fs::create_dir_all(&dir).map_err(io)?;
+        let name = path
+            .file_name()
+            .map_or_else(|| "journal".into(), |n| n.to_string_lossy().into_owned());
+        let tmp = dir.join(format!(".{name}.{}.tmp", std::process::id()));
+        let text = serde_json::to_vec_pretty(self).map_err(|e| JournalError::Format {
+            path: path.to_path_buf(),
+            reason: e.to_string(),
+        })?;
+        {
+            let mut f = std::fs::File::create(&tmp).map_err(io)?;
+            f.write_all(&text).map_err(io)?;
+            f.write_all(b"\n").map_err(io)?;
+            f.sync_all().map_err(io)?;
+        }
+        std::fs::rename(&tmp, path).map_err(io)?;
+        if let Ok(d) = std::fs::File::open(&dir) {
+            let _ = d.sync_all();
+        }
+        Ok(())
+    }
+
+    /// Read a journal file.
+    pub fn load(path: &Path) -> Result<Self, JournalError> {
+        let text = std::fs::read_to_string(path).map_err(|source| JournalError::Io {
+            path: path.to_path_buf(),
+            source,
+        })?;
+        let j: Journal = serde_json::from_str(&text).map_err(|e| JournalError::Format {
+            path: path.to_path_buf(),
+            reason: e.to_string(),
+        })?;
+        if j.format != JOURNAL_FORMAT {
+            return Err(JournalError::Format {
+                path: path.to_path_buf(),
+                reason: format!("format `{}`, expected `{JOURNAL_FORMAT}`", j.format),
+            });
+        }
+        Ok(j)
+    }
+}
+
+/// One request and its answer, the I/O the keeper needs (the runner provides it).
+pub trait Link {
+    /// Send `req`, return the decoded answer (`None`: silence, a close, or an undecodable answer).
+    fn transact(&mut self, req: &Request) -> Result<Option<Response>, TargetError>;
+}
+
+/// Read `items` through `link`: each key with its value, `None` where the drive gave none.
+pub fn read_all(
+    link: &mut dyn Link,
+    items: &[Item],
+) -> Result<BTreeMap<String, Option<Value>>, TargetError> {
+    let mut out = BTreeMap::new();
+    for item in items {
+        let v = match read_request(item) {
+            Some(req) => link
+                .transact(&req)?
+                .and_then(|r| value_of(item, &r)),
+            None => None,
+        };
+        out.insert(item.key.clone(), v);
+    }
+    Ok(out)
+}
+
+/// Put back every item of `items` that differs from `snapshot` and verify by reading: the writes sent and
+/// the items still differing after. Bounded: two write-and-verify rounds.
+pub fn restore(
+    link: &mut dyn Link,
+    items: &[Item],
+    snapshot: &BTreeMap<String, Value>,
+    profile: Option<&Profile>,
+) -> Result<(usize, Vec<Unrestored>), TargetError> {
+    let mut writes = 0;
+    let mut now = read_all(link, items)?;
+    let mut refused: BTreeMap<String, String> = BTreeMap::new();
+    for _round in 0..2 {
+        let diffs = plan(items, snapshot, &now);
+        if diffs.is_empty() {
+            break;
+        }
+        let mut changed = Vec::new();
+        for d in &diffs {
+            let Some(item) = items.iter().find(|i| i.key == d.key) else {
+                continue;
+            };
+            let Some(req) = write_request(item, &d.before, profile) else {
+                refused.insert(d.key.clone(), "no write puts this value back".into());
+                continue;
+            };
+            writes += 1;
+            match link.transact(&req)? {
+                Some(r) if !r.is_exception() => {
+                    refused.remove(&d.key);
+                }
+                Some(r) => {
+                    refused.insert(d.key.clone(), format!("the drive refused the write: {r:?}"));
+                }
+                None => {
+                    refused.insert(d.key.clone(), "no answer to the write".into());
+                }
+            }
+            changed.push(item.clone());
+        }
+        let again = read_all(link, &changed)?;
+        now.extend(again);
+    }
+    let left = plan(items, snapshot, &now)
+        .into_iter()
+        .map(|d| Unrestored {
+            reason: refused.get(&d.key).cloned().unwrap_or_else(|| {
+                "written back and acknowledged, but it does not read back as before".into()
+            }),
+            key: d.key,
+            name: d.name,
+            before: d.before,
+            after: d.now,
+        })
+        .collect();
+    Ok((writes, left))
+}
+
+/// The run's keeper of the snapshot: takes it before the first write, restores after each writing case
+/// and at the end, and keeps the journal up to date.
+pub struct Keeper {
+    inventory: Inventory,
+    snapshot: Option<BTreeMap<String, Value>>,
+    journal_path: Option<PathBuf>,
+    journal: Option<Journal>,
+    header: (String, String, u8),
+    account: Account,
+    /// Items a case left differing that the restore after it could not put back (retried at the end).
+    pending: BTreeMap<String, Unrestored>,
+}
+
+impl Keeper {
+    /// A keeper of `inventory` for a run of `profile_name` on `target` as `unit`, journaling to `journal`.
+    pub fn new(
+        inventory: Inventory,
+        target: String,
+        profile_name: String,
+        unit: u8,
+        journal: Option<PathBuf>,
+    ) -> Self {
+        let account = Account {
+            excluded: inventory.excluded.clone(),
+            journal: journal.clone(),
+            ..Account::default()
+        };
+        Self {
+            inventory,
+            snapshot: None,
+            journal_path: journal,
+            journal: None,
+            header: (target, profile_name, unit),
+            account,
+            pending: BTreeMap::new(),
+        }
+    }
+
+    /// True once the snapshot is taken.
+    pub fn armed(&self) -> bool {
+        self.snapshot.is_some()
+    }
+
+    /// What `case` can change among the kept items.
+    pub fn touched(&self, case: &Case) -> BTreeSet<String> {
+        touched(&self.inventory.items, case)
+    }
+
+    /// Read every kept parameter and write the journal, before the first write. Items the drive does not
+    /// read are left out with the reason.
+    pub fn take_snapshot(&mut self, link: &mut dyn Link) -> Result<(), SnapshotError> {
+        let read = read_all(link, &self.inventory.items)?;
+        let mut snapshot = BTreeMap::new();
+        let mut kept = Vec::new();
+        for item in std::mem::take(&mut self.inventory.items) {
+            match read.get(&item.key).cloned().flatten() {
+                Some(v) => {
+                    snapshot.insert(item.key.clone(), v);
+                    kept.push(item);
+                }
+                None => self.inventory.excluded.push(Excluded {
+                    key: item.key.clone(),
+                    name: item.name.clone(),
+                    reason: "the drive did not read it back before the first write".into(),
+                }),
+            }
+        }
+        self.inventory.items = kept;
+        self.account.kept = snapshot.len();
+        self.account.excluded = self.inventory.excluded.clone();
+        self.account.snapshot_taken = true;
+        let now = unix_ms();
+        self.journal = Some(Journal {
+            format: JOURNAL_FORMAT.into(),
+            target: self.header.0.clone(),
+            profile: self.header.1.clone(),
+            unit: self.header.2,
+            started_unix_ms: now,
+            updated_unix_ms: now,
+            state: "running".into(),
+            items: self
+                .inventory
+                .items
+                .iter()
+                .map(|i| JournalItem {
+                    item: i.clone(),
+                    before: snapshot[&i.key].clone(),
+                })
+                .collect(),
+            excluded: self.inventory.excluded.clone(),
+            unrestored: Vec::new(),
+        });
+        self.snapshot = Some(snapshot);
+        self.save_journal()?;
+        Ok(())
+    }
+
+    fn save_journal(&mut self) -> Result<(), JournalError> {
+        if let (Some(j), Some(p)) = (self.journal.as_mut(), &self.journal_path) {
+            j.updated_unix_ms = unix_ms();
+            j.save(p)?;
+        }
+        Ok(())
+    }
+
+    /// After a case: restore what it can have changed (`keys`) and verify.
+    pub fn after_case(
+        &mut self,
+        link: &mut dyn Link,
+        keys: &BTreeSet<String>,
+        profile: &Profile,
+    ) -> Result<(), TargetError> {
+        let Some(snapshot) = &self.snapshot else {
+            return Ok(());
+        };
+        let items: Vec<Item> = self
+            .inventory
+            .items
+            .iter()
+            .filter(|i| keys.contains(&i.key))
+            .cloned()
+            .collect();
+        if items.is_empty() {
+            return Ok(());
+        }
+        let (writes, left) = restore(link, &items, snapshot, Some(profile))?;
+        self.account.restore_writes += writes;
+        for i in &items {
+            self.pending.remove(&i.key);
+        }
+        let changed = !left.is_empty();
+        for u in left {
+            self.pending.insert(u.key.clone(), u);
+        }
+        if changed && let Some(j) = self.journal.as_mut() {
+            j.unrestored = self.pending.values().cloned().collect();
+            let _ = self.save_journal();
+        }
+        Ok(())
+    }
+
+    /// At the end (or on an interrupt, an error, a dead target): restore everything that differs and verify.
+    /// When the target no longer answers, every item is reported unrestored and the journal stays `running`
+    /// for `restore --journal`.
+    pub fn finish(&mut self, link: &mut dyn Link, profile: &Profile) -> Account {
+        let Some(snapshot) = self.snapshot.clone() else {
+            return self.account.clone();
+        };
+        match restore(link, &self.inventory.items, &snapshot, Some(profile)) {
+            Ok((writes, left)) => {
+                self.account.restore_writes += writes;
+                self.account.unrestored = left;
+                if let Some(j) = self.journal.as_mut() {
+                    j.state = if self.account.unrestored.is_empty() {
+                        "restored"
+                    } else {
+                        "unrestored"
+                    }
+                    .into();
+                    j.unrestored = self.account.unrestored.clone();
+                }
+            }
+            Err(e) => {
+                self.account.unrestored = self
+                    .inventory
+                    .items
+                    .iter()
+                    .map(|i| Unrestored {
+                        key: i.key.clone(),
+                        name: i.name.clone(),
+                        before: snapshot[&i.key].clone(),
+                        after: None,
+                        reason: format!("the target stopped answering: {e}"),
+                    })
+                    .collect();
+            }
+        }
+        if let Err(e) = self.save_journal() {
+            self.account.unrestored.push(Unrestored {
+                key: "journal".into(),
+                name: "state journal".into(),
+                before: Value::Text(String::new()),
+                after: None,
+                reason: e.to_string(),
+            });
+        }
+        self.account.clone()
+    }
+}
+
+/// Why the snapshot could not be taken (the run stops before its first write).
+#[derive(Debug, thiserror::Error)]
+pub enum SnapshotError {
+    #[error(transparent)]
+    Target(#[from] TargetError),
+    #[error(transparent)]
+    Journal(#[from] JournalError),
+}
+
+fn unix_ms() -> u64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| d.as_millis() as u64)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn item(key: &str, place: Place) -> Item {
+        Item {
+            key: key.into(),
+            name: key.into(),
+            place,
+        }
+    }
+
+    #[test]
+    fn the_plan_lists_what_differs_and_settings_compare_as_the_drive_means_them() {
+        let items = vec![
+            item("h", Place::Holding { address: 1, width: 2 }),
+            item("c", Place::Coil { address: 0 }),
+            item(
+                "m",
+                Place::Mnemonic {
+                    mnemonic: "S1".into(),
+                },
+            ),
+        ];
+        let snap: BTreeMap<String, Value> = [
+            ("h".to_string(), Value::Words(vec![1, 2])),
+            ("c".to_string(), Value::Bit(true)),
+            ("m".to_string(), Value::Text("0, 1, 0".into())),
+        ]
+        .into();
+        let now: BTreeMap<String, Option<Value>> = [
+            ("h".to_string(), Some(Value::Words(vec![1, 3]))),
+            ("c".to_string(), None),
+            ("m".to_string(), Some(Value::Text("=0,1,0".into()))),
+        ]
+        .into();
+        let p = plan(&items, &snap, &now);
+        let keys: Vec<&str> = p.iter().map(|d| d.key.as_str()).collect();
+        assert_eq!(keys, ["h", "c"]);
+        assert_eq!(
+            write_request(&items[0], &p[0].before, None),
+            Some(Request::WriteMultipleRegisters {
+                address: 1,
+                values: vec![1, 2]
+            })
+        );
+    }
+
+    #[test]
+    fn motion_registers_are_kept_only_when_motion_is_allowed() {
+        let p = drives::corpus::Corpus::Embedded.load("mdrive").expect("mdrive");
+        let safe = inventory(&p, &Safety::default());
+        let motion: Vec<u16> = p
+            .registers
+            .iter()
+            .map(|r| r.get_ref())
+            .filter(|r| r.motion)
+            .map(|r| r.address)
+            .collect();
+        assert!(!motion.is_empty());
+        assert!(safe.items.iter().all(|i| !matches!(i.place, Place::Holding { address, .. } if motion.contains(&address))));
+        assert!(safe.items.iter().any(|i| matches!(i.place, Place::Mnemonic { .. })));
+        let allowed = inventory(
+            &p,
+            &Safety {
+                allow_motion: true,
+                allow_destructive: true,
+                ..Safety::default()
+            },
+        );
+        assert!(allowed.items.len() > safe.items.len());
+    }
+}

@@ -351,6 +351,9 @@ pub fn plan(
         .collect()
 }
 
+/// Keys of the items a case can have changed.
+pub type Touched = BTreeSet<String>;
+
 /// What a case can have changed: items whose place its requests write, or everything when a request that
 /// may write cannot be decoded (malformed on purpose).
 pub fn touched(items: &[Item], case: &Case) -> BTreeSet<String> {
@@ -714,6 +717,11 @@ impl Keeper {
             account,
             pending: BTreeMap::new(),
         }
+    }
+
+    /// The account so far.
+    pub fn account(&self) -> &Account {
+        &self.account
     }
 
     /// True once the snapshot is taken.

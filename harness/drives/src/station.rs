@@ -211,8 +211,8 @@ impl Station {
         self
     }
 
-    /// The same station whose holding registers at `addresses` keep the first value written to them after
-    /// start-up: later writes are acknowledged and not taken (a drive that latches a setting until power
+    /// The same station whose holding registers at `addresses` keep the first value written to them that
+    /// changes them after start-up: later writes are acknowledged and not taken (a drive that latches a setting until power
     /// cycle; what a restore must notice).
     pub fn with_latched(mut self, addresses: impl IntoIterator<Item = u16>) -> Self {
         self.latched.extend(addresses);
@@ -236,13 +236,21 @@ impl Station {
         }
         let before = match (&self.sink, &written) {
             (Some(_), Some(w)) => Some(tell::peek(self.model.as_mut(), now, unit, w)),
+            (None, Some(w)) if !latched.is_empty() => {
+                Some(tell::peek(self.model.as_mut(), now, unit, w))
+            }
             _ => None,
         };
         let resp = self.model.handle(now, unit, req);
-        if resp.as_ref().is_some_and(|r| !r.is_exception()) {
-            self.latched_taken.extend(latched);
-            if let (Some(sink), Some(w), Some((address, old))) = (&self.sink, written, before) {
-                let (_, new) = tell::peek(self.model.as_mut(), now, unit, &w);
+        if resp.as_ref().is_some_and(|r| !r.is_exception())
+            && let (Some(w), Some((address, old))) = (written, before)
+        {
+            let (_, new) = tell::peek(self.model.as_mut(), now, unit, &w);
+            // Latched once the value changed (a write of the value it holds latches nothing).
+            if new != old {
+                self.latched_taken.extend(latched);
+            }
+            if let Some(sink) = &self.sink {
                 sink(&WriteRecord {
                     at: now,
                     unit,

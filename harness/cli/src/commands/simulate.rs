@@ -67,7 +67,7 @@ pub struct SimulateArgs {
     /// Start with the values of this file: one --set value a line, `#` comments.
     #[arg(long, value_name = "FILE")]
     preset: Option<PathBuf>,
-    /// A holding register that keeps the first value written to it after start-up and acknowledges later
+    /// A holding register that keeps the first value written to it that changes it, and acknowledges later
     /// writes without taking them (repeatable; a drive that latches a setting until power cycle).
     #[arg(long = "latch", value_name = "ADDR", value_parser = parse_address)]
     latch: Vec<u16>,

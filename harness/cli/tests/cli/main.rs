@@ -3,5 +3,6 @@
 
 mod decode;
 mod generated_snapshots;
+mod leave_as_found;
 mod profiles;
 mod run;

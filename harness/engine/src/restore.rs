@@ -31,10 +31,17 @@ pub const JOURNAL_FORMAT: &str = "modbus-harness-journal/1";
 #[serde(tag = "table", rename_all = "snake_case")]
 pub enum Place {
     /// Holding registers `address .. address + width`.
-    Holding { address: u16, width: u8 },
-    Coil { address: u16 },
+    Holding {
+        address: u16,
+        width: u8,
+    },
+    Coil {
+        address: u16,
+    },
     /// A vendor setting read with FC 0x41 and written with FC 0x42.
-    Mnemonic { mnemonic: String },
+    Mnemonic {
+        mnemonic: String,
+    },
     /// An FC 43 / MEI 0x0D object.
     Object {
         node: u8,
@@ -205,9 +212,7 @@ pub fn inventory(profile: &Profile, safety: &Safety) -> Inventory {
         let reason = match (o.access, o.register) {
             (Access::Ro, _) => Some("read-only".to_string()),
             (Access::Wo, _) => Some("write-only: cannot be read back".to_string()),
-            (Access::Rw, Some(r)) => Some(format!(
-                "mirrors holding register {r}, restored there"
-            )),
+            (Access::Rw, Some(r)) => Some(format!("mirrors holding register {r}, restored there")),
             (Access::Rw, None) => gate(o.motion, false, safety),
         };
         match reason {
@@ -372,7 +377,12 @@ pub fn touched(items: &[Item], case: &Case) -> BTreeSet<String> {
     let mut keys = BTreeSet::new();
     for pdu in pdus {
         match Request::decode(pdu).ok().as_ref().and_then(Written::of) {
-            Some(w) => keys.extend(items.iter().filter(|i| covers(&w, i)).map(|i| i.key.clone())),
+            Some(w) => keys.extend(
+                items
+                    .iter()
+                    .filter(|i| covers(&w, i))
+                    .map(|i| i.key.clone()),
+            ),
             None if may_write(pdu) => {
                 return items.iter().map(|i| i.key.clone()).collect();
             }
@@ -393,7 +403,10 @@ fn may_write(pdu: &[u8]) -> bool {
 fn covers(w: &Written, item: &Item) -> bool {
     match (w, &item.place) {
         (Written::Holding { address, quantity }, Place::Holding { address: a, width }) => {
-            let (s, e) = (u32::from(*address), u32::from(*address) + u32::from(*quantity));
+            let (s, e) = (
+                u32::from(*address),
+                u32::from(*address) + u32::from(*quantity),
+            );
             let (ia, ie) = (u32::from(*a), u32::from(*a) + u32::from(*width));
             s < ie && ia < e
         }
@@ -614,9 +627,7 @@ pub fn read_all(
     let mut out = BTreeMap::new();
     for item in items {
         let v = match read_request(item) {
-            Some(req) => link
-                .transact(&req)?
-                .and_then(|r| value_of(item, &r)),
+            Some(req) => link.transact(&req)?.and_then(|r| value_of(item, &r)),
             None => None,
         };
         out.insert(item.key.clone(), v);
@@ -906,7 +917,13 @@ mod tests {
     #[test]
     fn the_plan_lists_what_differs_and_settings_compare_as_the_drive_means_them() {
         let items = vec![
-            item("h", Place::Holding { address: 1, width: 2 }),
+            item(
+                "h",
+                Place::Holding {
+                    address: 1,
+                    width: 2,
+                },
+            ),
             item("c", Place::Coil { address: 0 }),
             item(
                 "m",
@@ -941,7 +958,9 @@ mod tests {
 
     #[test]
     fn motion_registers_are_kept_only_when_motion_is_allowed() {
-        let p = drives::corpus::Corpus::Embedded.load("mdrive").expect("mdrive");
+        let p = drives::corpus::Corpus::Embedded
+            .load("mdrive")
+            .expect("mdrive");
         let safe = inventory(&p, &Safety::default());
         let motion: Vec<u16> = p
             .registers
@@ -951,8 +970,14 @@ mod tests {
             .map(|r| r.address)
             .collect();
         assert!(!motion.is_empty());
-        assert!(safe.items.iter().all(|i| !matches!(i.place, Place::Holding { address, .. } if motion.contains(&address))));
-        assert!(safe.items.iter().any(|i| matches!(i.place, Place::Mnemonic { .. })));
+        assert!(safe.items.iter().all(
+            |i| !matches!(i.place, Place::Holding { address, .. } if motion.contains(&address))
+        ));
+        assert!(
+            safe.items
+                .iter()
+                .any(|i| matches!(i.place, Place::Mnemonic { .. }))
+        );
         let allowed = inventory(
             &p,
             &Safety {

@@ -925,13 +925,16 @@ fn keeper(opts: &Options, profile: &Profile, cfg: &RunConfig) -> Option<crate::r
     if !opts.leave_as_found || opts.target.is_sim() || opts.safety.read_only {
         return None;
     }
-    let journal = opts.journal.clone().unwrap_or_else(|| match &opts.report_dir {
-        Some(d) => d.join("journal.json"),
-        None => std::env::temp_dir().join(format!(
-            "modbus-harness-journal-{}.json",
-            std::process::id()
-        )),
-    });
+    let journal = opts
+        .journal
+        .clone()
+        .unwrap_or_else(|| match &opts.report_dir {
+            Some(d) => d.join("journal.json"),
+            None => std::env::temp_dir().join(format!(
+                "modbus-harness-journal-{}.json",
+                std::process::id()
+            )),
+        });
     // The profile as `restore` must load it again: a corpus name, or a file by its absolute path.
     let profile_name = match &opts.profile {
         Some(p) if p != "auto" && drives::corpus::is_profile_path(p) => {

@@ -59,7 +59,10 @@ pub fn run(args: &RestoreArgs) -> ExitCode {
                 println!("{line}");
             }
             if account.clean() {
-                println!("RESULT: RESTORED ({} parameter(s) read as before)", account.kept);
+                println!(
+                    "RESULT: RESTORED ({} parameter(s) read as before)",
+                    account.kept
+                );
                 ExitCode::SUCCESS
             } else {
                 println!(

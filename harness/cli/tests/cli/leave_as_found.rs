@@ -74,7 +74,9 @@ fn nonfactory_presets(name: &str) -> Vec<String> {
             quantity: u16::from(r.width),
         };
         for v in [d + 3, d + 1, d - 1, (lo + hi) / 2, hi, lo] {
-            if (lo..=hi).contains(&v) && try_spec(&mut model, format!("holding:{}={v}", r.address), &read) {
+            if (lo..=hi).contains(&v)
+                && try_spec(&mut model, format!("holding:{}={v}", r.address), &read)
+            {
                 break;
             }
         }
@@ -88,7 +90,11 @@ fn nonfactory_presets(name: &str) -> Vec<String> {
             quantity: 1,
         };
         let on = matches!(read_value(model.as_mut(), unit, &read), Some(Response::ReadCoils { data }) if data.first().is_some_and(|b| b & 1 == 1));
-        try_spec(&mut model, format!("coil:{}={}", c.address, u8::from(!on)), &read);
+        try_spec(
+            &mut model,
+            format!("coil:{}={}", c.address, u8::from(!on)),
+            &read,
+        );
     }
     for m in p.mnemonics.iter().map(|m| m.get_ref()) {
         if !(m.read && m.write) || m.motion || m.destructive {
@@ -113,7 +119,11 @@ fn nonfactory_presets(name: &str) -> Vec<String> {
                 }
                 let mut f: Vec<String> = fields.iter().map(|s| s.to_string()).collect();
                 f[i] = nv.to_string();
-                if try_spec(&mut model, format!("mnemonic:{}={}", m.name, f.join(",")), &read) {
+                if try_spec(
+                    &mut model,
+                    format!("mnemonic:{}={}", m.name, f.join(",")),
+                    &read,
+                ) {
                     break 'fields;
                 }
             }
@@ -149,7 +159,9 @@ impl Client {
         let mut adu = Vec::new();
         self.tid = self.tid.wrapping_add(1);
         match self.framing {
-            Framing::Tcp => codec::tcp::encode_adu(self.tid, self.unit, &pdu, &mut adu).expect("adu"),
+            Framing::Tcp => {
+                codec::tcp::encode_adu(self.tid, self.unit, &pdu, &mut adu).expect("adu")
+            }
             _ => codec::rtu::encode_adu(self.unit, &pdu, &mut adu).expect("adu"),
         }
         self.stream.write_all(&adu).expect("send");
@@ -186,7 +198,10 @@ fn read_everything(addr: SocketAddr, framing: Framing, p: &Profile) -> BTreeMap<
             address: r.address,
             quantity: u16::from(r.width),
         });
-        out.insert(format!("holding {} {}", r.address, r.name), format!("{v:?}"));
+        out.insert(
+            format!("holding {} {}", r.address, r.name),
+            format!("{v:?}"),
+        );
     }
     for b in p.coils.iter().map(|b| b.get_ref()) {
         if b.access != Access::Rw {
@@ -242,7 +257,11 @@ fn motion_writes(p: &Profile, lines: &[serde_json::Value]) -> Vec<String> {
                 let a = j["address"].as_u64().unwrap_or(0) as u32;
                 let n = j["new"].as_array().map_or(1, Vec::len).max(1) as u32;
                 for r in p.registers.iter().map(|r| r.get_ref()) {
-                    if r.motion && r.table != Table::Input && a < r.end() && u32::from(r.address) < a + n {
+                    if r.motion
+                        && r.table != Table::Input
+                        && a < r.end()
+                        && u32::from(r.address) < a + n
+                    {
                         out.push(format!("{} written: {j}", r.name));
                     }
                 }
@@ -255,7 +274,10 @@ fn motion_writes(p: &Profile, lines: &[serde_json::Value]) -> Vec<String> {
             }
             Some("coil") => {
                 let a = j["address"].as_u64().unwrap_or(0) as u16;
-                if p.coils.iter().any(|c| c.get_ref().address == a && c.get_ref().motion) {
+                if p.coils
+                    .iter()
+                    .any(|c| c.get_ref().address == a && c.get_ref().motion)
+                {
                     out.push(format!("coil {a} written: {j}"));
                 }
             }
@@ -337,7 +359,10 @@ fn a_default_run_leaves_every_preset_drive_as_found_and_writes_no_motion_registe
             report.to_str().expect("path"),
         ]);
         assert_eq!(code, 0, "{name}: {out}\n{err}");
-        assert!(out.contains("every kept parameter reads as before"), "{name}: {out}");
+        assert!(
+            out.contains("every kept parameter reads as before"),
+            "{name}: {out}"
+        );
         let after = read_everything(addr_of(&sim), framing, &p);
         let diff = differences(&before, &after);
         assert!(diff.is_empty(), "{name}: not left as found: {diff:#?}");
@@ -361,7 +386,10 @@ fn a_default_run_leaves_every_preset_drive_as_found_and_writes_no_motion_registe
                 .filter(|j| j["old"] != j["new"])
                 .filter(|j| !motion_writes(&p, std::slice::from_ref(*j)).is_empty())
                 .collect();
-            assert!(changed.is_empty(), "{name}: a motion register changed: {changed:#?}");
+            assert!(
+                changed.is_empty(),
+                "{name}: a motion register changed: {changed:#?}"
+            );
         } else {
             assert!(motion.is_empty(), "{name}: {motion:#?}");
         }
@@ -447,7 +475,10 @@ fn a_run_killed_halfway_is_undone_by_restore_journal() {
             run.0.try_wait().expect("try_wait").is_none(),
             "the run ended before it changed anything"
         );
-        assert!(Instant::now() < give_up, "no write changed a value within 60 s");
+        assert!(
+            Instant::now() < give_up,
+            "no write changed a value within 60 s"
+        );
         std::thread::sleep(Duration::from_millis(2));
     }
     run.0.kill().expect("SIGKILL the run");
@@ -457,16 +488,20 @@ fn a_run_killed_halfway_is_undone_by_restore_journal() {
         !differences(&before, &killed).is_empty(),
         "the kill came after the case had restored itself: nothing to undo"
     );
-    let j: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(&journal).expect("journal written before the first write"))
-            .expect("journal json");
+    let j: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(&journal).expect("journal written before the first write"),
+    )
+    .expect("journal json");
     assert_eq!(j["state"], "running", "{j}");
     let (code, out, err) = harness(&["restore", "--journal", journal.to_str().expect("path")]);
     assert_eq!(code, 0, "{out}\n{err}");
     assert!(out.contains("RESULT: RESTORED"), "{out}");
     let after = read_everything(addr_of(&sim), framing, &p);
     let diff = differences(&before, &after);
-    assert!(diff.is_empty(), "not left as found after restore: {diff:#?}");
+    assert!(
+        diff.is_empty(),
+        "not left as found after restore: {diff:#?}"
+    );
 }
 
 /// A register that keeps the first value written to it (`simulate --latch`): the run cannot put it back, says
@@ -481,7 +516,11 @@ fn a_register_that_does_not_keep_its_restored_value_is_reported_and_exits_3() {
         .iter()
         .map(|r| r.get_ref())
         .find(|r| {
-            r.access == Access::Rw && !r.motion && !r.destructive && r.table != Table::Input && r.max.is_some()
+            r.access == Access::Rw
+                && !r.motion
+                && !r.destructive
+                && r.table != Table::Input
+                && r.max.is_some()
         })
         .expect("a read/write register");
     let latch = reg.address.to_string();
@@ -501,7 +540,8 @@ fn a_register_that_does_not_keep_its_restored_value_is_reported_and_exits_3() {
     let key = format!("holding:0x{:04X}", reg.address);
     assert_eq!(code, 3, "{out}\n{err}");
     assert!(
-        out.lines().any(|l| l.contains("NOT RESTORED") && l.contains(&key) && l.contains("before")),
+        out.lines()
+            .any(|l| l.contains("NOT RESTORED") && l.contains(&key) && l.contains("before")),
         "{out}"
     );
     assert!(out.contains("RESULT: NOT RESTORED"), "{out}");
@@ -513,7 +553,9 @@ fn a_register_that_does_not_keep_its_restored_value_is_reported_and_exits_3() {
         .cloned()
         .unwrap_or_default();
     assert!(
-        unrestored.iter().any(|u| u["key"] == key.as_str() && u["before"] != u["after"]),
+        unrestored
+            .iter()
+            .any(|u| u["key"] == key.as_str() && u["before"] != u["after"]),
         "{unrestored:#?}"
     );
     let junit = std::fs::read_to_string(report.join("junit.xml")).expect("junit");

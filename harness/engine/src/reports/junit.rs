@@ -187,16 +187,17 @@ impl JunitSink {
                 .iter()
                 .map(|(n, v)| (n.as_str(), v.as_str()))
                 .chain([
-                ("target", self.info.target.as_str()),
-                ("profile", &self.info.profile),
-                ("transport", self.info.transport.label()),
-                ("server_port", &port),
-                ("command_line", &self.info.command_line),
-                ("seed", &seed),
-                ("harness_version", &self.info.harness_version),
-                ("interrupted", &interrupted),
-                ("result", summary.result_label()),
-            ]) {
+                    ("target", self.info.target.as_str()),
+                    ("profile", &self.info.profile),
+                    ("transport", self.info.transport.label()),
+                    ("server_port", &port),
+                    ("command_line", &self.info.command_line),
+                    ("seed", &seed),
+                    ("harness_version", &self.info.harness_version),
+                    ("interrupted", &interrupted),
+                    ("result", summary.result_label()),
+                ])
+            {
                 let value = one_line(value);
                 xml.write_event(Event::Empty(
                     BytesStart::new("property")

@@ -317,3 +317,73 @@ pub fn preset_lines(text: &str) -> Vec<String> {
         .map(str::to_string)
         .collect()
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::{FaultSet, Station};
+    use std::sync::Mutex;
+
+    fn mdrive() -> (Station, Arc<Mutex<Vec<WriteRecord>>>) {
+        let p = crate::corpus::Corpus::Embedded
+            .load("mdrive")
+            .expect("mdrive");
+        let log = Arc::new(Mutex::new(Vec::new()));
+        let sink_log = Arc::clone(&log);
+        let station = Station::new(crate::build(p, FaultSet::none()), FaultSet::none(), 1)
+            .with_write_sink(Arc::new(move |r: &WriteRecord| {
+                sink_log.lock().expect("log").push(r.clone())
+            }));
+        (station, log)
+    }
+
+    fn tcp(station: &mut Station, pdu: &[u8]) -> Vec<u8> {
+        let mut adu = Vec::new();
+        codec::tcp::encode_adu(1, 1, pdu, &mut adu).expect("adu");
+        station
+            .tcp_adu(Duration::from_millis(1), &adu)
+            .map(|w| w.bytes)
+            .unwrap_or_default()
+    }
+
+    #[test]
+    fn accepted_writes_are_told_with_old_and_new_value_refused_ones_are_not() {
+        let (mut s, log) = mdrive();
+        let p = s.profile().clone();
+        let req = preset_request(&p, "holding:0=1000003").expect("preset");
+        tcp(&mut s, &req.to_bytes().expect("pdu"));
+        let out_of_range = preset_request(&p, "holding:0=1525878998").expect("preset");
+        let answer = tcp(&mut s, &out_of_range.to_bytes().expect("pdu"));
+        assert!(answer.get(7).is_some_and(|fc| fc & 0x80 != 0), "{answer:?}");
+        let log = log.lock().expect("log");
+        assert_eq!(log.len(), 1, "{log:?}");
+        assert_eq!(log[0].written.table(), "holding");
+        assert_eq!(log[0].address, Some(0));
+        assert_eq!(log[0].old, Shown::Words(vec![15, 16960]));
+        assert_eq!(log[0].new, Shown::Words(vec![15, 16963]));
+    }
+
+    #[test]
+    fn a_latched_register_keeps_the_first_value_that_changed_it() {
+        let (s, _) = mdrive();
+        let mut s = s.with_latched([0, 1]);
+        let p = s.profile().clone();
+        let write = |s: &mut Station, v: i64| {
+            let req = preset_request(&p, &format!("holding:0={v}")).expect("preset");
+            tcp(s, &req.to_bytes().expect("pdu"))
+        };
+        let read = |s: &mut Station| {
+            let req = Request::ReadHoldingRegisters {
+                address: 0,
+                quantity: 2,
+            };
+            tcp(s, &req.to_bytes().expect("pdu"))[9..].to_vec()
+        };
+        write(&mut s, 1_000_000); // the value it holds: latches nothing
+        write(&mut s, 2_000_000);
+        let second = read(&mut s);
+        let ack = write(&mut s, 1_000_000);
+        assert!(ack.get(7).is_some_and(|fc| *fc == 0x10), "{ack:?}");
+        assert_eq!(read(&mut s), second, "the latched value must stay");
+    }
+}

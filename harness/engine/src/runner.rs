@@ -110,6 +110,9 @@ pub struct Runner {
     /// The case being run: its id and the freedoms it cites.
     case_id: String,
     case_freedoms: Vec<String>,
+    /// Transaction ids of the restore's traffic: a sequence of its own, so that the cases' ids (and the
+    /// snapshots of their observations) are the same with or without leaving the drive as found.
+    restore_tid: u16,
 }
 
 impl Runner {
@@ -134,6 +137,7 @@ impl Runner {
             choices: ChoiceLog::default(),
             case_id: String::new(),
             case_freedoms: Vec::new(),
+            restore_tid: 0xA000,
         }
     }
 
@@ -593,7 +597,9 @@ impl crate::restore::Link for Runner {
         let Ok(pdu) = req.to_bytes() else {
             return Ok(None);
         };
+        let case_tid = std::mem::replace(&mut self.next_tid, self.restore_tid);
         let f = self.frame(&pdu, self.cfg.unit, None);
+        self.restore_tid = std::mem::replace(&mut self.next_tid, case_tid);
         self.sync_shadow();
         self.pace();
         self.target.send(&f.bytes)?;

@@ -568,3 +568,73 @@ fn a_register_that_does_not_keep_its_restored_value_is_reported_and_exits_3() {
     assert_eq!(code, 3, "{out}");
     assert!(out.contains(&key), "{out}");
 }
+
+/// SIGTERM right after a write changed a value: the run stops after the current case, puts everything back
+/// itself and verifies (journal `restored`, the drive reads as before), and exits 2 (interrupted).
+#[test]
+fn a_run_stopped_with_sigterm_restores_before_it_exits() {
+    let name = "lmd";
+    let dir = TempDir::new("laf-term");
+    let (sim, url, framing, _) = preset_sim(name, dir.path(), &[]);
+    let p = profile(name);
+    let before = read_everything(addr_of(&sim), framing, &p);
+    let journal = dir.path().join("run-journal.json");
+    let sim_journal = dir.path().join("sim.jsonl");
+    let out_file = dir.path().join("run.out");
+    let child = Command::new(harness_bin())
+        .args([
+            "run",
+            "--target",
+            &url,
+            "--profile",
+            name,
+            "--no-progress",
+            "--max-rate",
+            "40",
+            "--journal",
+            journal.to_str().expect("path"),
+        ])
+        .stdin(Stdio::null())
+        .stdout(std::fs::File::create(&out_file).expect("out"))
+        .stderr(Stdio::null())
+        .spawn()
+        .expect("spawn run");
+    let mut run = ChildGuard(child);
+    let give_up = Instant::now() + Duration::from_secs(60);
+    while !journal_lines(&sim_journal)
+        .iter()
+        .any(|j| j["old"] != j["new"])
+    {
+        assert!(
+            run.0.try_wait().expect("try_wait").is_none(),
+            "the run ended before it changed anything"
+        );
+        assert!(
+            Instant::now() < give_up,
+            "no write changed a value within 60 s"
+        );
+        std::thread::sleep(Duration::from_millis(2));
+    }
+    let pid = run.0.id().to_string();
+    let sent = Command::new("kill")
+        .args(["-TERM", &pid])
+        .status()
+        .expect("kill -TERM");
+    assert!(sent.success());
+    let status = wait_bounded(&mut run.0, RUN_LIMIT, "the run after SIGTERM");
+    let out = std::fs::read_to_string(&out_file).unwrap_or_default();
+    assert_eq!(status.code(), Some(2), "{out}");
+    assert!(
+        out.contains("every kept parameter reads as before"),
+        "{out}"
+    );
+    let j: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&journal).expect("journal")).expect("json");
+    assert_eq!(j["state"], "restored", "{j}");
+    let after = read_everything(addr_of(&sim), framing, &p);
+    let diff = differences(&before, &after);
+    assert!(
+        diff.is_empty(),
+        "not left as found after SIGTERM: {diff:#?}"
+    );
+}

@@ -619,11 +619,43 @@ pub trait Link {
     fn transact(&mut self, req: &Request) -> Result<Option<Response>, TargetError>;
 }
 
+/// Requests in a row without an answer after which the target counts as gone: a restore against a dead
+/// drive stops there instead of waiting out a timeout for every parameter.
+pub const SILENT_IN_A_ROW: u32 = 5;
+
+/// A link that gives up after [`SILENT_IN_A_ROW`] requests without an answer.
+struct Bounded<'a> {
+    link: &'a mut dyn Link,
+    silent: u32,
+}
+
+impl Link for Bounded<'_> {
+    fn transact(&mut self, req: &Request) -> Result<Option<Response>, TargetError> {
+        let r = self.link.transact(req)?;
+        if r.is_some() {
+            self.silent = 0;
+        } else {
+            self.silent += 1;
+            if self.silent >= SILENT_IN_A_ROW {
+                return Err(TargetError::Io {
+                    target: "the target".into(),
+                    source: std::io::Error::new(
+                        std::io::ErrorKind::TimedOut,
+                        format!("no answer to {SILENT_IN_A_ROW} requests in a row"),
+                    ),
+                });
+            }
+        }
+        Ok(r)
+    }
+}
+
 /// Read `items` through `link`: each key with its value, `None` where the drive gave none.
 pub fn read_all(
     link: &mut dyn Link,
     items: &[Item],
 ) -> Result<BTreeMap<String, Option<Value>>, TargetError> {
+    let link = &mut Bounded { link, silent: 0 };
     let mut out = BTreeMap::new();
     for item in items {
         let v = match read_request(item) {
@@ -643,6 +675,7 @@ pub fn restore(
     snapshot: &BTreeMap<String, Value>,
     profile: Option<&Profile>,
 ) -> Result<(usize, Vec<Unrestored>), TargetError> {
+    let link = &mut Bounded { link, silent: 0 };
     let mut writes = 0;
     let mut now = read_all(link, items)?;
     let mut refused: BTreeMap<String, String> = BTreeMap::new();
@@ -954,6 +987,123 @@ mod tests {
                 values: vec![1, 2]
             })
         );
+    }
+
+    /// A drive of 16-bit holding registers in memory; `dead` stops it answering, `stuck` ignores writes to
+    /// one address.
+    struct Fake {
+        regs: BTreeMap<u16, u16>,
+        dead: bool,
+        stuck: Option<u16>,
+        requests: usize,
+    }
+
+    impl Link for Fake {
+        fn transact(&mut self, req: &Request) -> Result<Option<Response>, TargetError> {
+            self.requests += 1;
+            if self.dead {
+                return Ok(None);
+            }
+            Ok(match req {
+                Request::ReadHoldingRegisters { address, .. } => self
+                    .regs
+                    .get(address)
+                    .map(|v| Response::ReadHoldingRegisters { values: vec![*v] }),
+                Request::WriteMultipleRegisters { address, values } => {
+                    if self.stuck != Some(*address) {
+                        self.regs.insert(*address, values[0]);
+                    }
+                    Some(Response::WriteMultipleRegisters {
+                        address: *address,
+                        quantity: 1,
+                    })
+                }
+                _ => None,
+            })
+        }
+    }
+
+    fn keeper_of(fake: &mut Fake, journal: &Path) -> Keeper {
+        let items = (0..3u16)
+            .map(|a| {
+                item(
+                    &format!("holding:{a}"),
+                    Place::Holding {
+                        address: a,
+                        width: 1,
+                    },
+                )
+            })
+            .collect();
+        let mut k = Keeper::new(
+            Inventory {
+                items,
+                excluded: vec![],
+            },
+            "tcp://127.0.0.1:1".into(),
+            "generic".into(),
+            1,
+            Some(journal.to_path_buf()),
+        );
+        k.take_snapshot(fake).expect("snapshot");
+        k
+    }
+
+    #[test]
+    fn the_keeper_restores_verifies_and_journals_and_names_what_does_not_come_back() {
+        let dir = std::env::temp_dir().join(format!("mbh-keeper-{}", std::process::id()));
+        let journal = dir.join("journal.json");
+        let p = drives::corpus::Corpus::Embedded
+            .load("generic")
+            .expect("generic");
+        let mut fake = Fake {
+            regs: [(0, 10), (1, 11), (2, 12)].into(),
+            dead: false,
+            stuck: Some(2),
+            requests: 0,
+        };
+        let mut k = keeper_of(&mut fake, &journal);
+        let j = Journal::load(&journal).expect("journal before the first write");
+        assert_eq!(j.state, "running");
+        assert_eq!(j.snapshot().len(), 3);
+        fake.regs.insert(0, 99);
+        fake.regs.insert(2, 98);
+        fake.stuck = Some(2);
+        let a = k.finish(&mut fake, &p);
+        assert_eq!(fake.regs[&0], 10, "restored");
+        assert_eq!(a.unrestored.len(), 1, "{a:?}");
+        assert_eq!(a.unrestored[0].key, "holding:2");
+        assert_eq!(a.unrestored[0].before, Value::Words(vec![12]));
+        assert_eq!(a.unrestored[0].after, Some(Value::Words(vec![98])));
+        assert_eq!(
+            Journal::load(&journal).expect("journal").state,
+            "unrestored"
+        );
+
+        // A dead target: the keeper gives up after a bounded number of silent requests, and the journal
+        // stays `running` for `restore --journal`.
+        let mut fake = Fake {
+            regs: [(0, 10), (1, 11), (2, 12)].into(),
+            dead: false,
+            stuck: None,
+            requests: 0,
+        };
+        let mut k = keeper_of(&mut fake, &journal);
+        fake.dead = true;
+        fake.requests = 0;
+        let a = k.finish(&mut fake, &p);
+        assert_eq!(a.unrestored.len(), 3, "{a:?}");
+        assert!(
+            a.unrestored[0].reason.contains("stopped answering"),
+            "{a:?}"
+        );
+        assert!(
+            fake.requests <= SILENT_IN_A_ROW as usize,
+            "{}",
+            fake.requests
+        );
+        assert_eq!(Journal::load(&journal).expect("journal").state, "running");
+        let _ = std::fs::remove_dir_all(&dir);
     }
 
     #[test]

@@ -819,11 +819,12 @@ pub fn run(
                 }
                 if let Some(k) = keeper.as_mut() {
                     let touched = k.touched(&case);
+                    // The snapshot comes before the first case that may write anything.
+                    if (case.has(Tag::Write) || !touched.is_empty()) && !k.armed() {
+                        k.take_snapshot(&mut runner)?;
+                        log_snapshot(log, k);
+                    }
                     if !touched.is_empty() {
-                        if !k.armed() {
-                            k.take_snapshot(&mut runner)?;
-                            log_snapshot(log, k);
-                        }
                         after = Some(touched);
                     }
                 }

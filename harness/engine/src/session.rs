@@ -922,7 +922,11 @@ pub fn run(
 }
 
 /// The keeper of a run that leaves the drive as found: real targets, unless nothing may be written.
-fn keeper(opts: &Options, profile: &Profile, cfg: &RunConfig) -> Option<crate::restore::Keeper> {
+pub fn keeper(
+    opts: &Options,
+    profile: &Profile,
+    cfg: &RunConfig,
+) -> Option<crate::restore::Keeper> {
     if !opts.leave_as_found || opts.target.is_sim() || opts.safety.read_only {
         return None;
     }
@@ -1156,7 +1160,7 @@ fn write_banner(
     }
     let _ = writeln!(
         log,
-        "Values changed are read first and written back where the case can (read, write, restore).\n"
+        "Values changed are read first and written back where the case can (read, write, restore); before the\nfirst write every parameter the profile lets a client write back is read and journaled, and whatever differs\nis restored after each writing case and at the end.\n"
     );
 }
 

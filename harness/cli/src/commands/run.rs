@@ -399,6 +399,17 @@ fn list(opts: &Options, dry: bool) -> ExitCode {
             "\n{run} to run, {skip} skipped by the safety policy or the transport, against {}",
             opts.target
         );
+        if !opts.target.is_sim() && !opts.safety.read_only {
+            let inv = engine::restore::inventory(&profile, &opts.safety);
+            println!(
+                "leave as found: {} parameter(s) read before the first write and restored; {} left out:",
+                inv.items.len(),
+                inv.excluded.len()
+            );
+            for e in &inv.excluded {
+                println!("  {} ({}): {}", e.key, e.name, e.reason);
+            }
+        }
     } else {
         println!("\n{} cases", planned.len());
     }

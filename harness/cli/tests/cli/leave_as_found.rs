@@ -493,6 +493,29 @@ fn a_run_killed_halfway_is_undone_by_restore_journal() {
     )
     .expect("journal json");
     assert_eq!(j["state"], "running", "{j}");
+    // The journal holds the drive's values before the run (the presets, not the factory values).
+    let items = j["items"].as_array().cloned().unwrap_or_default();
+    let mut compared = 0;
+    for it in &items {
+        if it["table"] != "holding" {
+            continue;
+        }
+        let words: Vec<u16> = serde_json::from_value(it["before"]["words"].clone()).expect("words");
+        let address = it["address"].as_u64().expect("address");
+        let seen = before
+            .iter()
+            .find(|(k, _)| k.starts_with(&format!("holding {address} ")))
+            .map(|(_, v)| v.clone());
+        assert_eq!(
+            seen,
+            Some(format!(
+                "Some(ReadHoldingRegisters {{ values: {words:?} }})"
+            )),
+            "journal item {it}"
+        );
+        compared += 1;
+    }
+    assert!(compared > 10, "{compared} holding registers in the journal");
     let (code, out, err) = harness(&["restore", "--journal", journal.to_str().expect("path")]);
     assert_eq!(code, 0, "{out}\n{err}");
     assert!(out.contains("RESULT: RESTORED"), "{out}");

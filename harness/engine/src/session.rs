@@ -162,6 +162,16 @@ pub enum SessionError {
     /// The snapshot before the first write could not be taken or journaled: nothing was written.
     #[error("leave as found: {0} (nothing was written)")]
     Snapshot(#[from] crate::restore::SnapshotError),
+    /// The run stopped on an error (a dead target) and could not put the drive back.
+    #[error(
+        "{error}; the drive was NOT left as found: {unrestored} parameter(s) not restored (after the drive is back: modbus-harness restore --journal {})",
+        journal.as_ref().map_or_else(|| "FILE".to_string(), |p| p.display().to_string())
+    )]
+    LeftChanged {
+        error: Box<SessionError>,
+        unrestored: usize,
+        journal: Option<PathBuf>,
+    },
 }
 
 /// What a run produced.
@@ -857,6 +867,13 @@ pub fn run(
             let account = k.finish(&mut runner, &profile);
             for line in account.lines() {
                 let _ = writeln!(log, "{line}");
+            }
+            if !account.clean() {
+                return Err(SessionError::LeftChanged {
+                    error: Box::new(e),
+                    unrestored: account.unrestored.len(),
+                    journal: account.journal,
+                });
             }
         }
         return Err(e);

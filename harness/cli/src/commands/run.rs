@@ -49,7 +49,8 @@ Exit codes:
   0  no FAIL, the drive left as found
   1  a FAIL (or snapshot drift)
   2  the run could not be made or was interrupted
-  3  the drive was not left as found: a parameter could not be restored (listed in the summary)";
+  3  the drive was not left as found: a parameter could not be restored (listed in the summary), also when
+     the run stopped on an error such as a dead target";
 
 /// Arguments of `run`.
 ///
@@ -346,6 +347,10 @@ pub fn run(args: &RunArgs) -> ExitCode {
             } else {
                 ExitCode::SUCCESS
             }
+        }
+        Err(e @ session::SessionError::LeftChanged { .. }) => {
+            eprintln!("error: {e}");
+            ExitCode::from(engine::restore::EXIT_NOT_RESTORED)
         }
         Err(e) => {
             eprintln!("error: {e}");

@@ -661,3 +661,62 @@ fn a_run_stopped_with_sigterm_restores_before_it_exits() {
         "not left as found after SIGTERM: {diff:#?}"
     );
 }
+
+/// The drive dies halfway (the simulator is killed after a write changed a value): the run stops, cannot
+/// put the drive back, says so with the journal to restore from, and exits 3, within a bounded time.
+#[test]
+fn a_target_that_dies_halfway_is_reported_not_restored_with_exit_3() {
+    let name = "mdrive";
+    let dir = TempDir::new("laf-dead");
+    let (mut sim, url, _, _) = preset_sim(name, dir.path(), &[]);
+    let journal = dir.path().join("run-journal.json");
+    let sim_journal = dir.path().join("sim.jsonl");
+    let (o, e) = (dir.path().join("run.out"), dir.path().join("run.err"));
+    let child = Command::new(harness_bin())
+        .args([
+            "run",
+            "--target",
+            &url,
+            "--profile",
+            name,
+            "--no-progress",
+            "--max-rate",
+            "40",
+            "--timeout",
+            "200",
+            "--journal",
+            journal.to_str().expect("path"),
+        ])
+        .stdin(Stdio::null())
+        .stdout(std::fs::File::create(&o).expect("out"))
+        .stderr(std::fs::File::create(&e).expect("err"))
+        .spawn()
+        .expect("spawn run");
+    let mut run = ChildGuard(child);
+    let give_up = Instant::now() + Duration::from_secs(60);
+    while !journal_lines(&sim_journal)
+        .iter()
+        .any(|j| j["old"] != j["new"])
+    {
+        assert!(
+            run.0.try_wait().expect("try_wait").is_none(),
+            "the run ended before it changed anything"
+        );
+        assert!(
+            Instant::now() < give_up,
+            "no write changed a value within 60 s"
+        );
+        std::thread::sleep(Duration::from_millis(2));
+    }
+    sim.child.0.kill().expect("kill the simulator");
+    let _ = sim.child.0.wait();
+    let status = wait_bounded(&mut run.0, RUN_LIMIT, "the run after its target died");
+    let out = std::fs::read_to_string(&o).unwrap_or_default();
+    let err = std::fs::read_to_string(&e).unwrap_or_default();
+    assert_eq!(status.code(), Some(3), "{out}\n{err}");
+    assert!(err.contains("NOT left as found"), "{err}");
+    assert!(err.contains(journal.to_str().expect("path")), "{err}");
+    let j: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&journal).expect("journal")).expect("json");
+    assert_eq!(j["state"], "running", "kept for restore --journal: {j}");
+}

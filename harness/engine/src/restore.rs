@@ -524,6 +524,10 @@ pub struct Journal {
     pub items: Vec<JournalItem>,
     pub excluded: Vec<Excluded>,
     pub unrestored: Vec<Unrestored>,
+    /// The last writing case restored after (the journal is brought up to date at most once a second, and
+    /// whenever what is left unrestored changes).
+    #[serde(default)]
+    pub last_case: Option<String>,
 }
 
 /// A kept parameter and its value before the first write.
@@ -736,6 +740,7 @@ pub struct Keeper {
     account: Account,
     /// Items a case left differing that the restore after it could not put back (retried at the end).
     pending: BTreeMap<String, Unrestored>,
+    last_saved: Option<std::time::Instant>,
 }
 
 impl Keeper {
@@ -760,6 +765,7 @@ impl Keeper {
             header: (target, profile_name, unit),
             account,
             pending: BTreeMap::new(),
+            last_saved: None,
         }
     }
 
@@ -821,6 +827,7 @@ impl Keeper {
                 .collect(),
             excluded: self.inventory.excluded.clone(),
             unrestored: Vec::new(),
+            last_case: None,
         });
         self.snapshot = Some(snapshot);
         self.save_journal()?;
@@ -831,6 +838,7 @@ impl Keeper {
         if let (Some(j), Some(p)) = (self.journal.as_mut(), &self.journal_path) {
             j.updated_unix_ms = unix_ms();
             j.save(p)?;
+            self.last_saved = Some(std::time::Instant::now());
         }
         Ok(())
     }
@@ -839,6 +847,7 @@ impl Keeper {
     pub fn after_case(
         &mut self,
         link: &mut dyn Link,
+        case_id: &str,
         keys: &BTreeSet<String>,
         profile: &Profile,
     ) -> Result<(), TargetError> {
@@ -857,16 +866,23 @@ impl Keeper {
         }
         let (writes, left) = restore(link, &items, snapshot, Some(profile))?;
         self.account.restore_writes += writes;
+        let was: Vec<Unrestored> = self.pending.values().cloned().collect();
         for i in &items {
             self.pending.remove(&i.key);
         }
-        let changed = !left.is_empty();
         for u in left {
             self.pending.insert(u.key.clone(), u);
         }
-        if changed && let Some(j) = self.journal.as_mut() {
-            j.unrestored = self.pending.values().cloned().collect();
-            let _ = self.save_journal();
+        let now: Vec<Unrestored> = self.pending.values().cloned().collect();
+        let due = self
+            .last_saved
+            .is_none_or(|t| t.elapsed() >= std::time::Duration::from_secs(1));
+        if let Some(j) = self.journal.as_mut() {
+            j.last_case = Some(case_id.to_string());
+            if now != was || due {
+                j.unrestored = now;
+                let _ = self.save_journal();
+            }
         }
         Ok(())
     }

@@ -856,7 +856,7 @@ pub fn run(
         progress(i + 1, total, &case.id, result.verdict);
         collected.record(opts, &case, result, gen_index);
         if let (Some(k), Some(touched)) = (keeper.as_mut(), after)
-            && let Err(e) = k.after_case(&mut runner, &touched, &profile)
+            && let Err(e) = k.after_case(&mut runner, &case.id, &touched, &profile)
         {
             failed = Some(e.into());
             break;

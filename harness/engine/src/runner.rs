@@ -600,24 +600,41 @@ impl crate::restore::Link for Runner {
         let case_tid = std::mem::replace(&mut self.next_tid, self.restore_tid);
         let f = self.frame(&pdu, self.cfg.unit, None);
         self.restore_tid = std::mem::replace(&mut self.next_tid, case_tid);
+        // A late answer of an earlier request must never be taken for this one's (a wrong snapshot value
+        // would be "restored" into the drive): stale bytes are dropped, and on Modbus/TCP the transaction id
+        // and on every framing the unit and the function code must match.
+        self.target.drain();
         self.sync_shadow();
         self.pace();
         self.target.send(&f.bytes)?;
         self.shadow.send(&f.bytes)?;
         let _ = self.shadow.settle();
         let _ = self.shadow.take_decisions();
-        let got = self.target.recv(self.cfg.timing.timeout)?;
-        let Received::Frame { bytes, .. } = got else {
-            return Ok(None);
-        };
-        Ok(
-            match codec::decode_any(&bytes, self.target.framing(), codec::Direction::Response)
-                .map(|d| d.pdu)
-            {
-                Ok(codec::Pdu::Response(r)) => Some(r),
+        for _ in 0..3 {
+            let got = self.target.recv(self.cfg.timing.timeout)?;
+            let Received::Frame { bytes, .. } = got else {
+                return Ok(None);
+            };
+            let Ok(d) =
+                codec::decode_any(&bytes, self.target.framing(), codec::Direction::Response)
+            else {
+                return Ok(None);
+            };
+            let same_tid = f.sent.tid.is_none() || d.transaction_id == f.sent.tid;
+            let same_unit = d.unit.is_none_or(|u| u == f.sent.unit);
+            let ours = match &d.pdu {
+                codec::Pdu::Response(r) => r.function().0 & 0x7F == req.function().0,
+                _ => false,
+            };
+            if !same_tid {
+                continue;
+            }
+            return Ok(match d.pdu {
+                codec::Pdu::Response(r) if same_unit && ours => Some(r),
                 _ => None,
-            },
-        )
+            });
+        }
+        Ok(None)
     }
 }
 

@@ -116,8 +116,11 @@ fn journal_sink(path: &std::path::Path) -> Result<drives::tell::WriteSink, Strin
             "old": value(&r.old),
             "new": value(&r.new),
         });
+        // One write per record: a reader never sees two records interleaved, at worst the last one partial.
+        let mut text = line.to_string();
+        text.push('\n');
         let mut f = file.lock().unwrap_or_else(|e| e.into_inner());
-        let _ = writeln!(f, "{line}");
+        let _ = f.write_all(text.as_bytes());
         let _ = f.flush();
     }))
 }

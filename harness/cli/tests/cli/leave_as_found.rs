@@ -443,7 +443,7 @@ fn a_run_killed_halfway_is_undone_by_restore_journal() {
     // The kill must land between a case's change and its own restore (a 50 ms window at --max-rate 20); on
     // a machine too busy for that, the attempt is made again with a fresh drive, at most three times.
     let mut attempt = 0;
-    let (dir, sim, framing, before, journal) = loop {
+    let (_dir, sim, framing, before, journal) = loop {
         attempt += 1;
         assert!(
             attempt <= 3,
@@ -496,7 +496,7 @@ fn a_run_killed_halfway_is_undone_by_restore_journal() {
         }
         eprintln!("attempt {attempt}: the kill came after the case had restored itself; again");
     };
-    // `dir` holds the files until the end of the test.
+    // `_dir` holds the files until the end of the test.
     let j: serde_json::Value = serde_json::from_str(
         &std::fs::read_to_string(&journal).expect("journal written before the first write"),
     )

@@ -451,6 +451,9 @@ pub struct Account {
     pub excluded: Vec<Excluded>,
     /// Writes sent to put parameters back (after cases and at the end).
     pub restore_writes: usize,
+    /// Requests the snapshot and the restores sent in all (reads and writes).
+    #[serde(default)]
+    pub requests: usize,
     /// Parameters that differ from the snapshot after the final restore.
     pub unrestored: Vec<Unrestored>,
     /// The snapshot was taken (a run with no write takes none).
@@ -473,9 +476,10 @@ impl Account {
             return out;
         }
         out.push(format!(
-            "leave as found: {} parameter(s) kept, {} restore write(s), {} left out (see the report), {}",
+            "leave as found: {} parameter(s) kept, {} restore write(s) in {} request(s), {} left out (see the report), {}",
             self.kept,
             self.restore_writes,
+            self.requests,
             self.excluded.len(),
             if self.clean() {
                 "every kept parameter reads as before".to_string()
@@ -654,6 +658,19 @@ impl Link for Bounded<'_> {
     }
 }
 
+/// A link that counts the requests sent through it.
+pub(crate) struct Counting<'a> {
+    pub(crate) link: &'a mut dyn Link,
+    pub(crate) sent: usize,
+}
+
+impl Link for Counting<'_> {
+    fn transact(&mut self, req: &Request) -> Result<Option<Response>, TargetError> {
+        self.sent += 1;
+        self.link.transact(req)
+    }
+}
+
 /// Read `items` through `link`: each key with its value, `None` where the drive gave none.
 pub fn read_all(
     link: &mut dyn Link,
@@ -787,7 +804,10 @@ impl Keeper {
     /// Read every kept parameter and write the journal, before the first write. Items the drive does not
     /// read are left out with the reason.
     pub fn take_snapshot(&mut self, link: &mut dyn Link) -> Result<(), SnapshotError> {
-        let read = read_all(link, &self.inventory.items)?;
+        let mut counting = Counting { link, sent: 0 };
+        let read = read_all(&mut counting, &self.inventory.items);
+        self.account.requests += counting.sent;
+        let read = read?;
         let mut snapshot = BTreeMap::new();
         let mut kept = Vec::new();
         for item in std::mem::take(&mut self.inventory.items) {
@@ -864,7 +884,10 @@ impl Keeper {
         if items.is_empty() {
             return Ok(());
         }
-        let (writes, left) = restore(link, &items, snapshot, Some(profile))?;
+        let mut counting = Counting { link, sent: 0 };
+        let restored = restore(&mut counting, &items, snapshot, Some(profile));
+        self.account.requests += counting.sent;
+        let (writes, left) = restored?;
         self.account.restore_writes += writes;
         let was: Vec<Unrestored> = self.pending.values().cloned().collect();
         for i in &items {
@@ -894,7 +917,15 @@ impl Keeper {
         let Some(snapshot) = self.snapshot.clone() else {
             return self.account.clone();
         };
-        match restore(link, &self.inventory.items, &snapshot, Some(profile)) {
+        let mut counting = Counting { link, sent: 0 };
+        let restored = restore(
+            &mut counting,
+            &self.inventory.items,
+            &snapshot,
+            Some(profile),
+        );
+        self.account.requests += counting.sent;
+        match restored {
             Ok((writes, left)) => {
                 self.account.restore_writes += writes;
                 self.account.unrestored = left;

@@ -1222,8 +1222,13 @@ pub fn restore_journal(
         path.display(),
         runner.target().describe()
     );
+    let mut counting = crate::restore::Counting {
+        link: &mut runner,
+        sent: 0,
+    };
     let (writes, unrestored) =
-        crate::restore::restore(&mut runner, &items, &snapshot, Some(&profile))?;
+        crate::restore::restore(&mut counting, &items, &snapshot, Some(&profile))?;
+    let requests = counting.sent;
     journal.state = if unrestored.is_empty() {
         "restored"
     } else {
@@ -1239,6 +1244,7 @@ pub fn restore_journal(
         kept: items.len(),
         excluded: journal.excluded.clone(),
         restore_writes: writes,
+        requests,
         unrestored,
         snapshot_taken: true,
         journal: Some(path.to_path_buf()),

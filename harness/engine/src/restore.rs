@@ -376,20 +376,57 @@ pub fn touched(items: &[Item], case: &Case) -> BTreeSet<String> {
     }
     let mut keys = BTreeSet::new();
     for pdu in pdus {
-        match Request::decode(pdu).ok().as_ref().and_then(Written::of) {
-            Some(w) => keys.extend(
+        let written = match Request::decode(pdu) {
+            Ok(req) => Written::of(&req),
+            // Malformed on purpose: where its header says it writes, and as far as its bytes reach.
+            Err(_) if may_write(pdu) => match written_by_header(pdu) {
+                Some(w) => Some(w),
+                None => return items.iter().map(|i| i.key.clone()).collect(),
+            },
+            Err(_) => None,
+        };
+        if let Some(w) = written {
+            keys.extend(
                 items
                     .iter()
                     .filter(|i| covers(&w, i))
                     .map(|i| i.key.clone()),
-            ),
-            None if may_write(pdu) => {
-                return items.iter().map(|i| i.key.clone()).collect();
-            }
-            None => {}
+            );
         }
     }
     keys
+}
+
+/// What a write PDU the codec refuses can still have written: from its address (and quantity) fields, as
+/// far as the larger of its quantity and its data reach. `None` when even the address is cut off.
+fn written_by_header(pdu: &[u8]) -> Option<Written> {
+    let word = |i: usize| Some(u16::from_be_bytes([*pdu.get(i)?, *pdu.get(i + 1)?]));
+    let data = |from: usize| pdu.len().saturating_sub(from);
+    let clamp = |n: usize| n.min(usize::from(u16::MAX)) as u16;
+    Some(match pdu.first()? {
+        0x05 => Written::Coils {
+            address: word(1)?,
+            quantity: 1,
+        },
+        0x06 | 0x16 => Written::Holding {
+            address: word(1)?,
+            quantity: 1,
+        },
+        0x0F => Written::Coils {
+            address: word(1)?,
+            quantity: word(3)?.max(clamp(data(6) * 8)).max(1),
+        },
+        0x10 => Written::Holding {
+            address: word(1)?,
+            quantity: word(3)?.max(clamp(data(6) / 2)).max(1),
+        },
+        0x17 => Written::Holding {
+            address: word(5)?,
+            quantity: word(7)?.max(clamp(data(10) / 2)).max(1),
+        },
+        0x42 => Written::Setting(Mnemonic(pdu.get(1..5)?.try_into().ok()?)),
+        _ => return None,
+    })
 }
 
 /// A function code that writes (or an FC 43 that may), for bytes the codec does not take as a request.
@@ -1151,6 +1188,44 @@ mod tests {
         );
         assert_eq!(Journal::load(&journal).expect("journal").state, "running");
         let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    #[test]
+    fn a_malformed_write_touches_what_its_header_and_bytes_reach_or_everything() {
+        let items: Vec<Item> = (0..8u16)
+            .map(|a| {
+                item(
+                    &format!("h{a}"),
+                    Place::Holding {
+                        address: a,
+                        width: 1,
+                    },
+                )
+            })
+            .collect();
+        let case = |pdu: Vec<u8>| Case {
+            id: "t".into(),
+            title: String::new(),
+            reference: String::new(),
+            requirement: String::new(),
+            level: crate::cases::Level::Must,
+            tags: vec![],
+            steps: vec![Step::Exchange {
+                send: Outgoing::Pdu(pdu),
+                compare: crate::cases::Compare::Exact,
+                capture: None,
+                note: String::new(),
+            }],
+            requirements: vec![],
+            freedoms: vec![],
+        };
+        // FC 16 at 2, quantity 1, byte count 4 (disagrees), two words of data: registers 2 and 3.
+        let t = touched(&items, &case(vec![0x10, 0, 2, 0, 1, 4, 0, 1, 0, 2]));
+        assert_eq!(t, ["h2", "h3"].map(String::from).into());
+        // FC 06 cut after its function code: the address is unknown, everything may have changed.
+        assert_eq!(touched(&items, &case(vec![0x06])).len(), 8);
+        // A read touches nothing.
+        assert!(touched(&items, &case(vec![0x03, 0, 0, 0, 8])).is_empty());
     }
 
     #[test]

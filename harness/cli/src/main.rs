@@ -38,6 +38,8 @@ enum Command {
         #[arg(long)]
         markdown: bool,
     },
+    /// Put a drive back as a run's state journal found it (after a run that was killed), and verify.
+    Restore(commands::restore::RestoreArgs),
     /// Serve a reference drive over Modbus/TCP, RTU over TCP and/or a serial line, until Ctrl-C or SIGTERM.
     Simulate(commands::simulate::SimulateArgs),
 }
@@ -60,6 +62,7 @@ fn main() -> ExitCode {
                 commands::golden::run(corpus.as_deref(), verbose)
             }
         }
+        Command::Restore(args) => commands::restore::run(&args),
         Command::Simulate(args) => commands::simulate::run(args),
     }
 }

@@ -12,6 +12,7 @@ pub mod models;
 pub mod profile;
 pub mod requirements;
 pub mod station;
+pub mod tell;
 
 pub use choices::{Choices, Decision, Rejection};
 pub use faults::{Fault, FaultSet};

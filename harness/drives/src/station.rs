@@ -11,7 +11,7 @@
 //! 01, see [`DiagCounter::serial_line_only`]); the bus counters (0B, 0C, 0E, 0F) only count RTU traffic, the
 //! exception, NAK and busy counts, the event counter and the event log count every transport's.
 
-use std::collections::VecDeque;
+use std::collections::{BTreeSet, VecDeque};
 use std::time::Duration;
 
 use crate::choices::{Choices, Decision, Rejection, ids};
@@ -19,6 +19,7 @@ use crate::faults::{Fault, FaultSet};
 use crate::models::DriveModel;
 use crate::profile::{DiagCounter, Profile};
 use crate::requirements::FreedomKind;
+use crate::tell::{self, WriteRecord, WriteSink, Written};
 use codec::codes::{diag, event};
 use codec::framer::{DiscardReason, FramerEvent, RtuFramer, RtuTiming};
 use codec::{Direction, ExceptionCode, FunctionCode, Request, Response, rtu, tcp};
@@ -176,6 +177,12 @@ pub struct Station {
     choices: Choices,
     /// Freedoms that decided answers since the last [`Station::take_decisions`].
     decisions: Vec<Decision>,
+    /// Where each accepted write is reported (`simulate --journal`).
+    sink: Option<WriteSink>,
+    /// Holding registers that keep the first value written to them (`simulate --latch`), and those of them
+    /// written once already.
+    latched: BTreeSet<u16>,
+    latched_taken: BTreeSet<u16>,
 }
 
 impl Station {
@@ -192,7 +199,71 @@ impl Station {
             dead: false,
             choices: Choices::reference(),
             decisions: Vec::new(),
+            sink: None,
+            latched: BTreeSet::new(),
+            latched_taken: BTreeSet::new(),
         }
+    }
+
+    /// The same station reporting every write it accepts to `sink`: what it wrote, the value before and
+    /// after (read from the model, not counted as traffic).
+    pub fn with_write_sink(mut self, sink: WriteSink) -> Self {
+        self.sink = Some(sink);
+        self
+    }
+
+    /// The same station whose holding registers at `addresses` keep the first value written to them that
+    /// changes them after start-up: later writes are acknowledged and not taken (a drive that latches a setting until power
+    /// cycle; what a restore must notice).
+    pub fn with_latched(mut self, addresses: impl IntoIterator<Item = u16>) -> Self {
+        self.latched.extend(addresses);
+        self
+    }
+
+    /// Answer `req` through the model, reporting an accepted write and honouring latched registers.
+    fn handle_model(&mut self, now: Duration, unit: u8, req: &Request) -> Option<Response> {
+        let written = Written::of(req);
+        let latched = match &written {
+            Some(Written::Holding { address, quantity }) if !self.latched.is_empty() => (*address
+                ..address.saturating_add(*quantity))
+                .filter(|a| self.latched.contains(a))
+                .collect(),
+            _ => Vec::new(),
+        };
+        if latched.iter().any(|a| self.latched_taken.contains(a)) {
+            // Acknowledged as the drive would, on a copy: the latched value stays.
+            let mut scratch = self.model.box_clone();
+            return scratch.handle(now, unit, req);
+        }
+        let before = match (&self.sink, &written) {
+            (Some(_), Some(w)) => Some(tell::peek(self.model.as_mut(), now, unit, w)),
+            (None, Some(w)) if !latched.is_empty() => {
+                Some(tell::peek(self.model.as_mut(), now, unit, w))
+            }
+            _ => None,
+        };
+        let resp = self.model.handle(now, unit, req);
+        if resp.as_ref().is_some_and(|r| !r.is_exception())
+            && let (Some(w), Some((address, old))) = (written, before)
+        {
+            let (_, new) = tell::peek(self.model.as_mut(), now, unit, &w);
+            // Latched once the value changed (a write of the value it holds latches nothing).
+            if new != old {
+                self.latched_taken.extend(latched);
+            }
+            if let Some(sink) = &self.sink {
+                sink(&WriteRecord {
+                    at: now,
+                    unit,
+                    function: req.function(),
+                    written: w,
+                    address,
+                    old,
+                    new,
+                });
+            }
+        }
+        resp
     }
 
     /// The same station taking `choices` where the freedoms leave the wire side one (the model takes its
@@ -674,7 +745,7 @@ impl Station {
                 }
                 _ => {
                     self.model.advance(now);
-                    self.model.handle(now, unit, &req)
+                    self.handle_model(now, unit, &req)
                 }
             }
         };

@@ -14,6 +14,7 @@ pub mod observe;
 pub mod oracle;
 pub mod probe;
 pub mod reports;
+pub mod restore;
 pub mod runner;
 pub mod safety;
 pub mod servers;

@@ -114,6 +114,9 @@ pub struct Runner {
     case_tags: Vec<Tag>,
     /// A request of the case was refused by that check: the case stops there.
     refused: bool,
+    /// Transaction ids of the restore's traffic: a sequence of its own, so that the cases' ids (and the
+    /// snapshots of their observations) are the same with or without leaving the drive as found.
+    restore_tid: u16,
 }
 
 impl Runner {
@@ -140,6 +143,7 @@ impl Runner {
             case_freedoms: Vec::new(),
             case_tags: Vec::new(),
             refused: false,
+            restore_tid: 0xA000,
         }
     }
 
@@ -638,6 +642,54 @@ impl Runner {
             verdict,
             findings: findings.into_iter().map(|f| f.text).collect(),
         })
+    }
+}
+
+/// The restore's reads and writes (leave as found): sent to the target and to the reference drive, so that the
+/// reference follows what the target is put back to; not judged, not in the case reports.
+impl crate::restore::Link for Runner {
+    fn transact(&mut self, req: &Request) -> Result<Option<codec::Response>, TargetError> {
+        let Ok(pdu) = req.to_bytes() else {
+            return Ok(None);
+        };
+        let case_tid = std::mem::replace(&mut self.next_tid, self.restore_tid);
+        let f = self.frame(&pdu, self.cfg.unit, None);
+        self.restore_tid = std::mem::replace(&mut self.next_tid, case_tid);
+        // A late answer of an earlier request must never be taken for this one's (a wrong snapshot value
+        // would be "restored" into the drive): stale bytes are dropped, and on Modbus/TCP the transaction id
+        // and on every framing the unit and the function code must match.
+        self.target.drain();
+        self.sync_shadow();
+        self.pace();
+        self.target.send(&f.bytes)?;
+        self.shadow.send(&f.bytes)?;
+        let _ = self.shadow.settle();
+        let _ = self.shadow.take_decisions();
+        for _ in 0..3 {
+            let got = self.target.recv(self.cfg.timing.timeout)?;
+            let Received::Frame { bytes, .. } = got else {
+                return Ok(None);
+            };
+            let Ok(d) =
+                codec::decode_any(&bytes, self.target.framing(), codec::Direction::Response)
+            else {
+                return Ok(None);
+            };
+            let same_tid = f.sent.tid.is_none() || d.transaction_id == f.sent.tid;
+            let same_unit = d.unit.is_none_or(|u| u == f.sent.unit);
+            let ours = match &d.pdu {
+                codec::Pdu::Response(r) => r.function().0 & 0x7F == req.function().0,
+                _ => false,
+            };
+            if !same_tid {
+                continue;
+            }
+            return Ok(match d.pdu {
+                codec::Pdu::Response(r) if same_unit && ours => Some(r),
+                _ => None,
+            });
+        }
+        Ok(None)
     }
 }
 

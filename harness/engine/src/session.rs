@@ -70,6 +70,12 @@ pub struct Options {
     /// Run the selected catalog cases (and regressions) in an order shuffled with this seed; reports keep
     /// the case ids, generated cases follow in their own order.
     pub shuffle: Option<u64>,
+    /// Leave the drive as found (real targets; off with `--read-only`, where nothing is written): read every
+    /// parameter before the first write, restore after each writing case and at the end.
+    pub leave_as_found: bool,
+    /// The state journal (default: `journal.json` in the report directory, else a file in the temporary
+    /// directory named after the process).
+    pub journal: Option<PathBuf>,
 }
 
 /// Where the run's snapshot goes.
@@ -109,6 +115,8 @@ impl Options {
             snapshot: None,
             policy_on_sim: false,
             shuffle: None,
+            leave_as_found: true,
+            journal: None,
         }
     }
 }
@@ -151,6 +159,19 @@ pub enum SessionError {
     Target(#[from] TargetError),
     #[error("writing the report: {0}")]
     Report(#[from] std::io::Error),
+    /// The snapshot before the first write could not be taken or journaled: nothing was written.
+    #[error("leave as found: {0} (nothing was written)")]
+    Snapshot(#[from] crate::restore::SnapshotError),
+    /// The run stopped on an error (a dead target) and could not put the drive back.
+    #[error(
+        "{error}; the drive was NOT left as found: {unrestored} parameter(s) not restored (after the drive is back: modbus-harness restore --journal {})",
+        journal.as_ref().map_or_else(|| "FILE".to_string(), |p| p.display().to_string())
+    )]
+    LeftChanged {
+        error: Box<SessionError>,
+        unrestored: usize,
+        journal: Option<PathBuf>,
+    },
 }
 
 /// What a run produced.
@@ -166,6 +187,13 @@ pub struct RunOutcome {
     pub shrunk: Vec<ShrinkReport>,
     /// The snapshot written or compared, if `--snapshot` was given.
     pub snapshot: Option<SnapshotOutcome>,
+}
+
+impl RunOutcome {
+    /// Parameters the run could not put back (see [`crate::restore::EXIT_NOT_RESTORED`]).
+    pub fn not_restored(&self) -> usize {
+        self.summary.not_restored()
+    }
 }
 
 /// What became of one failing generated case.
@@ -774,11 +802,15 @@ pub fn run(
         .iter()
         .map(|(c, s)| (c.clone(), s.clone(), None))
         .chain(generated_cases);
+    let mut keeper = keeper(opts, &profile, &cfg);
+    // An error of the target mid-run: the drive is put back (as far as it answers) before it is returned.
+    let mut failed: Option<SessionError> = None;
     for (i, (case, skip, gen_index)) in cases.enumerate() {
         if interrupt.load(Ordering::SeqCst) {
             interrupted = true;
             break;
         }
+        let mut after: Option<crate::restore::Touched> = None;
         let result = match skip {
             Some(reason) => skipped(&case, reason),
             None => {
@@ -786,7 +818,24 @@ pub fn run(
                     banner_done = true;
                     write_banner(log, &planned, &profile, opts.generated);
                 }
-                runner.run_case(&case)?
+                if let Some(k) = keeper.as_mut() {
+                    let touched = k.touched(&case);
+                    // The snapshot comes before the first case that may write anything.
+                    if (case.has(Tag::Write) || !touched.is_empty()) && !k.armed() {
+                        k.take_snapshot(&mut runner)?;
+                        log_snapshot(log, k);
+                    }
+                    if !touched.is_empty() {
+                        after = Some(touched);
+                    }
+                }
+                match runner.run_case(&case) {
+                    Ok(r) => r,
+                    Err(e) => {
+                        failed = Some(e.into());
+                        break;
+                    }
+                }
             }
         };
         if let Some(r) = reports.as_mut() {
@@ -797,6 +846,28 @@ pub fn run(
         }
         progress(i + 1, total, &case.id, result.verdict);
         collected.record(opts, &case, result, gen_index);
+        if let (Some(k), Some(touched)) = (keeper.as_mut(), after)
+            && let Err(e) = k.after_case(&mut runner, &case.id, &touched, &profile)
+        {
+            failed = Some(e.into());
+            break;
+        }
+    }
+    if let Some(e) = failed {
+        if let Some(k) = keeper.as_mut() {
+            let account = k.finish(&mut runner, &profile);
+            for line in account.lines() {
+                let _ = writeln!(log, "{line}");
+            }
+            if !account.clean() {
+                return Err(SessionError::LeftChanged {
+                    error: Box::new(e),
+                    unrestored: account.unrestored.len(),
+                    journal: account.journal,
+                });
+            }
+        }
+        return Err(e);
     }
     let mut shrunk = Vec::new();
     if let (Some(limits), Some(g), false) = (&opts.shrink, &generator, interrupted) {
@@ -819,7 +890,10 @@ pub fn run(
             shrunk.push(report);
         }
     }
+    // At the end, interrupted or not: everything that differs from the snapshot is put back and verified.
+    let leave_as_found = keeper.as_mut().map(|k| k.finish(&mut runner, &profile));
     let mut summary = collected.tally.summary(interrupted, started.elapsed());
+    summary.leave_as_found = leave_as_found;
     summary.choices = runner.choices().choices().cloned().collect();
     summary.coverage = requirements
         .coverage(collected.exercised.iter().map(String::as_str))
@@ -853,6 +927,55 @@ pub fn run(
         shrunk,
         snapshot,
     })
+}
+
+/// The keeper of a run that leaves the drive as found: real targets, unless nothing may be written.
+pub fn keeper(
+    opts: &Options,
+    profile: &Profile,
+    cfg: &RunConfig,
+) -> Option<crate::restore::Keeper> {
+    if !opts.leave_as_found || opts.target.is_sim() || opts.safety.read_only {
+        return None;
+    }
+    let journal = opts
+        .journal
+        .clone()
+        .unwrap_or_else(|| match &opts.report_dir {
+            Some(d) => d.join("journal.json"),
+            None => std::env::temp_dir().join(format!(
+                "modbus-harness-journal-{}.json",
+                std::process::id()
+            )),
+        });
+    // The profile as `restore` must load it again: a corpus name, or a file by its absolute path.
+    let profile_name = match &opts.profile {
+        Some(p) if p != "auto" && drives::corpus::is_profile_path(p) => {
+            std::fs::canonicalize(p).map_or_else(|_| p.clone(), |a| a.display().to_string())
+        }
+        Some(p) if p != "auto" => p.clone(),
+        _ => profile.device.id.clone(),
+    };
+    Some(crate::restore::Keeper::new(
+        crate::restore::inventory(profile, &opts.safety),
+        opts.target.to_string(),
+        profile_name,
+        cfg.unit,
+        Some(journal),
+    ))
+}
+
+fn log_snapshot(log: &mut dyn Write, k: &crate::restore::Keeper) {
+    let a = k.account();
+    let _ = writeln!(
+        log,
+        "leave as found: read {} parameter(s) before the first write ({} left out); journal {}",
+        a.kept,
+        a.excluded.len(),
+        a.journal
+            .as_ref()
+            .map_or_else(|| "none".to_string(), |p| p.display().to_string())
+    );
 }
 
 /// The directory of a snapshot file (created when the file is to be written).
@@ -1045,6 +1168,76 @@ fn write_banner(
     }
     let _ = writeln!(
         log,
-        "Values changed are read first and written back where the case can (read, write, restore).\n"
+        "Values changed are read first and written back where the case can (read, write, restore); before the\nfirst write every parameter the profile lets a client write back is read and journaled, and whatever differs\nis restored after each writing case and at the end.\n"
     );
+}
+
+/// `restore --journal FILE`: put the drive a journal describes back as it was before the run's first write
+/// (on `target`, or the journal's), verify by reading, and record the outcome in the journal.
+pub fn restore_journal(
+    path: &std::path::Path,
+    target: Option<TargetUrl>,
+    corpus: Corpus,
+    timing: Timing,
+    connect_timeout: Duration,
+    log: &mut dyn Write,
+) -> Result<crate::restore::Account, SessionError> {
+    use crate::restore::{Journal, JournalError};
+    let mut journal = Journal::load(path).map_err(crate::restore::SnapshotError::from)?;
+    let target = match target {
+        Some(t) => t,
+        None => TargetUrl::parse(&journal.target).map_err(|e| {
+            crate::restore::SnapshotError::from(JournalError::Format {
+                path: path.to_path_buf(),
+                reason: format!("target `{}`: {e}", journal.target),
+            })
+        })?,
+    };
+    let mut opts = Options::new(target);
+    opts.profile = Some(journal.profile.clone());
+    opts.corpus = corpus;
+    opts.unit = Some(journal.unit);
+    opts.timing = timing;
+    opts.connect_timeout = connect_timeout;
+    let profile = resolve_profile(&opts, log)?;
+    let cfg = config(&opts, &profile);
+    let mut runner = open_runner(&opts, &profile, &cfg, &Expectations::default())?;
+    let items = journal.kept();
+    let snapshot = journal.snapshot();
+    let _ = writeln!(
+        log,
+        "restore: {} parameter(s) of `{}` (unit {}) from {} on {}",
+        items.len(),
+        journal.profile,
+        journal.unit,
+        path.display(),
+        runner.target().describe()
+    );
+    let mut counting = crate::restore::Counting {
+        link: &mut runner,
+        sent: 0,
+    };
+    let (writes, unrestored) =
+        crate::restore::restore(&mut counting, &items, &snapshot, Some(&profile))?;
+    let requests = counting.sent;
+    journal.state = if unrestored.is_empty() {
+        "restored"
+    } else {
+        "unrestored"
+    }
+    .into();
+    journal.unrestored.clone_from(&unrestored);
+    journal.updated_unix_ms = unix_ms();
+    journal
+        .save(path)
+        .map_err(crate::restore::SnapshotError::from)?;
+    Ok(crate::restore::Account {
+        kept: items.len(),
+        excluded: journal.excluded.clone(),
+        restore_writes: writes,
+        requests,
+        unrestored,
+        snapshot_taken: true,
+        journal: Some(path.to_path_buf()),
+    })
 }

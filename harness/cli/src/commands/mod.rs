@@ -3,5 +3,6 @@ pub mod decode;
 pub mod fuzz;
 pub mod golden;
 pub mod probe;
+pub mod restore;
 pub mod run;
 pub mod simulate;

@@ -33,7 +33,24 @@ Snapshots:
   --snapshot FILE compares the run's observations (per case, sorted by id: request bytes, answers or
   silence or close, verdict; no timestamps) with FILE, prints a diff naming the cases that differ and
   exits 1 on drift; with --update-snapshot it writes FILE instead. Compare a sim: run with a server's
-  using --policy-on-sim.";
+  using --policy-on-sim.
+
+Leave as found (real targets):
+  Before its first write the run reads every parameter of the profile it can read and write back
+  (holding registers, coils, FC 0x41 settings, objects; read-only, write-only, motion and destructive
+  ones without their flags are left out, each with the reason), keeps them in a state journal (--journal
+  FILE, default REPORT/journal.json or a file in the temporary directory; written and synced before the
+  first write, updated as the run goes), puts back and verifies what each writing case could have changed,
+  and at the end (also after Ctrl-C, SIGTERM or an error) restores everything that differs. What cannot be
+  put back is listed with its value before and after. After a killed run:
+  modbus-harness restore --journal FILE.
+
+Exit codes:
+  0  no FAIL, the drive left as found
+  1  a FAIL (or snapshot drift)
+  2  the run could not be made or was interrupted
+  3  the drive was not left as found: a parameter could not be restored (listed in the summary), also when
+     the run stopped on an error such as a dead target";
 
 /// Arguments of `run`.
 ///
@@ -155,9 +172,14 @@ pub struct RunArgs {
     /// so that a sim: run selects the same cases as a run against a server.
     #[arg(long)]
     policy_on_sim: bool,
+    /// State journal of the leave-as-found snapshot (default: REPORT/journal.json, else a file in the
+    /// temporary directory); `modbus-harness restore --journal FILE` undoes a killed run.
+    #[arg(long, value_name = "FILE")]
+    journal: Option<PathBuf>,
 }
 
-/// Run `run`: exit 0 without FAIL, 1 with a FAIL, 2 when the run could not be made.
+/// Run `run`: exit 0 without FAIL, 1 with a FAIL, 2 when the run could not be made, 3 when the drive was
+/// not left as found.
 pub fn run(args: &RunArgs) -> ExitCode {
     let url = match TargetUrl::parse(&args.target) {
         Ok(u) => u,
@@ -227,6 +249,7 @@ pub fn run(args: &RunArgs) -> ExitCode {
     });
     opts.policy_on_sim = args.policy_on_sim;
     opts.shuffle = args.shuffle;
+    opts.journal = args.journal.clone();
 
     if args.list_requirements {
         return list_requirements(&opts);
@@ -322,13 +345,19 @@ pub fn run(args: &RunArgs) -> ExitCode {
                 );
             }
             println!("{}", engine::reports::terminal_summary(&o.summary, &o.info));
-            if o.summary.count(Verdict::Fail) > 0 || drift {
+            if o.not_restored() > 0 {
+                ExitCode::from(engine::restore::EXIT_NOT_RESTORED)
+            } else if o.summary.count(Verdict::Fail) > 0 || drift {
                 ExitCode::from(1)
             } else if o.summary.interrupted {
                 ExitCode::from(2)
             } else {
                 ExitCode::SUCCESS
             }
+        }
+        Err(e @ session::SessionError::LeftChanged { .. }) => {
+            eprintln!("error: {e}");
+            ExitCode::from(engine::restore::EXIT_NOT_RESTORED)
         }
         Err(e) => {
             eprintln!("error: {e}");
@@ -478,6 +507,17 @@ fn list(opts: &Options, dry: bool) -> ExitCode {
             "\n{run} to run, {skip} skipped by the safety policy or the transport, against {}",
             opts.target
         );
+        if !opts.target.is_sim() && !opts.safety.read_only {
+            let inv = engine::restore::inventory(&profile, &opts.safety);
+            println!(
+                "leave as found: {} parameter(s) read before the first write and restored; {} left out:",
+                inv.items.len(),
+                inv.excluded.len()
+            );
+            for e in &inv.excluded {
+                println!("  {} ({}): {}", e.key, e.name, e.reason);
+            }
+        }
     } else {
         println!("\n{} cases", planned.len());
     }

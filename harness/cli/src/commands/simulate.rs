@@ -60,6 +60,74 @@ pub struct SimulateArgs {
     /// Corpus directory (default: the corpus built into the binary).
     #[arg(long, value_name = "DIR")]
     corpus: Option<PathBuf>,
+    /// Record every write the drive accepts as a JSON line (time, unit, function code, table or mnemonic,
+    /// address, old and new value), flushed per write, so that tests can assert what a run did.
+    #[arg(long, value_name = "FILE")]
+    journal: Option<PathBuf>,
+    /// Start with this value instead of the factory one (repeatable): `holding:ADDR=VALUE` (ADDR a number or
+    /// the register's name or mnemonic, VALUE in the register's width; `holding:` may be left out),
+    /// `coil:ADDR=0|1`, `mnemonic:NAME=PARAMS` (e.g. mnemonic:S1=0,1,0).
+    #[arg(long = "set", value_name = "TABLE:ADDR=VALUE")]
+    set: Vec<String>,
+    /// Start with the values of this file: one --set value a line, `#` comments.
+    #[arg(long, value_name = "FILE")]
+    preset: Option<PathBuf>,
+    /// A holding register that keeps the first value written to it that changes it, and acknowledges later
+    /// writes without taking them (repeatable; a drive that latches a setting until power cycle).
+    #[arg(long = "latch", value_name = "ADDR", value_parser = parse_address)]
+    latch: Vec<u16>,
+}
+
+fn parse_address(s: &str) -> Result<u16, String> {
+    let r = match s.strip_prefix("0x").or_else(|| s.strip_prefix("0X")) {
+        Some(h) => u16::from_str_radix(h, 16),
+        None => s.parse(),
+    };
+    r.map_err(|e| format!("`{s}` is not a register address: {e}"))
+}
+
+/// A journal sink: one JSON line per accepted write, written at once (no buffering).
+fn journal_sink(path: &std::path::Path) -> Result<drives::tell::WriteSink, String> {
+    use drives::tell::{Shown, WriteRecord, Written};
+    let file = std::fs::OpenOptions::new()
+        .create(true)
+        .append(true)
+        .open(path)
+        .map_err(|e| format!("cannot open the journal {}: {e}", path.display()))?;
+    let file = std::sync::Mutex::new(file);
+    let value = |v: &Shown| match v {
+        Shown::Words(w) => serde_json::json!(w),
+        Shown::Bits(b) => serde_json::json!(b.iter().map(|b| u8::from(*b)).collect::<Vec<_>>()),
+        Shown::Text(t) => serde_json::json!(t),
+        Shown::Bytes(b) => serde_json::json!(codec::hex_spaced(b)),
+        Shown::Unreadable => serde_json::Value::Null,
+    };
+    Ok(std::sync::Arc::new(move |r: &WriteRecord| {
+        let unix_ms = std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map_or(0, |d| d.as_millis() as u64);
+        let mnemonic = match &r.written {
+            Written::Setting(m) => Some(m.name().trim().to_string()),
+            _ => None,
+        };
+        let line = serde_json::json!({
+            "unix_ms": unix_ms,
+            "station_us": r.at.as_micros() as u64,
+            "unit": r.unit,
+            "fc": r.function.0,
+            "table": r.written.table(),
+            "mnemonic": mnemonic,
+            "address": r.address,
+            "old": value(&r.old),
+            "new": value(&r.new),
+        });
+        // One write per record: a reader never sees two records interleaved, at worst the last one partial.
+        let mut text = line.to_string();
+        text.push('\n');
+        let mut f = file.lock().unwrap_or_else(|e| e.into_inner());
+        let _ = f.write_all(text.as_bytes());
+        let _ = f.flush();
+    }))
 }
 
 /// Parity on the command line.
@@ -276,12 +344,32 @@ fn prepare(args: &SimulateArgs) -> Result<(Station, ServerConfig, String), Strin
         "profile {} ({}), unit {unit}, faults: {fault_names}, choices: {choices}",
         profile.device.id, profile.device.name
     );
-    let station = Station::new(
+    let mut station = Station::new(
         drives::build_with(profile, faults.clone(), choices.clone()),
         faults,
         unit,
     )
-    .with_choices(choices);
+    .with_choices(choices)
+    .with_latched(args.latch.iter().copied());
+    let mut presets = Vec::new();
+    if let Some(p) = &args.preset {
+        let text = std::fs::read_to_string(p)
+            .map_err(|e| format!("cannot read the preset {}: {e}", p.display()))?;
+        presets.extend(drives::tell::preset_lines(&text));
+    }
+    presets.extend(args.set.iter().cloned());
+    drives::tell::apply_presets(station.model_mut(), unit, &presets).map_err(|e| e.to_string())?;
+    if let Some(j) = &args.journal {
+        station = station.with_write_sink(journal_sink(j)?);
+    }
+    let summary = format!(
+        "{summary}{}",
+        if presets.is_empty() {
+            String::new()
+        } else {
+            format!(", {} preset value(s)", presets.len())
+        }
+    );
     let config = ServerConfig {
         tcp: args.listen,
         rtu_over_tcp: args.rtu_over_tcp,

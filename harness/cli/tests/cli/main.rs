@@ -3,6 +3,7 @@
 
 mod decode;
 mod generated_snapshots;
+mod leave_as_found;
 mod profiles;
 mod run;
 mod safety;

@@ -155,17 +155,49 @@ impl JunitSink {
             let seed = self.info.seed.map(|s| s.to_string()).unwrap_or_default();
             let port = self.info.server_port.to_string();
             let interrupted = summary.interrupted.to_string();
-            for (name, value) in [
-                ("target", self.info.target.as_str()),
-                ("profile", &self.info.profile),
-                ("transport", self.info.transport.label()),
-                ("server_port", &port),
-                ("command_line", &self.info.command_line),
-                ("seed", &seed),
-                ("harness_version", &self.info.harness_version),
-                ("interrupted", &interrupted),
-                ("result", summary.result_label()),
-            ] {
+            // Leaving the drive as found: one property for the account, one per parameter not put back.
+            let mut restore: Vec<(String, String)> = Vec::new();
+            if let Some(a) = &summary.leave_as_found {
+                restore.push((
+                    "leave_as_found".into(),
+                    if !a.snapshot_taken {
+                        "nothing written".into()
+                    } else if a.clean() {
+                        format!("restored: {} parameter(s) read as before", a.kept)
+                    } else {
+                        format!("NOT RESTORED: {} parameter(s)", a.unrestored.len())
+                    },
+                ));
+                for u in &a.unrestored {
+                    restore.push((
+                        format!("not_restored.{}", u.key),
+                        format!(
+                            "{}: before {}, after {}: {}",
+                            u.name,
+                            u.before,
+                            u.after
+                                .as_ref()
+                                .map_or_else(|| "unreadable".to_string(), ToString::to_string),
+                            u.reason
+                        ),
+                    ));
+                }
+            }
+            for (name, value) in restore
+                .iter()
+                .map(|(n, v)| (n.as_str(), v.as_str()))
+                .chain([
+                    ("target", self.info.target.as_str()),
+                    ("profile", &self.info.profile),
+                    ("transport", self.info.transport.label()),
+                    ("server_port", &port),
+                    ("command_line", &self.info.command_line),
+                    ("seed", &seed),
+                    ("harness_version", &self.info.harness_version),
+                    ("interrupted", &interrupted),
+                    ("result", summary.result_label()),
+                ])
+            {
                 let value = one_line(value);
                 xml.write_event(Event::Empty(
                     BytesStart::new("property")

@@ -114,6 +114,8 @@ pub struct Summary {
     pub choices: Vec<crate::oracle::Choice>,
     /// Requirements exercised by the cases that ran, per document.
     pub coverage: Vec<drives::requirements::Coverage>,
+    /// Leaving the drive as found: the snapshot, the restore writes, what could not be put back.
+    pub leave_as_found: Option<crate::restore::Account>,
 }
 
 impl Summary {
@@ -123,13 +125,23 @@ impl Summary {
     }
 
     /// FAIL cases whose id is not in `failing` (the list is capped).
+    /// Parameters that differ from the snapshot after the final restore.
+    pub fn not_restored(&self) -> usize {
+        self.leave_as_found
+            .as_ref()
+            .map_or(0, |a| a.unrestored.len())
+    }
+
+    /// FAIL cases whose id is not in `failing` (the list is capped).
     pub fn failing_omitted(&self) -> usize {
         self.count(Verdict::Fail).saturating_sub(self.failing.len())
     }
 
     /// The overall result: `FAIL` if any case failed, else `INTERRUPTED`, `NO CASES` or `PASS`.
     pub fn result_label(&self) -> &'static str {
-        if self.count(Verdict::Fail) > 0 {
+        if self.not_restored() > 0 {
+            "NOT RESTORED"
+        } else if self.count(Verdict::Fail) > 0 {
             "FAIL"
         } else if self.interrupted {
             "INTERRUPTED"
@@ -172,6 +184,7 @@ impl Summary {
             "interrupted": self.interrupted,
             "duration_us": self.duration.as_micros() as u64,
             "choices": self.choices,
+            "leave_as_found": self.leave_as_found,
             "coverage": self
                 .coverage
                 .iter()
@@ -235,6 +248,7 @@ impl Tally {
             cases: self.cases,
             choices: Vec::new(),
             coverage: Vec::new(),
+            leave_as_found: None,
         }
     }
 }
@@ -518,6 +532,11 @@ pub fn terminal_summary(summary: &Summary, info: &RunInfo) -> String {
             .map(|c| format!("{} {}/{}", c.document, c.exercised, c.listed))
             .collect();
         let _ = writeln!(s, "requirements exercised: {}", parts.join(", "));
+    }
+    if let Some(a) = &summary.leave_as_found {
+        for line in a.lines() {
+            let _ = writeln!(s, "{line}");
+        }
     }
     if let Some(dir) = &info.report_dir {
         let _ = writeln!(

@@ -1,0 +1,1263 @@
+//! Leave as found: the parameters a session keeps, the snapshot taken before its first write, the plan that
+//! puts back what differs, and the journal that makes a killed run recoverable.
+//!
+//! The core is sans-IO: [`inventory`] lists what the profile knows that can be read and written back (and
+//! why the rest cannot), [`plan`] compares a read-back with the snapshot and gives the writes that restore
+//! it. The thin I/O around it ([`Keeper`]) sends those requests through a [`Link`] (the runner) and writes
+//! the [`Journal`] file, atomically and synced, before the first write is sent and as the run goes.
+
+use std::collections::{BTreeMap, BTreeSet};
+use std::io::Write as _;
+use std::path::{Path, PathBuf};
+
+use codec::{CanOpenAccess, FunctionCode, Mnemonic, Request, Response};
+use drives::profile::{Access, Profile, Table};
+use drives::tell::Written;
+use serde::{Deserialize, Serialize};
+
+use crate::capture::setting_params;
+use crate::cases::{Case, Outgoing, Step};
+use crate::runner::Safety;
+use crate::targets::TargetError;
+
+/// The exit code of a run (or `restore`) that could not leave the drive as found.
+pub const EXIT_NOT_RESTORED: u8 = 3;
+
+/// The journal file's format tag.
+pub const JOURNAL_FORMAT: &str = "modbus-harness-journal/1";
+
+/// Where a parameter lives.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(tag = "table", rename_all = "snake_case")]
+pub enum Place {
+    /// Holding registers `address .. address + width`.
+    Holding {
+        address: u16,
+        width: u8,
+    },
+    Coil {
+        address: u16,
+    },
+    /// A vendor setting read with FC 0x41 and written with FC 0x42.
+    Mnemonic {
+        mnemonic: String,
+    },
+    /// An FC 43 / MEI 0x0D object.
+    Object {
+        node: u8,
+        index: u16,
+        subindex: u8,
+        size: u16,
+    },
+}
+
+/// One parameter of the drive that a session reads before its first write and puts back.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Item {
+    /// Stable key: `holding:0x0010`, `coil:3`, `mnemonic:S1`, `object:68.0`.
+    pub key: String,
+    pub name: String,
+    #[serde(flatten)]
+    pub place: Place,
+}
+
+/// A parameter left out of the restore, with the reason.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Excluded {
+    pub key: String,
+    pub name: String,
+    pub reason: String,
+}
+
+/// A value as read from the drive.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Value {
+    Words(Vec<u16>),
+    Bit(bool),
+    /// A vendor setting's parameter string as FC 0x41 returned it.
+    Text(String),
+    /// An object's data bytes, little-endian.
+    Bytes(Vec<u8>),
+}
+
+impl Value {
+    /// The same value as another read, as the drive means it (a setting read back as `0, 1, 0` is `=0,1,0`).
+    pub fn same(&self, other: &Value) -> bool {
+        match (self, other) {
+            (Value::Text(a), Value::Text(b)) => {
+                setting_params(a.as_bytes()) == setting_params(b.as_bytes())
+            }
+            _ => self == other,
+        }
+    }
+}
+
+impl std::fmt::Display for Value {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Value::Words(w) => {
+                let hex: Vec<String> = w.iter().map(|w| format!("0x{w:04X}")).collect();
+                write!(f, "[{}]", hex.join(" "))
+            }
+            Value::Bit(b) => write!(f, "{}", u8::from(*b)),
+            Value::Text(t) => write!(f, "{t:?}"),
+            Value::Bytes(b) => write!(f, "{}", codec::hex_spaced(b)),
+        }
+    }
+}
+
+/// What a session keeps and what it leaves out.
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub struct Inventory {
+    pub items: Vec<Item>,
+    pub excluded: Vec<Excluded>,
+}
+
+fn gate(motion: bool, destructive: bool, safety: &Safety) -> Option<String> {
+    if motion && !safety.allow_motion {
+        return Some("motion: writing it back could move the motor (this run does not write it without --allow-motion)".into());
+    }
+    if destructive && !safety.allow_destructive {
+        return Some("destructive: not written back without --allow-destructive".into());
+    }
+    None
+}
+
+/// The parameters of `profile` a session reads before its first write and restores: holding registers,
+/// coils, readable vendor settings and objects that are read/write; the others with the reason they are left
+/// out (read-only, write-only, actions, motion or destructive without their flags, unconfirmed drafts,
+/// objects that mirror a register).
+pub fn inventory(profile: &Profile, safety: &Safety) -> Inventory {
+    let mut inv = Inventory::default();
+    let mut exclude = |key: String, name: &str, reason: String| {
+        inv.excluded.push(Excluded {
+            key,
+            name: name.to_string(),
+            reason,
+        })
+    };
+    let mut items = Vec::new();
+    for r in profile.registers.iter().map(|r| r.get_ref()) {
+        if r.table == Table::Input {
+            continue;
+        }
+        let key = format!("holding:0x{:04X}", r.address);
+        let reason = if !r.confirmed {
+            Some("unconfirmed draft entry: width and access unknown, never written".to_string())
+        } else {
+            match r.access {
+                Access::Ro => Some("read-only".to_string()),
+                Access::Wo => Some("write-only: cannot be read back".to_string()),
+                Access::Rw => gate(r.motion, r.destructive, safety),
+            }
+        };
+        match reason {
+            Some(reason) => exclude(key, &r.name, reason),
+            None => items.push(Item {
+                key,
+                name: r.name.clone(),
+                place: Place::Holding {
+                    address: r.address,
+                    width: r.width.max(1),
+                },
+            }),
+        }
+    }
+    for b in profile.coils.iter().map(|b| b.get_ref()) {
+        let key = format!("coil:{}", b.address);
+        let reason = if !b.confirmed {
+            Some("unconfirmed draft entry, never written".to_string())
+        } else {
+            match b.access {
+                Access::Ro => Some("read-only".to_string()),
+                Access::Wo => Some("write-only: cannot be read back".to_string()),
+                Access::Rw => gate(b.motion, false, safety),
+            }
+        };
+        match reason {
+            Some(reason) => exclude(key, &b.name, reason),
+            None => items.push(Item {
+                key,
+                name: b.name.clone(),
+                place: Place::Coil { address: b.address },
+            }),
+        }
+    }
+    for m in profile.mnemonics.iter().map(|m| m.get_ref()) {
+        let key = format!("mnemonic:{}", m.name);
+        let reason = match (m.read, m.write) {
+            (_, false) => Some("read-only".to_string()),
+            (false, true) => {
+                Some("an action or write-only setting: FC 0x41 cannot read it back".to_string())
+            }
+            (true, true) if Mnemonic::from_name(&m.name).is_none() => {
+                Some("not a wire mnemonic".to_string())
+            }
+            (true, true) => gate(m.motion, m.destructive, safety),
+        };
+        match reason {
+            Some(reason) => exclude(key, &m.name, reason),
+            None => items.push(Item {
+                key,
+                name: m.name.clone(),
+                place: Place::Mnemonic {
+                    mnemonic: m.name.clone(),
+                },
+            }),
+        }
+    }
+    for o in profile.objects.iter().map(|o| o.get_ref()) {
+        let key = format!("object:{}.{}", o.index, o.subindex);
+        let reason = match (o.access, o.register) {
+            (Access::Ro, _) => Some("read-only".to_string()),
+            (Access::Wo, _) => Some("write-only: cannot be read back".to_string()),
+            (Access::Rw, Some(r)) => Some(format!("mirrors holding register {r}, restored there")),
+            (Access::Rw, None) => gate(o.motion, false, safety),
+        };
+        match reason {
+            Some(reason) => exclude(key, &o.name, reason),
+            None => items.push(Item {
+                key,
+                name: o.name.clone(),
+                place: Place::Object {
+                    node: 0,
+                    index: o.index,
+                    subindex: o.subindex,
+                    size: o.ty.size() as u16,
+                },
+            }),
+        }
+    }
+    inv.items = items;
+    inv
+}
+
+/// The read that shows an item's value.
+pub fn read_request(item: &Item) -> Option<Request> {
+    Some(match &item.place {
+        Place::Holding { address, width } => Request::ReadHoldingRegisters {
+            address: *address,
+            quantity: u16::from(*width),
+        },
+        Place::Coil { address } => Request::ReadCoils {
+            address: *address,
+            quantity: 1,
+        },
+        Place::Mnemonic { mnemonic } => Request::VendorRead {
+            mnemonic: Mnemonic::from_name(mnemonic)?,
+        },
+        Place::Object {
+            node,
+            index,
+            subindex,
+            size,
+        } => Request::CanOpen(CanOpenAccess::read(*node, *index, *subindex, *size)),
+    })
+}
+
+/// The value an answer to [`read_request`] shows; `None` for an exception or an answer of another kind.
+pub fn value_of(item: &Item, resp: &Response) -> Option<Value> {
+    match (&item.place, resp) {
+        (Place::Holding { width, .. }, Response::ReadHoldingRegisters { values })
+            if values.len() == usize::from(*width) =>
+        {
+            Some(Value::Words(values.clone()))
+        }
+        (Place::Coil { .. }, Response::ReadCoils { data }) => {
+            Some(Value::Bit(data.first().is_some_and(|b| b & 1 == 1)))
+        }
+        (Place::Mnemonic { .. }, Response::VendorRead { params }) => {
+            Some(Value::Text(String::from_utf8_lossy(params).into_owned()))
+        }
+        (Place::Object { .. }, Response::CanOpen(a)) if !a.is_write() => {
+            Some(Value::Bytes(a.data.clone()))
+        }
+        _ => None,
+    }
+}
+
+/// The write that puts `value` back into `item`, with the function codes the profile has.
+pub fn write_request(item: &Item, value: &Value, profile: Option<&Profile>) -> Option<Request> {
+    let has = |fc: FunctionCode| profile.is_none_or(|p| p.function(fc).is_some());
+    Some(match (&item.place, value) {
+        (Place::Holding { address, .. }, Value::Words(w)) => {
+            if w.len() == 1 && !has(FunctionCode::WRITE_MULTIPLE_REGISTERS) {
+                Request::WriteSingleRegister {
+                    address: *address,
+                    value: w[0],
+                }
+            } else {
+                Request::WriteMultipleRegisters {
+                    address: *address,
+                    values: w.clone(),
+                }
+            }
+        }
+        (Place::Coil { address }, Value::Bit(on)) => {
+            if has(FunctionCode::WRITE_SINGLE_COIL) {
+                Request::WriteSingleCoil {
+                    address: *address,
+                    value: if *on { 0xFF00 } else { 0 },
+                }
+            } else {
+                Request::WriteMultipleCoils {
+                    address: *address,
+                    quantity: 1,
+                    data: vec![u8::from(*on)],
+                }
+            }
+        }
+        (Place::Mnemonic { mnemonic }, Value::Text(t)) => Request::VendorWrite {
+            mnemonic: Mnemonic::from_name(mnemonic)?,
+            params: setting_params(t.as_bytes()),
+        },
+        (
+            Place::Object {
+                node,
+                index,
+                subindex,
+                ..
+            },
+            Value::Bytes(b),
+        ) => Request::CanOpen(CanOpenAccess::write(*node, *index, *subindex, b.clone())),
+        _ => return None,
+    })
+}
+
+/// An item whose value differs from the snapshot: what it was and what it is now (`None`: unreadable now).
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Difference {
+    pub key: String,
+    pub name: String,
+    pub before: Value,
+    pub now: Option<Value>,
+}
+
+/// The restore plan: every item of `keys` whose read-back differs from the snapshot.
+pub fn plan(
+    items: &[Item],
+    snapshot: &BTreeMap<String, Value>,
+    read_back: &BTreeMap<String, Option<Value>>,
+) -> Vec<Difference> {
+    items
+        .iter()
+        .filter_map(|item| {
+            let before = snapshot.get(&item.key)?;
+            let now = read_back.get(&item.key)?;
+            let same = now.as_ref().is_some_and(|n| n.same(before));
+            (!same).then(|| Difference {
+                key: item.key.clone(),
+                name: item.name.clone(),
+                before: before.clone(),
+                now: now.clone(),
+            })
+        })
+        .collect()
+}
+
+/// Keys of the items a case can have changed.
+pub type Touched = BTreeSet<String>;
+
+/// What a case can have changed: items whose place its requests write, or everything when a request that
+/// may write cannot be decoded (malformed on purpose).
+pub fn touched(items: &[Item], case: &Case) -> BTreeSet<String> {
+    let mut pdus: Vec<&[u8]> = Vec::new();
+    for s in &case.steps {
+        if let Step::Exchange { send, .. } = s {
+            match send {
+                Outgoing::Pdu(p) => pdus.push(p),
+                Outgoing::PduToUnit { pdu, .. } | Outgoing::Mutated { pdu, .. } => pdus.push(pdu),
+                Outgoing::Batch(ps) => pdus.extend(ps.iter().map(Vec::as_slice)),
+                // A restore writes back what the case read before its own writes.
+                Outgoing::Restore { .. } | Outgoing::RestoreRead { .. } => {}
+            }
+        }
+    }
+    let mut keys = BTreeSet::new();
+    for pdu in pdus {
+        let written = match Request::decode(pdu) {
+            Ok(req) => Written::of(&req),
+            // Malformed on purpose: where its header says it writes, and as far as its bytes reach.
+            Err(_) if may_write(pdu) => match written_by_header(pdu) {
+                Some(w) => Some(w),
+                None => return items.iter().map(|i| i.key.clone()).collect(),
+            },
+            Err(_) => None,
+        };
+        if let Some(w) = written {
+            keys.extend(
+                items
+                    .iter()
+                    .filter(|i| covers(&w, i))
+                    .map(|i| i.key.clone()),
+            );
+        }
+    }
+    keys
+}
+
+/// What a write PDU the codec refuses can still have written: from its address (and quantity) fields, as
+/// far as the larger of its quantity and its data reach. `None` when even the address is cut off.
+fn written_by_header(pdu: &[u8]) -> Option<Written> {
+    let word = |i: usize| Some(u16::from_be_bytes([*pdu.get(i)?, *pdu.get(i + 1)?]));
+    let data = |from: usize| pdu.len().saturating_sub(from);
+    let clamp = |n: usize| n.min(usize::from(u16::MAX)) as u16;
+    Some(match pdu.first()? {
+        0x05 => Written::Coils {
+            address: word(1)?,
+            quantity: 1,
+        },
+        0x06 | 0x16 => Written::Holding {
+            address: word(1)?,
+            quantity: 1,
+        },
+        0x0F => Written::Coils {
+            address: word(1)?,
+            quantity: word(3)?.max(clamp(data(6) * 8)).max(1),
+        },
+        0x10 => Written::Holding {
+            address: word(1)?,
+            quantity: word(3)?.max(clamp(data(6) / 2)).max(1),
+        },
+        0x17 => Written::Holding {
+            address: word(5)?,
+            quantity: word(7)?.max(clamp(data(10) / 2)).max(1),
+        },
+        0x42 => Written::Setting(Mnemonic(pdu.get(1..5)?.try_into().ok()?)),
+        _ => return None,
+    })
+}
+
+/// A function code that writes (or an FC 43 that may), for bytes the codec does not take as a request.
+fn may_write(pdu: &[u8]) -> bool {
+    matches!(
+        pdu.first(),
+        Some(0x05 | 0x06 | 0x0F | 0x10 | 0x15 | 0x16 | 0x17 | 0x2B | 0x42)
+    )
+}
+
+fn covers(w: &Written, item: &Item) -> bool {
+    match (w, &item.place) {
+        (Written::Holding { address, quantity }, Place::Holding { address: a, width }) => {
+            let (s, e) = (
+                u32::from(*address),
+                u32::from(*address) + u32::from(*quantity),
+            );
+            let (ia, ie) = (u32::from(*a), u32::from(*a) + u32::from(*width));
+            s < ie && ia < e
+        }
+        (Written::Coils { address, quantity }, Place::Coil { address: a }) => {
+            *address <= *a && u32::from(*a) < u32::from(*address) + u32::from(*quantity)
+        }
+        (Written::Setting(m), Place::Mnemonic { mnemonic }) => {
+            Mnemonic::from_name(mnemonic).is_some_and(|x| x == *m)
+        }
+        (
+            Written::Object {
+                index, subindex, ..
+            },
+            Place::Object {
+                index: i,
+                subindex: s,
+                ..
+            },
+        ) => index == i && subindex == s,
+        (Written::Other, _) => true,
+        _ => false,
+    }
+}
+
+/// A parameter that could not be put back.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Unrestored {
+    pub key: String,
+    pub name: String,
+    pub before: Value,
+    /// What it reads after the restore (`None`: it could not be read).
+    pub after: Option<Value>,
+    pub reason: String,
+}
+
+/// The account of leaving the drive as found, for the reports.
+#[derive(Clone, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Account {
+    /// Parameters read before the first write.
+    pub kept: usize,
+    /// Parameters left out, with the reason.
+    pub excluded: Vec<Excluded>,
+    /// Writes sent to put parameters back (after cases and at the end).
+    pub restore_writes: usize,
+    /// Requests the snapshot and the restores sent in all (reads and writes).
+    #[serde(default)]
+    pub requests: usize,
+    /// Parameters that differ from the snapshot after the final restore.
+    pub unrestored: Vec<Unrestored>,
+    /// The snapshot was taken (a run with no write takes none).
+    pub snapshot_taken: bool,
+    /// The journal file, when one was written.
+    pub journal: Option<PathBuf>,
+}
+
+impl Account {
+    /// True when every kept parameter reads as before.
+    pub fn clean(&self) -> bool {
+        self.unrestored.is_empty()
+    }
+
+    /// Terminal lines: one for the account, one per unrestored parameter.
+    pub fn lines(&self) -> Vec<String> {
+        let mut out = Vec::new();
+        if !self.snapshot_taken {
+            out.push("leave as found: nothing was written, no snapshot needed".to_string());
+            return out;
+        }
+        out.push(format!(
+            "leave as found: {} parameter(s) kept, {} restore write(s) in {} request(s), {} left out (see the report), {}",
+            self.kept,
+            self.restore_writes,
+            self.requests,
+            self.excluded.len(),
+            if self.clean() {
+                "every kept parameter reads as before".to_string()
+            } else {
+                format!(
+                    "{} NOT RESTORED (exit code {EXIT_NOT_RESTORED})",
+                    self.unrestored.len()
+                )
+            }
+        ));
+        for u in &self.unrestored {
+            out.push(format!(
+                "  NOT RESTORED {} ({}): before {}, after {}: {}",
+                u.key,
+                u.name,
+                u.before,
+                u.after
+                    .as_ref()
+                    .map_or_else(|| "unreadable".to_string(), ToString::to_string),
+                u.reason
+            ));
+        }
+        if let Some(j) = &self.journal {
+            out.push(format!(
+                "  journal: {} (modbus-harness restore --journal {} puts the drive back)",
+                j.display(),
+                j.display()
+            ));
+        }
+        out
+    }
+}
+
+/// The state journal: the snapshot and where the run stands, so that a killed run can be undone.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Journal {
+    pub format: String,
+    pub target: String,
+    /// The profile the run used (a corpus name or a file path).
+    pub profile: String,
+    pub unit: u8,
+    pub started_unix_ms: u64,
+    pub updated_unix_ms: u64,
+    /// `running`, `restored` or `unrestored`.
+    pub state: String,
+    pub items: Vec<JournalItem>,
+    pub excluded: Vec<Excluded>,
+    pub unrestored: Vec<Unrestored>,
+    /// The last writing case restored after (the journal is brought up to date at most once a second, and
+    /// whenever what is left unrestored changes).
+    #[serde(default)]
+    pub last_case: Option<String>,
+}
+
+/// A kept parameter and its value before the first write.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct JournalItem {
+    #[serde(flatten)]
+    pub item: Item,
+    pub before: Value,
+}
+
+/// Why the journal could not be written or read.
+#[derive(Debug, thiserror::Error)]
+pub enum JournalError {
+    #[error("journal {}: {source}", path.display())]
+    Io {
+        path: PathBuf,
+        source: std::io::Error,
+    },
+    #[error("journal {}: {reason}", path.display())]
+    Format { path: PathBuf, reason: String },
+}
+
+impl Journal {
+    /// The snapshot as a map from key to value.
+    pub fn snapshot(&self) -> BTreeMap<String, Value> {
+        self.items
+            .iter()
+            .map(|j| (j.item.key.clone(), j.before.clone()))
+            .collect()
+    }
+
+    /// The kept items.
+    pub fn kept(&self) -> Vec<Item> {
+        self.items.iter().map(|j| j.item.clone()).collect()
+    }
+
+    /// Write the journal to `path` atomically: a temporary file beside it, synced, renamed over it, the
+    /// directory synced. A reader sees the old journal or the new one, never a part.
+    pub fn save(&self, path: &Path) -> Result<(), JournalError> {
+        let io = |source| JournalError::Io {
+            path: path.to_path_buf(),
+            source,
+        };
+        let dir = match path.parent() {
+            Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
+            _ => PathBuf::from("."),
+        };
+        std::fs::create_dir_all(&dir).map_err(io)?;
+        let name = path
+            .file_name()
+            .map_or_else(|| "journal".into(), |n| n.to_string_lossy().into_owned());
+        let tmp = dir.join(format!(".{name}.{}.tmp", std::process::id()));
+        let text = serde_json::to_vec_pretty(self).map_err(|e| JournalError::Format {
+            path: path.to_path_buf(),
+            reason: e.to_string(),
+        })?;
+        {
+            let mut f = std::fs::File::create(&tmp).map_err(io)?;
+            f.write_all(&text).map_err(io)?;
+            f.write_all(b"\n").map_err(io)?;
+            f.sync_all().map_err(io)?;
+        }
+        std::fs::rename(&tmp, path).map_err(io)?;
+        if let Ok(d) = std::fs::File::open(&dir) {
+            let _ = d.sync_all();
+        }
+        Ok(())
+    }
+
+    /// Read a journal file.
+    pub fn load(path: &Path) -> Result<Self, JournalError> {
+        let text = std::fs::read_to_string(path).map_err(|source| JournalError::Io {
+            path: path.to_path_buf(),
+            source,
+        })?;
+        let j: Journal = serde_json::from_str(&text).map_err(|e| JournalError::Format {
+            path: path.to_path_buf(),
+            reason: e.to_string(),
+        })?;
+        if j.format != JOURNAL_FORMAT {
+            return Err(JournalError::Format {
+                path: path.to_path_buf(),
+                reason: format!("format `{}`, expected `{JOURNAL_FORMAT}`", j.format),
+            });
+        }
+        Ok(j)
+    }
+}
+
+/// One request and its answer, the I/O the keeper needs (the runner provides it).
+pub trait Link {
+    /// Send `req`, return the decoded answer (`None`: silence, a close, or an undecodable answer).
+    fn transact(&mut self, req: &Request) -> Result<Option<Response>, TargetError>;
+}
+
+/// Requests in a row without an answer after which the target counts as gone: a restore against a dead
+/// drive stops there instead of waiting out a timeout for every parameter.
+pub const SILENT_IN_A_ROW: u32 = 5;
+
+/// A link that gives up after [`SILENT_IN_A_ROW`] requests without an answer.
+struct Bounded<'a> {
+    link: &'a mut dyn Link,
+    silent: u32,
+}
+
+impl Link for Bounded<'_> {
+    fn transact(&mut self, req: &Request) -> Result<Option<Response>, TargetError> {
+        let r = self.link.transact(req)?;
+        if r.is_some() {
+            self.silent = 0;
+        } else {
+            self.silent += 1;
+            if self.silent >= SILENT_IN_A_ROW {
+                return Err(TargetError::Io {
+                    target: "the target".into(),
+                    source: std::io::Error::new(
+                        std::io::ErrorKind::TimedOut,
+                        format!("no answer to {SILENT_IN_A_ROW} requests in a row"),
+                    ),
+                });
+            }
+        }
+        Ok(r)
+    }
+}
+
+/// A link that counts the requests sent through it.
+pub(crate) struct Counting<'a> {
+    pub(crate) link: &'a mut dyn Link,
+    pub(crate) sent: usize,
+}
+
+impl Link for Counting<'_> {
+    fn transact(&mut self, req: &Request) -> Result<Option<Response>, TargetError> {
+        self.sent += 1;
+        self.link.transact(req)
+    }
+}
+
+/// Read `items` through `link`: each key with its value, `None` where the drive gave none.
+pub fn read_all(
+    link: &mut dyn Link,
+    items: &[Item],
+) -> Result<BTreeMap<String, Option<Value>>, TargetError> {
+    let link = &mut Bounded { link, silent: 0 };
+    let mut out = BTreeMap::new();
+    for item in items {
+        let v = match read_request(item) {
+            Some(req) => link.transact(&req)?.and_then(|r| value_of(item, &r)),
+            None => None,
+        };
+        out.insert(item.key.clone(), v);
+    }
+    Ok(out)
+}
+
+/// Put back every item of `items` that differs from `snapshot` and verify by reading: the writes sent and
+/// the items still differing after. Bounded: two write-and-verify rounds.
+pub fn restore(
+    link: &mut dyn Link,
+    items: &[Item],
+    snapshot: &BTreeMap<String, Value>,
+    profile: Option<&Profile>,
+) -> Result<(usize, Vec<Unrestored>), TargetError> {
+    let link = &mut Bounded { link, silent: 0 };
+    let mut writes = 0;
+    let mut now = read_all(link, items)?;
+    let mut refused: BTreeMap<String, String> = BTreeMap::new();
+    for _round in 0..2 {
+        let diffs = plan(items, snapshot, &now);
+        if diffs.is_empty() {
+            break;
+        }
+        let mut changed = Vec::new();
+        for d in &diffs {
+            let Some(item) = items.iter().find(|i| i.key == d.key) else {
+                continue;
+            };
+            let Some(req) = write_request(item, &d.before, profile) else {
+                refused.insert(d.key.clone(), "no write puts this value back".into());
+                continue;
+            };
+            writes += 1;
+            match link.transact(&req)? {
+                Some(r) if !r.is_exception() => {
+                    refused.remove(&d.key);
+                }
+                Some(r) => {
+                    refused.insert(d.key.clone(), format!("the drive refused the write: {r:?}"));
+                }
+                None => {
+                    refused.insert(d.key.clone(), "no answer to the write".into());
+                }
+            }
+            changed.push(item.clone());
+        }
+        let again = read_all(link, &changed)?;
+        now.extend(again);
+    }
+    let left = plan(items, snapshot, &now)
+        .into_iter()
+        .map(|d| Unrestored {
+            reason: refused.get(&d.key).cloned().unwrap_or_else(|| {
+                "written back and acknowledged, but it does not read back as before".into()
+            }),
+            key: d.key,
+            name: d.name,
+            before: d.before,
+            after: d.now,
+        })
+        .collect();
+    Ok((writes, left))
+}
+
+/// The run's keeper of the snapshot: takes it before the first write, restores after each writing case
+/// and at the end, and keeps the journal up to date.
+pub struct Keeper {
+    inventory: Inventory,
+    snapshot: Option<BTreeMap<String, Value>>,
+    journal_path: Option<PathBuf>,
+    journal: Option<Journal>,
+    header: (String, String, u8),
+    account: Account,
+    /// Items a case left differing that the restore after it could not put back (retried at the end).
+    pending: BTreeMap<String, Unrestored>,
+    last_saved: Option<std::time::Instant>,
+}
+
+impl Keeper {
+    /// A keeper of `inventory` for a run of `profile_name` on `target` as `unit`, journaling to `journal`.
+    pub fn new(
+        inventory: Inventory,
+        target: String,
+        profile_name: String,
+        unit: u8,
+        journal: Option<PathBuf>,
+    ) -> Self {
+        let account = Account {
+            excluded: inventory.excluded.clone(),
+            journal: journal.clone(),
+            ..Account::default()
+        };
+        Self {
+            inventory,
+            snapshot: None,
+            journal_path: journal,
+            journal: None,
+            header: (target, profile_name, unit),
+            account,
+            pending: BTreeMap::new(),
+            last_saved: None,
+        }
+    }
+
+    /// The account so far.
+    pub fn account(&self) -> &Account {
+        &self.account
+    }
+
+    /// True once the snapshot is taken.
+    pub fn armed(&self) -> bool {
+        self.snapshot.is_some()
+    }
+
+    /// What `case` can change among the kept items.
+    pub fn touched(&self, case: &Case) -> BTreeSet<String> {
+        touched(&self.inventory.items, case)
+    }
+
+    /// Read every kept parameter and write the journal, before the first write. Items the drive does not
+    /// read are left out with the reason.
+    pub fn take_snapshot(&mut self, link: &mut dyn Link) -> Result<(), SnapshotError> {
+        let mut counting = Counting { link, sent: 0 };
+        let read = read_all(&mut counting, &self.inventory.items);
+        self.account.requests += counting.sent;
+        let read = read?;
+        let mut snapshot = BTreeMap::new();
+        let mut kept = Vec::new();
+        for item in std::mem::take(&mut self.inventory.items) {
+            match read.get(&item.key).cloned().flatten() {
+                Some(v) => {
+                    snapshot.insert(item.key.clone(), v);
+                    kept.push(item);
+                }
+                None => self.inventory.excluded.push(Excluded {
+                    key: item.key.clone(),
+                    name: item.name.clone(),
+                    reason: "the drive did not read it back before the first write".into(),
+                }),
+            }
+        }
+        self.inventory.items = kept;
+        self.account.kept = snapshot.len();
+        self.account.excluded = self.inventory.excluded.clone();
+        self.account.snapshot_taken = true;
+        let now = unix_ms();
+        self.journal = Some(Journal {
+            format: JOURNAL_FORMAT.into(),
+            target: self.header.0.clone(),
+            profile: self.header.1.clone(),
+            unit: self.header.2,
+            started_unix_ms: now,
+            updated_unix_ms: now,
+            state: "running".into(),
+            items: self
+                .inventory
+                .items
+                .iter()
+                .map(|i| JournalItem {
+                    item: i.clone(),
+                    before: snapshot[&i.key].clone(),
+                })
+                .collect(),
+            excluded: self.inventory.excluded.clone(),
+            unrestored: Vec::new(),
+            last_case: None,
+        });
+        self.snapshot = Some(snapshot);
+        self.save_journal()?;
+        Ok(())
+    }
+
+    fn save_journal(&mut self) -> Result<(), JournalError> {
+        if let (Some(j), Some(p)) = (self.journal.as_mut(), &self.journal_path) {
+            j.updated_unix_ms = unix_ms();
+            j.save(p)?;
+            self.last_saved = Some(std::time::Instant::now());
+        }
+        Ok(())
+    }
+
+    /// After a case: restore what it can have changed (`keys`) and verify.
+    pub fn after_case(
+        &mut self,
+        link: &mut dyn Link,
+        case_id: &str,
+        keys: &BTreeSet<String>,
+        profile: &Profile,
+    ) -> Result<(), TargetError> {
+        let Some(snapshot) = &self.snapshot else {
+            return Ok(());
+        };
+        let items: Vec<Item> = self
+            .inventory
+            .items
+            .iter()
+            .filter(|i| keys.contains(&i.key))
+            .cloned()
+            .collect();
+        if items.is_empty() {
+            return Ok(());
+        }
+        let mut counting = Counting { link, sent: 0 };
+        let restored = restore(&mut counting, &items, snapshot, Some(profile));
+        self.account.requests += counting.sent;
+        let (writes, left) = restored?;
+        self.account.restore_writes += writes;
+        let was: Vec<Unrestored> = self.pending.values().cloned().collect();
+        for i in &items {
+            self.pending.remove(&i.key);
+        }
+        for u in left {
+            self.pending.insert(u.key.clone(), u);
+        }
+        let now: Vec<Unrestored> = self.pending.values().cloned().collect();
+        let due = self
+            .last_saved
+            .is_none_or(|t| t.elapsed() >= std::time::Duration::from_secs(1));
+        if let Some(j) = self.journal.as_mut() {
+            j.last_case = Some(case_id.to_string());
+            if now != was || due {
+                j.unrestored = now;
+                let _ = self.save_journal();
+            }
+        }
+        Ok(())
+    }
+
+    /// At the end (or on an interrupt, an error, a dead target): restore everything that differs and verify.
+    /// When the target no longer answers, every item is reported unrestored and the journal stays `running`
+    /// for `restore --journal`.
+    pub fn finish(&mut self, link: &mut dyn Link, profile: &Profile) -> Account {
+        let Some(snapshot) = self.snapshot.clone() else {
+            return self.account.clone();
+        };
+        let mut counting = Counting { link, sent: 0 };
+        let restored = restore(
+            &mut counting,
+            &self.inventory.items,
+            &snapshot,
+            Some(profile),
+        );
+        self.account.requests += counting.sent;
+        match restored {
+            Ok((writes, left)) => {
+                self.account.restore_writes += writes;
+                self.account.unrestored = left;
+                if let Some(j) = self.journal.as_mut() {
+                    j.state = if self.account.unrestored.is_empty() {
+                        "restored"
+                    } else {
+                        "unrestored"
+                    }
+                    .into();
+                    j.unrestored = self.account.unrestored.clone();
+                }
+            }
+            Err(e) => {
+                self.account.unrestored = self
+                    .inventory
+                    .items
+                    .iter()
+                    .map(|i| Unrestored {
+                        key: i.key.clone(),
+                        name: i.name.clone(),
+                        before: snapshot[&i.key].clone(),
+                        after: None,
+                        reason: format!("the target stopped answering: {e}"),
+                    })
+                    .collect();
+            }
+        }
+        if let Err(e) = self.save_journal() {
+            self.account.unrestored.push(Unrestored {
+                key: "journal".into(),
+                name: "state journal".into(),
+                before: Value::Text(String::new()),
+                after: None,
+                reason: e.to_string(),
+            });
+        }
+        self.account.clone()
+    }
+}
+
+/// Why the snapshot could not be taken (the run stops before its first write).
+#[derive(Debug, thiserror::Error)]
+pub enum SnapshotError {
+    #[error(transparent)]
+    Target(#[from] TargetError),
+    #[error(transparent)]
+    Journal(#[from] JournalError),
+}
+
+fn unix_ms() -> u64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| d.as_millis() as u64)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn item(key: &str, place: Place) -> Item {
+        Item {
+            key: key.into(),
+            name: key.into(),
+            place,
+        }
+    }
+
+    #[test]
+    fn the_plan_lists_what_differs_and_settings_compare_as_the_drive_means_them() {
+        let items = vec![
+            item(
+                "h",
+                Place::Holding {
+                    address: 1,
+                    width: 2,
+                },
+            ),
+            item("c", Place::Coil { address: 0 }),
+            item(
+                "m",
+                Place::Mnemonic {
+                    mnemonic: "S1".into(),
+                },
+            ),
+        ];
+        let snap: BTreeMap<String, Value> = [
+            ("h".to_string(), Value::Words(vec![1, 2])),
+            ("c".to_string(), Value::Bit(true)),
+            ("m".to_string(), Value::Text("0, 1, 0".into())),
+        ]
+        .into();
+        let now: BTreeMap<String, Option<Value>> = [
+            ("h".to_string(), Some(Value::Words(vec![1, 3]))),
+            ("c".to_string(), None),
+            ("m".to_string(), Some(Value::Text("=0,1,0".into()))),
+        ]
+        .into();
+        let p = plan(&items, &snap, &now);
+        let keys: Vec<&str> = p.iter().map(|d| d.key.as_str()).collect();
+        assert_eq!(keys, ["h", "c"]);
+        assert_eq!(
+            write_request(&items[0], &p[0].before, None),
+            Some(Request::WriteMultipleRegisters {
+                address: 1,
+                values: vec![1, 2]
+            })
+        );
+    }
+
+    /// A drive of 16-bit holding registers in memory; `dead` stops it answering, `stuck` ignores writes to
+    /// one address.
+    struct Fake {
+        regs: BTreeMap<u16, u16>,
+        dead: bool,
+        stuck: Option<u16>,
+        requests: usize,
+    }
+
+    impl Link for Fake {
+        fn transact(&mut self, req: &Request) -> Result<Option<Response>, TargetError> {
+            self.requests += 1;
+            if self.dead {
+                return Ok(None);
+            }
+            Ok(match req {
+                Request::ReadHoldingRegisters { address, .. } => self
+                    .regs
+                    .get(address)
+                    .map(|v| Response::ReadHoldingRegisters { values: vec![*v] }),
+                Request::WriteMultipleRegisters { address, values } => {
+                    if self.stuck != Some(*address) {
+                        self.regs.insert(*address, values[0]);
+                    }
+                    Some(Response::WriteMultipleRegisters {
+                        address: *address,
+                        quantity: 1,
+                    })
+                }
+                _ => None,
+            })
+        }
+    }
+
+    fn keeper_of(fake: &mut Fake, journal: &Path) -> Keeper {
+        let items = (0..3u16)
+            .map(|a| {
+                item(
+                    &format!("holding:{a}"),
+                    Place::Holding {
+                        address: a,
+                        width: 1,
+                    },
+                )
+            })
+            .collect();
+        let mut k = Keeper::new(
+            Inventory {
+                items,
+                excluded: vec![],
+            },
+            "tcp://127.0.0.1:1".into(),
+            "generic".into(),
+            1,
+            Some(journal.to_path_buf()),
+        );
+        k.take_snapshot(fake).expect("snapshot");
+        k
+    }
+
+    #[test]
+    fn the_keeper_restores_verifies_and_journals_and_names_what_does_not_come_back() {
+        let dir = std::env::temp_dir().join(format!("mbh-keeper-{}", std::process::id()));
+        let journal = dir.join("journal.json");
+        let p = drives::corpus::Corpus::Embedded
+            .load("generic")
+            .expect("generic");
+        let mut fake = Fake {
+            regs: [(0, 10), (1, 11), (2, 12)].into(),
+            dead: false,
+            stuck: Some(2),
+            requests: 0,
+        };
+        let mut k = keeper_of(&mut fake, &journal);
+        let j = Journal::load(&journal).expect("journal before the first write");
+        assert_eq!(j.state, "running");
+        assert_eq!(j.snapshot().len(), 3);
+        fake.regs.insert(0, 99);
+        fake.regs.insert(2, 98);
+        fake.stuck = Some(2);
+        let a = k.finish(&mut fake, &p);
+        assert_eq!(fake.regs[&0], 10, "restored");
+        assert_eq!(a.unrestored.len(), 1, "{a:?}");
+        assert_eq!(a.unrestored[0].key, "holding:2");
+        assert_eq!(a.unrestored[0].before, Value::Words(vec![12]));
+        assert_eq!(a.unrestored[0].after, Some(Value::Words(vec![98])));
+        assert_eq!(
+            Journal::load(&journal).expect("journal").state,
+            "unrestored"
+        );
+
+        // A dead target: the keeper gives up after a bounded number of silent requests, and the journal
+        // stays `running` for `restore --journal`.
+        let mut fake = Fake {
+            regs: [(0, 10), (1, 11), (2, 12)].into(),
+            dead: false,
+            stuck: None,
+            requests: 0,
+        };
+        let mut k = keeper_of(&mut fake, &journal);
+        fake.dead = true;
+        fake.requests = 0;
+        let a = k.finish(&mut fake, &p);
+        assert_eq!(a.unrestored.len(), 3, "{a:?}");
+        assert!(
+            a.unrestored[0].reason.contains("stopped answering"),
+            "{a:?}"
+        );
+        assert!(
+            fake.requests <= SILENT_IN_A_ROW as usize,
+            "{}",
+            fake.requests
+        );
+        assert_eq!(Journal::load(&journal).expect("journal").state, "running");
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    #[test]
+    fn a_malformed_write_touches_what_its_header_and_bytes_reach_or_everything() {
+        let items: Vec<Item> = (0..8u16)
+            .map(|a| {
+                item(
+                    &format!("h{a}"),
+                    Place::Holding {
+                        address: a,
+                        width: 1,
+                    },
+                )
+            })
+            .collect();
+        let case = |pdu: Vec<u8>| Case {
+            id: "t".into(),
+            title: String::new(),
+            reference: String::new(),
+            requirement: String::new(),
+            level: crate::cases::Level::Must,
+            tags: vec![],
+            steps: vec![Step::Exchange {
+                send: Outgoing::Pdu(pdu),
+                compare: crate::cases::Compare::Exact,
+                capture: None,
+                note: String::new(),
+            }],
+            requirements: vec![],
+            freedoms: vec![],
+        };
+        // FC 16 at 2, quantity 1, byte count 4 (disagrees), two words of data: registers 2 and 3.
+        let t = touched(&items, &case(vec![0x10, 0, 2, 0, 1, 4, 0, 1, 0, 2]));
+        assert_eq!(t, ["h2", "h3"].map(String::from).into());
+        // FC 06 cut after its function code: the address is unknown, everything may have changed.
+        assert_eq!(touched(&items, &case(vec![0x06])).len(), 8);
+        // A read touches nothing.
+        assert!(touched(&items, &case(vec![0x03, 0, 0, 0, 8])).is_empty());
+    }
+
+    #[test]
+    fn motion_registers_are_kept_only_when_motion_is_allowed() {
+        let p = drives::corpus::Corpus::Embedded
+            .load("mdrive")
+            .expect("mdrive");
+        let safe = inventory(&p, &Safety::default());
+        let motion: Vec<u16> = p
+            .registers
+            .iter()
+            .map(|r| r.get_ref())
+            .filter(|r| r.motion)
+            .map(|r| r.address)
+            .collect();
+        assert!(!motion.is_empty());
+        assert!(safe.items.iter().all(
+            |i| !matches!(i.place, Place::Holding { address, .. } if motion.contains(&address))
+        ));
+        assert!(
+            safe.items
+                .iter()
+                .any(|i| matches!(i.place, Place::Mnemonic { .. }))
+        );
+        let allowed = inventory(
+            &p,
+            &Safety {
+                allow_motion: true,
+                allow_destructive: true,
+                ..Safety::default()
+            },
+        );
+        assert!(allowed.items.len() > safe.items.len());
+    }
+}

@@ -6,6 +6,7 @@ use std::process::ExitCode;
 use clap::{Parser, Subcommand};
 
 mod commands;
+mod exit;
 
 /// Conformance and fuzz test harness for Modbus drive implementations.
 #[derive(Parser)]

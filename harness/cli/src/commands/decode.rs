@@ -1,5 +1,6 @@
 //! `modbus-harness decode`: the tool a user reaches for when a drive sends something odd.
 
+use crate::exit::Exit;
 use std::process::ExitCode;
 
 use clap::Args;
@@ -33,7 +34,7 @@ pub fn run(args: &DecodeArgs) -> ExitCode {
         let mut s = String::new();
         if let Err(e) = std::io::Read::read_to_string(&mut std::io::stdin(), &mut s) {
             eprintln!("error: reading standard input: {e}");
-            return ExitCode::from(2);
+            return ExitCode::from(Exit::Unusable);
         }
         s
     } else {
@@ -43,11 +44,11 @@ pub fn run(args: &DecodeArgs) -> ExitCode {
         Ok(b) if !b.is_empty() => b,
         Ok(_) => {
             eprintln!("error: no bytes given (pass the frame as hex, e.g. 010307D000018487)");
-            return ExitCode::from(2);
+            return ExitCode::from(Exit::Unusable);
         }
         Err(e) => {
             eprintln!("error: not hex: {e} (input: {text:?})");
-            return ExitCode::from(2);
+            return ExitCode::from(Exit::Unusable);
         }
     };
     let framing = if args.tcp {
@@ -64,9 +65,9 @@ pub fn run(args: &DecodeArgs) -> ExitCode {
     };
     print!("{}", render(&bytes, framing, dir));
     if Lenient::decode(&bytes, framing, dir).is_valid() {
-        ExitCode::SUCCESS
+        ExitCode::from(Exit::Ok)
     } else {
-        ExitCode::from(1)
+        ExitCode::from(Exit::Failed)
     }
 }
 

@@ -1,5 +1,6 @@
 //! `modbus-harness fuzz`: a live fuzz campaign against an endpoint.
 
+use crate::exit::Exit;
 use std::io::IsTerminal;
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -92,7 +93,7 @@ fn parse_duration(s: &str) -> Option<Duration> {
 pub fn run(args: &FuzzArgs) -> ExitCode {
     let fail = |m: String| {
         eprintln!("error: {m}");
-        ExitCode::from(2)
+        ExitCode::from(Exit::Unusable)
     };
     let url = match TargetUrl::parse(&args.target) {
         Ok(u) => u,
@@ -200,9 +201,9 @@ pub fn run(args: &FuzzArgs) -> ExitCode {
                 o.findings.len()
             );
             if o.findings.is_empty() {
-                ExitCode::SUCCESS
+                ExitCode::from(Exit::Ok)
             } else {
-                ExitCode::from(1)
+                ExitCode::from(Exit::Failed)
             }
         }
         Err(e) => fail(e.to_string()),

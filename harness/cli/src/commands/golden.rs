@@ -1,5 +1,6 @@
 //! `modbus-harness golden`: check every golden frame of the manuals and list the errata.
 
+use crate::exit::Exit;
 use std::path::Path;
 use std::process::ExitCode;
 
@@ -15,11 +16,11 @@ pub fn run(dir: Option<&Path>, verbose: bool) -> ExitCode {
         Ok(f) if !f.is_empty() => f,
         Ok(_) => {
             eprintln!("error: no golden files in the {}", corpus.describe());
-            return ExitCode::from(2);
+            return ExitCode::from(Exit::Unusable);
         }
         Err(e) => {
             eprintln!("error: reading the {}: {e}", corpus.describe());
-            return ExitCode::from(2);
+            return ExitCode::from(Exit::Unusable);
         }
     };
     let (mut frames, mut errata, mut bad) = (0, 0, 0);
@@ -28,7 +29,7 @@ pub fn run(dir: Option<&Path>, verbose: bool) -> ExitCode {
             Ok(g) => g,
             Err(e) => {
                 eprintln!("error: {e}");
-                return ExitCode::from(2);
+                return ExitCode::from(Exit::Unusable);
             }
         };
         let order = corpus
@@ -83,9 +84,9 @@ pub fn run(dir: Option<&Path>, verbose: bool) -> ExitCode {
     }
     println!("\n{frames} golden frames, {errata} with corrected bytes, {bad} inconsistent");
     if bad == 0 {
-        ExitCode::SUCCESS
+        ExitCode::from(Exit::Ok)
     } else {
-        ExitCode::from(1)
+        ExitCode::from(Exit::Failed)
     }
 }
 
@@ -95,11 +96,11 @@ pub fn markdown(dir: Option<&Path>) -> ExitCode {
     match drives::golden::errata_markdown(&corpus) {
         Ok(md) => {
             print!("{md}");
-            ExitCode::SUCCESS
+            ExitCode::from(Exit::Ok)
         }
         Err(e) => {
             eprintln!("error: {e}");
-            ExitCode::from(2)
+            ExitCode::from(Exit::Unusable)
         }
     }
 }

@@ -1,5 +1,6 @@
 //! `modbus-harness probe`: what a target answers, beside its profile, or as a draft profile.
 
+use crate::exit::Exit;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 use std::time::Duration;
@@ -95,7 +96,7 @@ fn write_atomically(path: &Path, text: &str) -> std::io::Result<()> {
 pub fn run(args: &ProbeArgs) -> ExitCode {
     let fail = |m: String| {
         eprintln!("error: {m}");
-        ExitCode::from(2)
+        ExitCode::from(Exit::Unusable)
     };
     let url = match TargetUrl::parse(&args.target) {
         Ok(u) => u,
@@ -175,7 +176,7 @@ pub fn run(args: &ProbeArgs) -> ExitCode {
     };
     print!("{}", probe::render(&report, profile.as_ref(), scan));
     let Some(file) = &args.write_profile else {
-        return ExitCode::SUCCESS;
+        return ExitCode::from(Exit::Ok);
     };
     let text = draft::write(&report, &url, unit, scan);
     let loaded = match Profile::parse(&file.display().to_string(), &text) {
@@ -203,5 +204,5 @@ then: modbus-harness run --target {url} --profile {}",
         loaded.identification.len(),
         file.display()
     );
-    ExitCode::SUCCESS
+    ExitCode::from(Exit::Ok)
 }

@@ -1,5 +1,6 @@
 //! `modbus-harness restore`: put a drive back as a run's state journal found it (after a killed run).
 
+use crate::exit::Exit;
 use std::path::PathBuf;
 use std::process::ExitCode;
 use std::time::Duration;
@@ -38,7 +39,7 @@ pub fn run(args: &RestoreArgs) -> ExitCode {
         Ok(t) => t,
         Err(e) => {
             eprintln!("error: {e}");
-            return ExitCode::from(2);
+            return ExitCode::from(Exit::Unusable);
         }
     };
     let timing = Timing {
@@ -63,19 +64,19 @@ pub fn run(args: &RestoreArgs) -> ExitCode {
                     "RESULT: RESTORED ({} parameter(s) read as before)",
                     account.kept
                 );
-                ExitCode::SUCCESS
+                ExitCode::from(Exit::Ok)
             } else {
                 println!(
                     "RESULT: NOT RESTORED ({} of {} parameter(s))",
                     account.unrestored.len(),
                     account.kept
                 );
-                ExitCode::from(engine::restore::EXIT_NOT_RESTORED)
+                ExitCode::from(Exit::NotRestored)
             }
         }
         Err(e) => {
             eprintln!("error: {e}");
-            ExitCode::from(2)
+            ExitCode::from(Exit::Unusable)
         }
     }
 }

@@ -1,5 +1,6 @@
 //! `modbus-harness run`: the conformance run against a target.
 
+use crate::exit::Exit;
 use std::io::IsTerminal;
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -185,7 +186,7 @@ pub fn run(args: &RunArgs) -> ExitCode {
         Ok(u) => u,
         Err(e) => {
             eprintln!("error: {e}");
-            return ExitCode::from(2);
+            return ExitCode::from(Exit::Unusable);
         }
     };
     let mut faults = FaultSet::none();
@@ -196,7 +197,7 @@ pub fn run(args: &RunArgs) -> ExitCode {
             }
             Err(e) => {
                 eprintln!("error: {e}");
-                return ExitCode::from(2);
+                return ExitCode::from(Exit::Unusable);
             }
         }
     }
@@ -204,7 +205,7 @@ pub fn run(args: &RunArgs) -> ExitCode {
         && !(r > 0.0 && r.is_finite())
     {
         eprintln!("error: --max-rate must be a positive number of requests per second");
-        return ExitCode::from(2);
+        return ExitCode::from(Exit::Unusable);
     }
     let mut opts = Options::new(url);
     opts.profile = args.profile.clone();
@@ -346,22 +347,22 @@ pub fn run(args: &RunArgs) -> ExitCode {
             }
             println!("{}", engine::reports::terminal_summary(&o.summary, &o.info));
             if o.not_restored() > 0 {
-                ExitCode::from(engine::restore::EXIT_NOT_RESTORED)
+                ExitCode::from(Exit::NotRestored)
             } else if o.summary.count(Verdict::Fail) > 0 || drift {
-                ExitCode::from(1)
+                ExitCode::from(Exit::Failed)
             } else if o.summary.interrupted {
-                ExitCode::from(2)
+                ExitCode::from(Exit::Unusable)
             } else {
-                ExitCode::SUCCESS
+                ExitCode::from(Exit::Ok)
             }
         }
         Err(e @ session::SessionError::LeftChanged { .. }) => {
             eprintln!("error: {e}");
-            ExitCode::from(engine::restore::EXIT_NOT_RESTORED)
+            ExitCode::from(Exit::NotRestored)
         }
         Err(e) => {
             eprintln!("error: {e}");
-            ExitCode::from(2)
+            ExitCode::from(Exit::Unusable)
         }
     }
 }
@@ -381,7 +382,7 @@ fn list_requirements(opts: &Options) -> ExitCode {
         Ok(x) => x,
         Err(e) => {
             eprintln!("error: {e}");
-            return ExitCode::from(2);
+            return ExitCode::from(Exit::Unusable);
         }
     };
     let mut cited: std::collections::BTreeMap<&str, Vec<&str>> = std::collections::BTreeMap::new();
@@ -459,7 +460,7 @@ fn list_requirements(opts: &Options) -> ExitCode {
             f.title
         );
     }
-    ExitCode::SUCCESS
+    ExitCode::from(Exit::Ok)
 }
 
 fn list(opts: &Options, dry: bool) -> ExitCode {
@@ -468,14 +469,14 @@ fn list(opts: &Options, dry: bool) -> ExitCode {
         Ok(p) => p,
         Err(e) => {
             eprintln!("error: {e}");
-            return ExitCode::from(2);
+            return ExitCode::from(Exit::Unusable);
         }
     };
     let planned = match session::plan(opts, &profile) {
         Ok(p) => p,
         Err(e) => {
             eprintln!("error: {e}");
-            return ExitCode::from(2);
+            return ExitCode::from(Exit::Unusable);
         }
     };
     let (mut run, mut skip) = (0, 0);
@@ -521,5 +522,5 @@ fn list(opts: &Options, dry: bool) -> ExitCode {
     } else {
         println!("\n{} cases", planned.len());
     }
-    ExitCode::SUCCESS
+    ExitCode::from(Exit::Ok)
 }

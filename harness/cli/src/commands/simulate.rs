@@ -1,5 +1,6 @@
 //! `modbus-harness simulate`: serve a reference drive over Modbus/TCP, RTU over TCP and/or a serial line.
 
+use crate::exit::Exit;
 use std::io::Write;
 use std::net::SocketAddr;
 use std::path::PathBuf;
@@ -153,13 +154,13 @@ pub fn run(args: SimulateArgs) -> ExitCode {
         for (_, name, what) in Fault::ALL {
             println!("{name:width$}  {what}");
         }
-        return ExitCode::SUCCESS;
+        return ExitCode::from(Exit::Ok);
     }
     let (station, config, summary) = match prepare(&args) {
         Ok(x) => x,
         Err(msg) => {
             eprintln!("error: {msg}");
-            return ExitCode::from(2);
+            return ExitCode::from(Exit::Unusable);
         }
     };
     // Two workers at most: the machines this runs on have two cores, and a client usually shares them.
@@ -172,7 +173,7 @@ pub fn run(args: SimulateArgs) -> ExitCode {
         Ok(rt) => rt,
         Err(e) => {
             eprintln!("error: cannot start the runtime: {e}");
-            return ExitCode::FAILURE;
+            return ExitCode::from(Exit::Failed);
         }
     };
     rt.block_on(serve(station, config, summary))
@@ -184,7 +185,7 @@ async fn serve(station: Station, config: ServerConfig, summary: String) -> ExitC
         Ok(h) => h,
         Err(e) => {
             eprintln!("error: {e}");
-            return ExitCode::from(2);
+            return ExitCode::from(Exit::Unusable);
         }
     };
     eprintln!("simulate: {summary}");
@@ -192,12 +193,12 @@ async fn serve(station: Station, config: ServerConfig, summary: String) -> ExitC
     let code = tokio::select! {
         signal = signals.recv() => {
             eprintln!("simulate: {signal}, stopping");
-            ExitCode::SUCCESS
+            ExitCode::from(Exit::Ok)
         }
         // A simulator that silently lost its serial line would look alive to whoever started it.
         _ = handle.endpoint_stopped() => {
             eprintln!("simulate: an endpoint stopped serving (error above), stopping");
-            ExitCode::FAILURE
+            ExitCode::from(Exit::Failed)
         }
     };
     if tokio::time::timeout(SHUTDOWN_GRACE, handle.shutdown())

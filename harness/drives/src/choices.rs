@@ -204,6 +204,24 @@ impl Choices {
         Ok((id.to_string(), chosen))
     }
 
+    /// Parse every `FREEDOM=VALUE` of `specs` for `profile` (see [`Choices::parse_one`]) into choices that
+    /// keep each freedom's definition.
+    pub fn parse_all<S: AsRef<str>>(
+        specs: &[S],
+        requirements: &Requirements,
+        profile: &str,
+    ) -> Result<Self, ChoiceError> {
+        let mut choices = Self::reference();
+        for spec in specs {
+            let (id, value) = Self::parse_one(spec.as_ref(), requirements, profile)?;
+            match requirements.freedom(&id) {
+                Some(f) => choices.choose(f, value),
+                None => choices.set(id, value),
+            }
+        }
+        Ok(choices)
+    }
+
     /// Set `freedom` to `value` (the value the data lists, see [`Choices::parse_one`]).
     pub fn set(&mut self, freedom: impl Into<String>, value: FreedomValue) {
         self.values.insert(freedom.into(), value);

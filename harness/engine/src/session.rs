@@ -430,21 +430,17 @@ pub fn choices_of(
     profile: &Profile,
     requirements: &Requirements,
 ) -> Result<drives::Choices, SessionError> {
-    let mut choices = drives::Choices::reference();
     if opts.choose.is_empty() {
-        return Ok(choices);
+        return Ok(drives::Choices::reference());
     }
     if !opts.target.is_sim() {
         return Err(SessionError::ChoicesNeedSim);
     }
-    for spec in &opts.choose {
-        let (id, value) = drives::Choices::parse_one(spec, requirements, &profile.device.id)?;
-        match requirements.freedom(&id) {
-            Some(f) => choices.choose(f, value),
-            None => choices.set(id, value),
-        }
-    }
-    Ok(choices)
+    Ok(drives::Choices::parse_all(
+        &opts.choose,
+        requirements,
+        &profile.device.id,
+    )?)
 }
 
 /// The requirements, freedoms and citations of the run's corpus; a corpus directory without them (a user's

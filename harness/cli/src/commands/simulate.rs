@@ -329,18 +329,13 @@ fn prepare(args: &SimulateArgs) -> Result<(Station, ServerConfig, String), Strin
             .collect::<Vec<_>>()
             .join(", ")
     };
-    let mut choices = drives::Choices::reference();
-    if !args.choose.is_empty() {
+    let choices = if args.choose.is_empty() {
+        drives::Choices::reference()
+    } else {
         let requirements = corpus.requirements().map_err(|e| e.to_string())?;
-        for spec in &args.choose {
-            let (id, value) = drives::Choices::parse_one(spec, &requirements, &profile.device.id)
-                .map_err(|e| e.to_string())?;
-            match requirements.freedom(&id) {
-                Some(f) => choices.choose(f, value),
-                None => choices.set(id, value),
-            }
-        }
-    }
+        drives::Choices::parse_all(&args.choose, &requirements, &profile.device.id)
+            .map_err(|e| e.to_string())?
+    };
     let summary = format!(
         "profile {} ({}), unit {unit}, faults: {fault_names}, choices: {choices}",
         profile.device.id, profile.device.name

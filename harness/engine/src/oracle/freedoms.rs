@@ -147,16 +147,6 @@ fn shown_named(f: &Freedom, about: impl Into<String>, value: &str) -> Shown {
 }
 
 /// "exception-02" → 0x02.
-fn exception_value(v: &FreedomValue) -> Option<ExceptionCode> {
-    match v {
-        FreedomValue::Text(t) => t
-            .strip_prefix("exception-")
-            .and_then(|h| u8::from_str_radix(h, 16).ok())
-            .map(ExceptionCode),
-        FreedomValue::Int(_) => None,
-    }
-}
-
 fn exception_of(r: &Response) -> Option<(FunctionCode, ExceptionCode)> {
     match r {
         Response::Exception { function, code } => Some((*function, *code)),
@@ -382,7 +372,10 @@ fn optional(
         }
         Some(o) => {
             if let Some((ofn, code)) = exception_of(o) {
-                let absent = f.values.iter().any(|v| exception_value(v) == Some(code));
+                let absent = f
+                    .values
+                    .iter()
+                    .any(|v| drives::Choices::exception_value(v) == Some(code));
                 if absent && ofn.without_exception_bit() == fc && expected != observed {
                     out.push(Alternative {
                         answer: Some(Response::exception(fc, code)),

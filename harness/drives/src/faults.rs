@@ -41,6 +41,7 @@ pub enum Fault {
     MaskWriteWrong,
     FifoOffByOne,
     UndeclaredFunctionServed,
+    BitPaddingOnes,
 }
 
 impl Fault {
@@ -210,6 +211,11 @@ impl Fault {
             Fault::UndeclaredFunctionServed,
             "undeclared-function-served",
             "the data-model functions (FC 01-06, 0F, 10, 16, 17) are served even where the profile does not declare them (FC 06 on an MDrive)",
+        ),
+        (
+            Fault::BitPaddingOnes,
+            "bit-padding-ones",
+            "FC 01/02: the unused high bits of the last data byte are sent as 1 instead of 0",
         ),
     ];
 

@@ -658,7 +658,12 @@ impl Station {
                 }
                 _ => {
                     self.model.advance(now);
-                    self.model.handle(now, unit, &req)
+                    let resp = self.model.handle(now, unit, &req);
+                    if self.faults.has(Fault::BitPaddingOnes) {
+                        resp.map(|r| pad_with_ones(&req, r))
+                    } else {
+                        resp
+                    }
                 }
             }
         };
@@ -829,5 +834,30 @@ fn diag_data_ok(d: DiagCounter, data: &[u8]) -> bool {
         DiagCounter::Restart => data == [0x00, 0x00] || data == [0xFF, 0x00],
         DiagCounter::AsciiDelimiter => matches!(data, [_, 0x00]),
         _ => data == [0x00, 0x00],
+    }
+}
+
+/// `Fault::BitPaddingOnes`: the bits of an FC 01/02 answer past the quantity asked for set to 1 (spec 6.1,
+/// 6.2: they are padded with zeros).
+fn pad_with_ones(req: &Request, resp: Response) -> Response {
+    let quantity = match req {
+        Request::ReadCoils { quantity, .. } | Request::ReadDiscreteInputs { quantity, .. } => {
+            *quantity
+        }
+        _ => return resp,
+    };
+    let used = quantity % 8;
+    let pad = |mut data: Vec<u8>| {
+        if let Some(last) = data.last_mut()
+            && used != 0
+        {
+            *last |= 0xFFu8 << used;
+        }
+        data
+    };
+    match resp {
+        Response::ReadCoils { data } => Response::ReadCoils { data: pad(data) },
+        Response::ReadDiscreteInputs { data } => Response::ReadDiscreteInputs { data: pad(data) },
+        other => other,
     }
 }

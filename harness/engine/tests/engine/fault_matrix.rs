@@ -129,6 +129,22 @@ const WITNESSES: &[(&str, &str, &str)] = &[
         "sim:sd2x",
         "spec/app-7/unsupported-function/fc-0x16",
     ),
+    // FC 01/02 padding bits (issue 15, item 1).
+    (
+        "bit-padding-ones",
+        "sim:generic",
+        "spec/app-6.1/padding-bits-zero",
+    ),
+    (
+        "bit-padding-ones",
+        "sim:generic?transport=rtu",
+        "spec/app-6.2/padding-bits-zero",
+    ),
+    (
+        "bit-padding-ones",
+        "sim:lmd",
+        "spec/app-6.2/padding-bits-zero",
+    ),
     // The public function code set of the generic profile (issue 15, item 3), over both of its transports
     // where the function works on both; listen only mode and the counts after a restart only on a serial line.
     (

@@ -17,6 +17,7 @@ pub(super) fn cases(cx: &mut Ctx) {
     byte_count_mismatches(cx);
     truncated_pdus(cx);
     write_coil_illegal_value(cx);
+    bit_padding(cx);
     super::public_fc::cases(cx);
 }
 
@@ -305,6 +306,90 @@ fn write_coil_illegal_value(cx: &mut Ctx) {
             "A Write Single Coil value other than 0xFF00 or 0x0000 is answered with exception 03 (Illegal Data Value).",
             vec![Tag::Write],
             steps,
+        );
+    }
+}
+
+/// FC 01/02 answers to a quantity that is not a multiple of 8: the unused bits of the last byte are 0. Where the
+/// coils can be written (FC 0F, no I/O-point setup), the eight coils read are switched on first, so that a drive
+/// that fills the padding with the following coils' states shows it too; put back after.
+fn bit_padding(cx: &mut Ctx) {
+    let p = cx.p;
+    let coils: Vec<u16> = p.coils.iter().map(|c| c.get_ref().address).collect();
+    let inputs: Vec<u16> = p
+        .discrete_inputs
+        .iter()
+        .map(|c| c.get_ref().address)
+        .collect();
+    for (fc, addrs, what, section) in [
+        (0x01u8, coils, "coils", "6.1"),
+        (0x02, inputs, "discrete inputs", "6.2"),
+    ] {
+        if !cx.supports(fc) || addrs.len() < 3 {
+            continue;
+        }
+        let first = addrs[0];
+        // The longest run of consecutive addresses from the first, at most 8.
+        let run = addrs
+            .iter()
+            .zip(first..)
+            .take_while(|(a, b)| **a == *b)
+            .count()
+            .min(8) as u16;
+        if run < 3 {
+            continue;
+        }
+        let quantity = if run == 8 { 5 } else { run - 1 };
+        let req = if fc == 0x01 {
+            Request::ReadCoils {
+                address: first,
+                quantity,
+            }
+        } else {
+            Request::ReadDiscreteInputs {
+                address: first,
+                quantity,
+            }
+        };
+        let settable = fc == 0x01
+            && IoPoints::of(p).is_none()
+            && cx.supports(FunctionCode::WRITE_MULTIPLE_COILS)
+            && p.coils
+                .iter()
+                .map(|c| c.get_ref())
+                .filter(|c| c.address >= first && c.address < first + run)
+                .all(|c| c.access.writable());
+        let mut a = Around::new();
+        let mut body = Vec::new();
+        let mut tags = vec![];
+        if settable {
+            a.keep_coils(cx, first, run);
+            body.push(exchange(
+                Outgoing::Pdu(pdu(&Request::WriteMultipleCoils {
+                    address: first,
+                    quantity: run,
+                    data: vec![(0xFFu16 >> (8 - run)) as u8],
+                })),
+                Compare::Exact,
+                format!("coils {first}..+{run} on"),
+            ));
+            tags.push(Tag::Write);
+        }
+        body.push(exchange(
+            Outgoing::Pdu(pdu(&req)),
+            Compare::Exact,
+            format!(
+                "{quantity} {what}: the high {} bits of the byte are 0",
+                8 - quantity
+            ),
+        ));
+        cx.push(
+            format!("spec/app-{section}/padding-bits-zero"),
+            format!("FC 0x{fc:02X} of {quantity} {what}: padding bits 0"),
+            format!("{APP}, section {section}"),
+            "If the returned quantity is not a multiple of eight, the remaining bits in the final data byte are padded with zeros (toward the high order end of the byte).",
+            tags,
+            a.wrap(body),
         );
     }
 }

@@ -42,6 +42,7 @@ pub enum Fault {
     FifoOffByOne,
     UndeclaredFunctionServed,
     BitPaddingOnes,
+    PartialWrite,
 }
 
 impl Fault {
@@ -216,6 +217,11 @@ impl Fault {
             Fault::BitPaddingOnes,
             "bit-padding-ones",
             "FC 01/02: the unused high bits of the last data byte are sent as 1 instead of 0",
+        ),
+        (
+            Fault::PartialWrite,
+            "partial-write",
+            "FC 16: a rejected write still writes its registers one by one up to the first one rejected (the exception is sent)",
         ),
     ];
 

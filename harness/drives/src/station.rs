@@ -659,6 +659,26 @@ impl Station {
                 _ => {
                     self.model.advance(now);
                     let resp = self.model.handle(now, unit, &req);
+                    if self.faults.has(Fault::PartialWrite)
+                        && resp.as_ref().is_some_and(|r| r.is_exception())
+                        && let Request::WriteMultipleRegisters { address, values } = &req
+                    {
+                        // Register by register, as firmware that loops over the values does, up to the
+                        // first one refused.
+                        for (i, v) in values.iter().enumerate() {
+                            let one = Request::WriteMultipleRegisters {
+                                address: address.wrapping_add(i as u16),
+                                values: vec![*v],
+                            };
+                            if self
+                                .model
+                                .handle(now, unit, &one)
+                                .is_none_or(|r| r.is_exception())
+                            {
+                                break;
+                            }
+                        }
+                    }
                     if self.faults.has(Fault::BitPaddingOnes) {
                         resp.map(|r| pad_with_ones(&req, r))
                     } else {

@@ -145,6 +145,22 @@ const WITNESSES: &[(&str, &str, &str)] = &[
         "sim:lmd",
         "spec/app-6.2/padding-bits-zero",
     ),
+    // FC 16 mixing written and refused registers writes nothing (issue 15, item 1).
+    (
+        "partial-write",
+        "sim:generic",
+        "spec/app-6.12/no-partial-write/past-the-map",
+    ),
+    (
+        "partial-write",
+        "sim:generic?transport=rtu",
+        "spec/app-6.12/no-partial-write/past-the-map",
+    ),
+    (
+        "partial-write",
+        "sim:sd2x",
+        "spec/app-6.12/no-partial-write/past-the-map",
+    ),
     // The public function code set of the generic profile (issue 15, item 3), over both of its transports
     // where the function works on both; listen only mode and the counts after a restart only on a serial line.
     (

@@ -18,6 +18,7 @@ pub(super) fn cases(cx: &mut Ctx) {
     truncated_pdus(cx);
     write_coil_illegal_value(cx);
     bit_padding(cx);
+    no_partial_write(cx);
     super::public_fc::cases(cx);
 }
 
@@ -392,6 +393,76 @@ fn bit_padding(cx: &mut Ctx) {
             a.wrap(body),
         );
     }
+}
+
+/// FC 16 over the last two writable holding registers and the address after them, past the map: the request
+/// is refused (exception 02) and writes nothing, read back. The two registers are given known values first
+/// and put back after.
+fn no_partial_write(cx: &mut Ctx) {
+    let p = cx.p;
+    if !cx.supports(FunctionCode::WRITE_MULTIPLE_REGISTERS)
+        || !cx.supports(FunctionCode::READ_HOLDING_REGISTERS)
+    {
+        return;
+    }
+    if p.draft.is_some() {
+        return;
+    }
+    let Some(end) = beyond_map(p) else {
+        return;
+    };
+    let writable = |a: u16| {
+        p.register_at(a, false).is_some_and(|r| {
+            r.width == 1
+                && r.address == a
+                && r.table != Table::Input
+                && r.access == drives::profile::Access::Rw
+                && r.min.is_none_or(|m| m <= 0x1111)
+                && r.max.is_none_or(|m| m >= 0x2222)
+        })
+    };
+    let (Some(a0), Some(a1)) = (end.checked_sub(2), end.checked_sub(1)) else {
+        return;
+    };
+    if !writable(a0) || !writable(a1) {
+        return;
+    }
+    let mut a = Around::new();
+    a.keep_registers(cx, a0, 2);
+    let steps = a.wrap(vec![
+        exchange(
+            Outgoing::Pdu(pdu(&Request::WriteMultipleRegisters {
+                address: a0,
+                values: vec![0x1111, 0x2222],
+            })),
+            Compare::Exact,
+            format!("registers 0x{a0:04X}, 0x{a1:04X} set to 0x1111, 0x2222"),
+        ),
+        exchange(
+            Outgoing::Pdu(pdu(&Request::WriteMultipleRegisters {
+                address: a0,
+                values: vec![0xAAAA, 0xBBBB, 0xCCCC],
+            })),
+            Compare::Exact,
+            format!("3 registers from 0x{a0:04X}, the last past the map: refused"),
+        ),
+        exchange(
+            Outgoing::Pdu(pdu(&Request::ReadHoldingRegisters {
+                address: a0,
+                quantity: 2,
+            })),
+            Compare::Exact,
+            "read back: still 0x1111, 0x2222",
+        ),
+    ]);
+    cx.push(
+        "spec/app-6.12/no-partial-write/past-the-map".into(),
+        "FC 16 whose last register is past the map writes nothing",
+        format!("{APP}, section 6.12 (state diagram) and 4.5"),
+        "A Write Multiple Registers request whose address range runs out of the map is answered with exception 02 (Illegal Data Address) and not processed: none of its registers is written.",
+        vec![Tag::Write],
+        steps,
+    );
 }
 
 /// The section of the application protocol specification that describes function `fc` (6.1 Read Coils ...

@@ -43,6 +43,7 @@ pub enum Fault {
     UndeclaredFunctionServed,
     BitPaddingOnes,
     PartialWrite,
+    ReadBeforeWrite,
 }
 
 impl Fault {
@@ -222,6 +223,11 @@ impl Fault {
             Fault::PartialWrite,
             "partial-write",
             "FC 16: a rejected write still writes its registers one by one up to the first one rejected (the exception is sent)",
+        ),
+        (
+            Fault::ReadBeforeWrite,
+            "read-before-write",
+            "FC 23: the registers are read before the write is performed (the answer holds the old values)",
         ),
     ];
 

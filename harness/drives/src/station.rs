@@ -658,7 +658,29 @@ impl Station {
                 }
                 _ => {
                     self.model.advance(now);
-                    let resp = self.model.handle(now, unit, &req);
+                    let before = match &req {
+                        Request::ReadWriteMultipleRegisters {
+                            read_address,
+                            read_quantity,
+                            ..
+                        } if self.faults.has(Fault::ReadBeforeWrite) => self.model.handle(
+                            now,
+                            unit,
+                            &Request::ReadHoldingRegisters {
+                                address: *read_address,
+                                quantity: *read_quantity,
+                            },
+                        ),
+                        _ => None,
+                    };
+                    let mut resp = self.model.handle(now, unit, &req);
+                    if let (
+                        Some(Response::ReadHoldingRegisters { values: old }),
+                        Some(Response::ReadWriteMultipleRegisters { values }),
+                    ) = (before, resp.as_mut())
+                    {
+                        *values = old;
+                    }
                     if self.faults.has(Fault::PartialWrite)
                         && resp.as_ref().is_some_and(|r| r.is_exception())
                         && let Request::WriteMultipleRegisters { address, values } = &req

@@ -161,6 +161,22 @@ const WITNESSES: &[(&str, &str, &str)] = &[
         "sim:sd2x",
         "spec/app-6.12/no-partial-write/past-the-map",
     ),
+    // FC 23 writes before it reads (issue 15, item 1).
+    (
+        "read-before-write",
+        "sim:generic",
+        "spec/app-6.17/write-before-read/0x0000",
+    ),
+    (
+        "read-before-write",
+        "sim:generic?transport=rtu",
+        "spec/app-6.17/write-before-read/0x0000",
+    ),
+    (
+        "read-before-write",
+        "sim:sd2x",
+        "spec/app-6.17/write-before-read/0x0BBA",
+    ),
     // The public function code set of the generic profile (issue 15, item 3), over both of its transports
     // where the function works on both; listen only mode and the counts after a restart only on a serial line.
     (

@@ -19,6 +19,7 @@ pub(super) fn cases(cx: &mut Ctx) {
     write_coil_illegal_value(cx);
     bit_padding(cx);
     no_partial_write(cx);
+    write_before_read(cx);
     super::public_fc::cases(cx);
 }
 
@@ -417,6 +418,8 @@ fn no_partial_write(cx: &mut Ctx) {
                 && r.address == a
                 && r.table != Table::Input
                 && r.access == drives::profile::Access::Rw
+                && !r.motion
+                && !r.destructive
                 && r.min.is_none_or(|m| m <= 0x1111)
                 && r.max.is_none_or(|m| m >= 0x2222)
         })
@@ -460,6 +463,60 @@ fn no_partial_write(cx: &mut Ctx) {
         "FC 16 whose last register is past the map writes nothing",
         format!("{APP}, section 6.12 (state diagram) and 4.5"),
         "A Write Multiple Registers request whose address range runs out of the map is answered with exception 02 (Illegal Data Address) and not processed: none of its registers is written.",
+        vec![Tag::Write],
+        steps,
+    );
+}
+
+/// FC 23 reading and writing the same register: the write is performed before the read, so the answer holds
+/// the value written (spec 6.17). The register is set to a known value first and put back after.
+fn write_before_read(cx: &mut Ctx) {
+    let p = cx.p;
+    if !cx.supports(FunctionCode::READ_WRITE_MULTIPLE_REGISTERS) || !cx.can_write_registers() {
+        return;
+    }
+    let Some(address) = p
+        .registers
+        .iter()
+        .map(|r| r.get_ref())
+        .find(|r| {
+            r.width == 1
+                && r.confirmed
+                && r.table != Table::Input
+                && r.access == drives::profile::Access::Rw
+                && !r.motion
+                && !r.destructive
+                && r.min.is_none_or(|m| m <= 0x1111)
+                && r.max.is_none_or(|m| m >= 0x2222)
+        })
+        .map(|r| r.address)
+    else {
+        return;
+    };
+    let mut a = Around::new();
+    a.keep_registers(cx, address, 1);
+    let steps = a.wrap(vec![
+        exchange(
+            Outgoing::Pdu(pdu(&cx.write_request(address, vec![0x1111]))),
+            Compare::Exact,
+            format!("register 0x{address:04X} set to 0x1111"),
+        ),
+        exchange(
+            Outgoing::Pdu(pdu(&Request::ReadWriteMultipleRegisters {
+                read_address: address,
+                read_quantity: 1,
+                write_address: address,
+                values: vec![0x2222],
+            })),
+            Compare::Exact,
+            "FC 23 writes 0x2222 and reads the same register: 0x2222",
+        ),
+    ]);
+    cx.push(
+        format!("spec/app-6.17/write-before-read/0x{address:04X}"),
+        "FC 23 on one register answers the value it wrote",
+        format!("{APP}, section 6.17"),
+        "Read/Write Multiple registers performs the write operation before the read: a read of the register written returns the new value.",
         vec![Tag::Write],
         steps,
     );

@@ -377,9 +377,15 @@ fn bit_padding(cx: &mut Ctx) {
             ));
             tags.push(Tag::Write);
         }
+        // The states read are the drive's (its inputs, its I/O): only where the case set them are they
+        // compared; the padding bits are checked either way (`Compare::Structure` does for FC 01/02).
         body.push(exchange(
             Outgoing::Pdu(pdu(&req)),
-            Compare::Exact,
+            if settable {
+                Compare::Exact
+            } else {
+                Compare::Structure
+            },
             format!(
                 "{quantity} {what}: the high {} bits of the byte are 0",
                 8 - quantity

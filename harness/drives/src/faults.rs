@@ -41,6 +41,9 @@ pub enum Fault {
     MaskWriteWrong,
     FifoOffByOne,
     UndeclaredFunctionServed,
+    BitPaddingOnes,
+    PartialWrite,
+    ReadBeforeWrite,
 }
 
 impl Fault {
@@ -210,6 +213,21 @@ impl Fault {
             Fault::UndeclaredFunctionServed,
             "undeclared-function-served",
             "the data-model functions (FC 01-06, 0F, 10, 16, 17) are served even where the profile does not declare them (FC 06 on an MDrive)",
+        ),
+        (
+            Fault::BitPaddingOnes,
+            "bit-padding-ones",
+            "FC 01/02: the unused high bits of the last data byte are sent as 1 instead of 0",
+        ),
+        (
+            Fault::PartialWrite,
+            "partial-write",
+            "FC 16: a rejected write still writes its registers one by one up to the first one rejected (the exception is sent)",
+        ),
+        (
+            Fault::ReadBeforeWrite,
+            "read-before-write",
+            "FC 23: the registers are read before the write is performed (the answer holds the old values)",
         ),
     ];
 

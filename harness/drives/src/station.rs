@@ -745,7 +745,53 @@ impl Station {
                 }
                 _ => {
                     self.model.advance(now);
-                    self.handle_model(now, unit, &req)
+                    let before = match &req {
+                        Request::ReadWriteMultipleRegisters {
+                            read_address,
+                            read_quantity,
+                            ..
+                        } if self.faults.has(Fault::ReadBeforeWrite) => self.model.handle(
+                            now,
+                            unit,
+                            &Request::ReadHoldingRegisters {
+                                address: *read_address,
+                                quantity: *read_quantity,
+                            },
+                        ),
+                        _ => None,
+                    };
+                    let mut resp = self.handle_model(now, unit, &req);
+                    if let (
+                        Some(Response::ReadHoldingRegisters { values: old }),
+                        Some(Response::ReadWriteMultipleRegisters { values }),
+                    ) = (before, resp.as_mut())
+                    {
+                        *values = old;
+                    }
+                    if self.faults.has(Fault::PartialWrite)
+                        && resp.as_ref().is_some_and(|r| r.is_exception())
+                        && let Request::WriteMultipleRegisters { address, values } = &req
+                    {
+                        // Register by register, as firmware that loops over the values does, up to the
+                        // first one refused.
+                        for (i, v) in values.iter().enumerate() {
+                            let one = Request::WriteMultipleRegisters {
+                                address: address.wrapping_add(i as u16),
+                                values: vec![*v],
+                            };
+                            if self
+                                .handle_model(now, unit, &one)
+                                .is_none_or(|r| r.is_exception())
+                            {
+                                break;
+                            }
+                        }
+                    }
+                    if self.faults.has(Fault::BitPaddingOnes) {
+                        resp.map(|r| pad_with_ones(&req, r))
+                    } else {
+                        resp
+                    }
                 }
             }
         };
@@ -956,5 +1002,30 @@ fn diag_data_ok(d: DiagCounter, data: &[u8]) -> bool {
         DiagCounter::Restart => data == [0x00, 0x00] || data == [0xFF, 0x00],
         DiagCounter::AsciiDelimiter => matches!(data, [_, 0x00]),
         _ => data == [0x00, 0x00],
+    }
+}
+
+/// `Fault::BitPaddingOnes`: the bits of an FC 01/02 answer past the quantity asked for set to 1 (spec 6.1,
+/// 6.2: they are padded with zeros).
+fn pad_with_ones(req: &Request, resp: Response) -> Response {
+    let quantity = match req {
+        Request::ReadCoils { quantity, .. } | Request::ReadDiscreteInputs { quantity, .. } => {
+            *quantity
+        }
+        _ => return resp,
+    };
+    let used = quantity % 8;
+    let pad = |mut data: Vec<u8>| {
+        if let Some(last) = data.last_mut()
+            && used != 0
+        {
+            *last |= 0xFFu8 << used;
+        }
+        data
+    };
+    match resp {
+        Response::ReadCoils { data } => Response::ReadCoils { data: pad(data) },
+        Response::ReadDiscreteInputs { data } => Response::ReadDiscreteInputs { data: pad(data) },
+        other => other,
     }
 }

@@ -939,10 +939,16 @@ pub fn keeper(
         .clone()
         .unwrap_or_else(|| match &opts.report_dir {
             Some(d) => d.join("journal.json"),
-            None => std::env::temp_dir().join(format!(
-                "modbus-harness-journal-{}.json",
-                std::process::id()
-            )),
+            None => {
+                // One name per run: runs in one process (a test binary, an embedding tool) must not
+                // share a journal, and one's clean exit must not remove another's.
+                static RUNS: std::sync::atomic::AtomicU32 = std::sync::atomic::AtomicU32::new(0);
+                let n = RUNS.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                std::env::temp_dir().join(format!(
+                    "modbus-harness-journal-{}-{n}.json",
+                    std::process::id()
+                ))
+            }
         });
     // The profile as `restore` must load it again: a corpus name, or a file by its absolute path.
     let profile_name = match &opts.profile {

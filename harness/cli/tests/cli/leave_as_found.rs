@@ -20,12 +20,6 @@ use test_support::{ChildGuard, SimProcess, TempDir, harness_bin, wait_bounded};
 
 const RUN_LIMIT: Duration = Duration::from_secs(120);
 
-/// Profiles whose default run still sends writes to a `motion` register: the SD2x spec cases (quantity 0 and
-/// max+1 of FC 16 and FC 23, the FC 16 byte-count mismatch) address the Control Word at 3000 and put it back
-/// with an FC 16 of its captured value (0 -> 0). Moving them off motion registers or tagging them is issue 13
-/// item 1 (the safety classifier), worked on in parallel; remove the entry when it lands (the test says so).
-const MOTION_WRITES_AWAITING_CLASSIFIER: &[&str] = &["sd2x"];
-
 fn profile(name: &str) -> Profile {
     test_support::profile(name)
 }
@@ -36,15 +30,47 @@ fn read_value(model: &mut dyn DriveModel, unit: u8, req: &Request) -> Option<Res
         .filter(|r| !r.is_exception())
 }
 
-/// Presets that move every non-motion, non-destructive parameter the profile lets a client write off its
-/// factory value (those the reference drive accepts), found by trying them on an in-process drive.
+/// Every holding and input register of the profile, read one by one (exceptions left out).
+fn all_registers(model: &mut dyn DriveModel, p: &Profile) -> Vec<Option<Response>> {
+    let unit = p.device.default_unit;
+    p.registers
+        .iter()
+        .map(|r| r.get_ref())
+        .map(|r| {
+            let quantity = u16::from(r.width);
+            let req = if r.table == Table::Input {
+                Request::ReadInputRegisters {
+                    address: r.address,
+                    quantity,
+                }
+            } else {
+                Request::ReadHoldingRegisters {
+                    address: r.address,
+                    quantity,
+                }
+            };
+            read_value(model, unit, &req)
+        })
+        .collect()
+}
+
+/// Presets that move every non-destructive parameter the profile lets a client write off its factory value
+/// (those the reference drive accepts), found by trying them on an in-process drive. Motion setpoints are
+/// preset too when the write changes nothing but that register (a value the drive holds, no move started):
+/// a default run must not write them at all, and a drive found with a non-zero setpoint shows that it did
+/// not. The SD2x has no kept parameter (every writable register is motion or the watchdog), so its setpoints
+/// are all there is to find.
 fn nonfactory_presets(name: &str) -> Vec<String> {
     let p = profile(name);
     let unit = p.device.default_unit;
     let mut model = drives::build(p.clone(), FaultSet::none());
     let watchdog = p.watchdog.as_ref().map(|w| w.register);
     let mut out = Vec::new();
-    let mut try_spec = |model: &mut Box<dyn DriveModel>, spec: String, read: &Request| -> bool {
+    let mut try_spec = |model: &mut Box<dyn DriveModel>,
+                        spec: String,
+                        read: &Request,
+                        side_effect_free_only: bool|
+     -> bool {
         let before = read_value(model.as_mut(), unit, read);
         let mut trial = model.clone();
         if apply_presets(trial.as_mut(), unit, std::slice::from_ref(&spec)).is_err() {
@@ -54,6 +80,16 @@ fn nonfactory_presets(name: &str) -> Vec<String> {
         if after.is_none() || after == before {
             return false;
         }
+        if side_effect_free_only {
+            let changed = all_registers(model.as_mut(), &p)
+                .iter()
+                .zip(all_registers(trial.as_mut(), &p))
+                .filter(|(a, b)| **a != *b)
+                .count();
+            if changed != 1 {
+                return false;
+            }
+        }
         *model = trial;
         out.push(spec);
         true
@@ -61,7 +97,6 @@ fn nonfactory_presets(name: &str) -> Vec<String> {
     for r in p.registers.iter().map(|r| r.get_ref()) {
         if r.table == Table::Input
             || r.access != Access::Rw
-            || r.motion
             || r.destructive
             || Some(r.address) == watchdog
         {
@@ -75,7 +110,12 @@ fn nonfactory_presets(name: &str) -> Vec<String> {
         };
         for v in [d + 3, d + 1, d - 1, (lo + hi) / 2, hi, lo] {
             if (lo..=hi).contains(&v)
-                && try_spec(&mut model, format!("holding:{}={v}", r.address), &read)
+                && try_spec(
+                    &mut model,
+                    format!("holding:{}={v}", r.address),
+                    &read,
+                    r.motion,
+                )
             {
                 break;
             }
@@ -94,6 +134,7 @@ fn nonfactory_presets(name: &str) -> Vec<String> {
             &mut model,
             format!("coil:{}={}", c.address, u8::from(!on)),
             &read,
+            false,
         );
     }
     for m in p.mnemonics.iter().map(|m| m.get_ref()) {
@@ -123,6 +164,7 @@ fn nonfactory_presets(name: &str) -> Vec<String> {
                     &mut model,
                     format!("mnemonic:{}={}", m.name, f.join(",")),
                     &read,
+                    false,
                 ) {
                     break 'fields;
                 }
@@ -368,32 +410,23 @@ fn a_default_run_leaves_every_preset_drive_as_found_and_writes_no_motion_registe
         let diff = differences(&before, &after);
         assert!(diff.is_empty(), "{name}: not left as found: {diff:#?}");
         let lines = journal_lines(&dir.path().join("sim.jsonl"));
-        // The run did write (else "as found" proves nothing), and some write moved a preset value.
-        assert!(!lines.is_empty(), "{name}: the run wrote nothing");
-        assert!(
-            lines.iter().any(|j| j["old"] != j["new"]),
-            "{name}: no write changed anything"
-        );
-        let motion = motion_writes(&p, &lines);
-        if MOTION_WRITES_AWAITING_CLASSIFIER.contains(&name) {
-            // Until the classifier (issue 13, item 1) lands, these writes are allowed to happen, but never to
-            // change a motion register's value.
+        // Where the profile keeps parameters, the run did write (else "as found" proves nothing), and some
+        // write moved a preset value. The SD2x keeps none: its default run must change nothing at all.
+        let kept = !p.registers.iter().map(|r| r.get_ref()).all(|r| {
+            r.table == Table::Input || r.access != Access::Rw || r.motion || r.destructive
+        });
+        if kept {
+            assert!(!lines.is_empty(), "{name}: the run wrote nothing");
             assert!(
-                !motion.is_empty(),
-                "{name} writes no motion register now: take it off MOTION_WRITES_AWAITING_CLASSIFIER"
-            );
-            let changed: Vec<&serde_json::Value> = lines
-                .iter()
-                .filter(|j| j["old"] != j["new"])
-                .filter(|j| !motion_writes(&p, std::slice::from_ref(*j)).is_empty())
-                .collect();
-            assert!(
-                changed.is_empty(),
-                "{name}: a motion register changed: {changed:#?}"
+                lines.iter().any(|j| j["old"] != j["new"]),
+                "{name}: no write changed anything"
             );
         } else {
-            assert!(motion.is_empty(), "{name}: {motion:#?}");
+            let changed: Vec<_> = lines.iter().filter(|j| j["old"] != j["new"]).collect();
+            assert!(changed.is_empty(), "{name}: {changed:#?}");
         }
+        let motion = motion_writes(&p, &lines);
+        assert!(motion.is_empty(), "{name}: {motion:#?}");
         // The journal of the run is there, complete, and says the drive was restored.
         let j: serde_json::Value = serde_json::from_str(
             &std::fs::read_to_string(report.join("journal.json")).expect("run journal"),
@@ -405,7 +438,7 @@ fn a_default_run_leaves_every_preset_drive_as_found_and_writes_no_motion_registe
         )
         .expect("index json");
         let laf = &index["summary"]["leave_as_found"];
-        assert!(laf["kept"].as_u64().unwrap_or(0) > 0, "{name}: {laf}");
+        assert_eq!(laf["kept"].as_u64().unwrap_or(0) > 0, kept, "{name}: {laf}");
         assert_eq!(laf["unrestored"], serde_json::json!([]), "{name}");
     }
 }

@@ -493,7 +493,12 @@ fn compare_frames(
                 )));
             }
         }
-        Compare::Structure => structure(e, o, &mut out),
+        Compare::Structure => {
+            structure(e, o, &mut out);
+            if out.is_empty() {
+                padding_zero(&sent.pdu, o, &mut out);
+            }
+        }
         Compare::InRange => {
             structure(e, o, &mut out);
             if out.is_empty() {
@@ -629,6 +634,31 @@ fn structure(e: &Response, o: &Response, out: &mut Vec<Finding>) {
     };
     if let Some(t) = bad {
         out.push(must(t));
+    }
+}
+
+/// FC 01/02: the bits of the last data byte past the quantity asked for are 0 (spec 6.1, 6.2: "padded with
+/// zeros"), whatever the states of the bits read.
+fn padding_zero(req: &[u8], o: &Response, out: &mut Vec<Finding>) {
+    let quantity = match Request::decode(req) {
+        Ok(Request::ReadCoils { quantity, .. } | Request::ReadDiscreteInputs { quantity, .. }) => {
+            quantity
+        }
+        _ => return,
+    };
+    let data = match o {
+        Response::ReadCoils { data } | Response::ReadDiscreteInputs { data } => data,
+        _ => return,
+    };
+    let used = quantity % 8;
+    if let Some(last) = data.last()
+        && used != 0
+        && last >> used != 0
+    {
+        out.push(must(format!(
+            "padding bits not 0: last data byte 0x{last:02X} for {quantity} bits (the high {} bits must be 0)",
+            8 - used
+        )));
     }
 }
 

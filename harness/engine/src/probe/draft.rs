@@ -180,18 +180,33 @@ the quantity limits (the spec's), broadcast (false), which registers form 32-bit
         .filter(|(_, sup)| matches!(sup, Support::NotProbed(_)))
         .map(|(fc, _)| format!("0x{fc:02X}"))
         .collect();
+    // FC 11 is answered with a server id whose length only the device's documentation gives: a profile that
+    // lists it needs a [server_id] table the probe cannot write, so it is named here instead.
+    let server_id_answered = report
+        .functions
+        .iter()
+        .any(|(fc, sup)| *fc == 0x11 && matches!(sup, Support::Yes(_)));
     let _ = writeln!(
         s,
         "note = {}",
         q(&format!(
-            "Not answered: [{}]. Not probed: [{}]. Neither is listed as supported or unsupported.",
+            "Not answered: [{}]. Not probed: [{}]. Neither is listed as supported or unsupported.{}",
             silent.join(", "),
-            not_probed.join(", ")
+            not_probed.join(", "),
+            if server_id_answered {
+                " FC 0x11 (Report Server ID) was answered but is not listed: list it with a [server_id] table \
+                 (the id, its length and the additional data are device specific, spec 6.13)."
+            } else {
+                ""
+            }
         ))
     );
 
     for (fc, sup) in &report.functions {
         let Support::Yes(how) = sup else { continue };
+        if *fc == 0x11 {
+            continue;
+        }
         let name = codec::FunctionCode(*fc).name().unwrap_or("Function");
         let _ = writeln!(s, "\n[[function]]");
         let _ = writeln!(s, "code = 0x{fc:02X}");

@@ -129,6 +129,54 @@ pub(crate) const WITNESSES: &[(&str, &str, &str)] = &[
         "sim:sd2x",
         "spec/app-7/unsupported-function/fc-0x16",
     ),
+    // FC 01/02 padding bits (issue 15, item 1).
+    (
+        "bit-padding-ones",
+        "sim:generic",
+        "spec/app-6.1/padding-bits-zero",
+    ),
+    (
+        "bit-padding-ones",
+        "sim:generic?transport=rtu",
+        "spec/app-6.2/padding-bits-zero",
+    ),
+    (
+        "bit-padding-ones",
+        "sim:lmd",
+        "spec/app-6.2/padding-bits-zero",
+    ),
+    // FC 16 mixing written and refused registers writes nothing (issue 15, item 1).
+    (
+        "partial-write",
+        "sim:generic",
+        "spec/app-6.12/no-partial-write/past-the-map",
+    ),
+    (
+        "partial-write",
+        "sim:generic?transport=rtu",
+        "spec/app-6.12/no-partial-write/past-the-map",
+    ),
+    (
+        "partial-write",
+        "sim:sd2x",
+        "spec/app-6.12/no-partial-write/past-the-map",
+    ),
+    // FC 23 writes before it reads (issue 15, item 1).
+    (
+        "read-before-write",
+        "sim:generic",
+        "spec/app-6.17/write-before-read/0x0000",
+    ),
+    (
+        "read-before-write",
+        "sim:generic?transport=rtu",
+        "spec/app-6.17/write-before-read/0x0000",
+    ),
+    (
+        "read-before-write",
+        "sim:sd2x",
+        "spec/app-6.17/write-before-read/0x0BBA",
+    ),
     // The public function code set of the generic profile (issue 15, item 3), over both of its transports
     // where the function works on both; listen only mode and the counts after a restart only on a serial line.
     (

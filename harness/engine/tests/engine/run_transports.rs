@@ -51,6 +51,12 @@ fn same_independent(a: &BTreeMap<String, Verdict>, b: &BTreeMap<String, Verdict>
             continue;
         }
         if let Some(vb) = b.get(id) {
+            // A spec case for one transport only (FC 08 listen only mode on a serial line, FC 0B after 08/0A
+            // over Modbus/TCP) is skipped on the other: these runs allow motion and destructive cases, so a
+            // skip is the transport's.
+            if *va == Verdict::Skipped || *vb == Verdict::Skipped {
+                continue;
+            }
             compared += 1;
             assert!(va == vb, "{what}: {id}: {va} vs {vb}");
         }

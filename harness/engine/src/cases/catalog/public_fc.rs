@@ -417,11 +417,23 @@ fn file_records(cx: &mut Ctx) {
         record_length: len,
     };
     if cx.supports(FunctionCode::READ_FILE_RECORD) {
-        // Two groups from the first two files (their first records): one request, two sub-responses.
-        let subs: Vec<FileRecordRef> = files
+        // Two groups, from the files with declared contents first, each from its first non-zero record, so
+        // that the values read are the profile's, not zeros any drive would answer.
+        let mut with_values: Vec<(u16, u16, u16)> =
+            cx.p.files
+                .iter()
+                .map(|f| f.get_ref())
+                .map(|f| {
+                    let start = f.values.iter().position(|v| *v != 0).unwrap_or(0) as u16;
+                    (f.number, start, f.records.saturating_sub(start).min(4))
+                })
+                .filter(|g| g.2 > 0)
+                .collect();
+        with_values.sort_by_key(|g| g.1 == 0);
+        let subs: Vec<FileRecordRef> = with_values
             .iter()
             .take(2)
-            .map(|(n, records, _)| group(*n, 0, (*records).min(4)))
+            .map(|(n, start, len)| group(*n, *start, *len))
             .collect();
         cx.push(
             "spec/app-6.14/read-file-record".into(),

@@ -17,6 +17,9 @@ pub(super) fn cases(cx: &mut Ctx) {
     byte_count_mismatches(cx);
     truncated_pdus(cx);
     write_coil_illegal_value(cx);
+    bit_padding(cx);
+    no_partial_write(cx);
+    write_before_read(cx);
     super::public_fc::cases(cx);
 }
 
@@ -307,6 +310,222 @@ fn write_coil_illegal_value(cx: &mut Ctx) {
             steps,
         );
     }
+}
+
+/// FC 01/02 answers to a quantity that is not a multiple of 8: the unused bits of the last byte are 0. Where the
+/// coils can be written (FC 0F, no I/O-point setup), the eight coils read are switched on first, so that a drive
+/// that fills the padding with the following coils' states shows it too; put back after.
+fn bit_padding(cx: &mut Ctx) {
+    let p = cx.p;
+    let coils: Vec<u16> = p.coils.iter().map(|c| c.get_ref().address).collect();
+    let inputs: Vec<u16> = p
+        .discrete_inputs
+        .iter()
+        .map(|c| c.get_ref().address)
+        .collect();
+    for (fc, addrs, what, section) in [
+        (0x01u8, coils, "coils", "6.1"),
+        (0x02, inputs, "discrete inputs", "6.2"),
+    ] {
+        if !cx.supports(fc) || addrs.len() < 3 {
+            continue;
+        }
+        let first = addrs[0];
+        // The longest run of consecutive addresses from the first, at most 8.
+        let run = addrs
+            .iter()
+            .zip(first..)
+            .take_while(|(a, b)| **a == *b)
+            .count()
+            .min(8) as u16;
+        if run < 3 {
+            continue;
+        }
+        let quantity = if run == 8 { 5 } else { run - 1 };
+        let req = if fc == 0x01 {
+            Request::ReadCoils {
+                address: first,
+                quantity,
+            }
+        } else {
+            Request::ReadDiscreteInputs {
+                address: first,
+                quantity,
+            }
+        };
+        let settable = fc == 0x01
+            && IoPoints::of(p).is_none()
+            && cx.supports(FunctionCode::WRITE_MULTIPLE_COILS)
+            && p.coils
+                .iter()
+                .map(|c| c.get_ref())
+                .filter(|c| c.address >= first && c.address < first + run)
+                .all(|c| c.access.writable());
+        let mut a = Around::new();
+        let mut body = Vec::new();
+        let mut tags = vec![];
+        if settable {
+            a.keep_coils(cx, first, run);
+            body.push(exchange(
+                Outgoing::Pdu(pdu(&Request::WriteMultipleCoils {
+                    address: first,
+                    quantity: run,
+                    data: vec![(0xFFu16 >> (8 - run)) as u8],
+                })),
+                Compare::Exact,
+                format!("coils {first}..+{run} on"),
+            ));
+            tags.push(Tag::Write);
+        }
+        // The states read are the drive's (its inputs, its I/O): only where the case set them are they
+        // compared; the padding bits are checked either way (`Compare::Structure` does for FC 01/02).
+        body.push(exchange(
+            Outgoing::Pdu(pdu(&req)),
+            if settable {
+                Compare::Exact
+            } else {
+                Compare::Structure
+            },
+            format!(
+                "{quantity} {what}: the high {} bits of the byte are 0",
+                8 - quantity
+            ),
+        ));
+        cx.push(
+            format!("spec/app-{section}/padding-bits-zero"),
+            format!("FC 0x{fc:02X} of {quantity} {what}: padding bits 0"),
+            format!("{APP}, section {section}"),
+            "If the returned quantity is not a multiple of eight, the remaining bits in the final data byte are padded with zeros (toward the high order end of the byte).",
+            tags,
+            a.wrap(body),
+        );
+    }
+}
+
+/// FC 16 over the last two writable holding registers and the address after them, past the map: the request
+/// is refused (exception 02) and writes nothing, read back. The two registers are given known values first
+/// and put back after.
+fn no_partial_write(cx: &mut Ctx) {
+    let p = cx.p;
+    if !cx.supports(FunctionCode::WRITE_MULTIPLE_REGISTERS)
+        || !cx.supports(FunctionCode::READ_HOLDING_REGISTERS)
+    {
+        return;
+    }
+    if p.draft.is_some() {
+        return;
+    }
+    let Some(end) = beyond_map(p) else {
+        return;
+    };
+    let writable = |a: u16| {
+        p.register_at(a, false).is_some_and(|r| {
+            r.width == 1
+                && r.address == a
+                && r.table != Table::Input
+                && r.access == drives::profile::Access::Rw
+                && !r.motion
+                && !r.destructive
+                && r.min.is_none_or(|m| m <= 0x1111)
+                && r.max.is_none_or(|m| m >= 0x2222)
+        })
+    };
+    let (Some(a0), Some(a1)) = (end.checked_sub(2), end.checked_sub(1)) else {
+        return;
+    };
+    if !writable(a0) || !writable(a1) {
+        return;
+    }
+    let mut a = Around::new();
+    a.keep_registers(cx, a0, 2);
+    let steps = a.wrap(vec![
+        exchange(
+            Outgoing::Pdu(pdu(&Request::WriteMultipleRegisters {
+                address: a0,
+                values: vec![0x1111, 0x2222],
+            })),
+            Compare::Exact,
+            format!("registers 0x{a0:04X}, 0x{a1:04X} set to 0x1111, 0x2222"),
+        ),
+        exchange(
+            Outgoing::Pdu(pdu(&Request::WriteMultipleRegisters {
+                address: a0,
+                values: vec![0xAAAA, 0xBBBB, 0xCCCC],
+            })),
+            Compare::Exact,
+            format!("3 registers from 0x{a0:04X}, the last past the map: refused"),
+        ),
+        exchange(
+            Outgoing::Pdu(pdu(&Request::ReadHoldingRegisters {
+                address: a0,
+                quantity: 2,
+            })),
+            Compare::Exact,
+            "read back: still 0x1111, 0x2222",
+        ),
+    ]);
+    cx.push(
+        "spec/app-6.12/no-partial-write/past-the-map".into(),
+        "FC 16 whose last register is past the map writes nothing",
+        format!("{APP}, section 6.12 (state diagram) and 4.5"),
+        "A Write Multiple Registers request whose address range runs out of the map is answered with exception 02 (Illegal Data Address) and not processed: none of its registers is written.",
+        vec![Tag::Write],
+        steps,
+    );
+}
+
+/// FC 23 reading and writing the same register: the write is performed before the read, so the answer holds
+/// the value written (spec 6.17). The register is set to a known value first and put back after.
+fn write_before_read(cx: &mut Ctx) {
+    let p = cx.p;
+    if !cx.supports(FunctionCode::READ_WRITE_MULTIPLE_REGISTERS) || !cx.can_write_registers() {
+        return;
+    }
+    let Some(address) = p
+        .registers
+        .iter()
+        .map(|r| r.get_ref())
+        .find(|r| {
+            r.width == 1
+                && r.confirmed
+                && r.table != Table::Input
+                && r.access == drives::profile::Access::Rw
+                && !r.motion
+                && !r.destructive
+                && r.min.is_none_or(|m| m <= 0x1111)
+                && r.max.is_none_or(|m| m >= 0x2222)
+        })
+        .map(|r| r.address)
+    else {
+        return;
+    };
+    let mut a = Around::new();
+    a.keep_registers(cx, address, 1);
+    let steps = a.wrap(vec![
+        exchange(
+            Outgoing::Pdu(pdu(&cx.write_request(address, vec![0x1111]))),
+            Compare::Exact,
+            format!("register 0x{address:04X} set to 0x1111"),
+        ),
+        exchange(
+            Outgoing::Pdu(pdu(&Request::ReadWriteMultipleRegisters {
+                read_address: address,
+                read_quantity: 1,
+                write_address: address,
+                values: vec![0x2222],
+            })),
+            Compare::Exact,
+            "FC 23 writes 0x2222 and reads the same register: 0x2222",
+        ),
+    ]);
+    cx.push(
+        format!("spec/app-6.17/write-before-read/0x{address:04X}"),
+        "FC 23 on one register answers the value it wrote",
+        format!("{APP}, section 6.17"),
+        "Read/Write Multiple registers performs the write operation before the read: a read of the register written returns the new value.",
+        vec![Tag::Write],
+        steps,
+    );
 }
 
 /// The section of the application protocol specification that describes function `fc` (6.1 Read Coils ...

@@ -145,7 +145,9 @@ pub(crate) const WITNESSES: &[(&str, &str, &str)] = &[
         "sim:lmd",
         "spec/app-6.2/padding-bits-zero",
     ),
-    // FC 16 mixing written and refused registers writes nothing (issue 15, item 1).
+    // FC 16 mixing written and refused registers writes nothing (issue 15, item 1). Neither this nor FC 23's
+    // order has a witness on the SD2x: its writable registers are motion registers and the watchdog, which
+    // no case sets to test values.
     (
         "partial-write",
         "sim:generic",
@@ -154,11 +156,6 @@ pub(crate) const WITNESSES: &[(&str, &str, &str)] = &[
     (
         "partial-write",
         "sim:generic?transport=rtu",
-        "spec/app-6.12/no-partial-write/past-the-map",
-    ),
-    (
-        "partial-write",
-        "sim:sd2x",
         "spec/app-6.12/no-partial-write/past-the-map",
     ),
     // FC 23 writes before it reads (issue 15, item 1).
@@ -171,11 +168,6 @@ pub(crate) const WITNESSES: &[(&str, &str, &str)] = &[
         "read-before-write",
         "sim:generic?transport=rtu",
         "spec/app-6.17/write-before-read/0x0000",
-    ),
-    (
-        "read-before-write",
-        "sim:sd2x",
-        "spec/app-6.17/write-before-read/0x0BBA",
     ),
     // The public function code set of the generic profile (issue 15, item 3), over both of its transports
     // where the function works on both; listen only mode and the counts after a restart only on a serial line.

@@ -402,6 +402,20 @@ fn bit_padding(cx: &mut Ctx) {
     }
 }
 
+/// A one-word holding register the write cases may set to 0x1111 and 0x2222 and put back: a parameter, never
+/// a `motion` or `destructive` one (a profile does not say which motion registers are plain setpoints and
+/// which are command words, so none is taken; the SD2x, whose writable registers are all motion or the
+/// watchdog, has no such case).
+fn test_register(r: &drives::profile::Register) -> bool {
+    r.width == 1
+        && r.table != Table::Input
+        && r.access == drives::profile::Access::Rw
+        && !r.motion
+        && !r.destructive
+        && r.min.is_none_or(|m| m <= 0x1111)
+        && r.max.is_none_or(|m| m >= 0x2222)
+}
+
 /// FC 16 over the last two writable holding registers and the address after them, past the map: the request
 /// is refused (exception 02) and writes nothing, read back. The two registers are given known values first
 /// and put back after.
@@ -419,21 +433,13 @@ fn no_partial_write(cx: &mut Ctx) {
         return;
     };
     let writable = |a: u16| {
-        p.register_at(a, false).is_some_and(|r| {
-            r.width == 1
-                && r.address == a
-                && r.table != Table::Input
-                && r.access == drives::profile::Access::Rw
-                && !r.motion
-                && !r.destructive
-                && r.min.is_none_or(|m| m <= 0x1111)
-                && r.max.is_none_or(|m| m >= 0x2222)
-        })
+        p.register_at(a, false)
+            .filter(|r| r.address == a && test_register(r))
     };
     let (Some(a0), Some(a1)) = (end.checked_sub(2), end.checked_sub(1)) else {
         return;
     };
-    if !writable(a0) || !writable(a1) {
+    if writable(a0).is_none() || writable(a1).is_none() {
         return;
     }
     let mut a = Around::new();
@@ -485,16 +491,7 @@ fn write_before_read(cx: &mut Ctx) {
         .registers
         .iter()
         .map(|r| r.get_ref())
-        .find(|r| {
-            r.width == 1
-                && r.confirmed
-                && r.table != Table::Input
-                && r.access == drives::profile::Access::Rw
-                && !r.motion
-                && !r.destructive
-                && r.min.is_none_or(|m| m <= 0x1111)
-                && r.max.is_none_or(|m| m >= 0x2222)
-        })
+        .find(|r| r.confirmed && test_register(r))
         .map(|r| r.address)
     else {
         return;

@@ -83,6 +83,8 @@ pub struct CampaignOutcome {
     pub elapsed: Duration,
     pub findings: Vec<CampaignFinding>,
     pub seed: u64,
+    /// With `--allow-writes` against a real drive: what was read before the first write and put back.
+    pub leave_as_found: Option<crate::restore::Account>,
 }
 
 impl CampaignOutcome {
@@ -292,12 +294,11 @@ pub fn campaign(
     }
     let cfg = config(base, &profile);
     let mut runner = open_runner(base, &profile, &cfg, &Expectations::default())?;
-    let framing = runner.framing();
     if !cfg.is_sim && !cfg.safety.read_only && opts.allow_writes {
         let allowed = |yes: bool| if yes { "ALLOWED" } else { "not sent" };
         let _ = writeln!(
             log,
-            "\n*** FUZZ WRITES AHEAD: generated writes will be sent to this {} ({}) ***\n  motion writes: {} (--allow-motion), destructive writes: {} (--allow-destructive)\n  the drive's settings may be left changed: restore them before using it\n",
+            "\n*** FUZZ WRITES AHEAD: generated writes will be sent to this {} ({}) ***\n  motion writes: {} (--allow-motion), destructive writes: {} (--allow-destructive)\n  the drive's parameters are read first (journaled), put back after each writing case and at the end, and verified\n",
             profile.device.name,
             runner.target().describe(),
             allowed(cfg.safety.allow_motion),
@@ -314,8 +315,6 @@ pub fn campaign(
             }
         );
     }
-    let generator = Generator::new(&profile, cfg.unit, opts.seed);
-    let probe = probe_case(&profile);
     let _ = writeln!(
         log,
         "fuzz: {} with profile `{}`, seed {}, probe every {} cases, for {:?}",
@@ -325,6 +324,60 @@ pub fn campaign(
         opts.probe_every,
         opts.duration
     );
+    // With --allow-writes against a real drive: the drive's parameters are read before the first write
+    // (journaled), the reference takes them, what a case changed is put back after it, and everything at
+    // the end, on every way out (as `run` does).
+    let mut keeper = if opts.allow_writes {
+        crate::session::keeper(base, &profile, &cfg)
+    } else {
+        None
+    };
+    let outcome = fuzz_loop(
+        opts,
+        &profile,
+        &cfg,
+        &mut runner,
+        keeper.as_mut(),
+        log,
+        interrupt,
+        &mut tick,
+    );
+    let Some(k) = keeper.as_mut() else {
+        return outcome;
+    };
+    let account = k.finish(&mut runner, &profile);
+    for line in account.lines() {
+        let _ = writeln!(log, "{line}");
+    }
+    match outcome {
+        Err(e) if !account.clean() => Err(SessionError::LeftChanged {
+            error: Box::new(e),
+            unrestored: account.unrestored.len(),
+            journal: account.journal,
+        }),
+        Err(e) => Err(e),
+        Ok(mut o) => {
+            o.leave_as_found = Some(account);
+            Ok(o)
+        }
+    }
+}
+
+/// The campaign's loop (see [`campaign`]).
+#[allow(clippy::too_many_arguments)]
+fn fuzz_loop(
+    opts: &CampaignOptions,
+    profile: &drives::profile::Profile,
+    cfg: &crate::runner::RunConfig,
+    runner: &mut crate::runner::Runner,
+    mut keeper: Option<&mut crate::restore::Keeper>,
+    log: &mut dyn Write,
+    interrupt: &AtomicBool,
+    tick: &mut impl FnMut(u64, f64, usize),
+) -> Result<CampaignOutcome, SessionError> {
+    let framing = runner.framing();
+    let generator = Generator::new(profile, cfg.unit, opts.seed);
+    let probe = probe_case(profile);
     let started = Instant::now();
     let mut last_tick = Instant::now();
     let (mut cases, mut probes, mut index) = (0u64, 0u64, 0u64);
@@ -339,12 +392,35 @@ pub fn campaign(
     {
         // Every generated input is rated by the classifier before the policy decides; the runner rates
         // the bytes again just before sending.
-        let case = generator.case(index).retagged(&profile, cfg.unit);
+        let case = generator.case(index).retagged(profile, cfg.unit);
         index += 1;
-        if campaign_skip(&case, &cfg, framing, opts.allow_writes).is_some() {
+        if campaign_skip(&case, cfg, framing, opts.allow_writes).is_some() {
             continue;
         }
+        let mut touched = None;
+        if let Some(k) = keeper.as_deref_mut() {
+            let t = k.touched(&case);
+            if (case.has(crate::cases::Tag::Write) || !t.is_empty()) && !k.armed() {
+                k.take_snapshot(runner)?;
+                let a = k.account();
+                let _ = writeln!(
+                    log,
+                    "leave as found: {} parameter(s) read before the first write (journal {})",
+                    a.kept,
+                    a.journal
+                        .as_ref()
+                        .map_or_else(|| "none".into(), |p| p.display().to_string())
+                );
+                crate::session::align_reference(log, k, runner, profile);
+            }
+            if !t.is_empty() {
+                touched = Some(t);
+            }
+        }
         let result = runner.run_case(&case)?;
+        if let (Some(k), Some(t)) = (keeper.as_deref_mut(), touched.as_ref()) {
+            k.after_case(runner, &case.id, t, profile)?;
+        }
         cases += 1;
         history.push(case.clone());
         if result.verdict == Verdict::Fail {
@@ -404,5 +480,6 @@ pub fn campaign(
         elapsed: started.elapsed(),
         findings,
         seed: opts.seed,
+        leave_as_found: None,
     })
 }

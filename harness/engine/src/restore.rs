@@ -900,6 +900,32 @@ impl Keeper {
         Ok(())
     }
 
+    /// Bring `link` (the reference drive, see [`crate::runner::Runner::reference`]) to the snapshot: every
+    /// kept parameter written to the value the target was found with. The items the reference would not
+    /// take are returned (the reference then judges them from its own value).
+    pub fn align(&self, link: &mut dyn Link, profile: &Profile) -> Vec<Unrestored> {
+        let Some(snapshot) = &self.snapshot else {
+            return Vec::new();
+        };
+        match restore(link, &self.inventory.items, snapshot, Some(profile)) {
+            Ok((_, left)) => left,
+            Err(e) => self
+                .inventory
+                .items
+                .iter()
+                .filter_map(|i| {
+                    Some(Unrestored {
+                        key: i.key.clone(),
+                        name: i.name.clone(),
+                        before: snapshot.get(&i.key)?.clone(),
+                        after: None,
+                        reason: format!("the reference drive: {e}"),
+                    })
+                })
+                .collect(),
+        }
+    }
+
     /// After a case: restore what it can have changed (`keys`) and verify.
     pub fn after_case(
         &mut self,

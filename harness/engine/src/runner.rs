@@ -693,6 +693,47 @@ impl crate::restore::Link for Runner {
     }
 }
 
+impl Runner {
+    /// The reference drive alone, as a [`crate::restore::Link`]: requests go to it and not to the target.
+    /// Used to bring the reference to the state the target was found in (its parameters as read before the
+    /// first write), so that a drive found off its factory values is judged against a reference holding the
+    /// same values.
+    pub fn reference(&mut self) -> ReferenceLink<'_> {
+        ReferenceLink { runner: self }
+    }
+}
+
+/// See [`Runner::reference`].
+pub struct ReferenceLink<'a> {
+    runner: &'a mut Runner,
+}
+
+impl crate::restore::Link for ReferenceLink<'_> {
+    fn transact(&mut self, req: &Request) -> Result<Option<codec::Response>, TargetError> {
+        let r = &mut *self.runner;
+        let Ok(pdu) = req.to_bytes() else {
+            return Ok(None);
+        };
+        let case_tid = std::mem::replace(&mut r.next_tid, r.restore_tid);
+        let f = r.frame(&pdu, r.cfg.unit, None);
+        r.restore_tid = std::mem::replace(&mut r.next_tid, case_tid);
+        r.sync_shadow();
+        r.shadow.send(&f.bytes)?;
+        let (answers, _) = r.shadow.settle();
+        let _ = r.shadow.take_decisions();
+        let framing = r.shadow.framing();
+        Ok(answers.iter().find_map(|bytes| {
+            match codec::decode_any(bytes, framing, codec::Direction::Response) {
+                Ok(codec::Decoded {
+                    pdu: codec::Pdu::Response(resp),
+                    ..
+                }) => Some(resp),
+                _ => None,
+            }
+        }))
+    }
+}
+
 fn record(r: &Received, wire: &mut Vec<WireEvent>) {
     let (bytes, at) = match r {
         Received::Frame {

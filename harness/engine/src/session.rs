@@ -820,6 +820,7 @@ pub fn run(
                     if (case.has(Tag::Write) || !touched.is_empty()) && !k.armed() {
                         k.take_snapshot(&mut runner)?;
                         log_snapshot(log, k);
+                        align_reference(log, k, &mut runner, &profile);
                     }
                     if !touched.is_empty() {
                         after = Some(touched);
@@ -965,6 +966,29 @@ pub fn keeper(
         cfg.unit,
         Some(journal),
     ))
+}
+
+/// The reference drive takes the parameters the target was found with, so that a drive found off its
+/// factory values is judged against a reference holding the same values (a generated write that the drive
+/// refuses because of another parameter's value is then refused by the reference too).
+pub fn align_reference(
+    log: &mut dyn Write,
+    k: &crate::restore::Keeper,
+    runner: &mut crate::runner::Runner,
+    profile: &Profile,
+) {
+    let left = k.align(&mut runner.reference(), profile);
+    if !left.is_empty() {
+        let _ = writeln!(
+            log,
+            "leave as found: the reference drive did not take {} of the values found (it judges those from its own): {}",
+            left.len(),
+            left.iter()
+                .map(|u| u.name.as_str())
+                .collect::<Vec<_>>()
+                .join(", ")
+        );
+    }
 }
 
 fn log_snapshot(log: &mut dyn Write, k: &crate::restore::Keeper) {

@@ -21,7 +21,10 @@ use engine::targets::TargetUrl;
 #[command(
     after_help = "Safety: against anything but sim:, fuzz sends reads only unless --allow-writes (a banner \
 then says so); cases the classifier rates motion or destructive are skipped unless --allow-motion / \
---allow-destructive, as for `run`; --read-only sends no write function code at all."
+--allow-destructive, as for `run`; --read-only sends no write function code at all. With --allow-writes \
+the drive is left as found, as by `run`: its parameters are read before the first write (--journal), the \
+reference drive takes them, what a case changed is put back after it and everything at the end (exit 3 \
+if something could not be)."
 )]
 pub struct FuzzArgs {
     /// The endpoint (tcp://, rtu+tcp://, rtu://, sim:PROFILE, sim:PATH.toml).
@@ -71,6 +74,11 @@ pub struct FuzzArgs {
     /// destructive writes also need --allow-motion / --allow-destructive.
     #[arg(long)]
     allow_writes: bool,
+    /// With --allow-writes against a real drive: the state journal of the parameters read before the first
+    /// write (default: a file in the temporary directory, named in the output); `restore --journal FILE`
+    /// puts them back if the campaign could not.
+    #[arg(long, value_name = "FILE")]
+    journal: Option<PathBuf>,
 }
 
 /// Parse 30s / 10m / 1h / 500ms / a bare number of seconds.
@@ -123,6 +131,7 @@ pub fn run(args: &FuzzArgs) -> ExitCode {
     base.safety.allow_motion = args.allow_motion;
     base.safety.allow_destructive = args.allow_destructive;
     base.safety.read_only = args.read_only;
+    base.journal = args.journal.clone();
     let regressions = args.regressions.clone().unwrap_or_else(|| {
         if std::path::Path::new("corpus").is_dir() {
             PathBuf::from("corpus/regressions")
@@ -200,11 +209,17 @@ pub fn run(args: &FuzzArgs) -> ExitCode {
                 o.seed,
                 o.findings.len()
             );
-            if o.findings.is_empty() {
+            if o.leave_as_found.as_ref().is_some_and(|a| !a.clean()) {
+                ExitCode::from(Exit::NotRestored)
+            } else if o.findings.is_empty() {
                 ExitCode::from(Exit::Ok)
             } else {
                 ExitCode::from(Exit::Failed)
             }
+        }
+        Err(e @ engine::session::SessionError::LeftChanged { .. }) => {
+            eprintln!("error: {e}");
+            ExitCode::from(Exit::NotRestored)
         }
         Err(e) => fail(e.to_string()),
     }

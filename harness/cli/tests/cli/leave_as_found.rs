@@ -762,3 +762,134 @@ fn a_target_that_dies_halfway_is_reported_not_restored_with_exit_3() {
         serde_json::from_str(&std::fs::read_to_string(&journal).expect("journal")).expect("json");
     assert_eq!(j["state"], "running", "kept for restore --journal: {j}");
 }
+
+/// A default `fuzz --duration 15s` and a default `probe` against each preset drive (issue 13, acceptance):
+/// every parameter reads as before and the drive's journal shows no write accepted at all (so none to a
+/// motion register). The three drives are tried side by side, each in its own thread.
+#[test]
+fn a_default_fuzz_and_probe_leave_every_preset_drive_as_found() {
+    let threads: Vec<_> = ["mdrive", "lmd", "sd2x"]
+        .into_iter()
+        .map(|name| {
+            std::thread::spawn(move || {
+                let dir = TempDir::new(&format!("laf-fuzz-{name}"));
+                let (sim, url, framing, presets) = preset_sim(name, dir.path(), &[]);
+                assert!(presets > 0, "{name}: no non-factory preset found");
+                let p = profile(name);
+                let before = read_everything(addr_of(&sim), framing, &p);
+                let regressions = dir.path().join("regressions");
+                let (code, out, err) = harness(&[
+                    "fuzz",
+                    "--target",
+                    &url,
+                    "--profile",
+                    name,
+                    "--duration",
+                    "15s",
+                    "--seed",
+                    "1",
+                    "--regressions",
+                    regressions.to_str().expect("path"),
+                ]);
+                // A finding (exit 1) would be a fault of the reference drive; the campaign must have run.
+                assert_eq!(code, 0, "{name} fuzz: {out}\n{err}");
+                let after_fuzz = read_everything(addr_of(&sim), framing, &p);
+                let diff = differences(&before, &after_fuzz);
+                assert!(diff.is_empty(), "{name}: fuzz changed the drive: {diff:#?}");
+                let (code, out, err) = harness(&[
+                    "probe",
+                    "--target",
+                    &url,
+                    "--profile",
+                    name,
+                    "--unit",
+                    &p.device.default_unit.to_string(),
+                ]);
+                assert_eq!(code, 0, "{name} probe: {out}\n{err}");
+                let after_probe = read_everything(addr_of(&sim), framing, &p);
+                let diff = differences(&before, &after_probe);
+                assert!(
+                    diff.is_empty(),
+                    "{name}: probe changed the drive: {diff:#?}"
+                );
+                let lines = journal_lines(&dir.path().join("sim.jsonl"));
+                assert!(
+                    motion_writes(&p, &lines).is_empty(),
+                    "{name}: a motion register was written"
+                );
+                assert!(
+                    lines.is_empty(),
+                    "{name}: fuzz or probe wrote by default: {lines:#?}"
+                );
+                // The comparison has teeth: the presets are there to be seen, off the factory values.
+                assert!(
+                    before.len() >= presets,
+                    "{name}: read {} parameters, preset {presets}",
+                    before.len()
+                );
+            })
+        })
+        .collect();
+    for t in threads {
+        if let Err(e) = t.join() {
+            std::panic::resume_unwind(e);
+        }
+    }
+}
+
+/// `fuzz --allow-writes` against a preset drive: the writes happen (the drive's journal shows values
+/// changed), the campaign judges them against a reference that took the values the drive was found with
+/// (no false FAIL: a fresh reference refuses or accepts writes differently when another parameter is off
+/// its factory value), and the drive is left as found, journal state `restored`.
+#[test]
+fn fuzz_with_writes_judges_against_the_drive_as_found_and_leaves_it_so() {
+    let threads: Vec<_> = ["mdrive", "lmd"]
+        .into_iter()
+        .map(|name| {
+            std::thread::spawn(move || {
+                let dir = TempDir::new(&format!("laf-fuzzw-{name}"));
+                let (sim, url, framing, _) = preset_sim(name, dir.path(), &[]);
+                let p = profile(name);
+                let before = read_everything(addr_of(&sim), framing, &p);
+                let journal = dir.path().join("run-journal.json");
+                let regressions = dir.path().join("regressions");
+                let (code, out, err) = harness(&[
+                    "fuzz",
+                    "--target",
+                    &url,
+                    "--profile",
+                    name,
+                    "--duration",
+                    "8s",
+                    "--seed",
+                    "1",
+                    "--allow-writes",
+                    "--journal",
+                    journal.to_str().expect("path"),
+                    "--regressions",
+                    regressions.to_str().expect("path"),
+                ]);
+                assert_eq!(code, 0, "{name} fuzz --allow-writes: {out}\n{err}");
+                assert!(err.contains("FUZZ WRITES AHEAD"), "{name}: {err}");
+                let lines = journal_lines(&dir.path().join("sim.jsonl"));
+                assert!(
+                    lines.iter().any(|j| j["old"] != j["new"]),
+                    "{name}: no generated write changed anything"
+                );
+                assert!(motion_writes(&p, &lines).is_empty(), "{name}");
+                let after = read_everything(addr_of(&sim), framing, &p);
+                let diff = differences(&before, &after);
+                assert!(diff.is_empty(), "{name}: not left as found: {diff:#?}");
+                let j: serde_json::Value =
+                    serde_json::from_str(&std::fs::read_to_string(&journal).expect("fuzz journal"))
+                        .expect("journal json");
+                assert_eq!(j["state"], "restored", "{name}: {j}");
+            })
+        })
+        .collect();
+    for t in threads {
+        if let Err(e) = t.join() {
+            std::panic::resume_unwind(e);
+        }
+    }
+}

@@ -138,6 +138,35 @@ pub fn pymodbus_or_skip(test: &str) -> bool {
     )
 }
 
+/// How long one `modbus-harness` command of a test may take before it is killed (and the test fails).
+pub const COMMAND_LIMIT: Duration = Duration::from_secs(120);
+
+/// Run `modbus-harness ARGS` in `dir` (None: the test's own directory), stdin closed, bounded by
+/// [`COMMAND_LIMIT`]; (exit code, stdout, stderr). A panic of the binary fails the test.
+pub fn harness_in(dir: Option<&Path>, args: &[&str]) -> (i32, String, String) {
+    let out_dir = TempDir::new("harness-out");
+    let (o, e) = (out_dir.path().join("out"), out_dir.path().join("err"));
+    let mut cmd = Command::new(harness_bin());
+    cmd.args(args)
+        .stdin(Stdio::null())
+        .stdout(std::fs::File::create(&o).expect("out"))
+        .stderr(std::fs::File::create(&e).expect("err"));
+    if let Some(d) = dir {
+        cmd.current_dir(d);
+    }
+    let mut child = cmd.spawn().expect("spawn modbus-harness");
+    let status = wait_bounded(&mut child, COMMAND_LIMIT, &format!("{args:?}"));
+    let out = std::fs::read_to_string(&o).unwrap_or_default();
+    let err = std::fs::read_to_string(&e).unwrap_or_default();
+    assert!(!err.contains("panicked"), "{args:?} panicked: {err}");
+    (status.code().unwrap_or(-1), out, err)
+}
+
+/// [`harness_in`] the test's own directory.
+pub fn harness(args: &[&str]) -> (i32, String, String) {
+    harness_in(None, args)
+}
+
 /// A fresh temporary directory, removed on drop.
 pub struct TempDir(PathBuf);
 

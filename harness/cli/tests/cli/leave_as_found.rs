@@ -16,7 +16,7 @@ use codec::{Direction, Framing, Mnemonic, Pdu, Request, Response};
 use drives::profile::{Access, Profile, Table};
 use drives::tell::apply_presets;
 use drives::{DriveModel, FaultSet};
-use test_support::{ChildGuard, SimProcess, TempDir, harness_bin, wait_bounded};
+use test_support::{ChildGuard, SimProcess, TempDir, harness, harness_bin, wait_bounded};
 
 const RUN_LIMIT: Duration = Duration::from_secs(120);
 
@@ -330,22 +330,24 @@ fn motion_writes(p: &Profile, lines: &[serde_json::Value]) -> Vec<String> {
     out
 }
 
-/// `modbus-harness ARGS`, bounded: (exit code, stdout, stderr).
-fn harness(args: &[&str]) -> (i32, String, String) {
-    let dir = TempDir::new("laf-out");
-    let (o, e) = (dir.path().join("out"), dir.path().join("err"));
-    let mut child = Command::new(harness_bin())
-        .args(args)
-        .stdin(Stdio::null())
-        .stdout(std::fs::File::create(&o).expect("out"))
-        .stderr(std::fs::File::create(&e).expect("err"))
-        .spawn()
-        .expect("spawn");
-    let status = wait_bounded(&mut child, RUN_LIMIT, &format!("{args:?}"));
-    let out = std::fs::read_to_string(&o).unwrap_or_default();
-    let err = std::fs::read_to_string(&e).unwrap_or_default();
-    assert!(!err.contains("panicked"), "{args:?} panicked: {err}");
-    (status.code().unwrap_or(-1), out, err)
+/// Wait (at most 60 s) until the simulate journal shows a write that changed a value; the run must still be
+/// going by then.
+fn wait_for_a_change(run: &mut ChildGuard, sim_journal: &Path) {
+    let give_up = Instant::now() + Duration::from_secs(60);
+    while !journal_lines(sim_journal)
+        .iter()
+        .any(|j| j["old"] != j["new"])
+    {
+        assert!(
+            run.0.try_wait().expect("try_wait").is_none(),
+            "the run ended before it changed anything"
+        );
+        assert!(
+            Instant::now() < give_up,
+            "no write changed a value within 60 s"
+        );
+        std::thread::sleep(Duration::from_millis(2));
+    }
 }
 
 /// A preset simulator of `name` journaling to `dir/sim.jsonl`; (process, target URL, framing).
@@ -506,21 +508,7 @@ fn a_run_killed_halfway_is_undone_by_restore_journal() {
             .spawn()
             .expect("spawn run");
         let mut run = ChildGuard(child);
-        let give_up = Instant::now() + Duration::from_secs(60);
-        while !journal_lines(&sim_journal)
-            .iter()
-            .any(|j| j["old"] != j["new"])
-        {
-            assert!(
-                run.0.try_wait().expect("try_wait").is_none(),
-                "the run ended before it changed anything"
-            );
-            assert!(
-                Instant::now() < give_up,
-                "no write changed a value within 60 s"
-            );
-            std::thread::sleep(Duration::from_millis(2));
-        }
+        wait_for_a_change(&mut run, &sim_journal);
         run.0.kill().expect("SIGKILL the run");
         let _ = run.0.wait();
         let killed = read_everything(addr_of(&sim), framing, &p);
@@ -665,21 +653,7 @@ fn a_run_stopped_with_sigterm_restores_before_it_exits() {
         .spawn()
         .expect("spawn run");
     let mut run = ChildGuard(child);
-    let give_up = Instant::now() + Duration::from_secs(60);
-    while !journal_lines(&sim_journal)
-        .iter()
-        .any(|j| j["old"] != j["new"])
-    {
-        assert!(
-            run.0.try_wait().expect("try_wait").is_none(),
-            "the run ended before it changed anything"
-        );
-        assert!(
-            Instant::now() < give_up,
-            "no write changed a value within 60 s"
-        );
-        std::thread::sleep(Duration::from_millis(2));
-    }
+    wait_for_a_change(&mut run, &sim_journal);
     let pid = run.0.id().to_string();
     let sent = Command::new("kill")
         .args(["-TERM", &pid])
@@ -735,21 +709,7 @@ fn a_target_that_dies_halfway_is_reported_not_restored_with_exit_3() {
         .spawn()
         .expect("spawn run");
     let mut run = ChildGuard(child);
-    let give_up = Instant::now() + Duration::from_secs(60);
-    while !journal_lines(&sim_journal)
-        .iter()
-        .any(|j| j["old"] != j["new"])
-    {
-        assert!(
-            run.0.try_wait().expect("try_wait").is_none(),
-            "the run ended before it changed anything"
-        );
-        assert!(
-            Instant::now() < give_up,
-            "no write changed a value within 60 s"
-        );
-        std::thread::sleep(Duration::from_millis(2));
-    }
+    wait_for_a_change(&mut run, &sim_journal);
     sim.child.0.kill().expect("kill the simulator");
     let _ = sim.child.0.wait();
     let status = wait_bounded(&mut run.0, RUN_LIMIT, "the run after its target died");

@@ -6,34 +6,12 @@
 //! Every server binds port 0; every child is bounded (test-support) and killed by its pid on drop.
 
 use std::path::{Path, PathBuf};
-use std::process::Command;
 
 use drives::profile::Profile;
-use test_support::{SimProcess, TempDir, harness_bin};
+use test_support::{SimProcess, TempDir, harness, harness_in};
 
 /// The example of corpus/profiles/SCHEMA.md: a block of ten registers, two 32-bit registers, a block of coils.
 const MY_DRIVE: &str = include_str!("../data/my_drive.toml");
-
-/// Run the binary in `dir` (None: the test's own directory); (exit code, stdout, stderr).
-fn harness_in(dir: Option<&Path>, args: &[&str]) -> (i32, String, String) {
-    let mut cmd = Command::new(harness_bin());
-    cmd.args(args);
-    if let Some(d) = dir {
-        cmd.current_dir(d);
-    }
-    let out = cmd.output().expect("run the binary");
-    let (code, out, err) = (
-        out.status.code().unwrap_or(-1),
-        String::from_utf8_lossy(&out.stdout).into_owned(),
-        String::from_utf8_lossy(&out.stderr).into_owned(),
-    );
-    assert!(!err.contains("panicked"), "{args:?} panicked: {err}");
-    (code, out, err)
-}
-
-fn harness(args: &[&str]) -> (i32, String, String) {
-    harness_in(None, args)
-}
 
 /// `run ... --no-progress` must exit 0 with a PASS summary.
 fn run_passes(dir: Option<&Path>, args: &[&str]) -> String {

@@ -1,24 +1,11 @@
 //! The `run` and `probe` commands as a user meets them: clear errors with exit code 2, reports on disk,
 //! safety on real targets, `--profile auto`, and an interrupted run that still leaves a complete report.
 
-use std::process::Command;
 use std::sync::atomic::{AtomicBool, Ordering};
 
 use engine::session::{Options, resolve_profile, run};
 use engine::targets::TargetUrl;
-use test_support::{TempDir, loopback_tcp_and_rtu, serve};
-
-fn harness(args: &[&str]) -> (i32, String, String) {
-    let out = Command::new(env!("CARGO_BIN_EXE_modbus-harness"))
-        .args(args)
-        .output()
-        .expect("run the binary");
-    (
-        out.status.code().unwrap_or(-1),
-        String::from_utf8_lossy(&out.stdout).into_owned(),
-        String::from_utf8_lossy(&out.stderr).into_owned(),
-    )
-}
+use test_support::{TempDir, harness, loopback_tcp_and_rtu, serve};
 
 #[test]
 fn bad_targets_exit_2_with_a_clear_message() {

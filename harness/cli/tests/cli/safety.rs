@@ -4,26 +4,11 @@
 //! `probe --read-only`,
 //! while a default `run` and `fuzz --allow-writes` (the controls) are seen writing, so the check can fail.
 
-use std::process::Command;
 
 use drives::profile::Profile;
 use engine::Tag;
 use engine::safety::{classify, is_write_fc};
-use test_support::{RecordingProxy, SimProcess, harness_bin, profile};
-
-fn harness(args: &[&str]) -> (i32, String, String) {
-    let out = Command::new(harness_bin())
-        .args(args)
-        .output()
-        .expect("run the binary");
-    let (code, out, err) = (
-        out.status.code().unwrap_or(-1),
-        String::from_utf8_lossy(&out.stdout).into_owned(),
-        String::from_utf8_lossy(&out.stderr).into_owned(),
-    );
-    assert!(!err.contains("panicked"), "{args:?} panicked: {err}");
-    (code, out, err)
-}
+use test_support::{RecordingProxy, SimProcess, harness, profile};
 
 /// The requests the drive received that write, as `fc pdu-hex`: a write function code, or anything the
 /// classifier rates `write` (FC 08 restart, listen only, clear counters; FC 43 object writes).

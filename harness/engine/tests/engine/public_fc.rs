@@ -7,6 +7,28 @@ use engine::capture::{Captured, captured};
 use engine::oracle::StepContext;
 use engine::oracle::freedoms::alternatives;
 
+/// The embedded requirements and the generic profile.
+fn corpus() -> (drives::requirements::Requirements, drives::profile::Profile) {
+    let reqs = Corpus::Embedded
+        .requirements()
+        .unwrap_or_else(|e| panic!("{e}"));
+    let p = Corpus::Embedded.profile("generic").expect("generic");
+    (reqs, p)
+}
+
+/// The context of a step sending `req` to unit 1 of `p`, well-formed, nothing decided yet.
+fn context<'a>(p: &'a drives::profile::Profile, req: &'a Request) -> StepContext<'a> {
+    StepContext {
+        request: Some(req),
+        unit: 1,
+        run_unit: 1,
+        profile: p,
+        malformed: false,
+        batch: false,
+        decided: &[],
+    }
+}
+
 fn server_id(run: u8) -> Response {
     let mut data = vec![0x47, run];
     data.extend_from_slice(b"modbus-harness generic");
@@ -17,23 +39,12 @@ fn server_id(run: u8) -> Response {
 /// changed, is not.
 #[test]
 fn run_indicator_off_is_admissible_and_0x01_is_not() {
-    let reqs = Corpus::Embedded
-        .requirements()
-        .unwrap_or_else(|e| panic!("{e}"));
+    let (reqs, p) = corpus();
     let f = reqs
         .freedom("run-indicator-status")
         .expect("freedom in the corpus");
-    let p = Corpus::Embedded.profile("generic").expect("generic");
     let req = Request::ReportServerId;
-    let cx = StepContext {
-        request: Some(&req),
-        unit: 1,
-        run_unit: 1,
-        profile: &p,
-        malformed: false,
-        batch: false,
-        decided: &[],
-    };
+    let cx = context(&p, &req);
     let on = server_id(0xFF);
     let off = alternatives(f, &cx, Some(&on), Some(&server_id(0x00)));
     assert_eq!(off.len(), 1);
@@ -89,23 +100,12 @@ fn file_records_are_captured_and_restored_with_fc15() {
 /// counted), two more (the exceptions counted, fault `event-counter-counts-exceptions`) is not.
 #[test]
 fn event_counter_may_count_the_clear_but_nothing_more() {
-    let reqs = Corpus::Embedded
-        .requirements()
-        .unwrap_or_else(|e| panic!("{e}"));
+    let (reqs, p) = corpus();
     let f = reqs
         .freedom("event-counter-clear-counted")
         .expect("freedom in the corpus");
-    let p = Corpus::Embedded.profile("generic").expect("generic");
     let req = Request::GetCommEventCounter;
-    let cx = StepContext {
-        request: Some(&req),
-        unit: 1,
-        run_unit: 1,
-        profile: &p,
-        malformed: false,
-        batch: false,
-        decided: &[],
-    };
+    let cx = context(&p, &req);
     let count = |n| Response::GetCommEventCounter {
         status: 0,
         event_count: n,

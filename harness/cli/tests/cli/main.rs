@@ -2,6 +2,7 @@
 //! drafts.
 
 mod decode;
+mod edges;
 mod generated_snapshots;
 mod leave_as_found;
 mod profiles;

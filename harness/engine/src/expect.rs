@@ -82,3 +82,109 @@ impl Expectations {
         })
     }
 }
+
+/// What became of one entry of an expectations file in a run.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct ExpectationUse {
+    /// The entry's case pattern.
+    pub case: String,
+    /// The verdict it gives.
+    pub verdict: String,
+    /// Cases of the run whose id it matches (skipped ones included).
+    pub matched: usize,
+    /// Of those, the cases that ran (not SKIPPED).
+    pub ran: usize,
+    /// Cases whose deviation this entry excused (it was their first matching entry).
+    pub deviated: usize,
+}
+
+/// How an entry of an expectations file fared: used, or one a run should report.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum ExpectationState {
+    /// It excused at least one deviation.
+    Used,
+    /// It matches no case of the run: a typo, a renamed case, or a case left out by the selection.
+    Unmatched,
+    /// Its cases were all SKIPPED: nothing to say about it.
+    NotRun,
+    /// Its cases ran and none deviated: the deviation is gone (fixed), the entry is stale.
+    Stale,
+}
+
+impl ExpectationUse {
+    /// How the entry fared.
+    pub fn state(&self) -> ExpectationState {
+        if self.matched == 0 {
+            ExpectationState::Unmatched
+        } else if self.ran == 0 {
+            ExpectationState::NotRun
+        } else if self.deviated == 0 {
+            ExpectationState::Stale
+        } else {
+            ExpectationState::Used
+        }
+    }
+}
+
+/// Counts, per entry of an expectations file, the cases it matches and the deviations it excuses; memory
+/// does not grow with the number of cases.
+#[derive(Clone, Debug, Default)]
+pub struct ExpectationTally {
+    entries: Vec<(Option<glob::Pattern>, ExpectationUse)>,
+}
+
+impl ExpectationTally {
+    /// Count one case's result.
+    pub fn record(&mut self, result: &crate::CaseResult) {
+        let opts = glob::MatchOptions {
+            require_literal_separator: false,
+            ..Default::default()
+        };
+        let mut first = true;
+        for (pattern, entry) in &mut self.entries {
+            if !pattern
+                .as_ref()
+                .is_some_and(|p| p.matches_with(&result.id, opts))
+            {
+                continue;
+            }
+            entry.matched += 1;
+            if result.verdict != Verdict::Skipped {
+                entry.ran += 1;
+            }
+            // As in `lookup`, the first matching entry is the one that excused the deviation.
+            if std::mem::take(&mut first) && result.expected_deviation.is_some() {
+                entry.deviated += 1;
+            }
+        }
+    }
+
+    /// Every entry, in file order.
+    pub fn finish(self) -> Vec<ExpectationUse> {
+        self.entries.into_iter().map(|(_, e)| e).collect()
+    }
+}
+
+impl Expectations {
+    /// A tally of this file's entries for one run.
+    pub fn tally(&self) -> ExpectationTally {
+        ExpectationTally {
+            entries: self
+                .deviations
+                .iter()
+                .map(|d| {
+                    (
+                        glob::Pattern::new(&d.case).ok(),
+                        ExpectationUse {
+                            case: d.case.clone(),
+                            verdict: d.verdict.clone(),
+                            matched: 0,
+                            ran: 0,
+                            deviated: 0,
+                        },
+                    )
+                })
+                .collect(),
+        }
+    }
+}

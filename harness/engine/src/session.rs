@@ -187,6 +187,8 @@ pub struct RunOutcome {
     pub shrunk: Vec<ShrinkReport>,
     /// The snapshot written or compared, if `--snapshot` was given.
     pub snapshot: Option<SnapshotOutcome>,
+    /// Each entry of the expectations file (`--expect`): the cases it matched and the deviations it excused.
+    pub expectations: Vec<crate::expect::ExpectationUse>,
 }
 
 impl RunOutcome {
@@ -596,11 +598,14 @@ struct Collected {
     to_shrink: Vec<(u64, String)>,
     /// The requirements cited by the cases that ran (not skipped).
     exercised: std::collections::BTreeSet<String>,
+    /// The use of each entry of the expectations file.
+    expectations: crate::expect::ExpectationTally,
 }
 
 impl Collected {
-    fn new() -> Self {
+    fn new(expectations: &Expectations) -> Self {
         Self {
+            expectations: expectations.tally(),
             tally: Tally::new(),
             verdicts: Vec::new(),
             failures: Vec::new(),
@@ -611,6 +616,7 @@ impl Collected {
 
     fn record(&mut self, opts: &Options, case: &Case, result: CaseResult, gen_index: Option<u64>) {
         self.tally.record(&result);
+        self.expectations.record(&result);
         if result.verdict != Verdict::Skipped {
             self.exercised.extend(case.requirements.iter().cloned());
         }
@@ -780,7 +786,7 @@ pub fn run(
             g.seed()
         );
     }
-    let mut collected = Collected::new();
+    let mut collected = Collected::new(&expectations);
     let started = Instant::now();
     let mut banner_done = cfg.is_sim;
     let mut interrupted = false;
@@ -923,6 +929,7 @@ pub fn run(
         failures: collected.failures,
         shrunk,
         snapshot,
+        expectations: collected.expectations.finish(),
     })
 }
 

@@ -1,20 +1,27 @@
 //! `modbus-harness run`: the conformance run against a target.
 
 use crate::exit::Exit;
-use std::io::IsTerminal;
+use std::io::{IsTerminal, Write};
 use std::path::PathBuf;
 use std::process::ExitCode;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 use clap::Args;
 use drives::corpus::Corpus;
 use drives::{Fault, FaultSet};
 use engine::Verdict;
 use engine::cases::shrink::ShrinkLimits;
+use engine::expect::{ExpectationState, ExpectationUse};
 use engine::session::{self, Options, SnapshotOptions};
 use engine::targets::TargetUrl;
+
+/// The progress bar on a terminal: position, rate, elapsed time, time left, FAIL count and current case.
+const BAR_TEMPLATE: &str = "{bar:30} {pos}/{len} {per_sec} {elapsed} ETA {eta} {msg}";
+
+/// How many FAIL cases the terminal shows with their findings; the rest are counted (all are in the report).
+const FAIL_DETAILS_CAP: usize = 20;
 
 /// What `run --help` says, after the options, about generated cases and snapshots.
 const GENERATED_HELP: &str = "\
@@ -48,8 +55,9 @@ Leave as found (real targets):
 
 Exit codes:
   0  no FAIL, the drive left as found
-  1  a FAIL (or snapshot drift)
-  2  the run could not be made or was interrupted
+  1  a FAIL (or snapshot drift; with --strict-expect, an --expect entry that matches no case or is stale)
+  2  the run could not be made (also: --cases/--exclude select no case, or a pattern is not a valid
+     glob) or was interrupted
   3  the drive was not left as found: a parameter could not be restored (listed in the summary), also when
      the run stopped on an error such as a dead target";
 
@@ -84,9 +92,13 @@ pub struct RunArgs {
     /// Write JSON, JUnit XML, HTML and pcapng reports into this directory.
     #[arg(long)]
     report: Option<PathBuf>,
-    /// Expectations file: known deviations of this target, each with a reason (TOML).
+    /// Expectations file: known deviations of this target, each with a reason (TOML). Entries that match
+    /// no case of the run, or whose cases ran without the deviation (stale), are reported after the run.
     #[arg(long)]
     expect: Option<PathBuf>,
+    /// With --expect: an entry that matches no case or is stale fails the run (exit code 1).
+    #[arg(long, requires = "expect")]
+    strict_expect: bool,
     /// Run only cases whose id matches (glob or id prefix; repeatable).
     #[arg(long = "cases", value_name = "GLOB")]
     cases: Vec<String>,
@@ -135,9 +147,12 @@ pub struct RunArgs {
     /// Corpus directory (default: the corpus built into the binary).
     #[arg(long)]
     corpus: Option<PathBuf>,
-    /// No progress bar.
+    /// No progress bar (on a terminal) and no progress lines (without one).
     #[arg(long)]
     no_progress: bool,
+    /// Without a terminal, print a progress line to stderr every SECS seconds (0: after every case).
+    #[arg(long, default_value_t = 10, value_name = "SECS")]
+    progress_every: u64,
     /// Run N generated cases (ids gen/SEED/INDEX/KIND) instead of the catalog (with it: --with-catalog).
     #[arg(long, value_name = "N")]
     generated: Option<u64>,
@@ -207,6 +222,10 @@ pub fn run(args: &RunArgs) -> ExitCode {
         eprintln!("error: --max-rate must be a positive number of requests per second");
         return ExitCode::from(Exit::Unusable);
     }
+    if let Err(e) = check_patterns(&args.cases, &args.exclude) {
+        eprintln!("error: {e}");
+        return ExitCode::from(Exit::Unusable);
+    }
     let mut opts = Options::new(url);
     opts.profile = args.profile.clone();
     opts.corpus = Corpus::from_option(args.corpus.as_deref());
@@ -256,7 +275,7 @@ pub fn run(args: &RunArgs) -> ExitCode {
         return list_requirements(&opts);
     }
     if args.list || args.dry_run {
-        return list(&opts, args.dry_run);
+        return list(&opts, args, args.dry_run);
     }
 
     let interrupt = Arc::new(AtomicBool::new(false));
@@ -270,14 +289,18 @@ pub fn run(args: &RunArgs) -> ExitCode {
             eprintln!("\ninterrupted: finishing the current case and writing the report ...");
         });
     }
-    let bar = (!args.no_progress && std::io::stderr().is_terminal()).then(|| {
+    let terminal = std::io::stderr().is_terminal();
+    let bar = (!args.no_progress && terminal).then(|| {
         let b = indicatif::ProgressBar::new(0);
         b.set_style(
-            indicatif::ProgressStyle::with_template("{bar:30} {pos}/{len} {msg}")
+            indicatif::ProgressStyle::with_template(BAR_TEMPLATE)
                 .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
         );
         b
     });
+    // Without a terminal (CI logs, a pipe): a plain line every --progress-every seconds.
+    let mut lines = (!args.no_progress && !terminal)
+        .then(|| ProgressLines::new(Duration::from_secs(args.progress_every)));
     let mut fails = 0usize;
     let mut progress = |done: usize, total: usize, id: &str, v: Verdict| {
         if v == Verdict::Fail {
@@ -288,6 +311,9 @@ pub fn run(args: &RunArgs) -> ExitCode {
             b.set_position(done as u64);
             b.set_message(format!("{fails} FAIL  {id}"));
         }
+        if let Some(l) = lines.as_mut() {
+            l.case_done(done, total, fails);
+        }
     };
     let mut log = std::io::stderr();
     let outcome = session::run(&opts, &mut log, &interrupt, &mut progress);
@@ -296,10 +322,25 @@ pub fn run(args: &RunArgs) -> ExitCode {
     }
     match outcome {
         Ok(o) => {
-            for f in o.failures.iter().take(20) {
+            for f in o.failures.iter().take(FAIL_DETAILS_CAP) {
                 println!("FAIL {}", f.id);
                 for line in f.findings().take(3) {
                     println!("     {line}");
+                }
+            }
+            let all_fails = o.summary.count(Verdict::Fail);
+            let shown = o.failures.len().min(FAIL_DETAILS_CAP);
+            if all_fails > shown {
+                match &args.report {
+                    Some(dir) => println!(
+                        "{} more FAIL details in the report ({})",
+                        all_fails - shown,
+                        dir.display()
+                    ),
+                    None => println!(
+                        "{} more FAIL details: rerun with --report DIR for all of them",
+                        all_fails - shown
+                    ),
                 }
             }
             for r in &o.shrunk {
@@ -345,12 +386,20 @@ pub fn run(args: &RunArgs) -> ExitCode {
                     "the observations drifted: exit code 1 (accept them with --update-snapshot)"
                 );
             }
+            let expect_problems = report_expectations(&o.expectations, args.strict_expect);
+            let empty = o.summary.cases == 0 && !o.summary.interrupted;
+            if empty {
+                eprintln!("error: {}", no_case_message(args));
+            }
             println!("{}", engine::reports::terminal_summary(&o.summary, &o.info));
             if o.not_restored() > 0 {
                 ExitCode::from(Exit::NotRestored)
-            } else if o.summary.count(Verdict::Fail) > 0 || drift {
+            } else if o.summary.count(Verdict::Fail) > 0
+                || drift
+                || (args.strict_expect && expect_problems > 0 && !o.summary.interrupted)
+            {
                 ExitCode::from(Exit::Failed)
-            } else if o.summary.interrupted {
+            } else if empty || o.summary.interrupted {
                 ExitCode::from(Exit::Unusable)
             } else {
                 ExitCode::from(Exit::Ok)
@@ -463,7 +512,7 @@ fn list_requirements(opts: &Options) -> ExitCode {
     ExitCode::from(Exit::Ok)
 }
 
-fn list(opts: &Options, dry: bool) -> ExitCode {
+fn list(opts: &Options, args: &RunArgs, dry: bool) -> ExitCode {
     let mut log = std::io::stderr();
     let profile = match session::resolve_profile(opts, &mut log) {
         Ok(p) => p,
@@ -479,8 +528,30 @@ fn list(opts: &Options, dry: bool) -> ExitCode {
             return ExitCode::from(Exit::Unusable);
         }
     };
+    if planned.is_empty() {
+        eprintln!("error: {}", no_case_message(args));
+        return ExitCode::from(Exit::Unusable);
+    }
+    // `run --list | head -1`: a reader that goes away ends the listing quietly, without a panic.
+    match print_list(opts, &profile, &planned, dry) {
+        Err(e) if e.kind() != std::io::ErrorKind::BrokenPipe => {
+            eprintln!("error: cannot write the list: {e}");
+            ExitCode::from(Exit::Unusable)
+        }
+        _ => ExitCode::from(Exit::Ok),
+    }
+}
+
+/// Print the planned cases (and with `dry`, what the safety policy skips and leaving the drive as found).
+fn print_list(
+    opts: &Options,
+    profile: &drives::profile::Profile,
+    planned: &[(engine::Case, Option<String>)],
+    dry: bool,
+) -> std::io::Result<()> {
+    let mut out = std::io::stdout().lock();
     let (mut run, mut skip) = (0, 0);
-    for (c, s) in &planned {
+    for (c, s) in planned {
         let tags: Vec<String> = c
             .tags
             .iter()
@@ -494,33 +565,144 @@ fn list(opts: &Options, dry: bool) -> ExitCode {
         match (dry, s) {
             (true, Some(reason)) => {
                 skip += 1;
-                println!("SKIP {}{tags}  ({reason})", c.id);
+                writeln!(out, "SKIP {}{tags}  ({reason})", c.id)?;
             }
             (true, None) => {
                 run += 1;
-                println!("RUN  {}{tags}  {}", c.id, c.title);
+                writeln!(out, "RUN  {}{tags}  {}", c.id, c.title)?;
             }
-            (false, _) => println!("{}{tags}  {}", c.id, c.title),
+            (false, _) => writeln!(out, "{}{tags}  {}", c.id, c.title)?,
         }
     }
     if dry {
-        println!(
+        writeln!(
+            out,
             "\n{run} to run, {skip} skipped by the safety policy or the transport, against {}",
             opts.target
-        );
+        )?;
         if !opts.target.is_sim() && !opts.safety.read_only {
-            let inv = engine::restore::inventory(&profile, &opts.safety);
-            println!(
+            let inv = engine::restore::inventory(profile, &opts.safety);
+            writeln!(
+                out,
                 "leave as found: {} parameter(s) read before the first write and restored; {} left out:",
                 inv.items.len(),
                 inv.excluded.len()
-            );
+            )?;
             for e in &inv.excluded {
-                println!("  {} ({}): {}", e.key, e.name, e.reason);
+                writeln!(out, "  {} ({}): {}", e.key, e.name, e.reason)?;
             }
         }
     } else {
-        println!("\n{} cases", planned.len());
+        writeln!(out, "\n{} cases", planned.len())?;
     }
-    ExitCode::from(Exit::Ok)
+    out.flush()
+}
+
+/// The progress of a run without a terminal: a plain line to stderr at most every `every`.
+struct ProgressLines {
+    every: Duration,
+    started: Instant,
+    last: Instant,
+}
+
+impl ProgressLines {
+    fn new(every: Duration) -> Self {
+        let now = Instant::now();
+        Self {
+            every,
+            started: now,
+            last: now,
+        }
+    }
+
+    /// After each case: a line when `every` has passed since the last one (the summary follows the last case).
+    fn case_done(&mut self, done: usize, total: usize, fails: usize) {
+        let now = Instant::now();
+        if now.duration_since(self.last) < self.every || done >= total {
+            return;
+        }
+        self.last = now;
+        let elapsed = now.duration_since(self.started).as_secs_f64();
+        let rate = done as f64 / elapsed.max(1e-3);
+        let eta = (total.saturating_sub(done)) as f64 / rate.max(1e-9);
+        let percent = done * 100 / total.max(1);
+        // A closed stderr must not end the run (the drive is still to be put back).
+        let _ = writeln!(
+            std::io::stderr(),
+            "progress: {done}/{total} cases ({percent}%), {fails} FAIL, {rate:.1} cases/s, {elapsed:.0} s elapsed, ETA {eta:.0} s"
+        );
+    }
+}
+
+/// Every --cases and --exclude pattern is a valid glob.
+fn check_patterns(cases: &[String], exclude: &[String]) -> Result<(), String> {
+    for (flag, patterns) in [("--cases", cases), ("--exclude", exclude)] {
+        for p in patterns {
+            if let Err(e) = glob::Pattern::new(p) {
+                return Err(format!("{flag} `{p}` is not a valid glob: {e}"));
+            }
+        }
+    }
+    Ok(())
+}
+
+/// Why a run or a listing has no case: the selection that left none.
+fn no_case_message(args: &RunArgs) -> String {
+    let quoted = |v: &[String]| {
+        v.iter()
+            .map(|p| format!("`{p}`"))
+            .collect::<Vec<_>>()
+            .join(", ")
+    };
+    let what = match (args.cases.is_empty(), args.exclude.is_empty()) {
+        (false, true) => format!("--cases {} matches no case", quoted(&args.cases)),
+        (false, false) => format!(
+            "--cases {} with --exclude {} leaves no case",
+            quoted(&args.cases),
+            quoted(&args.exclude)
+        ),
+        (true, false) => format!("--exclude {} leaves no case", quoted(&args.exclude)),
+        (true, true) => "the run has no case".to_string(),
+    };
+    format!("no case selected: {what} (`modbus-harness run --list` lists the case ids)")
+}
+
+/// Print the entries of the expectations file that match no case or are stale; their number.
+fn report_expectations(uses: &[ExpectationUse], strict: bool) -> usize {
+    let problems: Vec<&ExpectationUse> = uses
+        .iter()
+        .filter(|u| {
+            matches!(
+                u.state(),
+                ExpectationState::Unmatched | ExpectationState::Stale
+            )
+        })
+        .collect();
+    if problems.is_empty() {
+        return 0;
+    }
+    println!(
+        "expectations: {} of {} entr{} not used{}:",
+        problems.len(),
+        uses.len(),
+        if uses.len() == 1 { "y" } else { "ies" },
+        if strict {
+            " (--strict-expect: exit code 1)"
+        } else {
+            " (--strict-expect makes this a failure)"
+        }
+    );
+    for u in &problems {
+        match u.state() {
+            ExpectationState::Unmatched => println!(
+                "  UNMATCHED {} ({}): matches no case of this run",
+                u.case, u.verdict
+            ),
+            _ => println!(
+                "  STALE     {} ({}): its {} case(s) ran without the deviation; remove the entry if it is fixed",
+                u.case, u.verdict, u.ran
+            ),
+        }
+    }
+    problems.len()
 }

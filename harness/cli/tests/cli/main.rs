@@ -1,8 +1,11 @@
 //! The command line: decode, run (exit codes, reports, safety), generated-run snapshots, profile files and
 //! drafts.
 
+mod ci_examples;
 mod decode;
+mod edges;
 mod generated_snapshots;
+mod junit_schema;
 mod leave_as_found;
 mod profiles;
 mod run;

@@ -245,6 +245,10 @@ impl SnapshotWriter {
             let mut w = BufWriter::new(
                 File::create(&tmp.0).map_err(super::with_path("cannot create", &tmp.0))?,
             );
+            // A file that insta manages (the committed snapshots/) keeps its front matter.
+            if let Some(front) = insta_front_matter(out) {
+                w.write_all(front.as_bytes())?;
+            }
             w.write_all(self.header.as_bytes())?;
             if self.runs.is_empty() {
                 self.chunk.sort();
@@ -311,6 +315,28 @@ fn block_id(line: &str) -> Option<&str> {
     Some(rest.rsplit_once("  ").map_or(rest, |(id, _)| id))
 }
 
+/// The line that opens and closes the front matter of an insta snapshot file.
+const INSTA_FENCE: &str = "---";
+
+/// The insta front matter of the file at `path` (both fences and what is between them), if it has one.
+fn insta_front_matter(path: &Path) -> Option<String> {
+    let mut lines = BufReader::new(File::open(path).ok()?).lines();
+    if lines.next()?.ok()? != INSTA_FENCE {
+        return None;
+    }
+    let mut front = format!("{INSTA_FENCE}\n");
+    // A few lines at most (source, description, expression); a file without a closing fence has none.
+    for line in lines.take(64) {
+        let line = line.ok()?;
+        front.push_str(&line);
+        front.push('\n');
+        if line == INSTA_FENCE {
+            return Some(front);
+        }
+    }
+    None
+}
+
 /// Reads a snapshot file block by block; the header is read first.
 pub struct BlockReader<R> {
     input: R,
@@ -325,12 +351,24 @@ impl<R: BufRead> BlockReader<R> {
         let mut header = Vec::new();
         let mut line = String::new();
         let mut pending = None;
+        // The front matter of an insta snapshot (`---`, `source: ...`, `---`) is not part of the run's
+        // observations: a committed `snapshots/*.snap` compares with a run as its text does.
+        let mut front_matter = false;
+        let mut first = true;
         loop {
             line.clear();
             if input.read_line(&mut line)? == 0 {
                 break;
             }
             let l = line.trim_end_matches(['\n', '\r']);
+            if std::mem::take(&mut first) && l == INSTA_FENCE {
+                front_matter = true;
+                continue;
+            }
+            if front_matter {
+                front_matter = l != INSTA_FENCE;
+                continue;
+            }
             if l.starts_with("== ") {
                 pending = Some(l.to_string());
                 break;

@@ -122,12 +122,11 @@ fn junit_is_well_formed_with_one_failure_and_one_skip() {
                     "testcase" => testcases.push(a.clone()),
                     "failure" => failures += 1,
                     "skipped" => skipped += 1,
-                    "property"
-                        if stack.last().map(String::as_str) == Some("properties")
-                            && attr(&a, "name").as_deref() == Some("verdict") =>
-                    {
-                        verdict_properties.push(attr(&a, "value").unwrap_or_default());
-                    }
+                    "properties" => assert_eq!(
+                        stack.last().map(String::as_str),
+                        Some("testsuite"),
+                        "properties only at suite level"
+                    ),
                     _ => {}
                 }
                 if matches!(event, Event::Start(_)) {
@@ -144,7 +143,14 @@ fn junit_is_well_formed_with_one_failure_and_one_skip() {
                     .into_owned();
                 match stack.last().map(String::as_str) {
                     Some("failure") => failure_text.push_str(&text),
-                    Some("system-out") => system_out.push(text),
+                    Some("system-out")
+                        if stack.len() >= 2 && stack[stack.len() - 2] == "testcase" =>
+                    {
+                        if let Some(v) = text.strip_prefix("verdict: ") {
+                            verdict_properties.push(v.lines().next().unwrap_or("").to_string());
+                        }
+                        system_out.push(text);
+                    }
                     _ => {}
                 }
             }
@@ -184,7 +190,8 @@ fn junit_is_well_formed_with_one_failure_and_one_skip() {
     assert_eq!(testcases.len(), 6);
     for (tc, id) in testcases.iter().zip(IDS) {
         let (class, name) = id.rsplit_once('/').expect("ids have a /");
-        assert_eq!(attr(tc, "classname").as_deref(), Some(class));
+        let class = class.replace('.', "_").replace('/', ".");
+        assert_eq!(attr(tc, "classname").as_deref(), Some(class.as_str()));
         assert_eq!(attr(tc, "name").as_deref(), Some(name));
     }
     assert_eq!(

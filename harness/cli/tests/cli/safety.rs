@@ -4,7 +4,6 @@
 //! `probe --read-only`,
 //! while a default `run` and `fuzz --allow-writes` (the controls) are seen writing, so the check can fail.
 
-
 use drives::profile::Profile;
 use engine::Tag;
 use engine::safety::{classify, is_write_fc};

@@ -570,14 +570,17 @@ pub(crate) fn open_runner(
         unit,
     );
     let shadow = SimTarget::with_framing(shadow_station, framing, target.rtu_timing()).mirror();
-    Ok(Runner::new(
+    let mut runner = Runner::new(
         target,
         shadow,
         profile.clone(),
         cfg.clone(),
         expectations.clone(),
     )
-    .with_requirements(requirements))
+    .with_requirements(requirements);
+    // Where a freedom leaves the word order open, the cases are judged in the drive's own.
+    runner.learn_word_order();
+    Ok(runner)
 }
 
 fn unix_ms() -> u64 {

@@ -915,7 +915,10 @@ pub fn run(
         r.finish(&summary)?;
     }
     let snapshot = match (snap, &opts.snapshot) {
-        (Some(w), Some(s)) => Some(finish_snapshot(w, s)?),
+        (Some(mut w), Some(s)) => {
+            w.add_choices(runner.choices().choices())?;
+            Some(finish_snapshot(w, s)?)
+        }
         _ => None,
     };
     Ok(RunOutcome {

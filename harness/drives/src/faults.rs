@@ -44,6 +44,9 @@ pub enum Fault {
     BitPaddingOnes,
     PartialWrite,
     ReadBeforeWrite,
+    HalfRegisterWidened,
+    WriteOnlyReadable,
+    MnemonicParamsUnchecked,
 }
 
 impl Fault {
@@ -228,6 +231,21 @@ impl Fault {
             Fault::ReadBeforeWrite,
             "read-before-write",
             "FC 23: the registers are read before the write is performed (the answer holds the old values)",
+        ),
+        (
+            Fault::HalfRegisterWidened,
+            "half-register-widened",
+            "a read or write covering one half of a 32-bit register is served as the whole pair: a read answers one register more than asked, a write is echoed with one register more (and not stored)",
+        ),
+        (
+            Fault::WriteOnlyReadable,
+            "write-only-readable",
+            "MDrive/LMD: FC 0x41 of a write-only mnemonic is answered with a value (\"0\") instead of refused",
+        ),
+        (
+            Fault::MnemonicParamsUnchecked,
+            "mnemonic-params-unchecked",
+            "MDrive/LMD: FC 0x42 with parameters the mnemonic does not take is answered as written (the setting keeps its value)",
         ),
     ];
 

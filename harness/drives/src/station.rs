@@ -718,10 +718,17 @@ impl Station {
             Some(Response::exception(fc, e.code))
         } else if let Some(code) = self.lacks(&req) {
             Some(Response::exception(fc, code))
+        } else if let Some(r) = self.half_register_widened(&req) {
+            Some(r)
         } else if let Some(code) = self.partial_read_refused(&req) {
             self.decisions.push(ids::PARTIAL_REGISTER_READ);
             Some(Response::exception(fc, code))
         } else {
+            // Served or refused, the answer to a read inside a 32-bit register is the drive's choice (every
+            // model: the SD2x's too).
+            if self.splits_pair(&req) && !self.decisions.contains(&ids::PARTIAL_REGISTER_READ) {
+                self.decisions.push(ids::PARTIAL_REGISTER_READ);
+            }
             match req {
                 Request::Diagnostics { .. } => {
                     let d = self.diagnostics(&req, via);
@@ -813,10 +820,54 @@ impl Station {
             })
     }
 
+    /// Under [`Fault::HalfRegisterWidened`], the answer to a read or write (FC 03, 04, 16) that covers one
+    /// half of a 32-bit holding register: served as if it covered the whole pair (one register more), the
+    /// write not stored. Whatever the drive's choice for the freedoms `partial-register-read/-write`.
+    fn half_register_widened(&self, req: &Request) -> Option<Response> {
+        if !self.faults.has(Fault::HalfRegisterWidened) {
+            return None;
+        }
+        let profile = self.model.profile();
+        let inside = |a: u32| {
+            u16::try_from(a).ok().is_some_and(|a| {
+                profile
+                    .register_at(a, false)
+                    .is_some_and(|r| r.width == 2 && r.address != a)
+            })
+        };
+        let splits = |address: u16, quantity: usize| {
+            let start = u32::from(address);
+            quantity > 0 && (inside(start) || inside(start + quantity as u32))
+        };
+        match req {
+            Request::ReadHoldingRegisters { address, quantity }
+                if splits(*address, usize::from(*quantity)) =>
+            {
+                Some(Response::ReadHoldingRegisters {
+                    values: vec![0; usize::from(*quantity) + 1],
+                })
+            }
+            Request::WriteMultipleRegisters { address, values }
+                if splits(*address, values.len()) =>
+            {
+                Some(Response::WriteMultipleRegisters {
+                    address: *address,
+                    quantity: values.len() as u16 + 1,
+                })
+            }
+            _ => None,
+        }
+    }
+
     /// The exception a drive that refuses reads starting or ending inside a 32-bit register answers with
     /// (`partial-register-read` chosen `exception-XX`), when the request is such a read.
     fn partial_read_refused(&self, req: &Request) -> Option<ExceptionCode> {
         let code = Choices::exception_value(self.choices.get(ids::PARTIAL_REGISTER_READ)?)?;
+        self.splits_pair(req).then_some(code)
+    }
+
+    /// True when `req` reads (FC 03, 04, 23) a range that starts or ends inside a 32-bit register.
+    fn splits_pair(&self, req: &Request) -> bool {
         let (input, address, quantity) = match req {
             Request::ReadHoldingRegisters { address, quantity } => (false, *address, *quantity),
             Request::ReadInputRegisters { address, quantity } => (true, *address, *quantity),
@@ -825,7 +876,7 @@ impl Station {
                 read_quantity,
                 ..
             } => (false, *read_address, *read_quantity),
-            _ => return None,
+            _ => return false,
         };
         let profile = self.model.profile();
         let inside = |a: u32| {
@@ -836,7 +887,7 @@ impl Station {
             })
         };
         let end = u32::from(address) + u32::from(quantity);
-        (quantity > 0 && (inside(u32::from(address)) || inside(end))).then_some(code)
+        quantity > 0 && (inside(u32::from(address)) || inside(end))
     }
 
     /// Quantity limits and FC 05 values, per the application protocol spec's state diagrams.

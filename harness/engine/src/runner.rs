@@ -11,8 +11,10 @@ use crate::oracle::{self, ChoiceLog, Finding, Sent, Severity, StepContext};
 use crate::targets::sim::SimTarget;
 use crate::targets::{Received, Target, TargetError};
 use codec::{Framing, Request, rtu, tcp};
-use drives::profile::Profile;
-use drives::requirements::Requirements;
+use drives::FaultSet;
+use drives::profile::{Profile, Table, WordOrder};
+use drives::requirements::{FreedomKind, Requirements};
+use drives::station::Station;
 use std::sync::Arc;
 
 /// How long the runner waits.
@@ -117,7 +119,14 @@ pub struct Runner {
     /// Transaction ids of the restore's traffic: a sequence of its own, so that the cases' ids (and the
     /// snapshots of their observations) are the same with or without leaving the drive as found.
     restore_tid: u16,
+    /// The word order the cases encode 32-bit values in (the profile's). Where a freedom leaves the order
+    /// open, `profile.device.word_order` becomes the drive's own once [`Runner::learn_word_order`] has seen
+    /// it, and whole 32-bit values the cases write are sent in that order.
+    case_order: WordOrder,
 }
+
+/// How many register pairs that read in range in only one word order settle it (all of them must agree).
+const WORD_ORDER_VOTES: usize = 3;
 
 impl Runner {
     /// A runner for `target`, judged by `shadow` (a fault-free reference drive of the same profile).
@@ -128,6 +137,7 @@ impl Runner {
         cfg: RunConfig,
         expectations: Expectations,
     ) -> Self {
+        let case_order = profile.device.word_order;
         Self {
             target,
             shadow,
@@ -144,7 +154,157 @@ impl Runner {
             case_tags: Vec::new(),
             refused: false,
             restore_tid: 0xA000,
+            case_order,
         }
+    }
+
+    /// Learn the drive's word order, where a freedom of the profile leaves it open (the LMD's, freedom
+    /// `lmd-word-order`), before the first case, so that no case's verdict depends on the cases run before it:
+    /// read the readable 32-bit registers and take the order in which their values lie in the profile's
+    /// range where only one order does (a value such as 0 settles nothing). When the drive's order is not
+    /// the profile's, the reference drive is rebuilt in the drive's order (and given the same reads), the
+    /// oracle reads 32-bit values in it first, and the whole 32-bit values the cases write are sent in it
+    /// (the cases' values stay the same numbers). The order learned is recorded as the drive's choice, so
+    /// that an answer in the other order later is a change of mind (freedom note: "A drive must use one
+    /// order consistently", ERRATA-lmd.md C.1). Reads only, through the restore's transaction ids, so that
+    /// the cases' observations do not change; best effort: a target that does not answer is left to the cases.
+    pub fn learn_word_order(&mut self) {
+        let requirements = Arc::clone(&self.requirements);
+        let id = self.profile.device.id.clone();
+        let Some(freedom) = requirements
+            .freedoms_for(&id)
+            .find(|f| f.kind == FreedomKind::WordOrder)
+        else {
+            return;
+        };
+        let pairs: Vec<(u16, String)> = self
+            .profile
+            .registers
+            .iter()
+            .map(|r| r.get_ref())
+            .filter(|r| {
+                r.width == 2 && r.confirmed && r.access.readable() && r.table != Table::Input
+            })
+            .map(|r| (r.address, r.name.clone()))
+            .collect();
+        let profile_order = self.profile.device.word_order;
+        let other = flip(profile_order);
+        let mut votes: Vec<(WordOrder, u16, String)> = Vec::new();
+        let mut sent = Vec::new();
+        for (address, name) in pairs {
+            let read = Request::ReadHoldingRegisters {
+                address,
+                quantity: 2,
+            };
+            let answer = match crate::restore::Link::transact(self, &read) {
+                Ok(Some(a)) => a,
+                // Silence or an error: the cases will meet it; nothing more is learned here.
+                _ => break,
+            };
+            sent.push(read);
+            let codec::Response::ReadHoldingRegisters { values } = answer else {
+                continue;
+            };
+            let [a, b] = values[..] else { continue };
+            let fits = |order: WordOrder| {
+                self.profile.register_at(address, false).is_some_and(|r| {
+                    let raw = order.join(a, b);
+                    let v = if r.signed {
+                        i64::from(raw as i32)
+                    } else {
+                        i64::from(raw)
+                    };
+                    let (min, max) = r.range();
+                    (min..=max).contains(&v)
+                })
+            };
+            match (fits(profile_order), fits(other)) {
+                (true, false) => votes.push((profile_order, address, name)),
+                (false, true) => votes.push((other, address, name)),
+                _ => {}
+            }
+            if votes.len() >= WORD_ORDER_VOTES && votes.iter().all(|v| v.0 == votes[0].0) {
+                break;
+            }
+        }
+        let count = |o: WordOrder| votes.iter().filter(|v| v.0 == o).count();
+        let drive_order = if count(other) > count(profile_order) {
+            other
+        } else {
+            profile_order
+        };
+        let Some((_, address, name)) = votes.iter().find(|v| v.0 == drive_order) else {
+            return;
+        };
+        let shown = crate::oracle::freedoms::shown_value(freedom, "", order_name(drive_order));
+        let origin = format!("(word order learned before the cases: 0x{address:04X} {name})");
+        let _ = self.choices.record(&shown, &origin, &requirements);
+        if drive_order == profile_order {
+            return;
+        }
+        self.profile.device.word_order = drive_order;
+        let station = Station::new(
+            drives::build(self.profile.clone(), FaultSet::none()),
+            FaultSet::none(),
+            self.cfg.unit,
+        );
+        self.shadow =
+            SimTarget::with_framing(station, self.target.framing(), self.target.rtu_timing())
+                .mirror();
+        // The new reference drive gets the reads the old one got (counters, event log).
+        let tid = self.next_tid;
+        for read in &sent {
+            let Ok(pdu) = read.to_bytes() else { continue };
+            let f = self.frame(&pdu, self.cfg.unit, None);
+            if self.shadow.send(&f.bytes).is_ok() {
+                let _ = self.shadow.settle();
+                let _ = self.shadow.take_decisions();
+            }
+        }
+        self.next_tid = tid;
+    }
+
+    /// The word order the oracle reads the drive's 32-bit values in (the profile's, or the drive's own
+    /// where a freedom leaves it open and [`Runner::learn_word_order`] saw it).
+    pub fn word_order(&self) -> WordOrder {
+        self.profile.device.word_order
+    }
+
+    /// `pdu` with each whole 32-bit register value it writes (FC 16, FC 23) put in the drive's word order,
+    /// when that is not the order the cases encode values in. Halves of a value and other requests are
+    /// sent as they are.
+    fn in_drive_order(&self, pdu: &[u8]) -> Vec<u8> {
+        if self.profile.device.word_order == self.case_order {
+            return pdu.to_vec();
+        }
+        let mut req = match Request::decode(pdu) {
+            Ok(r) => r,
+            Err(_) => return pdu.to_vec(),
+        };
+        let (address, values) = match &mut req {
+            Request::WriteMultipleRegisters { address, values } => (*address, values),
+            Request::ReadWriteMultipleRegisters {
+                write_address,
+                values,
+                ..
+            } => (*write_address, values),
+            _ => return pdu.to_vec(),
+        };
+        let mut i = 0usize;
+        while i + 1 < values.len() {
+            let a = address.wrapping_add(i as u16);
+            if self
+                .profile
+                .register_at(a, false)
+                .is_some_and(|r| r.width == 2 && r.address == a)
+            {
+                values.swap(i, i + 1);
+                i += 2;
+            } else {
+                i += 1;
+            }
+        }
+        req.to_bytes().unwrap_or_else(|_| pdu.to_vec())
     }
 
     /// Judge with the freedoms of `requirements`: an answer another admissible choice gives passes.
@@ -444,12 +604,12 @@ impl Runner {
         let unit = self.cfg.unit;
         Some(match send {
             Outgoing::Pdu(p) => {
-                let f = self.frame(p, unit, None);
+                let f = self.frame(&self.in_drive_order(p), unit, None);
                 let piece = vec![(f.bytes.clone(), Duration::ZERO)];
                 (vec![f], piece)
             }
             Outgoing::PduToUnit { pdu, unit } => {
-                let f = self.frame(pdu, *unit, None);
+                let f = self.frame(&self.in_drive_order(pdu), *unit, None);
                 let piece = vec![(f.bytes.clone(), Duration::ZERO)];
                 (vec![f], piece)
             }
@@ -465,7 +625,13 @@ impl Runner {
                 (vec![f], pieces)
             }
             Outgoing::Batch(pdus) => {
-                let frames: Vec<Framed> = pdus.iter().map(|p| self.frame(p, unit, None)).collect();
+                let frames: Vec<Framed> = pdus
+                    .iter()
+                    .map(|p| {
+                        let p = self.in_drive_order(p);
+                        self.frame(&p, unit, None)
+                    })
+                    .collect();
                 let all = frames
                     .iter()
                     .flat_map(|f| f.bytes.iter().copied())
@@ -749,6 +915,21 @@ fn record(r: &Received, wire: &mut Vec<WireEvent>) {
             bytes: bytes.clone(),
             intended_malformed: false,
         });
+    }
+}
+
+fn flip(order: WordOrder) -> WordOrder {
+    match order {
+        WordOrder::HighFirst => WordOrder::LowFirst,
+        WordOrder::LowFirst => WordOrder::HighFirst,
+    }
+}
+
+/// The value of a `word-order` freedom that stands for `order`.
+pub(crate) fn order_name(order: WordOrder) -> &'static str {
+    match order {
+        WordOrder::HighFirst => "high-first",
+        WordOrder::LowFirst => "low-first",
     }
 }
 

@@ -572,14 +572,17 @@ pub(crate) fn open_runner(
         unit,
     );
     let shadow = SimTarget::with_framing(shadow_station, framing, target.rtu_timing()).mirror();
-    Ok(Runner::new(
+    let mut runner = Runner::new(
         target,
         shadow,
         profile.clone(),
         cfg.clone(),
         expectations.clone(),
     )
-    .with_requirements(requirements))
+    .with_requirements(requirements);
+    // Where a freedom leaves the word order open, the cases are judged in the drive's own.
+    runner.learn_word_order();
+    Ok(runner)
 }
 
 fn unix_ms() -> u64 {
@@ -919,7 +922,10 @@ pub fn run(
         r.finish(&summary)?;
     }
     let snapshot = match (snap, &opts.snapshot) {
-        (Some(w), Some(s)) => Some(finish_snapshot(w, s)?),
+        (Some(mut w), Some(s)) => {
+            w.add_choices(runner.choices().choices())?;
+            Some(finish_snapshot(w, s)?)
+        }
         _ => None,
     };
     Ok(RunOutcome {

@@ -250,9 +250,20 @@ fn another_seed_or_a_fault_is_drift_naming_the_cases() {
     assert_eq!((d.missing, d.added, d.same), (N as usize, N as usize, 0));
     let text = d.render();
     assert!(text.contains(&format!("- gen/{SEED}/0/")), "{text}");
-    assert!(d.ids.iter().all(|i| i.starts_with("gen/")));
+    // Besides the cases, only the choices the drive made differ (other cases show other freedoms).
+    assert!(
+        d.ids
+            .iter()
+            .all(|i| i.starts_with("gen/") || i.starts_with("choice/"))
+    );
     // The report is capped; the rest is counted.
-    assert!(text.contains("... and 70 more case(s)"), "{text}");
+    assert!(
+        text.contains(&format!(
+            "... and {} more case(s) or choice(s)",
+            2 * N as usize + d.choices - engine::reports::snapshot::DRIFT_DETAIL_CAP
+        )),
+        "{text}"
+    );
     // A fault: the cases it changes are named, with the lines that differ.
     let out = compare(SEED, &[Fault::RangeUnchecked, Fault::QuantityUnchecked]);
     let failing: Vec<String> = out.failures.iter().map(|f| f.id.clone()).collect();
@@ -277,6 +288,58 @@ fn another_seed_or_a_fault_is_drift_naming_the_cases() {
         text.contains("    - == ") && text.contains("    + == "),
         "{text}"
     );
+}
+
+/// The snapshot records the choices the drive made where the sources leave one: a drive that makes another
+/// admissible choice (firmware changed its mind) drifts, and the drift names the freedom and both values,
+/// although every case still passes.
+#[test]
+fn another_admissible_choice_is_drift_naming_the_freedom() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let file = dir.path().join("lmd.snap.txt");
+    let opts = |choose: &[&str]| {
+        let mut o = options("sim:lmd", "lmd", SEED, &[]);
+        o.choose = choose.iter().map(|c| c.to_string()).collect();
+        o
+    };
+    let text = write_snapshot(opts(&[]), &file);
+    assert!(
+        text.contains("== choice/lmd-word-order  low-first\n"),
+        "{text}"
+    );
+    assert!(text.contains("== choice/value-out-of-range  3\n"), "{text}");
+    for (choose, freedom, old, new) in [
+        ("value-out-of-range=4", "value-out-of-range", "3", "4"),
+        (
+            "lmd-word-order=high-first",
+            "lmd-word-order",
+            "low-first",
+            "high-first",
+        ),
+    ] {
+        let mut o = opts(&[choose]);
+        o.snapshot = Some(SnapshotOptions {
+            path: file.clone(),
+            update: false,
+        });
+        let out = run_ok(&o);
+        assert_eq!(
+            out.summary.count(engine::Verdict::Fail),
+            0,
+            "--choose {choose}: an admissible choice passes"
+        );
+        let d = out.snapshot.expect("compared").drift.expect("drift");
+        assert!(d.choices >= 1 && !d.is_clean(), "{}", d.render());
+        let id = format!("choice/{freedom}");
+        assert!(d.ids.contains(&id), "--choose {choose}: {:?}", d.ids);
+        let text = d.render();
+        assert!(
+            text.contains(&format!("    - == {id}  {old}"))
+                && text.contains(&format!("    + == {id}  {new}")),
+            "{text}"
+        );
+        assert!(text.contains("choice(s) of the drive differ"), "{text}");
+    }
 }
 
 #[test]

@@ -62,7 +62,7 @@ use super::bank::{BitIndex, Change, RegIndex, RegisterBank};
 use super::data_model::{self, BitTable, DataModel, RegTable};
 use super::generic::read_device_id;
 use crate::choices::{Choices, Decision, Rejection, ids};
-use crate::faults::FaultSet;
+use crate::faults::{Fault, FaultSet};
 use crate::profile::{Profile, VendorMnemonic};
 use codec::{ExceptionCode, FunctionCode, Mnemonic, Request, Response};
 
@@ -568,6 +568,10 @@ pub struct Mdrive {
     choices: Choices,
     /// Freedoms that decided the answer being given (drained per request).
     decisions: Vec<Decision>,
+    /// `Fault::WriteOnlyReadable`: FC 0x41 of a write-only mnemonic is answered.
+    write_only_readable: bool,
+    /// `Fault::MnemonicParamsUnchecked`: FC 0x42 parameters the mnemonic does not take are "written".
+    params_unchecked: bool,
 }
 
 impl Mdrive {
@@ -632,6 +636,8 @@ impl Mdrive {
             nvm_writes: 0,
             choices,
             decisions: Vec::new(),
+            write_only_readable: faults.has(Fault::WriteOnlyReadable),
+            params_unchecked: faults.has(Fault::MnemonicParamsUnchecked),
         };
         model.refresh();
         model
@@ -876,7 +882,7 @@ impl Mdrive {
                 ExceptionCode::ILLEGAL_DATA_ADDRESS,
             );
         };
-        if !m.read {
+        if !m.read && !self.write_only_readable {
             return self.refuse(
                 fc,
                 ids::MNEMONIC_ACCESS,
@@ -964,6 +970,11 @@ impl Mdrive {
                     mnemonic: *mnemonic,
                 }
             }
+            // The faulty drive answers as if it had written the parameters it cannot take.
+            Err(_) if self.params_unchecked => Response::VendorWrite {
+                written: BYTES_WRITTEN,
+                mnemonic: *mnemonic,
+            },
             Err(code) => self.refuse(fc, ids::MNEMONIC_BAD_PARAMETER, code),
         }
     }

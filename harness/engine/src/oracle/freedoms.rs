@@ -272,7 +272,7 @@ pub fn alternatives(
         FreedomKind::Outcome
             if cx.decided(f) || cx.malformed || (cx.batch && f.id.starts_with("pipelined")) =>
         {
-            outcome(f, expected, observed)
+            outcome(f, cx.request, expected, observed)
         }
         FreedomKind::Outcome => vec![],
         FreedomKind::UnitIds => {
@@ -467,6 +467,7 @@ fn access(
 /// The kind of answer is free among the listed ones: response, silence, close, exception-XX.
 fn outcome(
     f: &Freedom,
+    request: Option<&Request>,
     expected: Option<&Response>,
     observed: Option<&Response>,
 ) -> Vec<Alternative> {
@@ -498,7 +499,7 @@ fn outcome(
                 }
                 None if has("response") && o.function() == fc && e.is_exception() => {
                     vec![Alternative {
-                        answer: Some(o.clone()),
+                        answer: Some(served_as_asked(request).unwrap_or_else(|| o.clone())),
                         shown: shown_named(f, "", "response"),
                         values_free: true,
                         note: None,
@@ -509,6 +510,34 @@ fn outcome(
         }
         _ => vec![],
     }
+}
+
+/// The shape of an answer that serves `request` as asked, where a drive may serve what the reference
+/// refuses: the echo of a register write, as many registers as a read asks for (values free). `None` for
+/// other requests (the answer observed is then the only guide).
+fn served_as_asked(request: Option<&Request>) -> Option<Response> {
+    Some(match request? {
+        Request::WriteMultipleRegisters { address, values } => Response::WriteMultipleRegisters {
+            address: *address,
+            quantity: u16::try_from(values.len()).ok()?,
+        },
+        Request::WriteSingleRegister { address, value } => Response::WriteSingleRegister {
+            address: *address,
+            value: *value,
+        },
+        Request::ReadHoldingRegisters { quantity, .. } => Response::ReadHoldingRegisters {
+            values: vec![0; usize::from(*quantity)],
+        },
+        Request::ReadInputRegisters { quantity, .. } => Response::ReadInputRegisters {
+            values: vec![0; usize::from(*quantity)],
+        },
+        Request::ReadWriteMultipleRegisters { read_quantity, .. } => {
+            Response::ReadWriteMultipleRegisters {
+                values: vec![0; usize::from(*read_quantity)],
+            }
+        }
+        _ => return None,
+    })
 }
 
 /// A status word equal to the reference's under the loosest listed mask.

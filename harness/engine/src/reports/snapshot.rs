@@ -16,7 +16,21 @@
 //! # needs RTU framing
 //! ```
 //!
-//! A block starts with `== <case id>  <verdict>` and lists, per step, the bytes sent (`> hex`, the pieces of
+//! After the header come the choices the drive made where the specifications and its manual leave one (the
+//! run's "choices this drive made"), one block per freedom (and item), sorted by freedom, so that a drive
+//! that changes a choice between firmware versions shows as drift naming the freedom:
+//!
+//! ```text
+//! == choice/value-out-of-range  4
+//! # not the reference drive's choice
+//! # seen in 3 case(s): profile/lmd/write-out-of-range/0x0000-a, profile/lmd/write-out-of-range/0x0018-d, ...
+//! ```
+//!
+//! (`choice/FREEDOM/ITEM` for an item of an optional group; a later departure from the choice adds
+//! `# then VALUE in CASE`.) The case ids are the first [`crate::oracle::choices::CASES_KEPT`] that showed
+//! the choice, sorted.
+//!
+//! A case's block starts with `== <case id>  <verdict>` and lists, per step, the bytes sent (`> hex`, the pieces of
 //! a split request joined) and what came back (`< hex`, `< (silence)`, `< (connection closed)`,
 //! `< (garbage: reason) hex`), one line per frame; a step without bytes (a register/object agreement) is
 //! `= note: VERDICT`. Blocks are separated by one empty line and sorted by case id in natural order
@@ -37,6 +51,7 @@ use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU64, Ordering as AtomicOrdering};
 
 use crate::CaseResult;
+use crate::oracle::Choice;
 use codec::hex_spaced;
 
 use super::outcome_text;
@@ -96,6 +111,36 @@ pub fn block(r: &CaseResult) -> String {
     }
     s.push('\n');
     s
+}
+
+/// The prefix of the ids of choice blocks (no case id starts with it).
+pub const CHOICE_PREFIX: &str = "choice/";
+
+/// The block of one choice the drive made: `== choice/FREEDOM[/ITEM]  VALUE`, then what showed it.
+pub fn choice_block(c: &Choice) -> (String, String) {
+    let id = if c.about.is_empty() {
+        format!("{CHOICE_PREFIX}{}", c.freedom)
+    } else {
+        format!("{CHOICE_PREFIX}{}/{}", c.freedom, c.about)
+    };
+    let mut s = format!("== {id}  {}\n", c.value);
+    if !c.reference {
+        s.push_str("# not the reference drive's choice\n");
+    }
+    let mut cases = c.cases.clone();
+    cases.sort_by(|a, b| natural_cmp(a, b));
+    let more = if c.count > cases.len() { ", ..." } else { "" };
+    let _ = writeln!(
+        s,
+        "# seen in {} case(s): {}{more}",
+        c.count,
+        cases.join(", ")
+    );
+    for (v, case) in &c.changed {
+        let _ = writeln!(s, "# then {v} in {case}");
+    }
+    s.push('\n');
+    (id, s)
 }
 
 /// Case ids in natural order: digit runs compare as numbers (`gen/1/2` < `gen/1/10`), the rest bytewise.
@@ -219,6 +264,23 @@ impl SnapshotWriter {
         Ok(())
     }
 
+    /// Add the choices the drive made (one block each, see [`choice_block`]); call once, before
+    /// [`SnapshotWriter::finish`].
+    pub fn add_choices<'a>(
+        &mut self,
+        choices: impl IntoIterator<Item = &'a Choice>,
+    ) -> io::Result<()> {
+        for c in choices {
+            let (id, text) = choice_block(c);
+            self.chunk_bytes += text.len();
+            self.chunk.push(Keyed { id, text });
+        }
+        if self.chunk_bytes >= self.chunk_limit {
+            self.spill()?;
+        }
+        Ok(())
+    }
+
     /// Number of sorted runs spilled so far.
     pub fn spilled_runs(&self) -> usize {
         self.runs.len()
@@ -299,6 +361,11 @@ pub struct Block {
 }
 
 impl Block {
+    /// True for the block of a choice of the drive (not a case).
+    pub fn is_choice(&self) -> bool {
+        self.id.starts_with(CHOICE_PREFIX)
+    }
+
     fn keyed(&self) -> Keyed {
         let mut text = self.lines.join("\n");
         text.push_str("\n\n");
@@ -428,6 +495,8 @@ pub struct Drift {
     pub missing: usize,
     /// Cases only in this run.
     pub added: usize,
+    /// Choices of the drive (`choice/` blocks) that differ: another value, or one shown only in one file.
+    pub choices: usize,
     /// The first [`DRIFT_DETAIL_CAP`] differing cases, rendered.
     pub details: Vec<String>,
     /// The ids of the differing cases described in `details`.
@@ -437,12 +506,16 @@ pub struct Drift {
 impl Drift {
     /// True when both files hold the same observations.
     pub fn is_clean(&self) -> bool {
-        self.header.is_none() && self.changed == 0 && self.missing == 0 && self.added == 0
+        self.header.is_none()
+            && self.changed == 0
+            && self.missing == 0
+            && self.added == 0
+            && self.choices == 0
     }
 
-    /// Cases that differ, in all.
+    /// Cases and choices that differ, in all.
     pub fn differing(&self) -> usize {
-        self.changed + self.missing + self.added
+        self.changed + self.missing + self.added + self.choices
     }
 
     /// The one-line summary: `snapshot drift: 2 changed, 1 only in the snapshot, 0 new (120 the same)`.
@@ -451,11 +524,16 @@ impl Drift {
             return format!("snapshot: no drift ({} cases the same)", self.same);
         }
         format!(
-            "snapshot drift: {} changed, {} only in the snapshot, {} new in this run ({} the same){}",
+            "snapshot drift: {} changed, {} only in the snapshot, {} new in this run ({} the same){}{}",
             self.changed,
             self.missing,
             self.added,
             self.same,
+            if self.choices > 0 {
+                format!("; {} choice(s) of the drive differ", self.choices)
+            } else {
+                String::new()
+            },
             if self.header.is_some() {
                 "; the headers differ"
             } else {
@@ -481,11 +559,47 @@ impl Drift {
         }
         let shown = self.details.len();
         if self.differing() > shown {
-            let _ = writeln!(s, "... and {} more case(s)", self.differing() - shown);
+            let _ = writeln!(
+                s,
+                "... and {} more case(s) or choice(s)",
+                self.differing() - shown
+            );
         }
         s.push_str(&self.summary());
         s.push('\n');
         s
+    }
+
+    /// The counter a differing block adds to: `choices` for a choice block, else `which`.
+    fn counter(&mut self, b: &Block, which: fn(&mut Self) -> &mut usize) -> &mut usize {
+        if b.is_choice() {
+            &mut self.choices
+        } else {
+            which(self)
+        }
+    }
+
+    fn only_in_snapshot(&mut self, b: &Block) {
+        *self.counter(b, |d| &mut d.missing) += 1;
+        let text = if b.is_choice() {
+            format!(
+                "- {}  (a choice only in the snapshot)\n",
+                b.lines.join("\n    ")
+            )
+        } else {
+            format!("- {}  (only in the snapshot)\n", b.id)
+        };
+        self.note(&b.id, text);
+    }
+
+    fn only_in_run(&mut self, b: &Block) {
+        *self.counter(b, |d| &mut d.added) += 1;
+        let text = if b.is_choice() {
+            format!("+ {}  (a choice new in this run)\n", b.lines.join("\n    "))
+        } else {
+            format!("+ {}  (new in this run)\n", b.id)
+        };
+        self.note(&b.id, text);
     }
 
     fn note(&mut self, id: &str, text: String) {
@@ -576,20 +690,20 @@ pub fn compare(expected: &Path, actual: &Path) -> io::Result<Drift> {
             (None, None) => break,
             (Some(bx), Some(by)) => match natural_cmp(&bx.id, &by.id) {
                 Ordering::Less => {
-                    drift.missing += 1;
-                    drift.note(&bx.id, format!("- {}  (only in the snapshot)\n", bx.id));
+                    drift.only_in_snapshot(bx);
                     x = e.next_block()?;
                 }
                 Ordering::Greater => {
-                    drift.added += 1;
-                    drift.note(&by.id, format!("+ {}  (new in this run)\n", by.id));
+                    drift.only_in_run(by);
                     y = a.next_block()?;
                 }
                 Ordering::Equal => {
                     if bx.lines == by.lines {
-                        drift.same += 1;
+                        if !bx.is_choice() {
+                            drift.same += 1;
+                        }
                     } else {
-                        drift.changed += 1;
+                        *drift.counter(bx, |d| &mut d.changed) += 1;
                         let text = format!("~ {}\n{}", bx.id, diff_lines(&bx.lines, &by.lines));
                         drift.note(&bx.id, text);
                     }
@@ -598,13 +712,11 @@ pub fn compare(expected: &Path, actual: &Path) -> io::Result<Drift> {
                 }
             },
             (Some(bx), None) => {
-                drift.missing += 1;
-                drift.note(&bx.id, format!("- {}  (only in the snapshot)\n", bx.id));
+                drift.only_in_snapshot(bx);
                 x = e.next_block()?;
             }
             (None, Some(by)) => {
-                drift.added += 1;
-                drift.note(&by.id, format!("+ {}  (new in this run)\n", by.id));
+                drift.only_in_run(by);
                 y = a.next_block()?;
             }
         }

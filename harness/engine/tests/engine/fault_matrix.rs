@@ -158,6 +158,48 @@ pub(crate) const WITNESSES: &[(&str, &str, &str)] = &[
         "sim:generic?transport=rtu",
         "spec/app-6.12/no-partial-write/past-the-map",
     ),
+    // Halves of 32-bit registers, FC 0x41/0x42 refusals (issue 12: the freedoms no case met): whatever
+    // admissible answer a drive gives, these answers are not one.
+    (
+        "half-register-widened",
+        "sim:mdrive",
+        "profile/mdrive/half-register/read/0x0000-a",
+    ),
+    (
+        "half-register-widened",
+        "sim:mdrive",
+        "profile/mdrive/half-register/write/0x0000-a",
+    ),
+    (
+        "half-register-widened",
+        "sim:lmd",
+        "profile/lmd/half-register/write/0x0000-a",
+    ),
+    (
+        "half-register-widened",
+        "sim:sd2x",
+        "profile/sd2x/half-register/read/0x07DA-hardware-id",
+    ),
+    (
+        "write-only-readable",
+        "sim:lmd",
+        "profile/lmd/mnemonic/esc/read-write-only",
+    ),
+    (
+        "read-only-writable",
+        "sim:lmd",
+        "profile/lmd/mnemonic/it/write-read-only",
+    ),
+    (
+        "mnemonic-params-unchecked",
+        "sim:mdrive",
+        "profile/mdrive/mnemonic/s5/bad-parameter",
+    ),
+    (
+        "mnemonic-params-unchecked",
+        "sim:lmd",
+        "profile/lmd/mnemonic/ao/bad-parameter",
+    ),
     // FC 23 writes before it reads (issue 15, item 1).
     (
         "read-before-write",

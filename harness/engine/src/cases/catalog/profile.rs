@@ -15,10 +15,12 @@ use drives::profile::{Register, Table};
 /// The profile suite, family by family.
 pub(super) fn cases(cx: &mut Ctx) {
     registers(cx);
+    half_registers(cx);
     reserved(cx);
     coils(cx);
     discrete_inputs(cx);
     mnemonics(cx);
+    mnemonic_refusals(cx);
     identification(cx);
 }
 
@@ -500,4 +502,226 @@ fn write_value(cx: &Ctx, r: &Register) -> i64 {
         .find(|v| accepted(v) && Some(*v) != r.default)
         .or(r.default.filter(|d| (min..=max).contains(d)))
         .unwrap_or(candidates[0])
+}
+
+/// True when a freedom of the corpus is about this register or mnemonic (a product may lack it, or give it
+/// another access): the cases below use entries every admissible drive has, as the manual gives them.
+fn freedom_item(register: Option<u16>, mnemonic: Option<&str>) -> bool {
+    let Ok(requirements) = crate::session::requirements_of(&drives::corpus::Corpus::Embedded)
+    else {
+        return true;
+    };
+    requirements.freedoms().iter().any(|f| {
+        f.items.iter().any(|i| {
+            (register.is_some() && i.register == register)
+                || mnemonic.is_some_and(|m| i.mnemonic.as_deref() == Some(m))
+        })
+    })
+}
+
+/// Reads and a write of one half of a 32-bit register (freedoms `partial-register-read`,
+/// `partial-register-write`: the manuals map 4-byte items to two registers and say nothing of halves; the
+/// spec allows 02, 03 or 04 for "the combination of reference number and transfer length is invalid").
+/// Any admissible answer passes, and the choice log holds the drive to one answer for both halves. The
+/// write uses a parameter register (no motion, nothing non-volatile), read first and put back after.
+fn half_registers(cx: &mut Ctx) {
+    let p = cx.p;
+    let pid = &p.device.id;
+    let plain = |r: &&Register| {
+        r.width == 2
+            && r.confirmed
+            && r.table != Table::Input
+            && r.access.readable()
+            && !freedom_item(Some(r.address), None)
+    };
+    if cx.supports(FunctionCode::READ_HOLDING_REGISTERS)
+        && let Some(r) = p.registers.iter().map(|r| r.get_ref()).find(plain)
+    {
+        let half = |address: u16| {
+            Outgoing::Pdu(pdu(&Request::ReadHoldingRegisters {
+                address,
+                quantity: 1,
+            }))
+        };
+        cx.push(
+            format!("profile/{pid}/half-register/read/{}", reg_slug(r)),
+            format!("read each half of {} alone", r.name),
+            format!(
+                "{} register map: 0x{:04X} {} (two registers, one 32-bit value); spec §7 exception 02",
+                p.device.name, r.address, r.name
+            ),
+            format!(
+                "A read of one register of the 32-bit pair 0x{:04X}-0x{:04X} is answered with that register, \
+                 or refused with 02, 03 or 04; the drive gives the same answer for either half.",
+                r.address,
+                r.address + 1
+            ),
+            vec![],
+            vec![
+                exchange(half(r.address), Compare::Structure, "the first half"),
+                exchange(half(r.address + 1), Compare::Structure, "the second half"),
+            ],
+        );
+    }
+    let watchdog = p.watchdog.as_ref().map(|w| w.register);
+    if cx.supports(FunctionCode::WRITE_MULTIPLE_REGISTERS)
+        && let Some(r) = p.registers.iter().map(|r| r.get_ref()).find(|r| {
+            plain(r)
+                && r.access.writable()
+                && !r.motion
+                && !r.destructive
+                && Some(r.address) != watchdog
+                && !super::mcode::starts_move(r)
+        })
+    {
+        let words = r.words(p.device.word_order, r.default.unwrap_or(r.range().0));
+        let mut a = Around::new();
+        a.keep_register(cx, r, Compare::InRange);
+        let read = pdu(&cx.read_request(r.address, 2, Table::Holding));
+        let steps = a.wrap(vec![
+            exchange(
+                Outgoing::Pdu(pdu(&Request::WriteMultipleRegisters {
+                    address: r.address,
+                    values: vec![words[0]],
+                })),
+                Compare::Exact,
+                "write the first half alone",
+            ),
+            exchange(
+                Outgoing::Pdu(pdu(&Request::WriteMultipleRegisters {
+                    address: r.address + 1,
+                    values: vec![words[1]],
+                })),
+                Compare::Exact,
+                "write the second half alone",
+            ),
+            exchange(
+                Outgoing::Pdu(read),
+                Compare::InRange,
+                "the pair still holds a value in range",
+            ),
+        ]);
+        cx.push(
+            format!("profile/{pid}/half-register/write/{}", reg_slug(r)),
+            format!("write each half of {} alone", r.name),
+            format!(
+                "{} register map: 0x{:04X} {} (two registers, one 32-bit value); spec §7 exception 02",
+                p.device.name, r.address, r.name
+            ),
+            format!(
+                "A write of one register of the 32-bit pair 0x{:04X}-0x{:04X} is refused with 02, 03 or 04 \
+                 (or taken and echoed as written); the drive gives the same answer for either half, and the \
+                 pair holds a value in range after.",
+                r.address,
+                r.address + 1
+            ),
+            write_tags(r),
+            steps,
+        );
+    }
+}
+
+/// FC 0x41 of a write-only mnemonic and FC 0x42 of a read-only one (freedom `mnemonic-access-exception`:
+/// the manuals mark the access, MDrive lines 715-721 and LMD lines 1052-1108, and allow exceptions 01-04,
+/// MDrive lines 958-962), and FC 0x42 with a parameter string the mnemonic does not take (freedom
+/// `mnemonic-bad-parameter-exception`). Only mnemonics the profile flags neither motion nor destructive
+/// (a read of an MDrive program command may act: its manual prints FC 0x41 for them), not items of a
+/// freedom; the read-only one is written with the value just read from it, the setting read first and put
+/// back after.
+fn mnemonic_refusals(cx: &mut Ctx) {
+    let p = cx.p;
+    let pid = &p.device.id;
+    let plain = |m: &&drives::profile::VendorMnemonic| {
+        !m.motion && !m.destructive && !freedom_item(None, Some(&m.name))
+    };
+    let mnemonics = || p.mnemonics.iter().map(|m| m.get_ref());
+    if cx.supports(FunctionCode::VENDOR_READ)
+        && let Some(m) = mnemonics().filter(plain).find(|m| m.write && !m.read)
+        && let Some(w) = Mnemonic::from_name(&m.name)
+    {
+        // <ESC> (0x1B) has no letters for an id.
+        let (id, shown) = match slug(&m.name) {
+            s if s.is_empty() => (
+                hex::encode(m.name.as_bytes()),
+                format!("<{}>", m.name.escape_default()),
+            ),
+            s => (s, m.name.clone()),
+        };
+        let (id, shown) = if m.name == "\u{1b}" {
+            ("esc".to_string(), "<ESC>".to_string())
+        } else {
+            (id, shown)
+        };
+        cx.push(
+            format!("profile/{pid}/mnemonic/{id}/read-write-only"),
+            format!("FC 0x41 of the write-only {shown} is refused"),
+            format!("{}: vendor FC 0x41, mnemonic {shown} (W/O)", p.device.name),
+            "A mnemonic the manual marks write-only is not read: FC 0x41 is answered with an exception (01-04).",
+            vec![],
+            vec![exchange(
+                Outgoing::Pdu(pdu(&Request::VendorRead { mnemonic: w })),
+                Compare::Exact,
+                "read a write-only mnemonic",
+            )],
+        );
+    }
+    if cx.supports(FunctionCode::VENDOR_READ)
+        && cx.supports(FunctionCode::VENDOR_WRITE)
+        && let Some(m) = mnemonics().filter(plain).find(|m| m.read && !m.write)
+        && let Some(w) = Mnemonic::from_name(&m.name)
+    {
+        cx.push(
+            format!("profile/{pid}/mnemonic/{}/write-read-only", slug(&m.name)),
+            format!("FC 0x42 of the read-only {} is refused", m.name),
+            format!("{}: vendor FC 0x42, mnemonic {} (R/O)", p.device.name, m.name),
+            "A mnemonic the manual marks read-only is not written: FC 0x42 (with the value it reads) is answered \
+             with an exception (01-04).",
+            vec![Tag::Write],
+            vec![
+                super::capture(
+                    Outgoing::Pdu(pdu(&Request::VendorRead { mnemonic: w })),
+                    Compare::Structure,
+                    0,
+                    "read it",
+                ),
+                exchange(
+                    Outgoing::RestoreRead { slot: 0 },
+                    Compare::Exact,
+                    "write the value read back to it",
+                ),
+            ],
+        );
+    }
+    if cx.supports(FunctionCode::VENDOR_READ)
+        && cx.supports(FunctionCode::VENDOR_WRITE)
+        && let Some(m) = mnemonics()
+            .filter(plain)
+            .find(|m| m.read && m.write && m.example.is_some() && m.register.is_none())
+        && let Some(w) = Mnemonic::from_name(&m.name)
+    {
+        let mut a = Around::new();
+        a.keep_setting(cx, &m.name);
+        let steps = a.wrap(vec![exchange(
+            Outgoing::Pdu(pdu(&Request::VendorWrite {
+                mnemonic: w,
+                params: b"=Q".to_vec(),
+            })),
+            Compare::Exact,
+            "write a parameter that is no number",
+        )]);
+        cx.push(
+            format!("profile/{pid}/mnemonic/{}/bad-parameter", slug(&m.name)),
+            format!("FC 0x42 of {}=Q is refused", m.name),
+            format!(
+                "{}: vendor FC 0x42, mnemonic {} (parameters: {})",
+                p.device.name,
+                m.name,
+                m.format.as_deref().unwrap_or("numbers")
+            ),
+            "A parameter string the mnemonic does not take (no number) is answered with an exception (02-04) \
+             and nothing is written.",
+            vec![Tag::Write],
+            steps,
+        );
+    }
 }

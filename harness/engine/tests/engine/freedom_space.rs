@@ -48,12 +48,6 @@ const NOT_EXERCISED: &[(&str, &str)] = &[
     ("sd2x", "partial-register-write=exception-04"),
 ];
 
-/// Admissible values the catalog still FAILs, with the reason: each is a known over-specification to fix,
-/// and the test fails as soon as it passes, so that the entry goes. (profile, "freedom=value", why)
-///
-/// Empty since the runner learns the drive's word order before the cases (`Runner::learn_word_order`): the
-/// LMD's 32-bit writes are sent, and their answers judged, in the drive's own order.
-const KNOWN_GAPS: &[(&str, &str, &str)] = &[];
 
 fn label(f: &Freedom, v: &FreedomValue) -> String {
     format!("{}={v}", f.id)
@@ -70,19 +64,12 @@ fn space(profile: &str) -> Vec<(Freedom, Vec<FreedomValue>)> {
                 .iter()
                 .skip(1)
                 .filter(|v| simulated(f, v))
-                .filter(|v| !is_gap(profile, &label(f, v)))
                 .cloned()
                 .collect();
             (f.clone(), values)
         })
         .filter(|(_, v)| !v.is_empty())
         .collect()
-}
-
-fn is_gap(profile: &str, choice: &str) -> bool {
-    KNOWN_GAPS
-        .iter()
-        .any(|(p, c, _)| *p == profile && *c == choice)
 }
 
 fn options(target: &str, choose: &[String]) -> Options {
@@ -235,18 +222,6 @@ fn drives_taking_any_admissible_choice_pass_the_catalog_and_faults_still_fail_th
         "{problems:#?}\nchoices no catalog case shows: {unexercised:#?}\nlisted in NOT_EXERCISED: {listed:#?}\n\
          (update NOT_EXERCISED, or add the case that shows them)"
     );
-}
-
-/// The known gaps still FAIL (when one passes, its entry goes), and nothing else is excluded.
-#[test]
-fn the_known_gaps_are_still_gaps() {
-    for (profile, choice, why) in KNOWN_GAPS {
-        let out = run(&format!("sim:{profile}"), &[choice.to_string()]);
-        assert!(
-            out.summary.count(Verdict::Fail) > 0,
-            "sim:{profile} --choose {choice} passes now: take it off KNOWN_GAPS ({why})"
-        );
-    }
 }
 
 /// A choice the models cannot take is refused, not silently ignored.

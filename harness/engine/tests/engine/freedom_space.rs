@@ -48,7 +48,6 @@ const NOT_EXERCISED: &[(&str, &str)] = &[
     ("sd2x", "partial-register-write=exception-04"),
 ];
 
-
 fn label(f: &Freedom, v: &FreedomValue) -> String {
     format!("{}={v}", f.id)
 }

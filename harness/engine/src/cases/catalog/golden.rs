@@ -37,7 +37,11 @@ pub(super) fn cases(cx: &mut Ctx, g: &GoldenFile) {
             format!("golden request as corrected: {}", f.meaning),
         )]);
         let id = format!("golden/{}", f.id);
-        let reference = format!("{} line {} ({})", g.manual, f.line, f.section);
+        // Cited by the manual's name and section; the line is of the seed text the corpus quotes.
+        let reference = format!(
+            "{}, section {} (line {} of {})",
+            g.title, f.section, f.line, g.manual
+        );
         let requirement = if has_response {
             format!(
                 "The drive answers the manual's example as the reference drive does: {}",

@@ -168,6 +168,43 @@ impl Runner {
         self.target.as_ref()
     }
 
+    /// Send the known-good read `pdu` (the pre-flight, a liveness probe) and listen up to `bound`. Its
+    /// transaction ids are the restore's sequence, so the cases' own ids do not depend on how many probes
+    /// were sent; the reference drive gets the request too, so that it follows what the target counted.
+    pub fn known_good(
+        &mut self,
+        pdu: &[u8],
+        bound: Duration,
+    ) -> Result<(crate::liveness::Heard, Vec<u8>), TargetError> {
+        let case_tid = std::mem::replace(&mut self.next_tid, self.restore_tid);
+        let f = self.frame(pdu, self.cfg.unit, None);
+        self.restore_tid = std::mem::replace(&mut self.next_tid, case_tid);
+        self.target.drain();
+        self.sync_shadow();
+        self.pace();
+        self.shadow.send(&f.bytes)?;
+        let _ = self.shadow.settle();
+        let _ = self.shadow.take_decisions();
+        let heard = crate::liveness::ask(self.target.as_mut(), &f.bytes, bound)?;
+        Ok((heard, f.bytes))
+    }
+
+    /// Close and reopen the target's connection (a target that stopped answering may take a new one).
+    pub fn reconnect(&mut self) -> Result<(), TargetError> {
+        self.target.reconnect()
+    }
+
+    /// Let `d` pass with the line idle (virtual time on `sim:`).
+    pub fn idle(&mut self, d: Duration) {
+        self.target.idle(d);
+        self.sync_shadow();
+    }
+
+    /// The target's clock.
+    pub fn now(&self) -> Duration {
+        self.target.now()
+    }
+
     fn frame(&mut self, pdu: &[u8], unit: u8, mutation: Option<&Mutation>) -> Framed {
         // PDU-level mutations alter the PDU, which is then framed correctly (header and CRC match it).
         let altered = mutation.and_then(|m| m.apply_to_pdu(pdu));

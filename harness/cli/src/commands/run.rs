@@ -119,6 +119,14 @@ pub struct RunArgs {
     /// At most this many requests per second (real targets).
     #[arg(long, value_name = "N")]
     max_rate: Option<f64>,
+    /// How long the known-good read before the first case (and each liveness probe) waits for an answer, in
+    /// milliseconds: a target that gives none is not run against (exit 2, with the likely causes).
+    #[arg(long, default_value_t = 3000, value_name = "MS")]
+    preflight_timeout: u64,
+    /// How long to wait for a target that stopped answering mid-run to come back, in seconds, before the
+    /// remaining cases are SKIPPED.
+    #[arg(long, default_value_t = 10, value_name = "SECS")]
+    recovery_wait: u64,
     /// Per-answer timeout in milliseconds.
     #[arg(long, default_value_t = 1000, value_name = "MS")]
     timeout: u64,
@@ -212,6 +220,10 @@ pub fn run(args: &RunArgs) -> ExitCode {
     opts.corpus = Corpus::from_option(args.corpus.as_deref());
     opts.unit = args.unit;
     opts.timing.timeout = Duration::from_millis(args.timeout.max(1));
+    opts.liveness = Some(engine::liveness::Liveness {
+        probe_timeout: Duration::from_millis(args.preflight_timeout.max(1)),
+        recovery: Duration::from_secs(args.recovery_wait),
+    });
     opts.timing.silence = Duration::from_millis(args.silence.max(1));
     opts.safety.allow_motion = args.allow_motion;
     opts.safety.allow_destructive = args.allow_destructive;

@@ -361,6 +361,17 @@ fn header(info: &RunInfo, summary: &Summary) -> String {
             summary.cases
         );
     }
+    if let Some(e) = &summary.ended {
+        let _ = writeln!(
+            s,
+            "<p class=\"banner\">The run ended after {} case(s): {}</p>",
+            summary.cases,
+            escape_html(e)
+        );
+    }
+    for l in &summary.liveness {
+        let _ = writeln!(s, "<p class=\"banner\">{}</p>", escape_html(l));
+    }
     s.push_str("<table class=\"run\">\n");
     let seed = info
         .seed

@@ -54,11 +54,7 @@ pub fn frame(pdu: &[u8], framing: Framing, unit: u8, tid: u16) -> Vec<u8> {
 /// Send `request` (already framed) and listen up to `bound` (on the target's clock): a Modbus answer, bytes
 /// of something else, a close or nothing. Any Modbus response counts, whatever request it answers (a late
 /// answer of an earlier request shows the target alive as well). Bounded by `bound` and by 32 receives.
-pub fn ask(
-    t: &mut dyn Target,
-    request: &[u8],
-    bound: Duration,
-) -> Result<Heard, TargetError> {
+pub fn ask(t: &mut dyn Target, request: &[u8], bound: Duration) -> Result<Heard, TargetError> {
     let framing = t.framing();
     t.send(request)?;
     let start = t.now();
@@ -118,8 +114,7 @@ pub fn looks_like(bytes: &[u8], request: &[u8]) -> String {
         return format!("HTTP (a web server: \"{first_line}\")");
     }
     if bytes.len() >= 3 && matches!(bytes[0], 0x14..=0x17) && bytes[1] == 0x03 {
-        return "TLS (a TLS record: an encrypted service, Modbus/TCP Security or HTTPS?)"
-            .into();
+        return "TLS (a TLS record: an encrypted service, Modbus/TCP Security or HTTPS?)".into();
     }
     if bytes.starts_with(b"SSH-") {
         return format!("SSH (banner \"{first_line}\")");
@@ -154,7 +149,9 @@ pub fn preflight_failure(
 ) -> Option<String> {
     let pdu = match framing {
         Framing::Tcp => request.get(7..).unwrap_or(&[]),
-        _ => request.get(1..request.len().saturating_sub(2)).unwrap_or(&[]),
+        _ => request
+            .get(1..request.len().saturating_sub(2))
+            .unwrap_or(&[]),
     };
     let what = codec::Request::decode(pdu).map_or_else(|_| hex(pdu), |r| format!("{r:?}"));
     let framing_name = match (framing, serial) {

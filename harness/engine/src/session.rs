@@ -1066,6 +1066,12 @@ pub fn run(
         summary.ended = w.dead;
         summary.liveness = w.notes;
     }
+    if interrupted && summary.ended.is_none() {
+        summary.ended = Some(
+            "interrupted (Ctrl-C or SIGTERM): the cases after the last one reported were not run"
+                .into(),
+        );
+    }
     summary.choices = runner.choices().choices().cloned().collect();
     summary.coverage = requirements
         .coverage(collected.exercised.iter().map(String::as_str))

@@ -367,3 +367,40 @@ fn a_drive_silent_for_3_s_is_waited_for_and_the_run_goes_on() {
     // The simulator lives to the end of the test.
     drop(sim);
 }
+
+#[test]
+fn a_run_stopped_by_an_error_still_completes_its_reports() {
+    use engine::session::{Options, SessionError, run};
+    use engine::targets::TargetUrl;
+    let rt = tokio::runtime::Runtime::new().expect("runtime");
+    let server = rt.block_on(test_support::serve(
+        "generic",
+        &[],
+        test_support::loopback_tcp_and_rtu(),
+    ));
+    let dir = TempDir::new("error-reports");
+    let report = dir.path().join("r");
+    let mut o = Options::new(
+        TargetUrl::parse(&format!("tcp://{}", server.tcp_addr().expect("tcp"))).expect("url"),
+    );
+    o.profile = Some("generic".into());
+    o.report_dir = Some(report.clone());
+    o.safety.read_only = true;
+    // No liveness probe: the server going away is met as an error of the target (the connection refused).
+    o.liveness = None;
+    let stop = AtomicBool::new(false);
+    let got = run(&o, &mut std::io::sink(), &stop, &mut |done, _, _, _| {
+        if done == 10 {
+            server.signal_shutdown();
+        }
+    });
+    assert!(
+        matches!(got, Err(SessionError::Target(_))),
+        "the run stops on the target's error: {got:?}"
+    );
+    assert_complete(&report);
+    let summary = &index(&report)["summary"];
+    let ended = summary["ended"].as_str().expect("why the run ended");
+    assert!(ended.starts_with("stopped on an error: "), "{ended}");
+    assert!(summary["cases"].as_u64().unwrap_or(0) >= 10, "{summary}");
+}

@@ -361,7 +361,8 @@ fn header(info: &RunInfo, summary: &Summary) -> String {
             summary.cases
         );
     }
-    if let Some(e) = &summary.ended {
+    // An interrupted run has its banner above.
+    if let Some(e) = summary.ended.as_ref().filter(|_| !summary.interrupted) {
         let _ = writeln!(
             s,
             "<p class=\"banner\">The run ended after {} case(s): {}</p>",

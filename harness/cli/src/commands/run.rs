@@ -46,10 +46,17 @@ Leave as found (real targets):
   put back is listed with its value before and after. After a killed run:
   modbus-harness restore --journal FILE.
 
+Dead, foreign or dying targets (real targets):
+  Before the first case a known-good read of the profile: no Modbus answer within --preflight-timeout is
+  exit 2 with the likely causes, or what answered (HTTP, TLS, SSH, an echo). Mid-run, an answer that was
+  due and did not come triggers that read again: a target that no longer answers FAILs the request before
+  the silence and is waited for (--recovery-wait); it recovers (noted in the reports) or the remaining
+  cases are SKIPPED and the reports say why the run ended.
+
 Exit codes:
   0  no FAIL, the drive left as found
   1  a FAIL (or snapshot drift)
-  2  the run could not be made or was interrupted
+  2  the run could not be made (also: no Modbus answer to the pre-flight read) or was interrupted
   3  the drive was not left as found: a parameter could not be restored (listed in the summary), also when
      the run stopped on an error such as a dead target";
 

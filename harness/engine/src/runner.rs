@@ -117,7 +117,14 @@ pub struct Runner {
     /// Transaction ids of the restore's traffic: a sequence of its own, so that the cases' ids (and the
     /// snapshots of their observations) are the same with or without leaving the drive as found.
     restore_tid: u16,
+    /// Modbus/TCP: the transaction ids of the latest requests sent (with the case that sent them, or the
+    /// liveness probe, and when), so that a late answer is attributed to its request instead of being
+    /// taken for a later step's.
+    recent: std::collections::VecDeque<(u16, String, Duration)>,
 }
+
+/// Requests remembered for attributing late answers.
+const RECENT_REQUESTS: usize = 256;
 
 impl Runner {
     /// A runner for `target`, judged by `shadow` (a fault-free reference drive of the same profile).
@@ -144,6 +151,7 @@ impl Runner {
             case_tags: Vec::new(),
             refused: false,
             restore_tid: 0xA000,
+            recent: std::collections::VecDeque::new(),
         }
     }
 
@@ -182,11 +190,93 @@ impl Runner {
         self.target.drain();
         self.sync_shadow();
         self.pace();
+        self.remember(f.sent.tid, "the liveness probe".into());
         self.shadow.send(&f.bytes)?;
         let _ = self.shadow.settle();
         let _ = self.shadow.take_decisions();
         let heard = crate::liveness::ask(self.target.as_mut(), &f.bytes, bound)?;
         Ok((heard, f.bytes))
+    }
+
+    /// Remember a request's transaction id (Modbus/TCP), to attribute a late answer to it.
+    fn remember(&mut self, tid: Option<u16>, by: String) {
+        if let Some(tid) = tid {
+            if self.recent.len() >= RECENT_REQUESTS {
+                self.recent.pop_front();
+            }
+            self.recent.push_back((tid, by, self.target.now()));
+        }
+    }
+
+    /// The answers among `stale` bytes (Modbus/TCP ADUs, split by their MBAP lengths) whose transaction id
+    /// is one of the latest requests', as notes naming the request and how late they came.
+    fn late_in(&self, stale: &[u8]) -> Vec<String> {
+        let mut notes = Vec::new();
+        let mut rest = stale;
+        // Bounded by the bytes: each round consumes at least one ADU header.
+        while let Some(len) = tcp::adu_len(rest) {
+            if len < 8 || rest.len() < len {
+                break;
+            }
+            let tid = u16::from_be_bytes([rest[0], rest[1]]);
+            if let Some((_, by, sent_at)) = self.recent.iter().rev().find(|(t, _, _)| *t == tid) {
+                notes.push(format!(
+                    "a late answer (transaction id {tid}) to a request of {by} arrived within {} ms after that request, between two cases: noted, taken for no step's answer",
+                    self.target.now().saturating_sub(*sent_at).as_millis()
+                ));
+            }
+            rest = &rest[len..];
+        }
+        notes
+    }
+
+    /// Modbus/TCP: while what came is an answer to an earlier request (its transaction id is one of the
+    /// latest requests' and none of this step's), note it as late, keep it in the wire log, and wait the rest
+    /// of `wait` (counted from `start`, when the receive began) for this step's own answer. Bounded by a
+    /// count and by `wait`.
+    fn skip_late(
+        &mut self,
+        mut got: Received,
+        frames: &[Framed],
+        (start, wait): (Duration, Duration),
+        findings: &mut Vec<Finding>,
+        wire: &mut Vec<WireEvent>,
+    ) -> Result<Received, TargetError> {
+        for _ in 0..8 {
+            let Received::Frame {
+                bytes, first_at, ..
+            } = &got
+            else {
+                break;
+            };
+            if bytes.len() < 8 {
+                break;
+            }
+            let tid = u16::from_be_bytes([bytes[0], bytes[1]]);
+            if frames.iter().any(|f| f.sent.tid == Some(tid)) {
+                break;
+            }
+            let Some((_, by, sent_at)) = self.recent.iter().rev().find(|(t, _, _)| *t == tid)
+            else {
+                break;
+            };
+            let by = if *by == self.case_id {
+                "an earlier step of this case".to_string()
+            } else {
+                by.clone()
+            };
+            findings.push(Finding {
+                severity: Severity::Info,
+                text: format!(
+                    "a late answer (transaction id {tid}) to a request of {by} arrived {} ms after that request: noted, not taken for this step's answer",
+                    first_at.saturating_sub(*sent_at).as_millis()
+                ),
+            });
+            record(&got, wire);
+            let left = wait.saturating_sub(self.target.now().saturating_sub(start));
+            got = self.target.recv(left)?;
+        }
+        Ok(got)
     }
 
     /// Close and reopen the target's connection (a target that stopped answering may take a new one).
@@ -302,7 +392,24 @@ impl Runner {
         let started = self.target.now();
         let mut wire = Vec::new();
         let mut steps = Vec::new();
-        self.target.drain();
+        // Modbus/TCP: answers that came after their step gave up are attributed to their requests by
+        // transaction id and noted on this case's first step (on other framings they are only discarded).
+        let late = if self.target.framing() == Framing::Tcp {
+            let stale = self.target.drain_stale();
+            let notes = self.late_in(&stale);
+            if !stale.is_empty() {
+                wire.push(WireEvent {
+                    dir: Dir::Rx,
+                    at: self.target.now(),
+                    bytes: stale,
+                    intended_malformed: false,
+                });
+            }
+            notes
+        } else {
+            self.target.drain();
+            Vec::new()
+        };
         // One empty slot per capture the case names; a restore of a slot nothing filled is SKIPPED.
         self.slots = vec![None; case.slots()];
         self.case_id.clone_from(&case.id);
@@ -337,6 +444,10 @@ impl Runner {
                     steps.push(r);
                 }
             }
+        }
+        if let Some(first) = steps.first_mut().filter(|_| !late.is_empty()) {
+            first.findings.extend(late);
+            first.verdict = worse(first.verdict, Verdict::Informational);
         }
         let mut verdict = Verdict::Pass;
         for s in &steps {
@@ -570,6 +681,10 @@ impl Runner {
                 self.shadow.idle(*gap);
             }
         }
+        for f in frames {
+            let by = self.case_id.clone();
+            self.remember(f.sent.tid, by);
+        }
         Ok((precondition, before_last_write))
     }
 
@@ -599,7 +714,11 @@ impl Runner {
             } else {
                 self.cfg.timing.timeout
             };
-            let got = self.target.recv(wait)?;
+            let start = self.target.now();
+            let mut got = self.target.recv(wait)?;
+            if framing == Framing::Tcp {
+                got = self.skip_late(got, frames, (start, wait), &mut findings, wire)?;
+            }
             let stop = !matches!(got, Received::Frame { .. } | Received::Garbage { .. });
             record(&got, wire);
             let sent = frames

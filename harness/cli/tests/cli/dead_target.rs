@@ -262,18 +262,28 @@ fn a_drive_that_dies_is_one_fail_then_skipped_with_complete_reports() {
     assert!(html.contains("stopped answering after"), "html: no reason");
 }
 
-/// A Modbus/TCP proxy on 127.0.0.1:0 in front of `upstream` that drops everything, both ways, for `pause`
-/// from the `at`-th chunk the clients send (counted over all connections): a drive that goes silent for a
-/// while and comes back. Its threads end with their connections, or after [`PEER_LIFETIME`].
-struct PausingProxy {
+/// What a [`Proxy`] does to the traffic.
+#[derive(Clone, Copy)]
+enum Mode {
+    /// From the `at`-th chunk the clients send (counted over all connections), everything both ways is
+    /// dropped for the duration: a drive that goes silent for a while and comes back.
+    Pause(usize, Duration),
+    /// The `at`-th chunk the server sends is held back for the duration, the others pass: one late answer.
+    Delay(usize, Duration),
+}
+
+/// A Modbus/TCP proxy on 127.0.0.1:0 in front of `upstream` that misbehaves as its [`Mode`] says. Its threads
+/// end with their connections, or after [`PEER_LIFETIME`].
+struct Proxy {
     addr: SocketAddr,
 }
 
-impl PausingProxy {
-    fn start(upstream: SocketAddr, at: usize, pause: Duration) -> Self {
+impl Proxy {
+    fn start(upstream: SocketAddr, mode: Mode) -> Self {
         let listener = TcpListener::bind("127.0.0.1:0").expect("bind proxy");
         let addr = listener.local_addr().expect("proxy address");
-        let chunks = Arc::new(AtomicUsize::new(0));
+        let requests = Arc::new(AtomicUsize::new(0));
+        let answers = Arc::new(AtomicUsize::new(0));
         let paused_until: Arc<Mutex<Option<Instant>>> = Arc::default();
         listener.set_nonblocking(true).expect("nonblocking");
         thread::spawn(move || {
@@ -292,22 +302,46 @@ impl PausingProxy {
                     let _ = s.set_nodelay(true);
                     let _ = s.set_read_timeout(Some(PEER_LIFETIME));
                 }
-                let pump = |mut from: TcpStream, mut to: TcpStream, count: bool| {
-                    let (chunks, paused_until) = (chunks.clone(), paused_until.clone());
+                let pump = |mut from: TcpStream, to: TcpStream, upward: bool| {
+                    let (requests, answers, paused_until) =
+                        (requests.clone(), answers.clone(), paused_until.clone());
+                    let to = Arc::new(Mutex::new(to));
                     thread::spawn(move || {
                         let mut buf = [0u8; 4096];
                         while let Ok(n @ 1..) = from.read(&mut buf) {
                             let now = Instant::now();
-                            let mut p = paused_until.lock().expect("pause");
-                            if count && chunks.fetch_add(1, Ordering::SeqCst) + 1 == at {
-                                *p = Some(now + pause);
+                            let chunk = buf[..n].to_vec();
+                            let count = if upward { &requests } else { &answers };
+                            let nth = count.fetch_add(1, Ordering::SeqCst) + 1;
+                            let mut held = None;
+                            {
+                                let mut p = paused_until.lock().expect("pause");
+                                match mode {
+                                    Mode::Pause(at, pause) if upward && nth == at => {
+                                        *p = Some(now + pause)
+                                    }
+                                    Mode::Delay(at, delay) if !upward && nth == at => {
+                                        held = Some(delay)
+                                    }
+                                    _ => {}
+                                }
+                                if p.is_some_and(|u| now < u) {
+                                    continue;
+                                }
                             }
-                            let silent = p.is_some_and(|u| now < u);
-                            drop(p);
-                            if !silent && to.write_all(&buf[..n]).is_err() {
+                            if let Some(delay) = held {
+                                let to = to.clone();
+                                thread::spawn(move || {
+                                    thread::sleep(delay);
+                                    let _ = to.lock().expect("to").write_all(&chunk);
+                                });
+                                continue;
+                            }
+                            if to.lock().expect("to").write_all(&chunk).is_err() {
                                 break;
                             }
                         }
+                        let to = to.lock().expect("to");
                         let _ = to.shutdown(Shutdown::Both);
                         let _ = from.shutdown(Shutdown::Both);
                     });
@@ -327,7 +361,10 @@ impl PausingProxy {
 #[test]
 fn a_drive_silent_for_3_s_is_waited_for_and_the_run_goes_on() {
     let sim = SimProcess::start(&["--profile", "generic", "--listen", "127.0.0.1:0"]);
-    let proxy = PausingProxy::start(sim.tcp.expect("tcp"), 40, Duration::from_secs(3));
+    let proxy = Proxy::start(
+        sim.tcp.expect("tcp"),
+        Mode::Pause(40, Duration::from_secs(3)),
+    );
     let target = format!("tcp://{}", proxy.addr);
     let dir = TempDir::new("paused-target");
     let report = dir.path().join("report");
@@ -403,4 +440,58 @@ fn a_run_stopped_by_an_error_still_completes_its_reports() {
     let ended = summary["ended"].as_str().expect("why the run ended");
     assert!(ended.starts_with("stopped on an error: "), "{ended}");
     assert!(summary["cases"].as_u64().unwrap_or(0) >= 10, "{summary}");
+}
+
+#[test]
+fn a_late_answer_is_attributed_to_its_request_by_transaction_id() {
+    let sim = SimProcess::start(&["--profile", "generic", "--listen", "127.0.0.1:0"]);
+    // The 150th answer (a profile read: cases that keep their connection follow for a while) comes 1.2 s
+    // late: after its case's 1 s timeout and the liveness probe, within a later case.
+    let proxy = Proxy::start(
+        sim.tcp.expect("tcp"),
+        Mode::Delay(150, Duration::from_millis(1200)),
+    );
+    let target = format!("tcp://{}", proxy.addr);
+    let dir = TempDir::new("late-answer");
+    let report = dir.path().join("report");
+    let report_s = report.to_string_lossy().into_owned();
+    let (code, out, err, _) = harness_timed(
+        &[
+            "run",
+            "--target",
+            &target,
+            "--profile",
+            "generic",
+            "--read-only",
+            "--no-progress",
+            "--report",
+            &report_s,
+        ],
+        Duration::from_secs(90),
+    );
+    assert_eq!(
+        code, 1,
+        "the case whose answer was late FAILs\n{out}\n{err}"
+    );
+    assert_complete(&report);
+    let summary = &index(&report)["summary"];
+    // Only the late one FAILs: the later case that met its answer is not blamed for it.
+    assert_eq!(summary["counts"]["FAIL"], 1, "{summary}");
+    let late = summary["failing"][0].as_str().expect("the late case");
+    let cases = case_files(&report);
+    let noted = cases
+        .iter()
+        .find(|c| c.contains("a late answer (transaction id"))
+        .unwrap_or_else(|| {
+            panic!(
+                "the late answer is noted where it arrived; the late case: {:?}",
+                cases.iter().find(|c| c.contains(late))
+            )
+        });
+    assert!(
+        noted.contains(&format!("to a request of {late} arrived")),
+        "attributed to {late}: {noted}"
+    );
+    assert!(summary.get("ended").is_none(), "{summary}");
+    drop(sim);
 }

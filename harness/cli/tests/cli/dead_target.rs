@@ -445,11 +445,12 @@ fn a_run_stopped_by_an_error_still_completes_its_reports() {
 #[test]
 fn a_late_answer_is_attributed_to_its_request_by_transaction_id() {
     let sim = SimProcess::start(&["--profile", "generic", "--listen", "127.0.0.1:0"]);
-    // The 150th answer (a profile read: cases that keep their connection follow for a while) comes 1.2 s
-    // late: after its case's 1 s timeout and the liveness probe, within a later case.
+    // The 100th answer (a profile read: cases that keep their connection follow) comes 1.3 s late: after
+    // its case's 1 s timeout and the liveness probe, within a later case (paced at 200 requests/s, so that
+    // the run is still going when it comes).
     let proxy = Proxy::start(
         sim.tcp.expect("tcp"),
-        Mode::Delay(150, Duration::from_millis(1200)),
+        Mode::Delay(100, Duration::from_millis(1300)),
     );
     let target = format!("tcp://{}", proxy.addr);
     let dir = TempDir::new("late-answer");
@@ -464,6 +465,8 @@ fn a_late_answer_is_attributed_to_its_request_by_transaction_id() {
             "generic",
             "--read-only",
             "--no-progress",
+            "--max-rate",
+            "200",
             "--report",
             &report_s,
         ],

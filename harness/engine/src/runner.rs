@@ -121,6 +121,9 @@ pub struct Runner {
     /// liveness probe, and when), so that a late answer is attributed to its request instead of being
     /// taken for a later step's.
     recent: std::collections::VecDeque<(u16, String, Duration)>,
+    /// The requests of the cases sent since the target last answered one (case id, bytes; the first few):
+    /// the first of them is the one that preceded a silence.
+    unanswered: Vec<(String, Vec<u8>)>,
 }
 
 /// Requests remembered for attributing late answers.
@@ -152,6 +155,7 @@ impl Runner {
             refused: false,
             restore_tid: 0xA000,
             recent: std::collections::VecDeque::new(),
+            unanswered: Vec::new(),
         }
     }
 
@@ -195,6 +199,9 @@ impl Runner {
         let _ = self.shadow.settle();
         let _ = self.shadow.take_decisions();
         let heard = crate::liveness::ask(self.target.as_mut(), &f.bytes, bound)?;
+        if heard == crate::liveness::Heard::Modbus {
+            self.unanswered.clear();
+        }
         Ok((heard, f.bytes))
     }
 
@@ -277,6 +284,12 @@ impl Runner {
             got = self.target.recv(left)?;
         }
         Ok(got)
+    }
+
+    /// The first request of a case sent since the target last answered (case id, bytes): the one that
+    /// preceded a silence.
+    pub fn first_unanswered(&self) -> Option<&(String, Vec<u8>)> {
+        self.unanswered.first()
     }
 
     /// Close and reopen the target's connection (a target that stopped answering may take a new one).
@@ -684,6 +697,10 @@ impl Runner {
         for f in frames {
             let by = self.case_id.clone();
             self.remember(f.sent.tid, by);
+            if self.unanswered.len() < 16 {
+                self.unanswered
+                    .push((self.case_id.clone(), f.bytes.clone()));
+            }
         }
         Ok((precondition, before_last_write))
     }
@@ -718,6 +735,9 @@ impl Runner {
             let mut got = self.target.recv(wait)?;
             if framing == Framing::Tcp {
                 got = self.skip_late(got, frames, (start, wait), &mut findings, wire)?;
+            }
+            if matches!(got, Received::Frame { .. }) {
+                self.unanswered.clear();
             }
             let stop = !matches!(got, Received::Frame { .. } | Received::Garbage { .. });
             record(&got, wire);

@@ -660,14 +660,27 @@ impl Watch {
         }) else {
             return;
         };
+        // The request that preceded the silence: the first one sent since the last answer (an earlier
+        // case's when the target took it silently, as a malformed frame may be), else this step's.
+        let preceding = runner.first_unanswered().cloned();
         let started = runner.now();
         if self.alive(runner, self.bounds.probe_timeout) {
             return;
         }
-        let sent = result.steps[step].sent.clone().unwrap_or_default();
+        let (by, sent) = preceding.unwrap_or_else(|| {
+            (
+                result.id.clone(),
+                result.steps[step].sent.clone().unwrap_or_default(),
+            )
+        });
+        let which = if by == result.id {
+            "this request".to_string()
+        } else {
+            format!("this request of {by} (no answer since)")
+        };
         let s = &mut result.steps[step];
         s.findings.push(format!(
-            "the target stopped answering after this request: {} (a known-good read got no answer within {:.1} s)",
+            "the target stopped answering after {which}: {} (a known-good read got no answer within {:.1} s)",
             crate::liveness::hex(&sent),
             self.bounds.probe_timeout.as_secs_f64()
         ));
@@ -675,8 +688,7 @@ impl Watch {
         result.verdict = Verdict::Fail;
         let _ = writeln!(
             log,
-            "liveness: the target stopped answering after {} (request {}); waiting up to {:.0} s for it to come back",
-            result.id,
+            "liveness: the target stopped answering after {by} (request {}); waiting up to {:.0} s for it to come back",
             crate::liveness::hex(&sent),
             self.bounds.recovery.as_secs_f64()
         );
@@ -706,8 +718,7 @@ impl Watch {
         match back {
             Some(d) => {
                 let note = format!(
-                    "the target stopped answering after {} and recovered after {:.1} s",
-                    result.id,
+                    "the target stopped answering after {by} and recovered after {:.1} s",
                     d.as_secs_f64()
                 );
                 result.steps[step].findings.push(format!(
@@ -719,8 +730,7 @@ impl Watch {
             }
             None => {
                 let reason = format!(
-                    "the target stopped answering after {} (request {}) and did not answer again within {:.0} s; the remaining cases were SKIPPED",
-                    result.id,
+                    "the target stopped answering after {by} (request {}) and did not answer again within {:.0} s; the remaining cases were SKIPPED",
                     crate::liveness::hex(&sent),
                     self.bounds.recovery.as_secs_f64()
                 );

@@ -204,6 +204,17 @@ pub fn run(args: &ProbeArgs) -> ExitCode {
         Err(e) => return fail(e.to_string()),
     };
     print!("{}", probe::render(&report, profile.as_ref(), scan));
+    // A target that stopped answering mid-probe: what was found is printed, no draft is written from it.
+    if let Some(why) = &report.stopped {
+        return fail(format!(
+            "{why}{}",
+            if args.write_profile.is_some() {
+                "; no draft profile written"
+            } else {
+                ""
+            }
+        ));
+    }
     let Some(file) = &args.write_profile else {
         return ExitCode::from(Exit::Ok);
     };

@@ -498,3 +498,33 @@ fn a_late_answer_is_attributed_to_its_request_by_transaction_id() {
     assert!(summary.get("ended").is_none(), "{summary}");
     drop(sim);
 }
+
+#[test]
+fn a_probe_whose_target_stops_answering_stops_and_exits_2() {
+    let sim = SimProcess::start(&["--profile", "generic", "--listen", "127.0.0.1:0"]);
+    // From the 30th request on (the pre-flight and the function codes answered, the scan begun) the drive
+    // is silent for longer than the probe lasts.
+    let proxy = Proxy::start(
+        sim.tcp.expect("tcp"),
+        Mode::Pause(30, Duration::from_secs(60)),
+    );
+    let target = format!("tcp://{}", proxy.addr);
+    let (code, out, err, took) = harness_timed(
+        &[
+            "probe",
+            "--target",
+            &target,
+            "--scan",
+            "0-0xFF",
+            "--timeout",
+            "200",
+        ],
+        Duration::from_secs(90),
+    );
+    assert_eq!(code, 2, "{out}\n{err}");
+    // 8 unanswered reads and the known-good one at 200 ms each, not 4 x 256 of them.
+    assert!(took < Duration::from_secs(10), "took {took:?}");
+    assert!(out.contains("THE PROBE STOPPED EARLY"), "{out}");
+    assert!(err.contains("the target stopped answering"), "{err}");
+    drop(sim);
+}

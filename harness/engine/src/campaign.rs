@@ -294,6 +294,7 @@ pub fn campaign(
     }
     let cfg = config(base, &profile);
     let mut runner = open_runner(base, &profile, &cfg, &Expectations::default())?;
+    crate::session::preflight(base, &profile, &mut runner)?;
     if !cfg.is_sim && !cfg.safety.read_only && opts.allow_writes {
         let allowed = |yes: bool| if yes { "ALLOWED" } else { "not sent" };
         let _ = writeln!(

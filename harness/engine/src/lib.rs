@@ -10,6 +10,7 @@ pub mod campaign;
 pub mod capture;
 pub mod cases;
 pub mod expect;
+pub mod liveness;
 pub mod observe;
 pub mod oracle;
 pub mod probe;

@@ -123,7 +123,17 @@ pub struct Runner {
     /// open, `profile.device.word_order` becomes the drive's own once [`Runner::learn_word_order`] has seen
     /// it, and whole 32-bit values the cases write are sent in that order.
     case_order: WordOrder,
+    /// Modbus/TCP: the transaction ids of the latest requests sent (with the case that sent them, or the
+    /// liveness probe, and when), so that a late answer is attributed to its request instead of being
+    /// taken for a later step's.
+    recent: std::collections::VecDeque<(u16, String, Duration)>,
+    /// The requests of the cases sent since the target last answered one (case id, bytes; the first few):
+    /// the first of them is the one that preceded a silence.
+    unanswered: Vec<(String, Vec<u8>)>,
 }
+
+/// Requests remembered for attributing late answers.
+const RECENT_REQUESTS: usize = 256;
 
 /// How many register pairs that read in range in only one word order settle it (all of them must agree).
 const WORD_ORDER_VOTES: usize = 3;
@@ -155,6 +165,8 @@ impl Runner {
             refused: false,
             restore_tid: 0xA000,
             case_order,
+            recent: std::collections::VecDeque::new(),
+            unanswered: Vec::new(),
         }
     }
 
@@ -328,6 +340,134 @@ impl Runner {
         self.target.as_ref()
     }
 
+    /// Send the known-good read `pdu` (the pre-flight, a liveness probe) and listen up to `bound`. Its
+    /// transaction ids are the restore's sequence, so the cases' own ids do not depend on how many probes
+    /// were sent; the reference drive gets the request too, so that it follows what the target counted.
+    pub fn known_good(
+        &mut self,
+        pdu: &[u8],
+        bound: Duration,
+    ) -> Result<(crate::liveness::Heard, Vec<u8>), TargetError> {
+        let case_tid = std::mem::replace(&mut self.next_tid, self.restore_tid);
+        let f = self.frame(pdu, self.cfg.unit, None);
+        self.restore_tid = std::mem::replace(&mut self.next_tid, case_tid);
+        self.target.drain();
+        self.sync_shadow();
+        self.pace();
+        self.remember(f.sent.tid, "the liveness probe".into());
+        self.shadow.send(&f.bytes)?;
+        let _ = self.shadow.settle();
+        let _ = self.shadow.take_decisions();
+        let heard = crate::liveness::ask(self.target.as_mut(), &f.bytes, bound)?;
+        if heard == crate::liveness::Heard::Modbus {
+            self.unanswered.clear();
+        }
+        Ok((heard, f.bytes))
+    }
+
+    /// Remember a request's transaction id (Modbus/TCP), to attribute a late answer to it.
+    fn remember(&mut self, tid: Option<u16>, by: String) {
+        if let Some(tid) = tid {
+            if self.recent.len() >= RECENT_REQUESTS {
+                self.recent.pop_front();
+            }
+            self.recent.push_back((tid, by, self.target.now()));
+        }
+    }
+
+    /// The answers among `stale` bytes (Modbus/TCP ADUs, split by their MBAP lengths) whose transaction id
+    /// is one of the latest requests', as notes naming the request and how late they came.
+    fn late_in(&self, stale: &[u8]) -> Vec<String> {
+        let mut notes = Vec::new();
+        let mut rest = stale;
+        // Bounded by the bytes: each round consumes at least one ADU header.
+        while let Some(len) = tcp::adu_len(rest) {
+            if len < 8 || rest.len() < len {
+                break;
+            }
+            let tid = u16::from_be_bytes([rest[0], rest[1]]);
+            if let Some((_, by, sent_at)) = self.recent.iter().rev().find(|(t, _, _)| *t == tid) {
+                notes.push(format!(
+                    "a late answer (transaction id {tid}) to a request of {by} arrived within {} ms after that request, between two cases: noted, taken for no step's answer",
+                    self.target.now().saturating_sub(*sent_at).as_millis()
+                ));
+            }
+            rest = &rest[len..];
+        }
+        notes
+    }
+
+    /// Modbus/TCP: while what came is an answer to an earlier request (its transaction id is one of the
+    /// latest requests' and none of this step's), note it as late, keep it in the wire log, and wait the rest
+    /// of `wait` (counted from `start`, when the receive began) for this step's own answer. Bounded by a
+    /// count and by `wait`.
+    fn skip_late(
+        &mut self,
+        mut got: Received,
+        frames: &[Framed],
+        (start, wait): (Duration, Duration),
+        findings: &mut Vec<Finding>,
+        wire: &mut Vec<WireEvent>,
+    ) -> Result<Received, TargetError> {
+        for _ in 0..8 {
+            let Received::Frame {
+                bytes, first_at, ..
+            } = &got
+            else {
+                break;
+            };
+            if bytes.len() < 8 {
+                break;
+            }
+            let tid = u16::from_be_bytes([bytes[0], bytes[1]]);
+            if frames.iter().any(|f| f.sent.tid == Some(tid)) {
+                break;
+            }
+            let Some((_, by, sent_at)) = self.recent.iter().rev().find(|(t, _, _)| *t == tid)
+            else {
+                break;
+            };
+            let by = if *by == self.case_id {
+                "an earlier step of this case".to_string()
+            } else {
+                by.clone()
+            };
+            findings.push(Finding {
+                severity: Severity::Info,
+                text: format!(
+                    "a late answer (transaction id {tid}) to a request of {by} arrived {} ms after that request: noted, not taken for this step's answer",
+                    first_at.saturating_sub(*sent_at).as_millis()
+                ),
+            });
+            record(&got, wire);
+            let left = wait.saturating_sub(self.target.now().saturating_sub(start));
+            got = self.target.recv(left)?;
+        }
+        Ok(got)
+    }
+
+    /// The first request of a case sent since the target last answered (case id, bytes): the one that
+    /// preceded a silence.
+    pub fn first_unanswered(&self) -> Option<&(String, Vec<u8>)> {
+        self.unanswered.first()
+    }
+
+    /// Close and reopen the target's connection (a target that stopped answering may take a new one).
+    pub fn reconnect(&mut self) -> Result<(), TargetError> {
+        self.target.reconnect()
+    }
+
+    /// Let `d` pass with the line idle (virtual time on `sim:`).
+    pub fn idle(&mut self, d: Duration) {
+        self.target.idle(d);
+        self.sync_shadow();
+    }
+
+    /// The target's clock.
+    pub fn now(&self) -> Duration {
+        self.target.now()
+    }
+
     fn frame(&mut self, pdu: &[u8], unit: u8, mutation: Option<&Mutation>) -> Framed {
         // PDU-level mutations alter the PDU, which is then framed correctly (header and CRC match it).
         let altered = mutation.and_then(|m| m.apply_to_pdu(pdu));
@@ -425,7 +565,24 @@ impl Runner {
         let started = self.target.now();
         let mut wire = Vec::new();
         let mut steps = Vec::new();
-        self.target.drain();
+        // Modbus/TCP: answers that came after their step gave up are attributed to their requests by
+        // transaction id and noted on this case's first step (on other framings they are only discarded).
+        let late = if self.target.framing() == Framing::Tcp {
+            let stale = self.target.drain_stale();
+            let notes = self.late_in(&stale);
+            if !stale.is_empty() {
+                wire.push(WireEvent {
+                    dir: Dir::Rx,
+                    at: self.target.now(),
+                    bytes: stale,
+                    intended_malformed: false,
+                });
+            }
+            notes
+        } else {
+            self.target.drain();
+            Vec::new()
+        };
         // One empty slot per capture the case names; a restore of a slot nothing filled is SKIPPED.
         self.slots = vec![None; case.slots()];
         self.case_id.clone_from(&case.id);
@@ -460,6 +617,10 @@ impl Runner {
                     steps.push(r);
                 }
             }
+        }
+        if let Some(first) = steps.first_mut().filter(|_| !late.is_empty()) {
+            first.findings.extend(late);
+            first.verdict = worse(first.verdict, Verdict::Informational);
         }
         let mut verdict = Verdict::Pass;
         for s in &steps {
@@ -699,6 +860,14 @@ impl Runner {
                 self.shadow.idle(*gap);
             }
         }
+        for f in frames {
+            let by = self.case_id.clone();
+            self.remember(f.sent.tid, by);
+            if self.unanswered.len() < 16 {
+                self.unanswered
+                    .push((self.case_id.clone(), f.bytes.clone()));
+            }
+        }
         Ok((precondition, before_last_write))
     }
 
@@ -728,7 +897,14 @@ impl Runner {
             } else {
                 self.cfg.timing.timeout
             };
-            let got = self.target.recv(wait)?;
+            let start = self.target.now();
+            let mut got = self.target.recv(wait)?;
+            if framing == Framing::Tcp {
+                got = self.skip_late(got, frames, (start, wait), &mut findings, wire)?;
+            }
+            if matches!(got, Received::Frame { .. }) {
+                self.unanswered.clear();
+            }
             let stop = !matches!(got, Received::Frame { .. } | Received::Garbage { .. });
             record(&got, wire);
             let sent = frames

@@ -76,6 +76,9 @@ pub struct Options {
     /// The state journal (default: `journal.json` in the report directory, else a file in the temporary
     /// directory named after the process).
     pub journal: Option<PathBuf>,
+    /// The pre-flight read before the first case and the liveness probes when an answer that was due does
+    /// not come (real targets only: the in-process drive cannot go away); `None` sends neither.
+    pub liveness: Option<crate::liveness::Liveness>,
 }
 
 /// Where the run's snapshot goes.
@@ -117,6 +120,7 @@ impl Options {
             shuffle: None,
             leave_as_found: true,
             journal: None,
+            liveness: Some(crate::liveness::Liveness::default()),
         }
     }
 }
@@ -157,6 +161,9 @@ pub enum SessionError {
     Requirements(#[from] drives::requirements::RequirementsError),
     #[error(transparent)]
     Target(#[from] TargetError),
+    /// The pre-flight read got no Modbus answer: what was tried, and the likely causes or what answered.
+    #[error("{0}")]
+    NotAnswering(String),
     #[error("writing the report: {0}")]
     Report(#[from] std::io::Error),
     /// The snapshot before the first write could not be taken or journaled: nothing was written.
@@ -585,6 +592,160 @@ pub(crate) fn open_runner(
     Ok(runner)
 }
 
+/// The bounds of the liveness checks of a run: real targets with `opts.liveness` set.
+fn liveness_of(opts: &Options) -> Option<crate::liveness::Liveness> {
+    opts.liveness.filter(|_| !opts.target.is_sim())
+}
+
+/// Before the first case: a known-good read of the profile over the target's framing. No Modbus answer
+/// within the bound is [`SessionError::NotAnswering`] (exit 2), saying what was tried and why it may not
+/// have answered, or what answered instead. Nothing is sent on `sim:` targets or without `opts.liveness`.
+pub fn preflight(
+    opts: &Options,
+    profile: &Profile,
+    runner: &mut Runner,
+) -> Result<(), SessionError> {
+    let Some(bounds) = liveness_of(opts) else {
+        return Ok(());
+    };
+    let pdu = crate::cases::catalog::known_good_read(profile);
+    let unit = opts.unit.unwrap_or(profile.device.default_unit);
+    let (heard, request) = runner.known_good(&pdu, bounds.probe_timeout)?;
+    match crate::liveness::preflight_failure(
+        &runner.target().describe(),
+        &heard,
+        &request,
+        runner.framing(),
+        matches!(opts.target, TargetUrl::Serial { .. }),
+        unit,
+        bounds.probe_timeout,
+    ) {
+        None => Ok(()),
+        Some(m) => Err(SessionError::NotAnswering(m)),
+    }
+}
+
+/// A run's watch over a real target: when an answer that was due does not come, a liveness probe (the
+/// known-good read); a target that no longer answers makes the case FAIL with "stopped answering after
+/// this request", and is waited for (probing, reconnecting) within a bound; if it does not come back the
+/// remaining cases are SKIPPED.
+struct Watch {
+    bounds: crate::liveness::Liveness,
+    probe: Vec<u8>,
+    /// Why the remaining cases are not run: the target stopped answering and did not come back.
+    dead: Option<String>,
+    /// Targets that stopped answering and came back, with after how long.
+    notes: Vec<String>,
+}
+
+impl Watch {
+    fn new(opts: &Options, profile: &Profile) -> Option<Self> {
+        liveness_of(opts).map(|bounds| Self {
+            bounds,
+            probe: crate::cases::catalog::known_good_read(profile),
+            dead: None,
+            notes: Vec::new(),
+        })
+    }
+
+    fn alive(&self, runner: &mut Runner, bound: Duration) -> bool {
+        matches!(
+            runner.known_good(&self.probe, bound),
+            Ok((crate::liveness::Heard::Modbus, _))
+        )
+    }
+
+    /// After a case: if an answer that was due did not come, is the target still there?
+    fn after_case(&mut self, runner: &mut Runner, result: &mut CaseResult, log: &mut dyn Write) {
+        let Some(step) = result.steps.iter().position(|s| {
+            s.expected.is_some()
+                && s.observed
+                    .iter()
+                    .any(|o| matches!(o, Received::Silence { .. } | Received::Closed { .. }))
+        }) else {
+            return;
+        };
+        // The request that preceded the silence: the first one sent since the last answer (an earlier
+        // case's when the target took it silently, as a malformed frame may be), else this step's.
+        let preceding = runner.first_unanswered().cloned();
+        let started = runner.now();
+        if self.alive(runner, self.bounds.probe_timeout) {
+            return;
+        }
+        let (by, sent) = preceding.unwrap_or_else(|| {
+            (
+                result.id.clone(),
+                result.steps[step].sent.clone().unwrap_or_default(),
+            )
+        });
+        let which = if by == result.id {
+            "this request".to_string()
+        } else {
+            format!("this request of {by} (no answer since)")
+        };
+        let s = &mut result.steps[step];
+        s.findings.push(format!(
+            "the target stopped answering after {which}: {} (a known-good read got no answer within {:.1} s)",
+            crate::liveness::hex(&sent),
+            self.bounds.probe_timeout.as_secs_f64()
+        ));
+        s.verdict = Verdict::Fail;
+        result.verdict = Verdict::Fail;
+        let _ = writeln!(
+            log,
+            "liveness: the target stopped answering after {by} (request {}); waiting up to {:.0} s for it to come back",
+            crate::liveness::hex(&sent),
+            self.bounds.recovery.as_secs_f64()
+        );
+        // Bounded by the recovery time on the target's clock and by a count.
+        let mut back = None;
+        for _ in 0..120 {
+            let waited = runner.now().saturating_sub(started);
+            if waited >= self.bounds.recovery {
+                break;
+            }
+            runner.idle(Duration::from_secs(1).min(self.bounds.recovery - waited));
+            let _ = runner.reconnect();
+            let left = self
+                .bounds
+                .recovery
+                .saturating_sub(runner.now().saturating_sub(started));
+            let bound = self
+                .bounds
+                .probe_timeout
+                .min(left)
+                .max(Duration::from_millis(200));
+            if self.alive(runner, bound) {
+                back = Some(runner.now().saturating_sub(started));
+                break;
+            }
+        }
+        match back {
+            Some(d) => {
+                let note = format!(
+                    "the target stopped answering after {by} and recovered after {:.1} s",
+                    d.as_secs_f64()
+                );
+                result.steps[step].findings.push(format!(
+                    "the target answered again {:.1} s later (recovered)",
+                    d.as_secs_f64()
+                ));
+                let _ = writeln!(log, "liveness: {note}");
+                self.notes.push(note);
+            }
+            None => {
+                let reason = format!(
+                    "the target stopped answering after {by} (request {}) and did not answer again within {:.0} s; the remaining cases were SKIPPED",
+                    crate::liveness::hex(&sent),
+                    self.bounds.recovery.as_secs_f64()
+                );
+                let _ = writeln!(log, "liveness: {reason}");
+                self.dead = Some(reason);
+            }
+        }
+    }
+}
+
 fn unix_ms() -> u64 {
     std::time::SystemTime::now()
         .duration_since(std::time::UNIX_EPOCH)
@@ -754,6 +915,8 @@ pub fn run(
     let planned = catalog_plan(opts, &profile, &requirements)?;
     let generator = generator(opts, &profile);
     let mut runner = open_runner(opts, &profile, &cfg, &expectations)?;
+    preflight(opts, &profile, &mut runner)?;
+    let mut watch = Watch::new(opts, &profile);
     let framing = runner.framing();
     let info = run_info(opts, &profile, &runner, generator.as_ref());
     let mut reports = match &opts.report_dir {
@@ -816,9 +979,11 @@ pub fn run(
             break;
         }
         let mut after: Option<crate::restore::Touched> = None;
-        let result = match skip {
-            Some(reason) => skipped(&case, reason),
-            None => {
+        let dead = watch.as_ref().and_then(|w| w.dead.clone());
+        let result = match (skip, dead) {
+            (Some(reason), _) => skipped(&case, reason),
+            (None, Some(dead)) => skipped(&case, format!("not run: {dead}")),
+            (None, None) => {
                 if !banner_done && case.has(Tag::Write) {
                     banner_done = true;
                     write_banner(log, &planned, &profile, opts.generated);
@@ -836,7 +1001,12 @@ pub fn run(
                     }
                 }
                 match runner.run_case(&case) {
-                    Ok(r) => r,
+                    Ok(mut r) => {
+                        if let Some(w) = watch.as_mut() {
+                            w.after_case(&mut runner, &mut r, log);
+                        }
+                        r
+                    }
                     Err(e) => {
                         failed = Some(e.into());
                         break;
@@ -852,7 +1022,9 @@ pub fn run(
         }
         progress(i + 1, total, &case.id, result.verdict);
         collected.record(opts, &case, result, gen_index);
-        if let (Some(k), Some(touched)) = (keeper.as_mut(), after)
+        // A target that stopped answering is put back at the end, as far as it answers again then.
+        let gone = watch.as_ref().is_some_and(|w| w.dead.is_some());
+        if let (Some(k), Some(touched), false) = (keeper.as_mut(), after, gone)
             && let Err(e) = k.after_case(&mut runner, &case.id, &touched, &profile)
         {
             failed = Some(e.into());
@@ -860,8 +1032,18 @@ pub fn run(
         }
     }
     if let Some(e) = failed {
-        if let Some(k) = keeper.as_mut() {
-            let account = k.finish(&mut runner, &profile);
+        let account = keeper.as_mut().map(|k| k.finish(&mut runner, &profile));
+        // The reports are completed with what ran and why the run ended, then the error is returned.
+        if let Some(r) = reports {
+            let mut summary = collected.tally.summary(false, started.elapsed());
+            summary.ended = Some(format!("stopped on an error: {e}"));
+            summary.liveness = watch.map(|w| w.notes).unwrap_or_default();
+            summary.leave_as_found = account.clone();
+            if let Err(re) = r.finish(&summary) {
+                let _ = writeln!(log, "cannot complete the reports: {re}");
+            }
+        }
+        if let Some(account) = account {
             for line in account.lines() {
                 let _ = writeln!(log, "{line}");
             }
@@ -900,6 +1082,16 @@ pub fn run(
     let leave_as_found = keeper.as_mut().map(|k| k.finish(&mut runner, &profile));
     let mut summary = collected.tally.summary(interrupted, started.elapsed());
     summary.leave_as_found = leave_as_found;
+    if let Some(w) = watch {
+        summary.ended = w.dead;
+        summary.liveness = w.notes;
+    }
+    if interrupted && summary.ended.is_none() {
+        summary.ended = Some(
+            "interrupted (Ctrl-C or SIGTERM): the cases after the last one reported were not run"
+                .into(),
+        );
+    }
     summary.choices = runner.choices().choices().cloned().collect();
     summary.coverage = requirements
         .coverage(collected.exercised.iter().map(String::as_str))

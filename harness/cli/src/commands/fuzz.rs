@@ -55,6 +55,10 @@ pub struct FuzzArgs {
     /// Directory for reproducers (default: corpus/regressions if ./corpus exists, else ./regressions).
     #[arg(long)]
     regressions: Option<PathBuf>,
+    /// How long the known-good read before the first case (and each liveness probe) waits for an answer, in
+    /// milliseconds: a target that gives none is not run against (exit 2, with the likely causes).
+    #[arg(long, default_value_t = 3000, value_name = "MS")]
+    preflight_timeout: u64,
     /// Per-answer timeout in milliseconds.
     #[arg(long, default_value_t = 1000, value_name = "MS")]
     timeout: u64,
@@ -127,6 +131,10 @@ pub fn run(args: &FuzzArgs) -> ExitCode {
     base.corpus = Corpus::Embedded;
     base.unit = args.unit;
     base.timing.timeout = Duration::from_millis(args.timeout.max(1));
+    base.liveness = Some(engine::liveness::Liveness {
+        probe_timeout: Duration::from_millis(args.preflight_timeout.max(1)),
+        recovery: engine::liveness::Liveness::default().recovery,
+    });
     base.faults = faults;
     base.safety.allow_motion = args.allow_motion;
     base.safety.allow_destructive = args.allow_destructive;

@@ -48,6 +48,10 @@ pub struct ProbeArgs {
     /// Addresses to read one by one (registers, coils, discrete inputs), inclusive, e.g. 0-0x1FF or 2000-2030.
     #[arg(long, default_value = "0-0xFF")]
     scan: String,
+    /// How long the first read (the pre-flight) waits for an answer, in milliseconds: a target that gives
+    /// none is not scanned (exit 2, with the likely causes).
+    #[arg(long, default_value_t = 3000, value_name = "MS")]
+    preflight_timeout: u64,
     /// Per-request timeout in milliseconds.
     #[arg(long, default_value_t = 500, value_name = "MS")]
     timeout: u64,
@@ -153,6 +157,31 @@ pub fn run(args: &ProbeArgs) -> ExitCode {
         Ok(t) => t,
         Err(e) => return fail(e.to_string()),
     };
+    // Pre-flight: a known-good read (the profile's, else holding register 0; an exception answer counts).
+    if !url.is_sim() {
+        let pdu = profile.as_ref().map_or_else(
+            || vec![0x03, 0x00, 0x00, 0x00, 0x01],
+            engine::cases::catalog::known_good_read,
+        );
+        let framing = t.framing();
+        let request = engine::liveness::frame(&pdu, framing, unit, 0x5046);
+        let bound = Duration::from_millis(args.preflight_timeout.max(1));
+        let heard = match engine::liveness::ask(t.as_mut(), &request, bound) {
+            Ok(h) => h,
+            Err(e) => return fail(e.to_string()),
+        };
+        if let Some(m) = engine::liveness::preflight_failure(
+            &t.describe(),
+            &heard,
+            &request,
+            framing,
+            matches!(url, TargetUrl::Serial { .. }),
+            unit,
+            bound,
+        ) {
+            return fail(m);
+        }
+    }
     eprintln!(
         "probing {} (unit {unit}), scanning 0x{:04X}-0x{:04X}{} ...",
         t.describe(),
@@ -175,6 +204,17 @@ pub fn run(args: &ProbeArgs) -> ExitCode {
         Err(e) => return fail(e.to_string()),
     };
     print!("{}", probe::render(&report, profile.as_ref(), scan));
+    // A target that stopped answering mid-probe: what was found is printed, no draft is written from it.
+    if let Some(why) = &report.stopped {
+        return fail(format!(
+            "{why}{}",
+            if args.write_profile.is_some() {
+                "; no draft profile written"
+            } else {
+                ""
+            }
+        ));
+    }
     let Some(file) = &args.write_profile else {
         return ExitCode::from(Exit::Ok);
     };

@@ -53,11 +53,18 @@ Leave as found (real targets):
   put back is listed with its value before and after. After a killed run:
   modbus-harness restore --journal FILE.
 
+Dead, foreign or dying targets (real targets):
+  Before the first case a known-good read of the profile: no Modbus answer within --preflight-timeout is
+  exit 2 with the likely causes, or what answered (HTTP, TLS, SSH, an echo). Mid-run, an answer that was
+  due and did not come triggers that read again: a target that no longer answers FAILs the request before
+  the silence and is waited for (--recovery-wait); it recovers (noted in the reports) or the remaining
+  cases are SKIPPED and the reports say why the run ended.
+
 Exit codes:
   0  no FAIL, the drive left as found
   1  a FAIL (or snapshot drift; with --strict-expect, an --expect entry that matches no case or is stale)
-  2  the run could not be made (also: --cases/--exclude select no case, or a pattern is not a valid
-     glob) or was interrupted
+  2  the run could not be made (also: no Modbus answer to the pre-flight read; --cases/--exclude select
+     no case, or a pattern is not a valid glob) or was interrupted
   3  the drive was not left as found: a parameter could not be restored (listed in the summary), also when
      the run stopped on an error such as a dead target";
 
@@ -131,6 +138,14 @@ pub struct RunArgs {
     /// At most this many requests per second (real targets).
     #[arg(long, value_name = "N")]
     max_rate: Option<f64>,
+    /// How long the known-good read before the first case (and each liveness probe) waits for an answer, in
+    /// milliseconds: a target that gives none is not run against (exit 2, with the likely causes).
+    #[arg(long, default_value_t = 3000, value_name = "MS")]
+    preflight_timeout: u64,
+    /// How long to wait for a target that stopped answering mid-run to come back, in seconds, before the
+    /// remaining cases are SKIPPED.
+    #[arg(long, default_value_t = 10, value_name = "SECS")]
+    recovery_wait: u64,
     /// Per-answer timeout in milliseconds.
     #[arg(long, default_value_t = 1000, value_name = "MS")]
     timeout: u64,
@@ -231,6 +246,10 @@ pub fn run(args: &RunArgs) -> ExitCode {
     opts.corpus = Corpus::from_option(args.corpus.as_deref());
     opts.unit = args.unit;
     opts.timing.timeout = Duration::from_millis(args.timeout.max(1));
+    opts.liveness = Some(engine::liveness::Liveness {
+        probe_timeout: Duration::from_millis(args.preflight_timeout.max(1)),
+        recovery: Duration::from_secs(args.recovery_wait),
+    });
     opts.timing.silence = Duration::from_millis(args.silence.max(1));
     opts.safety.allow_motion = args.allow_motion;
     opts.safety.allow_destructive = args.allow_destructive;

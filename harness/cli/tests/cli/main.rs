@@ -2,6 +2,7 @@
 //! drafts.
 
 mod ci_examples;
+mod dead_target;
 mod decode;
 mod edges;
 mod generated_snapshots;

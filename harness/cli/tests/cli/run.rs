@@ -283,5 +283,15 @@ fn an_interrupted_run_leaves_a_complete_report() {
     assert_eq!(
         index["summary"]["interrupted"],
         serde_json::Value::Bool(true)
+    ); // Every report is complete, and says why the run ended.
+    assert!(
+        index["summary"]["ended"]
+            .as_str()
+            .is_some_and(|e| e.starts_with("interrupted")),
+        "{}",
+        index["summary"]
     );
+    for f in ["junit.xml", "report.html", "session.pcapng"] {
+        assert!(dir.path().join("r").join(f).is_file(), "{f} missing");
+    }
 }

@@ -71,6 +71,9 @@ pub struct ProbeReport {
     pub write_requests: usize,
     /// Requests the safety classifier rated `write` without `--probe-writes`: not sent (a harness bug).
     pub refused: Vec<Vec<u8>>,
+    /// Why the probe stopped before its end: the target stopped answering (the known-good read, the first
+    /// request it answered, went unanswered too).
+    pub stopped: Option<String>,
 }
 
 impl ProbeReport {
@@ -174,10 +177,49 @@ struct Prober<'t> {
     /// `--probe-writes`: without it, a request the classifier rates `write` is not sent.
     writes: bool,
     refused: Vec<Vec<u8>>,
+    /// The first request the target answered (unit, PDU): asked again after a run of silences.
+    good: Option<(u8, Vec<u8>)>,
+    /// Requests in a row without an answer.
+    silent: usize,
+    /// The target stopped answering: nothing more is sent.
+    dead: Option<String>,
 }
 
+/// Unanswered requests in a row after which the probe asks the known-good read again.
+const SILENCES_BEFORE_LIVENESS: usize = 8;
+
 impl Prober<'_> {
+    /// One request, with a liveness check after a run of silences: a target that no longer answers even
+    /// the first request it answered stops the probe (every later request returns `None` unsent).
     fn exchange(&mut self, unit: u8, pdu: &[u8]) -> Result<Option<Response>, TargetError> {
+        if self.dead.is_some() {
+            return Ok(None);
+        }
+        let answer = self.exchange_once(unit, pdu)?;
+        if answer.is_some() {
+            self.silent = 0;
+            if self.good.is_none() {
+                self.good = Some((unit, pdu.to_vec()));
+            }
+            return Ok(answer);
+        }
+        self.silent += 1;
+        if self.silent >= SILENCES_BEFORE_LIVENESS
+            && let Some((u, good)) = self.good.clone()
+        {
+            self.silent = 0;
+            if self.exchange_once(u, &good)?.is_none() {
+                self.dead = Some(format!(
+                    "the target stopped answering: {SILENCES_BEFORE_LIVENESS} requests in a row went unanswered (the last {}), and so did the first request it had answered ({}); the results after that are incomplete",
+                    hex::encode(pdu),
+                    hex::encode(&good)
+                ));
+            }
+        }
+        Ok(answer)
+    }
+
+    fn exchange_once(&mut self, unit: u8, pdu: &[u8]) -> Result<Option<Response>, TargetError> {
         // The safety assertion before sending: a read-only probe puts no write on the wire, whatever the
         // code above built.
         if !self.writes && crate::safety::is_write(pdu) {
@@ -242,6 +284,9 @@ pub fn probe(t: &mut dyn Target, o: &ProbeOptions) -> Result<ProbeReport, Target
         requests: 0,
         writes: o.writes,
         refused: Vec::new(),
+        good: None,
+        silent: 0,
+        dead: None,
     };
     let unit = o.unit;
     let mut basic_id = None;
@@ -362,6 +407,7 @@ pub fn probe(t: &mut dyn Target, o: &ProbeOptions) -> Result<ProbeReport, Target
     }
     report.requests = p.requests;
     report.refused = std::mem::take(&mut p.refused);
+    report.stopped = p.dead.take();
     Ok(report)
 }
 
@@ -590,6 +636,9 @@ pub fn render(report: &ProbeReport, profile: Option<&Profile>, scan: (u16, u16))
             list(true),
             list(false)
         );
+    }
+    if let Some(why) = &report.stopped {
+        let _ = writeln!(s, "\nTHE PROBE STOPPED EARLY: {why}");
     }
     if !report.refused.is_empty() {
         let _ = writeln!(

@@ -361,6 +361,18 @@ fn header(info: &RunInfo, summary: &Summary) -> String {
             summary.cases
         );
     }
+    // An interrupted run has its banner above.
+    if let Some(e) = summary.ended.as_ref().filter(|_| !summary.interrupted) {
+        let _ = writeln!(
+            s,
+            "<p class=\"banner\">The run ended after {} case(s): {}</p>",
+            summary.cases,
+            escape_html(e)
+        );
+    }
+    for l in &summary.liveness {
+        let _ = writeln!(s, "<p class=\"banner\">{}</p>", escape_html(l));
+    }
     s.push_str("<table class=\"run\">\n");
     let seed = info
         .seed

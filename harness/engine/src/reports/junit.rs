@@ -200,6 +200,13 @@ impl JunitSink {
                     ));
                 }
             }
+            // Why the run ended early, and the targets that stopped answering and came back.
+            if let Some(e) = &summary.ended {
+                restore.push(("ended".into(), e.clone()));
+            }
+            for (i, l) in summary.liveness.iter().enumerate() {
+                restore.push((format!("liveness.{i}"), l.clone()));
+            }
             for (name, value) in restore
                 .iter()
                 .map(|(n, v)| (n.as_str(), v.as_str()))

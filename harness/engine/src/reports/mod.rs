@@ -116,6 +116,10 @@ pub struct Summary {
     pub coverage: Vec<drives::requirements::Coverage>,
     /// Leaving the drive as found: the snapshot, the restore writes, what could not be put back.
     pub leave_as_found: Option<crate::restore::Account>,
+    /// Why the run ended before its last case, when it did (the target stopped answering, an error).
+    pub ended: Option<String>,
+    /// What the liveness probes saw: a target that stopped answering and came back, and after how long.
+    pub liveness: Vec<String>,
 }
 
 impl Summary {
@@ -175,7 +179,7 @@ impl Summary {
             .into_iter()
             .map(|v| (v.label().to_string(), self.count(v).into()))
             .collect();
-        serde_json::json!({
+        let mut json = serde_json::json!({
             "result": self.result_label(),
             "cases": self.cases,
             "counts": counts,
@@ -195,7 +199,17 @@ impl Summary {
                     "exercised": c.exercised,
                 }))
                 .collect::<Vec<_>>(),
-        })
+        });
+        // Only when there is something to say: the index of a run that went as planned keeps its shape.
+        if let Some(o) = json.as_object_mut() {
+            if let Some(e) = &self.ended {
+                o.insert("ended".into(), e.clone().into());
+            }
+            if !self.liveness.is_empty() {
+                o.insert("liveness".into(), self.liveness.clone().into());
+            }
+        }
+        json
     }
 
     /// The "choices this drive made" lines: one per freedom (and item) the target showed a value for.
@@ -249,6 +263,8 @@ impl Tally {
             choices: Vec::new(),
             coverage: Vec::new(),
             leave_as_found: None,
+            ended: None,
+            liveness: Vec::new(),
         }
     }
 }
@@ -537,6 +553,12 @@ pub fn terminal_summary(summary: &Summary, info: &RunInfo) -> String {
         for line in a.lines() {
             let _ = writeln!(s, "{line}");
         }
+    }
+    for l in &summary.liveness {
+        let _ = writeln!(s, "liveness: {l}");
+    }
+    if let Some(e) = &summary.ended {
+        let _ = writeln!(s, "the run ended early: {e}");
     }
     if let Some(dir) = &info.report_dir {
         let _ = writeln!(

@@ -123,6 +123,12 @@ pub trait Target {
     fn reconnect(&mut self) -> Result<(), TargetError>;
     /// Discard whatever arrived unasked (late answers of an earlier case).
     fn drain(&mut self);
+    /// Discard whatever arrived unasked, returning those bytes where the target can tell them (a late
+    /// answer is then attributed to its request by the runner); by default they are only discarded.
+    fn drain_stale(&mut self) -> Vec<u8> {
+        self.drain();
+        Vec::new()
+    }
     /// A description for reports.
     fn describe(&self) -> String;
     /// The server port for the pcap (502 when there is none).

@@ -243,6 +243,30 @@ impl Target for TcpTarget {
         self.reader.clear();
     }
 
+    fn drain_stale(&mut self) -> Vec<u8> {
+        let mut stale = self.reader.partial();
+        if let Some(s) = self.stream.as_ref() {
+            // Non-blocking for the while: what is there is taken, nothing is waited for.
+            if s.set_nonblocking(true).is_ok() {
+                let mut chunk = [0u8; 1024];
+                // Bounded as `drain`: at most 64 KiB.
+                for _ in 0..64 {
+                    match std::io::Read::read(&mut &*s, &mut chunk) {
+                        Ok(0) => {
+                            self.closed = true;
+                            break;
+                        }
+                        Ok(n) => stale.extend_from_slice(&chunk[..n]),
+                        Err(_) => break,
+                    }
+                }
+                let _ = s.set_nonblocking(false);
+            }
+        }
+        self.reader.clear();
+        stale
+    }
+
     fn describe(&self) -> String {
         self.label.clone()
     }

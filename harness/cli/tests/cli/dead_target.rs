@@ -1,0 +1,530 @@
+//! A dead, foreign or dying target (issue 14): a port that accepts and never answers, or answers in another
+//! protocol, is recognised by the pre-flight read within seconds (exit 2, saying what was tried and what
+//! answered); a drive that stops answering mid-run FAILs the request that preceded the silence and the rest
+//! is SKIPPED, with complete reports; a drive that is silent for a while and comes back is waited for, and
+//! the report says it recovered.
+
+use std::io::{Read, Write};
+use std::net::{Shutdown, SocketAddr, TcpListener, TcpStream};
+use std::path::Path;
+use std::process::{Command, Stdio};
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+use std::sync::{Arc, Mutex};
+use std::thread;
+use std::time::{Duration, Instant};
+
+use test_support::{SimProcess, TempDir, harness_bin, wait_bounded};
+
+/// How long any peer thread of these tests lives at most.
+const PEER_LIFETIME: Duration = Duration::from_secs(60);
+
+/// Run the binary with `args`, at most `limit`: (exit code, stdout, stderr, wall time).
+fn harness_timed(args: &[&str], limit: Duration) -> (i32, String, String, Duration) {
+    let started = Instant::now();
+    let mut child = Command::new(harness_bin())
+        .args(args)
+        .stdin(Stdio::null())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("spawn modbus-harness");
+    let mut out = child.stdout.take().expect("stdout");
+    let mut err = child.stderr.take().expect("stderr");
+    let o = thread::spawn(move || {
+        let mut s = String::new();
+        let _ = out.read_to_string(&mut s);
+        s
+    });
+    let e = thread::spawn(move || {
+        let mut s = String::new();
+        let _ = err.read_to_string(&mut s);
+        s
+    });
+    let status = wait_bounded(&mut child, limit, &format!("modbus-harness {args:?}"));
+    let elapsed = started.elapsed();
+    (
+        status.code().unwrap_or(-1),
+        o.join().unwrap_or_default(),
+        e.join().unwrap_or_default(),
+        elapsed,
+    )
+}
+
+/// A loopback listener (port 0) whose connections are handled by `serve` on a thread each; the accept loop
+/// ends when the returned flag is set or after [`PEER_LIFETIME`].
+fn peer(serve: fn(TcpStream)) -> (SocketAddr, Arc<AtomicBool>) {
+    let listener = TcpListener::bind("127.0.0.1:0").expect("bind");
+    let addr = listener.local_addr().expect("addr");
+    listener.set_nonblocking(true).expect("nonblocking");
+    let stop = Arc::new(AtomicBool::new(false));
+    let flag = stop.clone();
+    thread::spawn(move || {
+        let until = Instant::now() + PEER_LIFETIME;
+        while !flag.load(Ordering::SeqCst) && Instant::now() < until {
+            match listener.accept() {
+                Ok((c, _)) => {
+                    let _ = c.set_nonblocking(false);
+                    let _ = c.set_read_timeout(Some(PEER_LIFETIME));
+                    thread::spawn(move || serve(c));
+                }
+                Err(_) => thread::sleep(Duration::from_millis(10)),
+            }
+        }
+    });
+    (addr, stop)
+}
+
+/// Accepts, reads what comes, never answers (until the client goes or the read times out).
+fn silent(mut c: TcpStream) {
+    let mut buf = [0u8; 512];
+    while matches!(c.read(&mut buf), Ok(n) if n > 0) {}
+}
+
+/// Answers whatever comes with an HTTP 400 and closes, as a web server does to bytes that are not HTTP.
+fn http(mut c: TcpStream) {
+    let mut buf = [0u8; 512];
+    let _ = c.read(&mut buf);
+    let _ = c.write_all(
+        b"HTTP/1.1 400 Bad Request\r\nContent-Type: text/html\r\nContent-Length: 11\r\nConnection: close\r\n\r\nBad Request",
+    );
+    let _ = c.shutdown(Shutdown::Both);
+}
+
+#[test]
+fn a_silent_port_exits_2_within_seconds_for_run_probe_and_fuzz() {
+    let (addr, stop) = peer(silent);
+    let target = format!("tcp://{addr}");
+    for args in [
+        vec!["run", "--target", &target, "--profile", "generic"],
+        vec!["probe", "--target", &target],
+        vec![
+            "fuzz",
+            "--target",
+            &target,
+            "--profile",
+            "generic",
+            "--duration",
+            "20s",
+        ],
+    ] {
+        let (code, _, err, took) = harness_timed(&args, Duration::from_secs(60));
+        assert_eq!(code, 2, "{args:?}: {err}");
+        assert!(
+            took < Duration::from_secs(10),
+            "{args:?} took {took:?} to give up on a silent port"
+        );
+        for said in [
+            "does not answer",
+            "known-good read",
+            "unit id",
+            "port",
+            "rtu+tcp://",
+        ] {
+            assert!(err.contains(said), "{args:?}: no `{said}` in {err}");
+        }
+    }
+    stop.store(true, Ordering::SeqCst);
+}
+
+#[test]
+fn an_http_server_is_named_not_modbus() {
+    let (addr, stop) = peer(http);
+    for target in [format!("tcp://{addr}"), format!("rtu+tcp://{addr}")] {
+        for args in [
+            vec!["run", "--target", &target, "--profile", "generic"],
+            vec!["probe", "--target", &target],
+        ] {
+            let (code, _, err, took) = harness_timed(&args, Duration::from_secs(60));
+            assert_eq!(code, 2, "{args:?}: {err}");
+            assert!(took < Duration::from_secs(10), "{args:?} took {took:?}");
+            assert!(
+                err.contains("is not a Modbus server") && err.contains("looks like HTTP"),
+                "{args:?}: {err}"
+            );
+        }
+    }
+    stop.store(true, Ordering::SeqCst);
+}
+
+/// The per-case JSON files of a report directory, as text.
+fn case_files(dir: &Path) -> Vec<String> {
+    std::fs::read_dir(dir.join("cases"))
+        .expect("cases/")
+        .filter_map(Result::ok)
+        .filter_map(|e| std::fs::read_to_string(e.path()).ok())
+        .collect()
+}
+
+/// No `.partial` file is left anywhere in the report directory: every report was completed.
+fn assert_complete(dir: &Path) {
+    for f in ["index.json", "junit.xml", "report.html", "session.pcapng"] {
+        assert!(dir.join(f).is_file(), "{f} missing in {}", dir.display());
+    }
+    let partial: Vec<_> = walk(dir)
+        .into_iter()
+        .filter(|p| p.to_string_lossy().ends_with(".partial"))
+        .collect();
+    assert!(partial.is_empty(), "left unfinished: {partial:?}");
+}
+
+fn walk(dir: &Path) -> Vec<std::path::PathBuf> {
+    let mut out = Vec::new();
+    for e in std::fs::read_dir(dir).into_iter().flatten().flatten() {
+        let p = e.path();
+        if p.is_dir() {
+            out.extend(walk(&p));
+        } else {
+            out.push(p);
+        }
+    }
+    out
+}
+
+fn index(dir: &Path) -> serde_json::Value {
+    serde_json::from_str(&std::fs::read_to_string(dir.join("index.json")).expect("index.json"))
+        .expect("index.json is JSON")
+}
+
+#[test]
+fn a_drive_that_dies_is_one_fail_then_skipped_with_complete_reports() {
+    // The simulator stops answering for good at its first malformed frame.
+    let sim = SimProcess::start(&[
+        "--profile",
+        "generic",
+        "--listen",
+        "127.0.0.1:0",
+        "--fault",
+        "stop-after-malformed",
+    ]);
+    let target = format!("tcp://{}", sim.tcp.expect("tcp"));
+    let dir = TempDir::new("dead-target");
+    let report = dir.path().join("report");
+    let report_s = report.to_string_lossy().into_owned();
+    let (code, out, err, took) = harness_timed(
+        &[
+            "run",
+            "--target",
+            &target,
+            "--profile",
+            "generic",
+            "--read-only",
+            "--no-progress",
+            "--recovery-wait",
+            "3",
+            "--report",
+            &report_s,
+        ],
+        Duration::from_secs(90),
+    );
+    assert_eq!(code, 1, "one FAIL: exit 1\n{out}\n{err}");
+    assert!(took < Duration::from_secs(30), "took {took:?}");
+    assert!(
+        out.contains("the run ended early: the target stopped answering after"),
+        "{out}"
+    );
+    assert_complete(&report);
+    let summary = &index(&report)["summary"];
+    assert_eq!(summary["counts"]["FAIL"], 1, "{summary}");
+    assert!(
+        summary["counts"]["PASS"].as_u64().unwrap_or(0) > 0,
+        "{summary}"
+    );
+    assert!(
+        summary["counts"]["SKIPPED"].as_u64().unwrap_or(0) > 100,
+        "the rest is SKIPPED: {summary}"
+    );
+    let failing = summary["failing"][0].as_str().expect("one failing case");
+    let ended = summary["ended"].as_str().expect("why the run ended");
+    assert!(
+        ended.contains(&format!("stopped answering after {failing}")),
+        "{ended}"
+    );
+    // The failing case carries the finding with the request's bytes.
+    let cases = case_files(&report);
+    let fail = cases
+        .iter()
+        .find(|c| c.contains("the target stopped answering after this request: "))
+        .expect("a case with the finding");
+    assert!(fail.contains(failing), "{fail}");
+    // The cases after it are SKIPPED, saying why.
+    assert!(
+        cases
+            .iter()
+            .any(|c| c.contains("not run: the target stopped answering after")),
+        "no SKIPPED case names the dead target"
+    );
+    let junit = std::fs::read_to_string(report.join("junit.xml")).expect("junit");
+    assert!(
+        junit.contains("name=\"ended\"") && junit.contains("stopped answering"),
+        "junit: no reason"
+    );
+    let html = std::fs::read_to_string(report.join("report.html")).expect("html");
+    assert!(html.contains("stopped answering after"), "html: no reason");
+}
+
+/// What a [`Proxy`] does to the traffic.
+#[derive(Clone, Copy)]
+enum Mode {
+    /// From the `at`-th chunk the clients send (counted over all connections), everything both ways is
+    /// dropped for the duration: a drive that goes silent for a while and comes back.
+    Pause(usize, Duration),
+    /// The `at`-th chunk the server sends is held back for the duration, the others pass: one late answer.
+    Delay(usize, Duration),
+}
+
+/// A Modbus/TCP proxy on 127.0.0.1:0 in front of `upstream` that misbehaves as its [`Mode`] says. Its threads
+/// end with their connections, or after [`PEER_LIFETIME`].
+struct Proxy {
+    addr: SocketAddr,
+}
+
+impl Proxy {
+    fn start(upstream: SocketAddr, mode: Mode) -> Self {
+        let listener = TcpListener::bind("127.0.0.1:0").expect("bind proxy");
+        let addr = listener.local_addr().expect("proxy address");
+        let requests = Arc::new(AtomicUsize::new(0));
+        let answers = Arc::new(AtomicUsize::new(0));
+        let paused_until: Arc<Mutex<Option<Instant>>> = Arc::default();
+        listener.set_nonblocking(true).expect("nonblocking");
+        thread::spawn(move || {
+            let until = Instant::now() + PEER_LIFETIME;
+            while Instant::now() < until {
+                let Ok((client, _)) = listener.accept() else {
+                    thread::sleep(Duration::from_millis(10));
+                    continue;
+                };
+                let _ = client.set_nonblocking(false);
+                let Ok(server) = TcpStream::connect_timeout(&upstream, Duration::from_secs(5))
+                else {
+                    continue;
+                };
+                for s in [&client, &server] {
+                    let _ = s.set_nodelay(true);
+                    let _ = s.set_read_timeout(Some(PEER_LIFETIME));
+                }
+                let pump = |mut from: TcpStream, to: TcpStream, upward: bool| {
+                    let (requests, answers, paused_until) =
+                        (requests.clone(), answers.clone(), paused_until.clone());
+                    let to = Arc::new(Mutex::new(to));
+                    thread::spawn(move || {
+                        let mut buf = [0u8; 4096];
+                        while let Ok(n @ 1..) = from.read(&mut buf) {
+                            let now = Instant::now();
+                            let chunk = buf[..n].to_vec();
+                            let count = if upward { &requests } else { &answers };
+                            let nth = count.fetch_add(1, Ordering::SeqCst) + 1;
+                            let mut held = None;
+                            {
+                                let mut p = paused_until.lock().expect("pause");
+                                match mode {
+                                    Mode::Pause(at, pause) if upward && nth == at => {
+                                        *p = Some(now + pause)
+                                    }
+                                    Mode::Delay(at, delay) if !upward && nth == at => {
+                                        held = Some(delay)
+                                    }
+                                    _ => {}
+                                }
+                                if p.is_some_and(|u| now < u) {
+                                    continue;
+                                }
+                            }
+                            if let Some(delay) = held {
+                                let to = to.clone();
+                                thread::spawn(move || {
+                                    thread::sleep(delay);
+                                    let _ = to.lock().expect("to").write_all(&chunk);
+                                });
+                                continue;
+                            }
+                            if to.lock().expect("to").write_all(&chunk).is_err() {
+                                break;
+                            }
+                        }
+                        let to = to.lock().expect("to");
+                        let _ = to.shutdown(Shutdown::Both);
+                        let _ = from.shutdown(Shutdown::Both);
+                    });
+                };
+                let (c2, s2) = (
+                    client.try_clone().expect("clone"),
+                    server.try_clone().expect("clone"),
+                );
+                pump(client, server, true);
+                pump(s2, c2, false);
+            }
+        });
+        Self { addr }
+    }
+}
+
+#[test]
+fn a_drive_silent_for_3_s_is_waited_for_and_the_run_goes_on() {
+    let sim = SimProcess::start(&["--profile", "generic", "--listen", "127.0.0.1:0"]);
+    let proxy = Proxy::start(
+        sim.tcp.expect("tcp"),
+        Mode::Pause(40, Duration::from_secs(3)),
+    );
+    let target = format!("tcp://{}", proxy.addr);
+    let dir = TempDir::new("paused-target");
+    let report = dir.path().join("report");
+    let report_s = report.to_string_lossy().into_owned();
+    let (code, out, err, took) = harness_timed(
+        &[
+            "run",
+            "--target",
+            &target,
+            "--profile",
+            "generic",
+            "--read-only",
+            "--no-progress",
+            "--report",
+            &report_s,
+        ],
+        Duration::from_secs(90),
+    );
+    assert_eq!(
+        code, 1,
+        "the request lost in the silence FAILs\n{out}\n{err}"
+    );
+    assert!(took < Duration::from_secs(30), "took {took:?}");
+    assert_complete(&report);
+    let summary = &index(&report)["summary"];
+    assert!(summary.get("ended").is_none(), "the run went on: {summary}");
+    let liveness = summary["liveness"][0].as_str().expect("a liveness note");
+    assert!(liveness.contains("recovered after"), "{liveness}");
+    assert!(out.contains("recovered after"), "{out}");
+    // Only the request(s) lost in the silence FAIL; the run went on to the end.
+    let fails = summary["counts"]["FAIL"].as_u64().unwrap_or(0);
+    assert!((1..=3).contains(&fails), "{summary}");
+    assert!(
+        summary["counts"]["PASS"].as_u64().unwrap_or(0) > 300,
+        "{summary}"
+    );
+    // The simulator lives to the end of the test.
+    drop(sim);
+}
+
+#[test]
+fn a_run_stopped_by_an_error_still_completes_its_reports() {
+    use engine::session::{Options, SessionError, run};
+    use engine::targets::TargetUrl;
+    let rt = tokio::runtime::Runtime::new().expect("runtime");
+    let server = rt.block_on(test_support::serve(
+        "generic",
+        &[],
+        test_support::loopback_tcp_and_rtu(),
+    ));
+    let dir = TempDir::new("error-reports");
+    let report = dir.path().join("r");
+    let mut o = Options::new(
+        TargetUrl::parse(&format!("tcp://{}", server.tcp_addr().expect("tcp"))).expect("url"),
+    );
+    o.profile = Some("generic".into());
+    o.report_dir = Some(report.clone());
+    o.safety.read_only = true;
+    // No liveness probe: the server going away is met as an error of the target (the connection refused).
+    o.liveness = None;
+    let stop = AtomicBool::new(false);
+    let got = run(&o, &mut std::io::sink(), &stop, &mut |done, _, _, _| {
+        if done == 10 {
+            server.signal_shutdown();
+        }
+    });
+    assert!(
+        matches!(got, Err(SessionError::Target(_))),
+        "the run stops on the target's error: {got:?}"
+    );
+    assert_complete(&report);
+    let summary = &index(&report)["summary"];
+    let ended = summary["ended"].as_str().expect("why the run ended");
+    assert!(ended.starts_with("stopped on an error: "), "{ended}");
+    assert!(summary["cases"].as_u64().unwrap_or(0) >= 10, "{summary}");
+}
+
+#[test]
+fn a_late_answer_is_attributed_to_its_request_by_transaction_id() {
+    let sim = SimProcess::start(&["--profile", "generic", "--listen", "127.0.0.1:0"]);
+    // The 100th answer (a profile read: cases that keep their connection follow) comes 1.3 s late: after
+    // its case's 1 s timeout and the liveness probe, within a later case (paced at 200 requests/s, so that
+    // the run is still going when it comes).
+    let proxy = Proxy::start(
+        sim.tcp.expect("tcp"),
+        Mode::Delay(100, Duration::from_millis(1300)),
+    );
+    let target = format!("tcp://{}", proxy.addr);
+    let dir = TempDir::new("late-answer");
+    let report = dir.path().join("report");
+    let report_s = report.to_string_lossy().into_owned();
+    let (code, out, err, _) = harness_timed(
+        &[
+            "run",
+            "--target",
+            &target,
+            "--profile",
+            "generic",
+            "--read-only",
+            "--no-progress",
+            "--max-rate",
+            "200",
+            "--report",
+            &report_s,
+        ],
+        Duration::from_secs(90),
+    );
+    assert_eq!(
+        code, 1,
+        "the case whose answer was late FAILs\n{out}\n{err}"
+    );
+    assert_complete(&report);
+    let summary = &index(&report)["summary"];
+    // Only the late one FAILs: the later case that met its answer is not blamed for it.
+    assert_eq!(summary["counts"]["FAIL"], 1, "{summary}");
+    let late = summary["failing"][0].as_str().expect("the late case");
+    let cases = case_files(&report);
+    let noted = cases
+        .iter()
+        .find(|c| c.contains("a late answer (transaction id"))
+        .unwrap_or_else(|| {
+            panic!(
+                "the late answer is noted where it arrived; the late case: {:?}",
+                cases.iter().find(|c| c.contains(late))
+            )
+        });
+    assert!(
+        noted.contains(&format!("to a request of {late} arrived")),
+        "attributed to {late}: {noted}"
+    );
+    assert!(summary.get("ended").is_none(), "{summary}");
+    drop(sim);
+}
+
+#[test]
+fn a_probe_whose_target_stops_answering_stops_and_exits_2() {
+    let sim = SimProcess::start(&["--profile", "generic", "--listen", "127.0.0.1:0"]);
+    // From the 30th request on (the pre-flight and the function codes answered, the scan begun) the drive
+    // is silent for longer than the probe lasts.
+    let proxy = Proxy::start(
+        sim.tcp.expect("tcp"),
+        Mode::Pause(30, Duration::from_secs(60)),
+    );
+    let target = format!("tcp://{}", proxy.addr);
+    let (code, out, err, took) = harness_timed(
+        &[
+            "probe",
+            "--target",
+            &target,
+            "--scan",
+            "0-0xFF",
+            "--timeout",
+            "200",
+        ],
+        Duration::from_secs(90),
+    );
+    assert_eq!(code, 2, "{out}\n{err}");
+    // 8 unanswered reads and the known-good one at 200 ms each, not 4 x 256 of them.
+    assert!(took < Duration::from_secs(10), "took {took:?}");
+    assert!(out.contains("THE PROBE STOPPED EARLY"), "{out}");
+    assert!(err.contains("the target stopped answering"), "{err}");
+    drop(sim);
+}

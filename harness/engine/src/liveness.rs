@@ -1,0 +1,233 @@
+//! Is anyone there, and is it Modbus? A known-good read of the profile, sent before the first case (the
+//! pre-flight) and whenever an answer that was due did not come (the liveness probe), and what to make of a
+//! peer that sends something other than Modbus.
+
+use std::time::Duration;
+
+use crate::targets::{Received, Target, TargetError};
+use codec::{Direction, Framing, Pdu, decode_any, rtu, tcp};
+
+/// How long the pre-flight and the liveness probes wait, and how long a run waits for a target that stopped
+/// answering to come back.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Liveness {
+    /// How long the known-good read waits for its answer (pre-flight and each liveness probe).
+    pub probe_timeout: Duration,
+    /// How long a run waits (probing, reconnecting) for a target that stopped answering before it gives up
+    /// and skips the remaining cases.
+    pub recovery: Duration,
+}
+
+impl Default for Liveness {
+    /// 3 s for the known-good read, 10 s for a target to come back.
+    fn default() -> Self {
+        Self {
+            probe_timeout: Duration::from_secs(3),
+            recovery: Duration::from_secs(10),
+        }
+    }
+}
+
+/// What came back to a known-good read.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum Heard {
+    /// A Modbus answer (a normal or an exception response: either shows a Modbus server listening).
+    Modbus,
+    /// Bytes that are not a Modbus answer; what they look like.
+    Foreign(String),
+    /// The peer closed the connection without a word.
+    Closed,
+    /// Nothing within the bound.
+    Nothing,
+}
+
+/// The known-good read framed for `framing` (transaction id `tid` on Modbus/TCP).
+pub fn frame(pdu: &[u8], framing: Framing, unit: u8, tid: u16) -> Vec<u8> {
+    let mut out = Vec::with_capacity(pdu.len() + 8);
+    let _ = match framing {
+        Framing::Tcp => tcp::encode_adu(tid, unit, pdu, &mut out),
+        _ => rtu::encode_adu(unit, pdu, &mut out),
+    };
+    out
+}
+
+/// Send `request` (already framed) and listen up to `bound` (on the target's clock): a Modbus answer, bytes
+/// of something else, a close or nothing. Any Modbus response counts, whatever request it answers (a late
+/// answer of an earlier request shows the target alive as well). Bounded by `bound` and by 32 receives.
+pub fn ask(t: &mut dyn Target, request: &[u8], bound: Duration) -> Result<Heard, TargetError> {
+    let framing = t.framing();
+    t.send(request)?;
+    let start = t.now();
+    let mut foreign: Vec<u8> = Vec::new();
+    for _ in 0..32 {
+        let left = bound.saturating_sub(t.now().saturating_sub(start));
+        if left.is_zero() {
+            break;
+        }
+        match t.recv(left)? {
+            Received::Frame { bytes, .. } => {
+                if matches!(
+                    decode_any(&bytes, framing, Direction::Response).map(|d| d.pdu),
+                    Ok(Pdu::Response(_))
+                ) {
+                    return Ok(Heard::Modbus);
+                }
+                foreign.extend_from_slice(&bytes);
+            }
+            Received::Garbage { bytes, .. } => foreign.extend_from_slice(&bytes),
+            Received::Silence { partial, .. } => {
+                foreign.extend_from_slice(&partial);
+                break;
+            }
+            Received::Closed { partial, .. } => {
+                foreign.extend_from_slice(&partial);
+                if foreign.is_empty() {
+                    return Ok(Heard::Closed);
+                }
+                break;
+            }
+        }
+        if foreign.len() > 4096 {
+            break;
+        }
+    }
+    Ok(if foreign.is_empty() {
+        Heard::Nothing
+    } else {
+        Heard::Foreign(looks_like(&foreign, request))
+    })
+}
+
+/// What bytes that are not Modbus look like ("HTTP (...)", "TLS", "SSH", an echo of the request, text, or
+/// their first bytes in hex), to follow "looks like".
+pub fn looks_like(bytes: &[u8], request: &[u8]) -> String {
+    let text = String::from_utf8_lossy(bytes);
+    let first_line: String = text
+        .lines()
+        .next()
+        .unwrap_or("")
+        .chars()
+        .filter(|c| !c.is_control())
+        .take(80)
+        .collect();
+    if bytes.starts_with(b"HTTP/") || text.contains("HTTP/1.") || text.contains("<html") {
+        return format!("HTTP (a web server: \"{first_line}\")");
+    }
+    if bytes.len() >= 3 && matches!(bytes[0], 0x14..=0x17) && bytes[1] == 0x03 {
+        return "TLS (a TLS record: an encrypted service, Modbus/TCP Security or HTTPS?)".into();
+    }
+    if bytes.starts_with(b"SSH-") {
+        return format!("SSH (banner \"{first_line}\")");
+    }
+    if !request.is_empty() && bytes.starts_with(request) {
+        return "an echo of the request (an echo service, a loopback, or a serial adapter echoing what is sent)".into();
+    }
+    let printable = bytes
+        .iter()
+        .filter(|b| b.is_ascii_graphic() || b.is_ascii_whitespace())
+        .count();
+    if printable * 10 >= bytes.len() * 9 {
+        return format!("text: \"{first_line}\"");
+    }
+    format!(
+        "none of Modbus: {} byte(s), {}",
+        bytes.len(),
+        hex(&bytes[..bytes.len().min(32)])
+    )
+}
+
+/// What to tell the user when the pre-flight read did not get a Modbus answer (`None` when it did): what
+/// was tried, and the likely causes or what the peer looks like instead.
+pub fn preflight_failure(
+    target: &str,
+    heard: &Heard,
+    request: &[u8],
+    framing: Framing,
+    serial: bool,
+    unit: u8,
+    bound: Duration,
+) -> Option<String> {
+    let pdu = match framing {
+        Framing::Tcp => request.get(7..).unwrap_or(&[]),
+        _ => request
+            .get(1..request.len().saturating_sub(2))
+            .unwrap_or(&[]),
+    };
+    let what = codec::Request::decode(pdu).map_or_else(|_| hex(pdu), |r| format!("{r:?}"));
+    let framing_name = match (framing, serial) {
+        (Framing::Tcp, _) => "Modbus/TCP",
+        (_, true) => "RTU",
+        _ => "RTU over TCP",
+    };
+    let tried = format!(
+        "a known-good read ({what}; {framing_name} framing, unit {unit}: {})",
+        hex(request)
+    );
+    let secs = bound.as_secs_f64();
+    match heard {
+        Heard::Modbus => None,
+        Heard::Nothing => Some(format!(
+            "{target} does not answer: no answer within {secs:.1} s to {tried}, so no case was run. Likely causes: {} (wait longer with --preflight-timeout MS)",
+            likely_causes(framing, serial, unit)
+        )),
+        Heard::Closed => Some(format!(
+            "{target} closed the connection without answering {tried}, so no case was run. Likely causes: {}",
+            likely_causes(framing, serial, unit)
+        )),
+        Heard::Foreign(looks) => Some(format!(
+            "{target} is not a Modbus server: it answered {tried} with what looks like {looks}, so no case was run"
+        )),
+    }
+}
+
+/// Bytes as spaced hex.
+pub fn hex(bytes: &[u8]) -> String {
+    bytes
+        .iter()
+        .map(|b| format!("{b:02X}"))
+        .collect::<Vec<_>>()
+        .join(" ")
+}
+
+/// The likely causes of a target that does not answer a known-good read, for the framing in use.
+pub fn likely_causes(framing: Framing, serial: bool, unit: u8) -> String {
+    let mut causes = vec![format!(
+        "the unit id (--unit; {unit} was used) is not the device's"
+    )];
+    match (framing, serial) {
+        (Framing::Tcp, _) => {
+            causes.push("the host or port is not the Modbus server's".into());
+            causes.push(
+                "the device speaks RTU over TCP (a serial gateway in transparent mode): try rtu+tcp://"
+                    .into(),
+            );
+        }
+        (_, true) => {
+            causes.push("the baud rate, parity or stop bits differ from the device's (?baud=19200&parity=even&stop=1)".into());
+            causes.push("the wiring (A/B swapped, no termination) or the adapter".into());
+        }
+        _ => {
+            causes.push("the host or port is not the gateway's".into());
+            causes.push(
+                "the device speaks Modbus/TCP (MBAP framing), not RTU over TCP: try tcp://".into(),
+            );
+        }
+    }
+    causes.push("the device is not a Modbus server, or it is busy with another master".into());
+    causes.join("; ")
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn foreign_peers_are_named() {
+        let req = [0, 1, 0, 0, 0, 6, 1, 3, 0, 0, 0, 1];
+        assert!(looks_like(b"HTTP/1.1 400 Bad Request\r\n\r\n", &req).contains("HTTP"));
+        assert!(looks_like(&[0x15, 0x03, 0x01, 0x00, 0x02, 0x02, 0x32], &req).contains("TLS"));
+        assert!(looks_like(b"SSH-2.0-OpenSSH_9.6\r\n", &req).contains("SSH"));
+        assert!(looks_like(&req, &req).contains("echo"));
+        assert!(looks_like(&[0xFE, 0x00, 0x81], &req).contains("FE 00 81"));
+    }
+}

@@ -279,13 +279,13 @@ impl SessionBuilder {
                 reason: e.to_string(),
             })?;
         }
-        let framing = self.framing.unwrap_or(
-            if profile.device.transports.contains(&Transport::Tcp) {
-                Framing::Tcp
-            } else {
-                Framing::Rtu
-            },
-        );
+        let framing =
+            self.framing
+                .unwrap_or(if profile.device.transports.contains(&Transport::Tcp) {
+                    Framing::Tcp
+                } else {
+                    Framing::Rtu
+                });
         // The session's own planning, as for an in-process simulator of this profile: every case runs
         // (no safety policy: nothing here can move a motor), framed as asked.
         let mut opts = Options::new(TargetUrl::Sim {

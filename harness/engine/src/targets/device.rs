@@ -42,6 +42,13 @@ pub trait Device {
     /// Answer the request `pdu` sent to `unit`; `None` sends nothing.
     fn handle(&mut self, unit: u8, pdu: &[u8]) -> Option<Vec<u8>>;
 
+    /// RTU only: the line dropped `bytes` before a PDU could be cut from them (a bad CRC, fewer than 4
+    /// bytes before the t3.5 silence, over 256 bytes without one). For a device that keeps the FC 08 bus
+    /// counters (0x0C CRC errors, 0x12 overruns); the default ignores it.
+    fn rtu_discarded(&mut self, bytes: &[u8]) {
+        let _ = bytes;
+    }
+
     /// Time passed: the device's clock is now `now` (virtual time since the run started, never going
     /// back). For drives with state over time (a watchdog, a motion); the default does nothing.
     fn advance(&mut self, now: Duration) {
@@ -60,6 +67,10 @@ impl Device for Box<dyn Device> {
         (**self).handle(unit, pdu)
     }
 
+    fn rtu_discarded(&mut self, bytes: &[u8]) {
+        (**self).rtu_discarded(bytes);
+    }
+
     fn advance(&mut self, now: Duration) {
         (**self).advance(now);
     }
@@ -71,7 +82,7 @@ impl Device for Box<dyn Device> {
 /// whose length field cannot be a Modbus ADU (under 2 or over 254) closes the connection (Modbus Messaging
 /// on TCP/IP Implementation Guide v1.0b, 4.4.1); the answer echoes the transaction id and the unit id.
 /// RTU: the request framer of the codec cuts frames by length rules, CRC and the t3.5 silence at 19200 baud
-/// 8E1; a frame with a bad CRC is dropped; the answer carries the request's address and its CRC.
+/// 8E1; a frame with a bad CRC is dropped (the device hears of it through [`Device::rtu_discarded`]); the answer carries the request's address and its CRC.
 pub struct DeviceTarget {
     device: Box<dyn Device>,
     framing: Framing,
@@ -118,8 +129,13 @@ impl DeviceTarget {
     fn answer_rtu(&mut self, events: Vec<FramerEvent>) {
         for ev in events {
             // Discarded bytes (bad CRC, too short) get no answer, as on a line.
-            let FramerEvent::Frame { bytes, .. } = ev else {
-                continue;
+            let bytes = match ev {
+                FramerEvent::Frame { bytes, .. } => bytes,
+                FramerEvent::Discarded { bytes, .. } => {
+                    self.device.advance(self.now);
+                    self.device.rtu_discarded(&bytes);
+                    continue;
+                }
             };
             let Ok(adu) = rtu::decode_adu(&bytes) else {
                 continue;

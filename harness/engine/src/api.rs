@@ -8,8 +8,12 @@
 //!    [`Results`] to assert on: [`Results::assert_passes`] panics with every FAIL and its findings.
 //!
 //! The harness frames the PDUs as Modbus/TCP or RTU ([`DeviceTarget`]), and judges every answer against
-//! the reference drive of the profile, as `modbus-harness run` does. `examples/toy-firmware/` in the
-//! repository is a complete example to copy.
+//! the reference drive of the profile, as `modbus-harness run` does: the same catalog (golden frames of a
+//! corpus profile, spec, transport and profile cases, the regressions), the same freedoms. Unlike `run`:
+//! every case runs (no safety policy: nothing in process can move a motor), the device is not left as
+//! found (it is yours to drop), and no report files, expectations file, snapshots or generated cases
+//! (use the command line for those). `examples/toy-firmware/` in the repository is a complete example to
+//! copy.
 //!
 //! ```
 //! use modbus_harness_engine::api::{Device, Profile, Session, Verdict};
@@ -92,7 +96,7 @@ use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
 use crate::expect::Expectations;
-use crate::runner::{Runner, Timing};
+use crate::runner::Runner;
 use crate::session::{self, Options, SessionError};
 use crate::targets::sim::SimTarget;
 use crate::targets::{Target, TargetUrl};
@@ -296,7 +300,6 @@ impl SessionBuilder {
         opts.unit = self.unit;
         opts.include = self.include;
         opts.exclude = self.exclude;
-        opts.timing = Timing::default();
         let planned = session::plan(&opts, &profile)?;
         if planned.is_empty() {
             return Err(ApiError::NoCases {

@@ -22,7 +22,8 @@ const TCP_LATENCY: Duration = Duration::from_micros(30);
 /// 0), or for a request it ignores. What it returns goes on the wire as it is: a wrong length, a wrong
 /// function code or an answer to a broadcast is there for the cases to find.
 ///
-/// A closure `FnMut(u8, &[u8]) -> Option<Vec<u8>>` is a `Device` too.
+/// A closure `FnMut(u8, &[u8]) -> Option<Vec<u8>>` is a `Device` too, and so is an
+/// `Rc<RefCell<D>>` of a device `D`: keep a clone to look at the device's state after the run.
 ///
 /// ```
 /// use modbus_harness_engine::api::Device;
@@ -59,6 +60,20 @@ pub trait Device {
 impl<F: FnMut(u8, &[u8]) -> Option<Vec<u8>>> Device for F {
     fn handle(&mut self, unit: u8, pdu: &[u8]) -> Option<Vec<u8>> {
         self(unit, pdu)
+    }
+}
+
+impl<D: Device> Device for std::rc::Rc<std::cell::RefCell<D>> {
+    fn handle(&mut self, unit: u8, pdu: &[u8]) -> Option<Vec<u8>> {
+        self.borrow_mut().handle(unit, pdu)
+    }
+
+    fn rtu_discarded(&mut self, bytes: &[u8]) {
+        self.borrow_mut().rtu_discarded(bytes);
+    }
+
+    fn advance(&mut self, now: Duration) {
+        self.borrow_mut().advance(now);
     }
 }
 

@@ -167,3 +167,22 @@ fn sessions_that_cannot_run_say_why() {
         "{unknown:?}"
     );
 }
+
+#[test]
+fn a_shared_device_can_be_inspected_after_the_run() {
+    use std::cell::RefCell;
+    use std::rc::Rc;
+    let device = Rc::new(RefCell::new(StationDevice::new("generic", &[], false)));
+    let results = Session::builder()
+        .profile("generic")
+        .device(Rc::clone(&device))
+        .cases("spec/app-6/quantity/*")
+        .run();
+    results.assert_passes();
+    // Every exception answer went through the shared device's station.
+    let exceptions = device.borrow().station.counters().exception;
+    assert!(
+        usize::from(exceptions) >= results.count(Verdict::Pass),
+        "{exceptions} exception(s) for {results}"
+    );
+}

@@ -4,7 +4,11 @@
 //! ```text
 //! corpus (drives) -> cases -> runner -> targets -> observation -> oracle -> verdicts -> reports
 //! ```
+//!
+//! To test a drive that lives in your own process from `cargo test`, start at [`api`]: implement
+//! [`Device`], build a [`Session`], assert on the [`Results`].
 
+pub mod api;
 pub mod auto_profile;
 pub mod campaign;
 pub mod capture;
@@ -22,6 +26,7 @@ pub mod servers;
 pub mod session;
 pub mod targets;
 
+pub use api::{Device, Results, Session};
 pub use cases::{Case, Compare, Level, Mutation, Outgoing, Step, Tag, Verdict};
 pub use observe::{CaseResult, Dir, StepResult, WireEvent};
 pub use targets::Received;

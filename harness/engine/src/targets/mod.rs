@@ -1,6 +1,7 @@
 //! Targets: raw bytes in and out with timestamps. TCP, RTU over TCP, RTU on a serial line, and the
 //! in-process reference drive. Blocking I/O with deadlines: the runner exchanges one step at a time.
 
+pub mod device;
 pub mod net;
 mod reader;
 pub mod serial;

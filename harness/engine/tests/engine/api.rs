@@ -1,0 +1,188 @@
+//! The library API (`engine::api`): a user's in-process [`Device`] judged by the catalog. A device that is
+//! the reference drive behind the PDU seam passes over Modbus/TCP and RTU; the same drive with a fault
+//! fails the fault's witness; a buggy closure is named in `assert_passes`'s panic; bad sessions are errors.
+
+use std::time::Duration;
+
+use codec::{rtu, tcp};
+use drives::{Fault, FaultSet, Station};
+use engine::api::{ApiError, Device, Results, Session, Verdict};
+
+/// The reference drive of a corpus profile behind the PDU seam: each PDU is framed for the station and
+/// its answer unframed again, so the harness's framing (`DeviceTarget`) is what the transport cases see.
+struct StationDevice {
+    station: Station,
+    rtu: bool,
+    now: Duration,
+}
+
+impl StationDevice {
+    fn new(profile: &str, faults: &[Fault], rtu: bool) -> Self {
+        let profile = drives::corpus::Corpus::Embedded
+            .profile(profile)
+            .expect("a built-in profile");
+        let unit = profile.device.default_unit;
+        let faults = FaultSet::of(faults);
+        Self {
+            station: Station::new(drives::build(profile, faults.clone()), faults, unit),
+            rtu,
+            now: Duration::ZERO,
+        }
+    }
+}
+
+impl Device for StationDevice {
+    fn handle(&mut self, unit: u8, pdu: &[u8]) -> Option<Vec<u8>> {
+        let mut frame = Vec::new();
+        if self.rtu {
+            rtu::encode_adu(unit, pdu, &mut frame).ok()?;
+            let answer = self.station.rtu_frame(self.now, &frame)?.bytes;
+            Some(answer[1..answer.len() - 2].to_vec())
+        } else {
+            tcp::encode_adu(7, unit, pdu, &mut frame).ok()?;
+            let answer = self.station.tcp_adu(self.now, &frame)?.bytes;
+            Some(answer[tcp::MBAP_LEN..].to_vec())
+        }
+    }
+
+    fn rtu_discarded(&mut self, bytes: &[u8]) {
+        // The station counts a frame whose CRC does not check as a CRC error.
+        let mut frame = bytes.to_vec();
+        frame.truncate(256);
+        if frame.len() >= 4 && rtu::crc_ok(&frame) {
+            frame[0] ^= 0xFF;
+        }
+        self.station.rtu_frame(self.now, &frame);
+    }
+
+    fn advance(&mut self, now: Duration) {
+        self.now = now;
+        self.station.model_mut().advance(now);
+    }
+}
+
+fn ran(results: &Results) -> usize {
+    results.cases().len() - results.count(Verdict::Skipped)
+}
+
+#[test]
+fn reference_drive_behind_the_pdu_seam_passes_over_tcp() {
+    let results = Session::builder()
+        .profile("generic")
+        .device(StationDevice::new("generic", &[], false))
+        .tcp()
+        .run();
+    results.assert_passes();
+    assert!(ran(&results) > 100, "{results}");
+    assert!(results.verdict("tcp/mbap/transaction-id-echo").is_some());
+}
+
+#[test]
+fn reference_drive_behind_the_pdu_seam_passes_over_rtu() {
+    let results = Session::builder()
+        .profile("generic")
+        .device(StationDevice::new("generic", &[], true))
+        .rtu()
+        .run();
+    results.assert_passes();
+    assert!(ran(&results) > 100, "{results}");
+    assert!(
+        results.cases().iter().any(|c| c.id.starts_with("rtu/")),
+        "no RTU case ran:\n{results}"
+    );
+}
+
+#[test]
+fn a_fault_behind_the_pdu_seam_fails_its_witness() {
+    let results = Session::builder()
+        .profile("generic")
+        .device(StationDevice::new(
+            "generic",
+            &[Fault::WrongExceptionCode],
+            false,
+        ))
+        .cases("spec/*")
+        .run();
+    assert!(!results.passed(), "the fault went unnoticed:\n{results}");
+    results.assert_fails("spec/app-7/unsupported-function/fc-0x09");
+}
+
+#[test]
+fn assert_passes_names_the_failing_case_and_its_finding() {
+    // FC 03 with a quantity of 0 answered with an empty read instead of exception 03.
+    let device = |_unit: u8, pdu: &[u8]| -> Option<Vec<u8>> {
+        match pdu {
+            [0x03, _, _, 0, 0] => Some(vec![0x03, 0]),
+            [fc, ..] => Some(vec![fc | 0x80, 0x01]),
+            [] => None,
+        }
+    };
+    let results = Session::builder()
+        .profile("generic")
+        .device(device)
+        .cases("spec/app-6/quantity/fc-0x03/zero")
+        .run();
+    let message = std::panic::catch_unwind(|| results.assert_passes())
+        .expect_err("assert_passes must panic on a FAIL");
+    let message = message
+        .downcast_ref::<String>()
+        .expect("a formatted panic message");
+    assert!(
+        message.contains("FAIL spec/app-6/quantity/fc-0x03/zero"),
+        "{message}"
+    );
+    assert!(message.contains("exception"), "{message}");
+    assert_eq!(results.failing_ids(), ["spec/app-6/quantity/fc-0x03/zero"]);
+}
+
+#[test]
+fn sessions_that_cannot_run_say_why() {
+    let no_device = Session::builder().profile("generic").try_run();
+    assert!(
+        matches!(no_device, Err(ApiError::NoDevice)),
+        "{no_device:?}"
+    );
+    let no_profile = Session::builder().device(|_: u8, _: &[u8]| None).try_run();
+    assert!(
+        matches!(no_profile, Err(ApiError::NoProfile)),
+        "{no_profile:?}"
+    );
+    let nothing = Session::builder()
+        .profile("generic")
+        .device(|_: u8, _: &[u8]| None)
+        .cases("no-such-suite/*")
+        .try_run();
+    assert!(
+        matches!(nothing, Err(ApiError::NoCases { .. })),
+        "{nothing:?}"
+    );
+    let unknown = Session::builder()
+        .profile("no-such-drive")
+        .device(|_: u8, _: &[u8]| None)
+        .try_run();
+    assert!(
+        unknown
+            .as_ref()
+            .is_err_and(|e| e.to_string().contains("no-such-drive")),
+        "{unknown:?}"
+    );
+}
+
+#[test]
+fn a_shared_device_can_be_inspected_after_the_run() {
+    use std::cell::RefCell;
+    use std::rc::Rc;
+    let device = Rc::new(RefCell::new(StationDevice::new("generic", &[], false)));
+    let results = Session::builder()
+        .profile("generic")
+        .device(Rc::clone(&device))
+        .cases("spec/app-6/quantity/*")
+        .run();
+    results.assert_passes();
+    // Every exception answer went through the shared device's station.
+    let exceptions = device.borrow().station.counters().exception;
+    assert!(
+        usize::from(exceptions) >= results.count(Verdict::Pass),
+        "{exceptions} exception(s) for {results}"
+    );
+}

@@ -24,14 +24,18 @@ pub struct Timing {
     pub timeout: Duration,
     /// How long to listen to confirm that nothing comes.
     pub silence: Duration,
+    /// Modbus/TCP: prove a silence with a sentinel request sent right behind the request that must go
+    /// unanswered (see [`Runner`]'s `prove_silence`) instead of listening for all of `silence`.
+    pub sentinel: bool,
 }
 
 impl Default for Timing {
-    /// 1 s for an answer, 300 ms of listening for one that must not come.
+    /// 1 s for an answer, 300 ms of listening for one that must not come, sentinels on.
     fn default() -> Self {
         Self {
             timeout: Duration::from_millis(1000),
             silence: Duration::from_millis(300),
+            sentinel: true,
         }
     }
 }
@@ -130,6 +134,15 @@ pub struct Runner {
     /// The requests of the cases sent since the target last answered one (case id, bytes; the first few):
     /// the first of them is the one that preceded a silence.
     unanswered: Vec<(String, Vec<u8>)>,
+    /// Modbus/TCP: transaction ids of silence sentinels whose answers have not come yet (dropped unjudged
+    /// when they do).
+    sentinels: std::collections::VecDeque<u16>,
+    /// A sentinel the reference answered went unanswered by the target (a target that drops what follows a
+    /// bad frame, say): no more sentinels on this target, the window is listened out.
+    sentinel_given_up: bool,
+    /// Silences proven by a sentinel, and silences listened out for the whole window (Modbus/TCP, real
+    /// targets), for the run's log.
+    silences: (u64, u64),
 }
 
 /// Requests remembered for attributing late answers.
@@ -167,6 +180,9 @@ impl Runner {
             case_order,
             recent: std::collections::VecDeque::new(),
             unanswered: Vec::new(),
+            sentinels: std::collections::VecDeque::new(),
+            sentinel_given_up: false,
+            silences: (0, 0),
         }
     }
 
@@ -386,6 +402,10 @@ impl Runner {
                 break;
             }
             let tid = u16::from_be_bytes([rest[0], rest[1]]);
+            if self.sentinels.contains(&tid) {
+                rest = &rest[len..];
+                continue;
+            }
             if let Some((_, by, sent_at)) = self.recent.iter().rev().find(|(t, _, _)| *t == tid) {
                 notes.push(format!(
                     "a late answer (transaction id {tid}) to a request of {by} arrived within {} ms after that request, between two cases: noted, taken for no step's answer",
@@ -423,6 +443,13 @@ impl Runner {
             if frames.iter().any(|f| f.sent.tid == Some(tid)) {
                 break;
             }
+            if let Some(k) = self.sentinels.iter().position(|t| *t == tid) {
+                // The late answer of a silence sentinel: expected, not this step's; dropped.
+                self.sentinels.remove(k);
+                let left = wait.saturating_sub(self.target.now().saturating_sub(start));
+                got = self.target.recv(left)?;
+                continue;
+            }
             let Some((_, by, sent_at)) = self.recent.iter().rev().find(|(t, _, _)| *t == tid)
             else {
                 break;
@@ -444,6 +471,121 @@ impl Runner {
             got = self.target.recv(left)?;
         }
         Ok(got)
+    }
+
+    /// Whether the silence after `frames` may be proven by a sentinel: Modbus/TCP to a real target, sentinels
+    /// on (and not given up on this target), the reference kept the connection, and every frame complete by
+    /// its own MBAP length (all its pieces are sent before the sentinel). A frame whose content is malformed
+    /// (a foreign protocol id, an unknown function) still ends where its MBAP length says; but a target still
+    /// waiting for the rest of a frame (an MBAP length above the bytes sent) would take the sentinel's bytes
+    /// for it: there the window is listened out, as before.
+    fn sentinel_may_prove(&self, frames: &[Framed], reference_closed: bool) -> bool {
+        self.cfg.timing.sentinel
+            && !self.sentinel_given_up
+            && !self.cfg.is_sim
+            && !reference_closed
+            && self.target.framing() == Framing::Tcp
+            && !frames.is_empty()
+            && frames
+                .iter()
+                .all(|f| tcp::adu_len(&f.bytes) == Some(f.bytes.len()))
+    }
+
+    /// Silence proven by a sentinel (issue 17): the known-good read is sent right behind the request that
+    /// must go unanswered, on the same connection, to the target and to the reference (which counts it as
+    /// the target does). Its answer, with nothing for this step's request before it, proves the silence: a
+    /// Modbus/TCP server takes the requests of a connection in order. An answer of this step's request that
+    /// comes first is returned (and judged, as an answer where silence was due); a late answer of an earlier
+    /// request is noted as `skip_late` does. No sentinel answer within the answer timeout (a target that
+    /// answers nothing now, or a reference that would not answer the sentinel either): the silence stands
+    /// as when the window is listened out, and the sentinel's answer is dropped if it comes later.
+    fn prove_silence(
+        &mut self,
+        frames: &[Framed],
+        findings: &mut Vec<Finding>,
+        wire: &mut Vec<WireEvent>,
+    ) -> Result<Received, TargetError> {
+        let pdu = crate::cases::catalog::known_good_read(&self.profile);
+        let case_tid = std::mem::replace(&mut self.next_tid, self.restore_tid);
+        let f = self.frame(&pdu, self.cfg.unit, None);
+        self.restore_tid = std::mem::replace(&mut self.next_tid, case_tid);
+        let Some(tid) = f.sent.tid else {
+            return self.target.recv(self.cfg.timing.silence);
+        };
+        self.shadow.send(&f.bytes)?;
+        let (reference_answers, _) = self.shadow.settle();
+        let _ = self.shadow.take_decisions();
+        self.target.send(&f.bytes)?;
+        if self.sentinels.len() >= 16 {
+            self.sentinels.pop_front();
+        }
+        self.sentinels.push_back(tid);
+        let bound = if reference_answers.is_empty() {
+            self.cfg.timing.silence
+        } else {
+            self.cfg.timing.timeout.max(self.cfg.timing.silence)
+        };
+        let start = self.target.now();
+        let got = self.target.recv(bound)?;
+        let Received::Frame { bytes, .. } = &got else {
+            if matches!(got, Received::Silence { .. }) && !reference_answers.is_empty() {
+                self.sentinel_given_up = true;
+            }
+            return Ok(got);
+        };
+        let theirs = (bytes.len() >= 2).then(|| u16::from_be_bytes([bytes[0], bytes[1]]));
+        if frames
+            .iter()
+            .any(|f| f.sent.tid.is_some() && f.sent.tid == theirs)
+        {
+            // This step's request answered (where silence was due): judged as it came.
+            return Ok(got);
+        }
+        // The sentinel's answer (or, first, late answers of earlier requests: noted by `skip_late`, which
+        // drops the sentinel's answer when it follows them).
+        let before = self.sentinels.len();
+        let after = if theirs == Some(tid) {
+            self.sentinels.retain(|t| *t != tid);
+            None
+        } else {
+            Some(self.skip_late(got, frames, (start, bound), findings, wire)?)
+        };
+        match after {
+            // The sentinel's answer came with nothing for this step before it: the silence is proven.
+            None => {
+                self.silences.0 += 1;
+                Ok(Received::Silence {
+                    partial: Vec::new(),
+                    at: self.target.now(),
+                })
+            }
+            Some(Received::Frame { bytes, .. })
+                if bytes.len() >= 2 && u16::from_be_bytes([bytes[0], bytes[1]]) == tid =>
+            {
+                self.sentinels.retain(|t| *t != tid);
+                self.silences.0 += 1;
+                Ok(Received::Silence {
+                    partial: Vec::new(),
+                    at: self.target.now(),
+                })
+            }
+            // `skip_late` dropped the sentinel's answer on its way (it knows the sentinels): proven too,
+            // when what follows is silence.
+            Some(Received::Silence { .. }) if self.sentinels.len() < before => {
+                self.silences.0 += 1;
+                Ok(Received::Silence {
+                    partial: Vec::new(),
+                    at: self.target.now(),
+                })
+            }
+            Some(other) => Ok(other),
+        }
+    }
+
+    /// Modbus/TCP to a real target: (silences proven by a sentinel, silences listened out for the whole
+    /// window).
+    pub fn silences(&self) -> (u64, u64) {
+        self.silences
     }
 
     /// The first request of a case sent since the target last answered (case id, bytes): the one that
@@ -898,7 +1040,15 @@ impl Runner {
                 self.cfg.timing.timeout
             };
             let start = self.target.now();
-            let mut got = self.target.recv(wait)?;
+            let mut got =
+                if expected.is_empty() && self.sentinel_may_prove(frames, reference_closed) {
+                    self.prove_silence(frames, &mut findings, wire)?
+                } else {
+                    if expected.is_empty() && !self.cfg.is_sim && framing == Framing::Tcp {
+                        self.silences.1 += 1;
+                    }
+                    self.target.recv(wait)?
+                };
             if framing == Framing::Tcp {
                 got = self.skip_late(got, frames, (start, wait), &mut findings, wire)?;
             }

@@ -78,6 +78,10 @@ pub struct FuzzArgs {
     /// destructive writes also need --allow-motion / --allow-destructive.
     #[arg(long)]
     allow_writes: bool,
+    /// Modbus/TCP: listen out the whole silence window after a request that must go unanswered, instead of
+    /// proving the silence with a sentinel (a known-good read sent right behind it on the same connection).
+    #[arg(long)]
+    no_sentinel: bool,
     /// With --allow-writes against a real drive: the state journal of the parameters read before the first
     /// write (default: a file in the temporary directory, named in the output); `restore --journal FILE`
     /// puts them back if the campaign could not.
@@ -140,6 +144,7 @@ pub fn run(args: &FuzzArgs) -> ExitCode {
     base.safety.allow_destructive = args.allow_destructive;
     base.safety.read_only = args.read_only;
     base.journal = args.journal.clone();
+    base.timing.sentinel = !args.no_sentinel;
     let regressions = args.regressions.clone().unwrap_or_else(|| {
         if std::path::Path::new("corpus").is_dir() {
             PathBuf::from("corpus/regressions")

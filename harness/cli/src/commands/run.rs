@@ -149,9 +149,15 @@ pub struct RunArgs {
     /// Per-answer timeout in milliseconds.
     #[arg(long, default_value_t = 1000, value_name = "MS")]
     timeout: u64,
-    /// How long to listen for an answer that should not come, in milliseconds.
+    /// How long to listen for an answer that should not come, in milliseconds (on Modbus/TCP the silence
+    /// is proven sooner by a sentinel request sent right behind, see --no-sentinel).
     #[arg(long, default_value_t = 300, value_name = "MS")]
     silence: u64,
+    /// Modbus/TCP: listen out the whole --silence window after a request that must go unanswered, instead
+    /// of proving the silence with a sentinel (a known-good read sent right behind it on the same
+    /// connection, whose answer with nothing before it proves that nothing came).
+    #[arg(long)]
+    no_sentinel: bool,
     /// Inject a fault into the in-process simulator (sim: targets; repeatable; see `simulate --list-faults`).
     #[arg(long = "fault", value_name = "NAME")]
     faults: Vec<String>,
@@ -251,6 +257,7 @@ pub fn run(args: &RunArgs) -> ExitCode {
         recovery: Duration::from_secs(args.recovery_wait),
     });
     opts.timing.silence = Duration::from_millis(args.silence.max(1));
+    opts.timing.sentinel = !args.no_sentinel;
     opts.safety.allow_motion = args.allow_motion;
     opts.safety.allow_destructive = args.allow_destructive;
     opts.safety.read_only = args.read_only;

@@ -11,3 +11,4 @@ mod leave_as_found;
 mod profiles;
 mod run;
 mod safety;
+mod sentinel;

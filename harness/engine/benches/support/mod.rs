@@ -240,6 +240,7 @@ fn runner_for(target: Box<dyn Target>, profile: &Profile) -> Runner {
         timing: engine::runner::Timing {
             timeout: TIMEOUT,
             silence: Duration::from_millis(300),
+            sentinel: true,
         },
         safety: Default::default(),
         is_sim: false,

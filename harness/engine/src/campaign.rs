@@ -34,6 +34,9 @@ pub struct CampaignOptions {
     /// Against anything but `sim:`, send generated writes (with a banner first); without it the campaign
     /// sends reads only. Motion and destructive writes still need their own flags (`base.safety`).
     pub allow_writes: bool,
+    /// With `keep_going`: stop after this many distinct findings (by signature; repeats are counted, not
+    /// written again).
+    pub max_findings: usize,
 }
 
 /// Why the campaign does not send `case` (already rated by the classifier), if it does not: the run's
@@ -82,6 +85,11 @@ pub struct CampaignOutcome {
     pub probes: u64,
     pub elapsed: Duration,
     pub findings: Vec<CampaignFinding>,
+    /// Findings that repeated an earlier one's signature (same kind, same case family, same first finding
+    /// with the numbers left out): counted, no reproducer written.
+    pub repeats: u64,
+    /// Why the campaign ended.
+    pub stopped: String,
     pub seed: u64,
     /// With `--allow-writes` against a real drive: what was read before the first write and put back.
     pub leave_as_found: Option<crate::restore::Account>,
@@ -364,6 +372,29 @@ pub fn campaign(
     }
 }
 
+/// A finding's signature: its kind, the family of the case (the generated id without seed and index) and
+/// its first finding with every digit left out, so that the same bug met with other addresses or values
+/// is one finding.
+fn signature(kind: FindingKind, case_id: &str, first: &str) -> String {
+    let family = case_id.rsplit('/').next().unwrap_or(case_id);
+    let text: String = first.chars().filter(|c| !c.is_ascii_hexdigit()).collect();
+    format!("{kind:?} {family} {text}")
+}
+
+/// True when a step expected an answer and got silence or a close: the drive may have stopped answering.
+fn unanswered(result: &crate::observe::CaseResult) -> bool {
+    result.steps.iter().any(|s| {
+        s.expected.is_some()
+            && s.observed.iter().any(|o| {
+                matches!(
+                    o,
+                    crate::targets::Received::Silence { .. }
+                        | crate::targets::Received::Closed { .. }
+                )
+            })
+    })
+}
+
 /// The campaign's loop (see [`campaign`]).
 #[allow(clippy::too_many_arguments)]
 fn fuzz_loop(
@@ -384,6 +415,9 @@ fn fuzz_loop(
     let (mut cases, mut probes, mut index) = (0u64, 0u64, 0u64);
     let mut history: Vec<Case> = Vec::new();
     let mut findings = Vec::new();
+    let mut seen = std::collections::BTreeSet::new();
+    let mut repeats = 0u64;
+    let mut stopped = None;
     // Bounded by the duration, the case limit and the interrupt; a generator that only produced skipped
     // cases is bounded by the index limit.
     while started.elapsed() < opts.duration
@@ -424,26 +458,9 @@ fn fuzz_loop(
         }
         cases += 1;
         history.push(case.clone());
-        if result.verdict == Verdict::Fail {
-            let f: Vec<String> = result.findings().cloned().collect();
-            let _ = writeln!(
-                log,
-                "finding: {} FAILs: {}",
-                case.id,
-                f.first().cloned().unwrap_or_default()
-            );
-            let d = Detected {
-                kind: FindingKind::Fail,
-                case_id: case.id.clone(),
-                findings: f,
-                history: vec![case.clone()],
-            };
-            findings.push(record(opts, &profile.device.id, d, &probe, log));
-            if !opts.keep_going {
-                break;
-            }
-        }
-        if cases % opts.probe_every.max(1) == 0 {
+        // A liveness probe right after a case whose due answer did not come (before judging it: a drive
+        // that stopped answering is that finding, not a wrong answer), and every N cases.
+        if unanswered(&result) || cases % opts.probe_every.max(1) == 0 {
             probes += 1;
             let p = runner.run_case(&probe)?;
             if p.verdict == Verdict::Fail {
@@ -462,9 +479,37 @@ fn fuzz_loop(
                     history: h,
                 };
                 findings.push(record(opts, &profile.device.id, d, &probe, log));
+                stopped = Some("the drive stopped answering".to_string());
                 break;
             }
             history.clear();
+        }
+        if result.verdict == Verdict::Fail {
+            let f: Vec<String> = result.findings().cloned().collect();
+            let first = f.first().cloned().unwrap_or_default();
+            if seen.insert(signature(FindingKind::Fail, &case.id, &first)) {
+                let _ = writeln!(log, "finding: {} FAILs: {first}", case.id);
+                let d = Detected {
+                    kind: FindingKind::Fail,
+                    case_id: case.id.clone(),
+                    findings: f,
+                    history: vec![case.clone()],
+                };
+                findings.push(record(opts, &profile.device.id, d, &probe, log));
+            } else {
+                repeats += 1;
+            }
+            if !opts.keep_going {
+                stopped = Some("the first finding (--keep-going goes on)".to_string());
+                break;
+            }
+            if findings.len() >= opts.max_findings.max(1) {
+                stopped = Some(format!(
+                    "{} distinct findings (--max-findings)",
+                    findings.len()
+                ));
+                break;
+            }
         }
         if last_tick.elapsed() >= Duration::from_secs(1) {
             last_tick = Instant::now();
@@ -475,11 +520,22 @@ fn fuzz_loop(
             );
         }
     }
+    let stopped = stopped.unwrap_or_else(|| {
+        if interrupt.load(Ordering::SeqCst) {
+            "interrupted".to_string()
+        } else if opts.max_cases.is_some_and(|m| cases >= m) {
+            "the case limit (--max-cases)".to_string()
+        } else {
+            "the duration".to_string()
+        }
+    });
     Ok(CampaignOutcome {
         cases,
         probes,
         elapsed: started.elapsed(),
         findings,
+        repeats,
+        stopped,
         seed: opts.seed,
         leave_as_found: None,
     })

@@ -82,6 +82,10 @@ pub struct FuzzArgs {
     /// proving the silence with a sentinel (a known-good read sent right behind it on the same connection).
     #[arg(long)]
     no_sentinel: bool,
+    /// With --keep-going: stop after this many distinct findings (the same kind, case family and finding
+    /// with other numbers is a repeat: counted, no second reproducer).
+    #[arg(long, default_value_t = 20, value_name = "N")]
+    max_findings: usize,
     /// With --allow-writes against a real drive: the state journal of the parameters read before the first
     /// write (default: a file in the temporary directory, named in the output); `restore --journal FILE`
     /// puts them back if the campaign could not.
@@ -162,6 +166,7 @@ pub fn run(args: &FuzzArgs) -> ExitCode {
         keep_going: args.keep_going,
         regressions,
         allow_writes: args.allow_writes,
+        max_findings: args.max_findings,
     };
     let interrupt = Arc::new(AtomicBool::new(false));
     {
@@ -214,13 +219,19 @@ pub fn run(args: &FuzzArgs) -> ExitCode {
                 }
             }
             println!(
-                "fuzz: {} cases, {} probes in {:.1} s ({:.0} exec/s), seed {}, {} finding(s)",
+                "fuzz: {} cases, {} probes in {:.1} s ({:.0} exec/s), seed {}, {} finding(s){}; stopped by {}",
                 o.cases,
                 o.probes,
                 o.elapsed.as_secs_f64(),
                 o.exec_per_sec(),
                 o.seed,
-                o.findings.len()
+                o.findings.len(),
+                if o.repeats > 0 {
+                    format!(" (+{} repeat(s) of them)", o.repeats)
+                } else {
+                    String::new()
+                },
+                o.stopped
             );
             if o.leave_as_found.as_ref().is_some_and(|a| !a.clean()) {
                 ExitCode::from(Exit::NotRestored)

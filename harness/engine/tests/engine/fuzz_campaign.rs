@@ -23,6 +23,7 @@ fn options(faults: &[Fault], dir: &std::path::Path, keep_going: bool) -> Campaig
         keep_going,
         regressions: dir.to_path_buf(),
         allow_writes: false,
+        max_findings: 20,
     }
 }
 
@@ -106,5 +107,74 @@ fn a_healthy_drive_gives_no_finding() {
         out.findings.is_empty(),
         "{:?}",
         out.findings.iter().map(|f| &f.findings).collect::<Vec<_>>()
+    );
+}
+
+/// With --keep-going a bug met again with other addresses or values is one finding (counted as a repeat, no
+/// second reproducer), and --max-findings ends the campaign, saying so.
+#[test]
+fn repeated_findings_are_counted_once_and_max_findings_stops_the_campaign() {
+    let dir = TempDir::new("fuzz-dedupe");
+    let mut o = options(&[Fault::RangeUnchecked], dir.path(), true);
+    o.max_cases = Some(3000);
+    let out = campaign(
+        &o,
+        &mut std::io::sink(),
+        &AtomicBool::new(false),
+        |_, _, _| {},
+    )
+    .expect("campaign");
+    assert!(!out.findings.is_empty(), "range-unchecked found nothing");
+    assert!(out.repeats > 0, "no repeat in {} cases", out.cases);
+    let files: Vec<_> = out.findings.iter().filter_map(|f| f.file.clone()).collect();
+    assert_eq!(files.len(), out.findings.len(), "a reproducer per finding");
+    o.max_findings = 1;
+    let capped = campaign(
+        &o,
+        &mut std::io::sink(),
+        &AtomicBool::new(false),
+        |_, _, _| {},
+    )
+    .expect("campaign");
+    assert_eq!(capped.findings.len(), 1);
+    assert!(
+        capped.stopped.contains("--max-findings"),
+        "{}",
+        capped.stopped
+    );
+    assert!(
+        capped.cases < out.cases,
+        "{} vs {}",
+        capped.cases,
+        out.cases
+    );
+}
+
+/// A drive that stops answering is probed right after the first case whose due answer did not come, not at
+/// the next periodic probe: the reproducer is the few cases since the last answer, and the campaign says why
+/// it ended.
+#[test]
+fn a_drive_that_stops_answering_is_probed_at_once() {
+    let dir = TempDir::new("fuzz-at-once");
+    let mut o = options(&[Fault::StopAfterMalformed], dir.path(), false);
+    o.probe_every = 1_000_000;
+    let out = campaign(
+        &o,
+        &mut std::io::sink(),
+        &AtomicBool::new(false),
+        |_, _, _| {},
+    )
+    .expect("campaign");
+    let f = out
+        .findings
+        .iter()
+        .find(|f| f.kind == FindingKind::StoppedAnswering)
+        .expect("stopped answering found without a periodic probe");
+    assert_eq!(out.stopped, "the drive stopped answering");
+    // The malformed case, the case that went unanswered after it, and the probe.
+    assert!(
+        f.reproducer.steps.len() <= 8,
+        "{} steps",
+        f.reproducer.steps.len()
     );
 }

@@ -180,6 +180,16 @@ impl<'p> DriveRun<'p> {
         self.wait(Duration::from_secs(1));
         let probe = liveness_probe(self.drive);
         let unit = self.profile.device.default_unit;
+        // A sequence that forced listen only mode (08/04) left a drive that rightly answers nothing on the
+        // serial line until an 08/01 restart (spec 6.8.1): restart it first, as a client would.
+        if self.station.comm_state().listen_only {
+            self.request(unit, &[0x08, 0x00, 0x01, 0x00, 0x00]);
+            assert!(
+                !self.station.comm_state().listen_only,
+                "{}: 08/01 did not end listen only mode",
+                self.profile.device.id
+            );
+        }
         let responses = self.request(unit, probe);
         assert_eq!(
             responses.len(),

@@ -16,6 +16,8 @@
 #   --duration SECS  each campaign's --duration (default 30)
 #   --core C         the core both processes are pinned to with taskset (default 0)
 #   --faults LIST    only these faults (comma-separated)
+#   --allow-writes   add --allow-writes to every campaign (against a real target `fuzz` sends reads only
+#                    without it, so faults that only a write shows cannot be found)
 #
 # The profile is the one whose behaviour the fault concerns: sd2x for watchdog-disabled, mdrive for the
 # MDrive/LMD mnemonic faults, word order, 32-bit halves and undeclared functions, generic (which declares the
@@ -34,6 +36,7 @@ SEEDS=5
 DURATION=30
 CORE=0
 FAULTS=""
+WRITES=""
 while [ $# -gt 0 ]; do
   case "$1" in
     --bin) BIN=$2; shift ;;
@@ -41,7 +44,8 @@ while [ $# -gt 0 ]; do
     --duration) DURATION=$2; shift ;;
     --core) CORE=$2; shift ;;
     --faults) FAULTS=$2; shift ;;
-    -h|--help) sed -n '2,27p' "$0"; exit 0 ;;
+    --allow-writes) WRITES=--allow-writes ;;
+    -h|--help) sed -n '2,29p' "$0"; exit 0 ;;
     *) echo "first-finding.sh: unknown argument $1" >&2; exit 2 ;;
   esac
   shift
@@ -54,10 +58,11 @@ if [ -z "$BIN" ]; then
   [ -x "$BIN" ] || (cd "$root" && cargo build --release --bin modbus-harness >&2)
 fi
 
-exec python3 - "$BIN" "$SEEDS" "$DURATION" "$CORE" "$FAULTS" <<'EOF'
+exec python3 - "$BIN" "$SEEDS" "$DURATION" "$CORE" "$FAULTS" "$WRITES" <<'EOF'
 import os, select, signal, statistics, subprocess, sys, tempfile, time
 
 bin_, seeds, duration, core, only = sys.argv[1], int(sys.argv[2]), int(sys.argv[3]), sys.argv[4], sys.argv[5]
+extra = [sys.argv[6]] if sys.argv[6] else []
 pin = ["taskset", "-c", core]
 procs = []
 
@@ -127,7 +132,7 @@ def campaign(fault, seed, regressions):
         t0 = time.monotonic()
         fuzz = subprocess.Popen(pin + [bin_, "fuzz", "--target", f"{scheme}://{addr}", "--profile", profile,
                                        "--seed", str(seed), "--duration", f"{duration}s",
-                                       "--regressions", regressions],
+                                       "--regressions", regressions, *extra],
                                 stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
         procs.append(fuzz)
         try:
@@ -171,7 +176,7 @@ load_after = open("/proc/loadavg").read().split()[:3]
 
 print(f"Run {started}, {os.cpu_count()} cores, both processes pinned to core {core}; "
       f"load average {' '.join(load_before)} before, {' '.join(load_after)} after; seeds 1..{seeds}, "
-      f"--duration {duration}s; time from the start of `fuzz` to its first `finding:` line.")
+      f"--duration {duration}s{' --allow-writes' if extra else ''}; time from the start of `fuzz` to its first `finding:` line.")
 print()
 print("| fault | profile | median time to first finding | per seed (s; – not found) |")
 print("|---|---|---:|---|")

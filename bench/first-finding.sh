@@ -145,11 +145,13 @@ def campaign(fault, seed, regressions):
             at, _ = lines_until(fuzz, fuzz.stderr, t0 + duration + 15, b"finding:")
         finally:
             stop(fuzz)
-            procs.remove(fuzz)
+            if fuzz in procs:
+                procs.remove(fuzz)
         return None if at is None else at - t0
     finally:
         stop(sim)
-        procs.remove(sim)
+        if sim in procs:
+            procs.remove(sim)
 
 faults = subprocess.run([bin_, "simulate", "--list-faults"], capture_output=True, text=True, check=True)
 faults = [l.split()[0] for l in faults.stdout.splitlines() if l.strip()]

@@ -1,8 +1,9 @@
 //! Run reports, written as the run goes: JSON index and per-case files, JUnit XML, a self-contained HTML page,
 //! a pcapng of the session, and the terminal summary printed last.
 //!
-//! Memory does not grow with the number of cases: every case is written out when it completes, and only
-//! counters and a capped list of failing ids are kept.
+//! Memory does not grow with the number of cases: every case is written out when it completes (on the
+//! `report-writer` thread, at most a few batches behind the run), and only counters and a capped list of
+//! failing ids are kept.
 //!
 //! # Files in the report directory
 //!
@@ -30,6 +31,7 @@ mod json;
 mod junit;
 mod pcap;
 pub mod snapshot;
+mod writer;
 
 use std::collections::BTreeMap;
 use std::fmt::Write as _;
@@ -282,9 +284,16 @@ pub trait Sink {
 }
 
 /// Every report format of a `--report DIR`, fed together.
+///
+/// The formats are written on a thread of their own (`report-writer`): [`Reports::case`] counts the
+/// verdict and hands a copy of the case and its result over a bounded channel, in small batches, so the run
+/// loop does not wait for the files unless the writer falls behind by more than two batches. The first
+/// error of a format is returned by a later [`Reports::case`], by [`Reports::flush`] or by
+/// [`Reports::finish`], which completes the files and joins the thread. Dropped without `finish`, the
+/// cases handed over are still written to the `.partial` files and the thread is joined.
 pub struct Reports {
     dir: PathBuf,
-    sinks: Vec<Box<dyn Sink + Send>>,
+    writer: writer::Writer,
     tally: Tally,
 }
 
@@ -303,7 +312,7 @@ impl Reports {
         ];
         Ok(Self {
             dir: dir.to_path_buf(),
-            sinks,
+            writer: writer::Writer::spawn(sinks)?,
             tally: Tally::new(),
         })
     }
@@ -323,20 +332,22 @@ impl Reports {
         self.tally.summary(interrupted, duration)
     }
 
-    /// Write one completed case to every format; every format is tried, the first error is returned.
+    /// Count one completed case and hand it to the writer thread, which writes it to every format (every
+    /// format is tried; the first error stops the thread and is returned by the next call).
     pub fn case(&mut self, case: &Case, result: &CaseResult) -> io::Result<()> {
         self.tally.record(result);
-        first_error(self.sinks.iter_mut().map(|s| s.case(case, result)))
+        self.writer.send(case, result)
     }
 
-    /// Push buffered bytes to the `.partial` files (e.g. when an interrupt arrives).
+    /// Write every case handed over so far and push buffered bytes to the `.partial` files (e.g. when an
+    /// interrupt arrives); returns when they are in the files.
     pub fn flush(&mut self) -> io::Result<()> {
-        first_error(self.sinks.iter_mut().map(|s| s.flush()))
+        self.writer.flush()
     }
 
-    /// Complete every file and give it its final name.
+    /// Write the remaining cases, complete every file, give it its final name, and join the writer thread.
     pub fn finish(mut self, summary: &Summary) -> io::Result<()> {
-        first_error(self.sinks.iter_mut().map(|s| s.finish(summary)))
+        self.writer.finish(summary)
     }
 }
 
@@ -346,7 +357,7 @@ impl Sink for Reports {
     }
 
     fn finish(&mut self, summary: &Summary) -> io::Result<()> {
-        first_error(self.sinks.iter_mut().map(|s| s.finish(summary)))
+        self.writer.finish(summary)
     }
 
     fn flush(&mut self) -> io::Result<()> {

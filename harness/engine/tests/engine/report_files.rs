@@ -331,6 +331,35 @@ fn interrupted_and_killed_runs() {
 }
 
 #[test]
+fn an_error_of_the_writer_thread_is_returned_and_finish_joins_it() {
+    // The case files cannot be written once `cases/` is gone: the writer thread stops at the first error,
+    // and a later `case`, `flush` or `finish` returns it, naming the file.
+    let dir = tempfile::tempdir().expect("tempdir");
+    let info = run_info(Transport::Tcp, 502);
+    let mut reports = Reports::create(dir.path(), &info).expect("create");
+    std::fs::remove_dir_all(dir.path().join("cases")).expect("remove cases/");
+    let (case, result) = test_support::reports::numbered_pass(Transport::Tcp, 1);
+    let mut err = None;
+    for _ in 0..100 {
+        if let Err(e) = reports.case(&case, &result) {
+            err = Some(e);
+            break;
+        }
+    }
+    let err = match err {
+        Some(e) => e,
+        None => reports
+            .flush()
+            .expect_err("flush returns the writer's error"),
+    };
+    assert!(err.to_string().contains("cannot write"), "{err}");
+    // Every later call returns it too, and finish does not hang.
+    assert!(reports.flush().is_err());
+    let summary = reports.summary(false, Duration::ZERO);
+    assert!(reports.finish(&summary).is_err());
+}
+
+#[test]
 fn io_errors_name_the_file() {
     let dir = tempfile::tempdir().expect("tempdir");
     let blocker = dir.path().join("not-a-dir");

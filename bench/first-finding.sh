@@ -1,0 +1,193 @@
+#!/usr/bin/env bash
+# Time to first finding of the seeded live fuzz campaign, per simulator fault:
+#
+#   modbus-harness simulate --profile P --listen 127.0.0.1:0 --fault F          (pinned, port 0)
+#   modbus-harness fuzz --target tcp://127.0.0.1:PORT --profile P --seed S --duration 30s
+#
+# for every fault of `simulate --list-faults` and seeds 1..5, and prints a Markdown table: fault → profile,
+# median time to the first finding (or "not found in 30 s"), the five times. `fuzz` does not print its time
+# to first finding, so the time is measured from the start of the `fuzz` process to its first `finding:`
+# line on stderr (process start-up, connection and profile loading included).
+#
+#   bench/first-finding.sh [--bin PATH] [--seeds N] [--duration SECS] [--core C] [--faults F,F,...]
+#
+#   --bin PATH       the modbus-harness binary (default: target/release/modbus-harness, built if missing)
+#   --seeds N        seeds 1..N (default 5)
+#   --duration SECS  each campaign's --duration (default 30)
+#   --core C         the core both processes are pinned to with taskset (default 0)
+#   --faults LIST    only these faults (comma-separated)
+#   --profile P      use profile P for every fault instead of the one chosen below
+#   --allow-writes   add --allow-writes to every campaign (against a real target `fuzz` sends reads only
+#                    without it, so faults that only a write shows cannot be found)
+#
+# The profile is the one whose behaviour the fault concerns: sd2x for watchdog-disabled, mdrive for the
+# MDrive/LMD mnemonic faults, word order, 32-bit halves and undeclared functions, generic (which declares the
+# whole public function code set) for the rest. RTU-only faults are run over RTU over TCP
+# (`simulate --rtu-over-tcp`, `fuzz --target rtu+tcp://`). Reproducers go to a temporary directory. Once three
+# seeds of a fault found nothing the median is "not found" and its other seeds are not run.
+#
+# Loopback only; every campaign is bounded by --duration and a hard limit of duration + 15 s; every process
+# started is stopped by its pid when its campaign ends and when the script exits or is interrupted.
+set -euo pipefail
+
+here=$(cd "$(dirname "$0")" && pwd)
+root=$(cd "$here/.." && pwd)
+BIN=""
+SEEDS=5
+DURATION=30
+CORE=0
+FAULTS=""
+WRITES=""
+PROFILE=""
+while [ $# -gt 0 ]; do
+  case "$1" in
+    --bin) BIN=$2; shift ;;
+    --seeds) SEEDS=$2; shift ;;
+    --duration) DURATION=$2; shift ;;
+    --core) CORE=$2; shift ;;
+    --faults) FAULTS=$2; shift ;;
+    --allow-writes) WRITES=--allow-writes ;;
+    --profile) PROFILE=$2; shift ;;
+    -h|--help) sed -n '2,30p' "$0"; exit 0 ;;
+    *) echo "first-finding.sh: unknown argument $1" >&2; exit 2 ;;
+  esac
+  shift
+done
+for tool in python3 taskset; do
+  command -v "$tool" >/dev/null || { echo "first-finding.sh: $tool is missing" >&2; exit 1; }
+done
+if [ -z "$BIN" ]; then
+  BIN="$root/target/release/modbus-harness"
+  [ -x "$BIN" ] || (cd "$root" && cargo build --release --bin modbus-harness >&2)
+fi
+
+exec python3 - "$BIN" "$SEEDS" "$DURATION" "$CORE" "$FAULTS" "$WRITES" "$PROFILE" <<'EOF'
+import os, select, signal, statistics, subprocess, sys, tempfile, time
+
+bin_, seeds, duration, core, only = sys.argv[1], int(sys.argv[2]), int(sys.argv[3]), sys.argv[4], sys.argv[5]
+extra = [sys.argv[6]] if sys.argv[6] else []
+forced = sys.argv[7]
+pin = ["taskset", "-c", core]
+procs = []
+
+def stop(p):
+    if p.poll() is None:
+        p.terminate()
+        try:
+            p.wait(5)
+        except subprocess.TimeoutExpired:
+            p.kill()
+            p.wait()
+
+def stop_all(*_):
+    for p in procs:
+        stop(p)
+    procs.clear()
+
+def on_signal(sig, _frame):
+    stop_all()
+    sys.exit(128 + sig)
+
+signal.signal(signal.SIGINT, on_signal)
+signal.signal(signal.SIGTERM, on_signal)
+
+RTU_ONLY = {"wrong-crc", "broadcast-answered", "counters-frozen", "crc-unchecked"}
+MDRIVE = {"write-only-readable", "mnemonic-params-unchecked", "half-register-widened", "word-order",
+          "undeclared-function-served"}
+
+def profile_of(fault):
+    if forced:
+        return forced
+    if fault == "watchdog-disabled":
+        return "sd2x"
+    return "mdrive" if fault in MDRIVE else "generic"
+
+def lines_until(p, stream, deadline, want):
+    """Read `stream` of `p` line by line until a line starting with `want`; its time, or None."""
+    buf = b""
+    fd = stream.fileno()
+    while time.monotonic() < deadline:
+        r, _, _ = select.select([fd], [], [], max(0.0, min(0.5, deadline - time.monotonic())))
+        if not r:
+            if p.poll() is not None:
+                return None, buf
+            continue
+        chunk = os.read(fd, 65536)
+        if not chunk:
+            return None, buf
+        buf += chunk
+        for line in buf.split(b"\n")[:-1]:
+            if line.startswith(want):
+                return time.monotonic(), line
+        buf = buf[buf.rfind(b"\n") + 1:] if b"\n" in buf else buf
+    return None, buf
+
+def campaign(fault, seed, regressions):
+    profile = profile_of(fault)
+    rtu = fault in RTU_ONLY
+    listen = ["--rtu-over-tcp" if rtu else "--listen", "127.0.0.1:0"]
+    sim = subprocess.Popen(pin + [bin_, "simulate", "--profile", profile, *listen, "--fault", fault],
+                           stdout=subprocess.PIPE, stderr=subprocess.DEVNULL)
+    procs.append(sim)
+    try:
+        _, line = lines_until(sim, sim.stdout, time.monotonic() + 10, b"listening ")
+        if not line or not line.startswith(b"listening "):
+            raise RuntimeError(f"simulate --fault {fault} did not start")
+        addr = line.decode().split()[-1]
+        scheme = "rtu+tcp" if rtu else "tcp"
+        t0 = time.monotonic()
+        fuzz = subprocess.Popen(pin + [bin_, "fuzz", "--target", f"{scheme}://{addr}", "--profile", profile,
+                                       "--seed", str(seed), "--duration", f"{duration}s",
+                                       "--regressions", regressions, *extra],
+                                stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+        procs.append(fuzz)
+        try:
+            at, _ = lines_until(fuzz, fuzz.stderr, t0 + duration + 15, b"finding:")
+        finally:
+            stop(fuzz)
+            if fuzz in procs:
+                procs.remove(fuzz)
+        return None if at is None else at - t0
+    finally:
+        stop(sim)
+        if sim in procs:
+            procs.remove(sim)
+
+faults = subprocess.run([bin_, "simulate", "--list-faults"], capture_output=True, text=True, check=True)
+faults = [l.split()[0] for l in faults.stdout.splitlines() if l.strip()]
+if only:
+    faults = [f for f in faults if f in only.split(",")]
+
+load_before = open("/proc/loadavg").read().split()[:3]
+started = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())
+rows = []
+with tempfile.TemporaryDirectory(prefix="first-finding.") as regressions:
+    for fault in faults:
+        times = []
+        for seed in range(1, seeds + 1):
+            t = campaign(fault, seed, regressions)
+            times.append(t)
+            print(f"first-finding: {fault} seed {seed}: "
+                  f"{'not found' if t is None else f'{t:.2f} s'}", file=sys.stderr, flush=True)
+            if sum(x is None for x in times) * 2 > seeds:
+                break
+        found = sorted(x for x in times if x is not None)
+        if len(found) * 2 > seeds:
+            # Missing seeds count as not found (infinite): the median is the middle of all `seeds` values.
+            ranked = found + [float("inf")] * (seeds - len(found))
+            median = f"{statistics.median_low(ranked):.2f} s" if seeds % 2 else f"{statistics.median(ranked):.2f} s"
+        else:
+            median = f"not found in {duration} s"
+        shown = ", ".join("–" if x is None else f"{x:.2f}" for x in times)
+        rows.append((fault, profile_of(fault) + (" (rtu+tcp)" if fault in RTU_ONLY else ""), median, shown))
+load_after = open("/proc/loadavg").read().split()[:3]
+
+print(f"Run {started}, {os.cpu_count()} cores, both processes pinned to core {core}; "
+      f"load average {' '.join(load_before)} before, {' '.join(load_after)} after; seeds 1..{seeds}, "
+      f"--duration {duration}s{' --allow-writes' if extra else ''}; time from the start of `fuzz` to its first `finding:` line.")
+print()
+print("| fault | profile | median time to first finding | per seed (s; – not found) |")
+print("|---|---|---:|---|")
+for r in rows:
+    print("| " + " | ".join(r) + " |")
+EOF

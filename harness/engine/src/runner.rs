@@ -541,45 +541,29 @@ impl Runner {
             // This step's request answered (where silence was due): judged as it came.
             return Ok(got);
         }
-        // The sentinel's answer (or, first, late answers of earlier requests: noted by `skip_late`, which
-        // drops the sentinel's answer when it follows them).
-        let before = self.sentinels.len();
+        // The sentinel's answer, or first late answers of earlier requests (noted by `skip_late`, which drops
+        // the sentinel's answer when it follows them and then listens on).
         let after = if theirs == Some(tid) {
-            self.sentinels.retain(|t| *t != tid);
             None
         } else {
             Some(self.skip_late(got, frames, (start, bound), findings, wire)?)
         };
-        match after {
-            // The sentinel's answer came with nothing for this step before it: the silence is proven.
-            None => {
-                self.silences.0 += 1;
-                Ok(Received::Silence {
-                    partial: Vec::new(),
-                    at: self.target.now(),
-                })
-            }
-            Some(Received::Frame { bytes, .. })
-                if bytes.len() >= 2 && u16::from_be_bytes([bytes[0], bytes[1]]) == tid =>
-            {
-                self.sentinels.retain(|t| *t != tid);
-                self.silences.0 += 1;
-                Ok(Received::Silence {
-                    partial: Vec::new(),
-                    at: self.target.now(),
-                })
-            }
-            // `skip_late` dropped the sentinel's answer on its way (it knows the sentinels): proven too,
-            // when what follows is silence.
-            Some(Received::Silence { .. }) if self.sentinels.len() < before => {
-                self.silences.0 += 1;
-                Ok(Received::Silence {
-                    partial: Vec::new(),
-                    at: self.target.now(),
-                })
-            }
-            Some(other) => Ok(other),
+        // Anything but the sentinel's answer, or silence after it was dropped, is the step's to judge.
+        let sentinel_seen = |a: &Received| match a {
+            Received::Silence { .. } => !self.sentinels.contains(&tid),
+            Received::Frame { bytes, .. } => bytes.get(..2) == Some(&tid.to_be_bytes()[..]),
+            _ => false,
+        };
+        if let Some(other) = after.filter(|a| !sentinel_seen(a)) {
+            return Ok(other);
         }
+        // The sentinel's answer came with nothing for this step before it: the silence is proven.
+        self.sentinels.retain(|t| *t != tid);
+        self.silences.0 += 1;
+        Ok(Received::Silence {
+            partial: Vec::new(),
+            at: self.target.now(),
+        })
     }
 
     /// Modbus/TCP to a real target: (silences proven by a sentinel, silences listened out for the whole

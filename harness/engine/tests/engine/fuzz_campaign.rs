@@ -27,6 +27,17 @@ fn options(faults: &[Fault], dir: &std::path::Path, keep_going: bool) -> Campaig
     }
 }
 
+/// A campaign with no log, no interrupt and no progress; it must complete.
+fn quiet(o: &CampaignOptions) -> engine::campaign::CampaignOutcome {
+    campaign(
+        o,
+        &mut std::io::sink(),
+        &AtomicBool::new(false),
+        |_, _, _| {},
+    )
+    .expect("campaign")
+}
+
 #[test]
 fn finds_a_drive_that_stops_answering_and_keeps_a_reproducer() {
     // A private copy of the corpus: the reproducer lands in its regressions/, and runs replay from it.
@@ -43,13 +54,7 @@ fn finds_a_drive_that_stops_answering_and_keeps_a_reproducer() {
         &corpus.join("regressions"),
         true,
     );
-    let out = campaign(
-        &o,
-        &mut std::io::sink(),
-        &AtomicBool::new(false),
-        |_, _, _| {},
-    )
-    .expect("campaign");
+    let out = quiet(&o);
     let stop = out
         .findings
         .iter()
@@ -95,13 +100,7 @@ fn a_healthy_drive_gives_no_finding() {
     let dir = TempDir::new("fuzz-healthy");
     let mut o = options(&[], dir.path(), false);
     o.max_cases = Some(1500);
-    let out = campaign(
-        &o,
-        &mut std::io::sink(),
-        &AtomicBool::new(false),
-        |_, _, _| {},
-    )
-    .expect("campaign");
+    let out = quiet(&o);
     assert_eq!(out.cases, 1500);
     assert!(
         out.findings.is_empty(),
@@ -117,25 +116,13 @@ fn repeated_findings_are_counted_once_and_max_findings_stops_the_campaign() {
     let dir = TempDir::new("fuzz-dedupe");
     let mut o = options(&[Fault::RangeUnchecked], dir.path(), true);
     o.max_cases = Some(3000);
-    let out = campaign(
-        &o,
-        &mut std::io::sink(),
-        &AtomicBool::new(false),
-        |_, _, _| {},
-    )
-    .expect("campaign");
+    let out = quiet(&o);
     assert!(!out.findings.is_empty(), "range-unchecked found nothing");
     assert!(out.repeats > 0, "no repeat in {} cases", out.cases);
     let files: Vec<_> = out.findings.iter().filter_map(|f| f.file.clone()).collect();
     assert_eq!(files.len(), out.findings.len(), "a reproducer per finding");
     o.max_findings = 1;
-    let capped = campaign(
-        &o,
-        &mut std::io::sink(),
-        &AtomicBool::new(false),
-        |_, _, _| {},
-    )
-    .expect("campaign");
+    let capped = quiet(&o);
     assert_eq!(capped.findings.len(), 1);
     assert!(
         capped.stopped.contains("--max-findings"),
@@ -158,13 +145,7 @@ fn a_drive_that_stops_answering_is_probed_at_once() {
     let dir = TempDir::new("fuzz-at-once");
     let mut o = options(&[Fault::StopAfterMalformed], dir.path(), false);
     o.probe_every = 1_000_000;
-    let out = campaign(
-        &o,
-        &mut std::io::sink(),
-        &AtomicBool::new(false),
-        |_, _, _| {},
-    )
-    .expect("campaign");
+    let out = quiet(&o);
     let f = out
         .findings
         .iter()

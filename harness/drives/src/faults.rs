@@ -47,6 +47,7 @@ pub enum Fault {
     HalfRegisterWidened,
     WriteOnlyReadable,
     MnemonicParamsUnchecked,
+    MbapLengthIgnored,
 }
 
 impl Fault {
@@ -246,6 +247,11 @@ impl Fault {
             Fault::MnemonicParamsUnchecked,
             "mnemonic-params-unchecked",
             "MDrive/LMD: FC 0x42 with parameters the mnemonic does not take is answered as written (the setting keeps its value)",
+        ),
+        (
+            Fault::MbapLengthIgnored,
+            "mbap-length-ignored",
+            "Modbus/TCP: requests are cut by their function code's length rules, not by the MBAP length: one whose MBAP length promises more bytes than it has is answered at once",
         ),
     ];
 

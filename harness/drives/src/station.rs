@@ -371,7 +371,24 @@ impl Station {
                 break;
             }
             if conn.buf.len() < len {
-                break;
+                // The fault: the ADU is cut where the function code's rules end the PDU (the RTU rules:
+                // unit id and PDU are an RTU frame without its CRC), the MBAP length unheeded.
+                let cut = self
+                    .faults
+                    .has(Fault::MbapLengthIgnored)
+                    .then(|| {
+                        match codec::framer::expected_len(Direction::Request, &conn.buf[6..], &[]) {
+                            codec::framer::FrameLen::Known(n, _) => Some(6 + n - 2),
+                            _ => None,
+                        }
+                    })
+                    .flatten()
+                    .filter(|&cut| cut > tcp::MBAP_LEN && cut <= conn.buf.len());
+                let Some(cut) = cut else { break };
+                let reply = self.tcp_adu(now, &conn.buf[..cut]);
+                conn.buf.drain(..cut);
+                out.replies.extend(reply);
+                continue;
             }
             // Answered in place, then dropped from the buffer: no copy of the ADU.
             let reply = self.tcp_adu(now, &conn.buf[..len]);

@@ -140,9 +140,22 @@ pub struct Runner {
     /// A sentinel the reference answered went unanswered by the target (a target that drops what follows a
     /// bad frame, say): no more sentinels on this target, the window is listened out.
     sentinel_given_up: bool,
-    /// Silences proven by a sentinel, and silences listened out for the whole window (Modbus/TCP, real
-    /// targets), for the run's log.
-    silences: (u64, u64),
+    /// How the silences due on Modbus/TCP to a real target were settled, for the run's log.
+    silences: Silences,
+    /// The step being run is followed by a new connection (`Step::Reconnect`): its connection may be
+    /// half-closed to prove a silence (see `prove_silence_by_close`).
+    reconnect_next: bool,
+}
+
+/// How the silences due on Modbus/TCP to a real target were settled.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct Silences {
+    /// Proven by a sentinel request's answer with nothing before it.
+    pub sentinel: u64,
+    /// Proven by the target closing the connection after the harness half-closed it, with nothing before.
+    pub close: u64,
+    /// Listened out for the whole window.
+    pub listened: u64,
 }
 
 /// Requests remembered for attributing late answers.
@@ -182,7 +195,8 @@ impl Runner {
             unanswered: Vec::new(),
             sentinels: std::collections::VecDeque::new(),
             sentinel_given_up: false,
-            silences: (0, 0),
+            silences: Silences::default(),
+            reconnect_next: false,
         }
     }
 
@@ -491,6 +505,19 @@ impl Runner {
                 .all(|f| tcp::adu_len(&f.bytes) == Some(f.bytes.len()))
     }
 
+    /// A silence may be proven by half-closing the connection (see `prove_silence_by_close`): Modbus/TCP to a
+    /// real target, sentinels not turned off, the reference keeps the connection, the case reconnects next,
+    /// and no sentinel can prove it.
+    fn close_may_prove(&self, frames: &[Framed], reference_closed: bool) -> bool {
+        self.cfg.timing.sentinel
+            && self.reconnect_next
+            && !self.cfg.is_sim
+            && !reference_closed
+            && self.target.framing() == Framing::Tcp
+            && !frames.is_empty()
+            && !self.sentinel_may_prove(frames, reference_closed)
+    }
+
     /// Silence proven by a sentinel (issue 17): the known-good read is sent right behind the request that
     /// must go unanswered, on the same connection, to the target and to the reference (which counts it as
     /// the target does). Its answer, with nothing for this step's request before it, proves the silence: a
@@ -559,17 +586,42 @@ impl Runner {
         }
         // The sentinel's answer came with nothing for this step before it: the silence is proven.
         self.sentinels.retain(|t| *t != tid);
-        self.silences.0 += 1;
+        self.silences.sentinel += 1;
         Ok(Received::Silence {
             partial: Vec::new(),
             at: self.target.now(),
         })
     }
 
-    /// Modbus/TCP to a real target: (silences proven by a sentinel, silences listened out for the whole
-    /// window).
-    pub fn silences(&self) -> (u64, u64) {
+    /// Modbus/TCP to a real target: how the silences due were settled.
+    pub fn silences(&self) -> Silences {
         self.silences
+    }
+
+    /// Silence proven by the target's close, for a request no sentinel can follow (its MBAP length is not
+    /// its size: the target may still be waiting for bytes, and would take a sentinel's for them) when the
+    /// case opens a new connection next anyway (`Step::Reconnect`). The harness half-closes the connection
+    /// (TCP FIN: nothing more comes from it) and reads on: whatever the target answers still arrives before
+    /// its own FIN, so a close with nothing before it proves that nothing was or will be answered on this
+    /// connection. A target that keeps a half-closed connection open is listened to for the window, as
+    /// without. Only where the reference keeps its connection: where it closes, the close is what is judged.
+    fn prove_silence_by_close(&mut self) -> Result<Option<Received>, TargetError> {
+        if !self.target.end_sending()? {
+            return Ok(None);
+        }
+        let got = self.target.recv(self.cfg.timing.silence)?;
+        Ok(Some(match got {
+            Received::Closed { partial, at } if partial.is_empty() => {
+                self.silences.close += 1;
+                Received::Silence { partial, at }
+            }
+            other => {
+                if matches!(other, Received::Silence { .. }) {
+                    self.silences.listened += 1;
+                }
+                other
+            }
+        }))
     }
 
     /// The first request of a case sent since the target last answered (case id, bytes): the one that
@@ -715,10 +767,11 @@ impl Runner {
         self.case_freedoms.clone_from(&case.freedoms);
         self.case_tags.clone_from(&case.tags);
         self.refused = false;
-        for step in &case.steps {
+        for (k, step) in case.steps.iter().enumerate() {
             if self.refused {
                 break;
             }
+            self.reconnect_next = matches!(case.steps.get(k + 1), Some(Step::Reconnect));
             match step {
                 Step::Wait(d) => {
                     self.target.idle(*d);
@@ -1024,12 +1077,19 @@ impl Runner {
                 self.cfg.timing.timeout
             };
             let start = self.target.now();
+            let by_close = expected.is_empty() && self.close_may_prove(frames, reference_closed);
             let mut got =
                 if expected.is_empty() && self.sentinel_may_prove(frames, reference_closed) {
                     self.prove_silence(frames, &mut findings, wire)?
+                } else if let Some(got) = by_close
+                    .then(|| self.prove_silence_by_close())
+                    .transpose()?
+                    .flatten()
+                {
+                    got
                 } else {
                     if expected.is_empty() && !self.cfg.is_sim && framing == Framing::Tcp {
-                        self.silences.1 += 1;
+                        self.silences.listened += 1;
                     }
                     self.target.recv(wait)?
                 };

@@ -1084,11 +1084,15 @@ pub fn run(
             shrunk.push(report);
         }
     }
-    let (proven, listened) = runner.silences();
-    if proven + listened > 0 {
+    let crate::runner::Silences {
+        sentinel,
+        close,
+        listened,
+    } = runner.silences();
+    if sentinel + close + listened > 0 {
         let _ = writeln!(
             log,
-            "silences: {proven} proven by a sentinel request, {listened} listened out for the whole window ({} ms{})",
+            "silences: {sentinel} proven by a sentinel request, {close} by the target's close after a half-close, {listened} listened out for the whole window ({} ms{})",
             opts.timing.silence.as_millis(),
             if opts.timing.sentinel {
                 ": a frame the target may still be reading, or a target that dropped a sentinel"

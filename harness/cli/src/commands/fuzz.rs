@@ -79,7 +79,8 @@ pub struct FuzzArgs {
     #[arg(long)]
     allow_writes: bool,
     /// Modbus/TCP: listen out the whole silence window after a request that must go unanswered, instead of
-    /// proving the silence with a sentinel (a known-good read sent right behind it on the same connection).
+    /// proving the silence with a sentinel (a known-good read sent right behind it on the same connection)
+    /// or, before a new connection, by half-closing the connection (the target's close proves it).
     #[arg(long)]
     no_sentinel: bool,
     /// With --keep-going: stop after this many distinct findings (the same kind, case family and finding

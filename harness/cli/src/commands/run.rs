@@ -155,7 +155,8 @@ pub struct RunArgs {
     silence: u64,
     /// Modbus/TCP: listen out the whole --silence window after a request that must go unanswered, instead
     /// of proving the silence with a sentinel (a known-good read sent right behind it on the same
-    /// connection, whose answer with nothing before it proves that nothing came).
+    /// connection, whose answer with nothing before it proves that nothing came) or, before a new
+    /// connection, by half-closing the connection (the target's close with nothing before it proves it).
     #[arg(long)]
     no_sentinel: bool,
     /// Inject a fault into the in-process simulator (sim: targets; repeatable; see `simulate --list-faults`).

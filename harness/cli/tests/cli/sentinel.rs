@@ -1,13 +1,15 @@
-//! Silence proven by a sentinel (issue 17, item 1): on Modbus/TCP a request that must go unanswered is
+//! Silence proven, not waited for (issue 17, item 1): on Modbus/TCP a request that must go unanswered is
 //! followed by a known-good read on the same connection, whose answer with nothing before it proves the
-//! silence. Shown here against `simulate` processes over loopback: the verdicts are the ones of listening out
+//! silence; one that no sentinel can follow (its MBAP length is not its size), when the case reconnects
+//! next, by half-closing the connection: the drive's close with nothing before it proves it. Shown here against `simulate` processes over loopback: the verdicts are the ones of listening out
 //! the window (`--no-sentinel`), compared through snapshots; sentinels were used; and a drive that answers
 //! what it must ignore still FAILs with sentinels on.
 
 use test_support::{SimProcess, TempDir, harness};
 
-/// The `silences:` line of a run's log: (proven by a sentinel, listened out).
-fn silences(err: &str) -> (u64, u64) {
+/// The `silences:` line of a run's log: (proven by a sentinel, proven by the target's close after a
+/// half-close, listened out).
+fn silences(err: &str) -> (u64, u64, u64) {
     let line = err
         .lines()
         .find(|l| l.starts_with("silences: "))
@@ -16,7 +18,7 @@ fn silences(err: &str) -> (u64, u64) {
         .split_whitespace()
         .filter_map(|w| w.parse().ok())
         .collect();
-    (n[0], n[1])
+    (n[0], n[1], n[2])
 }
 
 /// The case lines of a snapshot file (`== ID  VERDICT`), in order.
@@ -67,11 +69,16 @@ fn sentinels_give_the_verdicts_of_the_window() {
             dir.path().join("window.snap"),
             dir.path().join("sentinel.snap"),
         );
-        let (proven, listened) = run(&window, false);
-        assert_eq!(proven, 0, "{name}: sentinels sent with --no-sentinel");
+        let (proven, closed, listened) = run(&window, false);
+        assert_eq!(
+            (proven, closed),
+            (0, 0),
+            "{name}: silences proven with --no-sentinel"
+        );
         assert!(listened > 0, "{name}: no silence was due");
-        let (proven, _) = run(&with, true);
+        let (proven, closed, _) = run(&with, true);
         assert!(proven > 0, "{name}: no silence proven by a sentinel");
+        assert!(closed > 0, "{name}: no silence proven by a close");
         let (a, b) = (verdicts(&window), verdicts(&with));
         assert!(a.len() > 300, "{name}: {} cases", a.len());
         let differ: Vec<_> = a.iter().zip(&b).filter(|(x, y)| x != y).collect();
@@ -82,32 +89,47 @@ fn sentinels_give_the_verdicts_of_the_window() {
     }
 }
 
+/// A request no sentinel can follow (MBAP length one more than its bytes: the drive may be waiting for the
+/// byte) has its silence proven by the drive's close after a half-close; the other by a sentinel. A drive
+/// that answers what it must ignore FAILs either way; a healthy one PASSes without listening out a window.
 #[test]
 fn a_drive_that_answers_what_it_must_ignore_fails_with_sentinels_on() {
-    let case = "tcp/mbap/request-protocol-id-nonzero";
-    for (fault, code_wanted) in [(None, 0), (Some("protocol-id-ignored"), 1)] {
-        let mut args = vec!["--profile", "mdrive", "--listen", "127.0.0.1:0"];
-        if let Some(f) = fault {
-            args.extend(["--fault", f]);
-        }
-        let sim = SimProcess::start(&args);
-        let url = format!("tcp://{}", sim.tcp.expect("tcp"));
-        let (code, out, err) = harness(&[
-            "run",
-            "--target",
-            &url,
-            "--profile",
-            "mdrive",
-            "--no-progress",
-            "--cases",
-            case,
-        ]);
-        assert_eq!(code, code_wanted, "{fault:?}: {out}\n{err}");
-        match fault {
-            // The healthy drive ignores the frame: the sentinel proves it.
-            None => assert_eq!(silences(&err), (1, 0), "{err}"),
-            // The faulted drive answers it before the sentinel's answer: FAIL.
-            Some(_) => assert!(out.contains("FAIL"), "{out}"),
+    for (case, bad, proofs) in [
+        (
+            "tcp/mbap/request-protocol-id-nonzero",
+            "protocol-id-ignored",
+            (1, 0, 0),
+        ),
+        (
+            "tcp/mbap/request-length-plus-1",
+            "mbap-length-ignored",
+            (0, 1, 0),
+        ),
+    ] {
+        for (fault, code_wanted) in [(None, 0), (Some(bad), 1)] {
+            let mut args = vec!["--profile", "mdrive", "--listen", "127.0.0.1:0"];
+            if let Some(f) = fault {
+                args.extend(["--fault", f]);
+            }
+            let sim = SimProcess::start(&args);
+            let url = format!("tcp://{}", sim.tcp.expect("tcp"));
+            let (code, out, err) = harness(&[
+                "run",
+                "--target",
+                &url,
+                "--profile",
+                "mdrive",
+                "--no-progress",
+                "--cases",
+                case,
+            ]);
+            assert_eq!(code, code_wanted, "{case} {fault:?}: {out}\n{err}");
+            match fault {
+                // The healthy drive ignores the frame: the sentinel or the close proves it.
+                None => assert_eq!(silences(&err), proofs, "{case}: {err}"),
+                // The faulted drive answers it before the proof: FAIL.
+                Some(_) => assert!(out.contains("FAIL"), "{out}"),
+            }
         }
     }
 }

@@ -124,6 +124,12 @@ pub trait Target {
     fn reconnect(&mut self) -> Result<(), TargetError>;
     /// Discard whatever arrived unasked (late answers of an earlier case).
     fn drain(&mut self);
+    /// Half-close the connection: tell the peer that nothing more will be sent on it (TCP FIN), while its
+    /// answers can still be read. The next `send` needs a `reconnect` first. False where the target has no
+    /// such thing (the default).
+    fn end_sending(&mut self) -> Result<bool, TargetError> {
+        Ok(false)
+    }
     /// Discard whatever arrived unasked, returning those bytes where the target can tell them (a late
     /// answer is then attributed to its request by the runner); by default they are only discarded.
     fn drain_stale(&mut self) -> Vec<u8> {

@@ -143,6 +143,18 @@ impl TcpTarget {
 }
 
 impl Target for TcpTarget {
+    fn end_sending(&mut self) -> Result<bool, TargetError> {
+        let Some(s) = self.stream.as_ref() else {
+            return Ok(false);
+        };
+        match s.shutdown(std::net::Shutdown::Write) {
+            Ok(()) => Ok(true),
+            // Closed by the peer already: the receive that follows sees it.
+            Err(e) if e.kind() == ErrorKind::NotConnected => Ok(false),
+            Err(e) => Err(self.io(e)),
+        }
+    }
+
     fn framing(&self) -> Framing {
         if self.rtu { Framing::Rtu } else { Framing::Tcp }
     }

@@ -26,6 +26,11 @@ pub(crate) const WITNESSES: &[(&str, &str, &str)] = &[
     ),
     ("mbap-length", "sim:mdrive", "tcp/mbap/transaction-id-echo"),
     (
+        "mbap-length-ignored",
+        "sim:mdrive",
+        "tcp/mbap/request-length-plus-1",
+    ),
+    (
         "protocol-id-ignored",
         "sim:mdrive",
         "tcp/mbap/request-protocol-id-nonzero",

@@ -44,6 +44,7 @@ LABELS = {
     "pipeline-k4": "harness, K = 4 in flight → simulator",
     "pipeline-k16": "harness, K = 16 in flight → simulator",
     "pipeline-k64": "harness, K = 64 in flight → simulator",
+    "fuzz-live-sim": "harness `fuzz` live campaign, generated cases (cases/s) → simulator",
 }
 
 RATIOS = [
@@ -62,6 +63,7 @@ RATIOS = [
     ("RTU: harness Runner + oracle / libmodbus client", "rtu-runner-libmodbus", "rtu-libmodbus-libmodbus", ""),
     ("pipelined K = 16 / ping-pong floor", "pipeline-k16", "pingpong", "≥ 3"),
     ("pipelined K = 64 / ping-pong floor", "pipeline-k64", "pingpong", ""),
+    ("live `fuzz` campaign → simulator / ping-pong floor", "fuzz-live-sim", "pingpong", "≥ 0.50"),
 ]
 
 

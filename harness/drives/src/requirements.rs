@@ -192,6 +192,17 @@ impl Item {
     pub fn touched_by(&self, req: &Request, profile: &crate::profile::Profile) -> bool {
         let item = self;
         if let Some(r) = item.register {
+            let (read, written) = (registers_read(req), registers_written(req));
+            // Whatever the width (at most 255 registers), a request that ends before `r` or starts past
+            // `r + 255` cannot touch it: the profile lookup below is skipped (it is on the hot path of every
+            // judgement and of every answer of a drive with optional items).
+            let near = |(a, q): (u16, u16)| {
+                let (a, q, r) = (u32::from(a), u32::from(q), u32::from(r));
+                a < r + 256 && a + q > r
+            };
+            if !read.is_some_and(near) && !written.is_some_and(near) {
+                return false;
+            }
             let width = profile
                 .register_at(r, false)
                 .or_else(|| profile.register_at(r, true))
@@ -199,7 +210,7 @@ impl Item {
                 .map_or(1, |reg| reg.width);
             let hit =
                 |(a, q): (u16, u16)| (0..u16::from(width)).any(|i| covers(a, q, r.wrapping_add(i)));
-            return registers_read(req).is_some_and(hit) || registers_written(req).is_some_and(hit);
+            return read.is_some_and(hit) || written.is_some_and(hit);
         }
         if let Some(m) = &item.mnemonic {
             let name = |mn: &Mnemonic| mn.name().eq_ignore_ascii_case(m);

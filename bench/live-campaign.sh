@@ -1,0 +1,121 @@
+#!/usr/bin/env bash
+# The live campaign of issue 17 beside the wire's floor, binaries side by side: exec/s of
+#   modbus-harness fuzz --target tcp://SIM --profile P --seed 1 --duration S
+# against `simulate --profile P` on 127.0.0.1, and the raw TCP ping-pong floor (bench/peers.c) in the same
+# rounds, every process pinned to one core, rounds interleaved, medians.
+#
+#   bench/live-campaign.sh [--seconds S] [--rounds R] [--profile P] [--core C] [--sim BIN] LABEL=BINARY...
+#
+#   --seconds S  seconds per campaign and per floor figure (default 5)
+#   --rounds R   rounds (default 3)
+#   --profile P  drive profile of the simulator and the campaign (default mdrive)
+#   --core C     the core everything is pinned to (default 0)
+#   --sim BIN    the binary whose `simulate` serves (default: the last LABEL=BINARY); one simulator per round,
+#                so every binary of a round fuzzes the same server
+#   LABEL=BINARY a modbus-harness binary to measure, with `--no-sentinel` as a second row when LABEL ends in +w
+#
+# Needs gcc, pkg-config, libmodbus-dev (for bench/peers.c), taskset, timeout. Prints a Markdown table on
+# stdout and progress on stderr. Every process started is stopped at exit; every run is bounded by `timeout`.
+set -euo pipefail
+
+SECS=5
+ROUNDS=3
+PROFILE=mdrive
+CORE=0
+SIM=
+BINS=()
+while [ $# -gt 0 ]; do
+  case "$1" in
+    --seconds) SECS=$2; shift ;;
+    --rounds) ROUNDS=$2; shift ;;
+    --profile) PROFILE=$2; shift ;;
+    --core) CORE=$2; shift ;;
+    --sim) SIM=$2; shift ;;
+    -h|--help) sed -n '2,18p' "$0"; exit 0 ;;
+    *=*) BINS+=("$1") ;;
+    *) echo "live-campaign.sh: unknown argument $1" >&2; exit 2 ;;
+  esac
+  shift
+done
+[ ${#BINS[@]} -gt 0 ] || { echo "live-campaign.sh: give at least one LABEL=BINARY" >&2; exit 2; }
+[ -n "$SIM" ] || SIM=${BINS[-1]#*=}
+here=$(cd "$(dirname "$0")" && pwd)
+work=$(mktemp -d "${TMPDIR:-/tmp}/live-campaign.XXXXXX")
+# Servers are started inside $(...): their pids go to a file.
+cleanup() {
+  [ -f "$work/pids" ] && while read -r p; do kill "$p" 2>/dev/null || true; done <"$work/pids"
+  rm -rf "$work"
+}
+trap cleanup EXIT
+trap 'exit 130' INT TERM
+pin=(taskset -c "$CORE")
+limit=$(python3 -c "print(int($SECS) + 30)")
+
+gcc -O2 -Wall -o "$work/peers" "$here/peers.c" $(pkg-config --cflags --libs libmodbus)
+
+# start NAME CMD...: a pinned server; waits for its "listening HOST:PORT" line and prints the address.
+start() {
+  local name=$1; shift
+  "${pin[@]}" "$@" >"$work/$name.out" 2>&1 &
+  echo $! >>"$work/pids"
+  for _ in $(seq 100); do
+    local a
+    a=$(grep -oE 'listening[^0-9]*[0-9.]+:[0-9]+' "$work/$name.out" | grep -oE '[0-9.]+:[0-9]+$' | head -1 || true)
+    if [ -n "$a" ]; then echo "$a"; return; fi
+    sleep 0.05
+  done
+  echo "live-campaign.sh: $name did not start: $(cat "$work/$name.out")" >&2
+  exit 1
+}
+
+results="$work/results.tsv"
+: >"$results"
+pp=$(start pingpong "$work/peers" pp-server 0)
+load_before=$(cut -d' ' -f1-3 /proc/loadavg)
+for round in $(seq "$ROUNDS"); do
+  sim=$(start "sim$round" "$SIM" simulate --profile "$PROFILE" --listen 127.0.0.1:0)
+  floor=$(timeout "$limit" "${pin[@]}" "$work/peers" pp-client "${pp%:*}" "${pp##*:}" "$SECS" \
+    | sed -n 's/^RESULT .*rps=\([0-9.]*\).*/\1/p')
+  printf 'floor\t%s\n' "$floor" >>"$results"
+  echo "round $round  ping-pong floor  $floor req/s" >&2
+  for b in "${BINS[@]}"; do
+    label=${b%%=*} bin=${b#*=}
+    for mode in sentinel window; do
+      extra=()
+      if [ "$mode" = window ]; then
+        [[ "$label" == *+w ]] || continue
+        extra=(--no-sentinel)
+      fi
+      line=$(timeout "$limit" "${pin[@]}" "$bin" fuzz --target "tcp://$sim" --profile "$PROFILE" --seed 1 \
+        --duration "${SECS}s" "${extra[@]}" 2>&1 | grep -E '^fuzz: [0-9]+ cases' | tail -1 || true)
+      eps=$(sed -n 's/.*(\([0-9]*\) exec\/s).*/\1/p' <<<"$line")
+      [ -n "$eps" ] || { echo "live-campaign.sh: $label ($mode) gave no summary" >&2; exit 1; }
+      printf '%s\t%s\n' "${label%+w} ($mode)" "$eps" >>"$results"
+      echo "round $round  ${label%+w} ($mode)  $eps exec/s" >&2
+    done
+  done
+  kill "$(tail -1 "$work/pids")" 2>/dev/null || true
+done
+load_after=$(cut -d' ' -f1-3 /proc/loadavg)
+
+python3 - "$results" "$PROFILE" "$SECS" "$ROUNDS" "$load_before" "$load_after" <<'EOF'
+import statistics, sys
+from collections import defaultdict
+path, profile, secs, rounds, lb, la = sys.argv[1:]
+v, order = defaultdict(list), []
+for line in open(path):
+    k, x = line.rstrip("\n").split("\t")
+    if k not in order:
+        order.append(k)
+    v[k].append(float(x))
+floor = statistics.median(v["floor"])
+print(f"`fuzz --profile {profile} --seed 1 --duration {secs}s` against `simulate --profile {profile}` on 127.0.0.1, "
+      f"{rounds} round(s), medians; load average before {lb}, after {la}.")
+print()
+print("| client → simulator | exec/s (req/s for the floor) | per round | of the ping-pong floor |")
+print("|---|---:|---|---:|")
+for k in order:
+    m = statistics.median(v[k])
+    name = "raw TCP ping-pong (the floor)" if k == "floor" else f"`fuzz` {k}"
+    print(f"| {name} | {m:,.0f} | {', '.join(f'{x:,.0f}' for x in v[k])} | {m / floor * 100:.1f}% |")
+EOF

@@ -59,6 +59,9 @@ pub fn campaign_skip(
 pub enum FindingKind {
     /// The drive stopped answering the liveness probe: fatal, the campaign ends.
     StoppedAnswering,
+    /// The liveness probe was answered, but its answer FAILs (malformed, or not the answer due): the drive
+    /// is alive yet answers a valid read wrongly. The campaign ends, as every later probe would say so.
+    ProbeFails,
     /// A generated case FAILed (wrong, malformed or missing answer) while the drive stayed alive.
     Fail,
 }
@@ -211,6 +214,9 @@ fn record(
     let requirement = match kind {
         FindingKind::StoppedAnswering => {
             "After this sequence the drive still answers a valid read (it stopped answering)."
+        }
+        FindingKind::ProbeFails => {
+            "After this sequence the drive answers a valid read correctly (its answer to it FAILs)."
         }
         FindingKind::Fail => "The drive answers this sequence as the reference drive does.",
     };
@@ -395,6 +401,22 @@ fn unanswered(result: &crate::observe::CaseResult) -> bool {
     })
 }
 
+/// True when any bytes came back in the case (a frame, garbage, or part of a frame before a silence or a
+/// close).
+fn heard_anything(result: &crate::observe::CaseResult) -> bool {
+    use crate::targets::Received;
+    result
+        .steps
+        .iter()
+        .flat_map(|s| &s.observed)
+        .any(|o| match o {
+            Received::Frame { .. } | Received::Garbage { .. } => true,
+            Received::Silence { partial, .. } | Received::Closed { partial, .. } => {
+                !partial.is_empty()
+            }
+        })
+}
+
 /// The campaign's loop (see [`campaign`]).
 #[allow(clippy::too_many_arguments)]
 fn fuzz_loop(
@@ -466,20 +488,40 @@ fn fuzz_loop(
             if p.verdict == Verdict::Fail {
                 let first = history.first().map_or("?".to_string(), |c| c.id.clone());
                 let f: Vec<String> = p.findings().cloned().collect();
+                // Bytes came back: the drive is alive, its answer is what FAILs (an answer whose MBAP length
+                // disagrees with its bytes arrives as an incomplete frame, say).
+                let heard = heard_anything(&p);
                 let _ = writeln!(
                     log,
-                    "finding: the drive stopped answering within the {} case(s) since the last good probe (from {first})",
+                    "finding: {} within the {} case(s) since the last good probe (from {first})",
+                    if heard {
+                        "the liveness probe was answered wrongly"
+                    } else {
+                        "the drive stopped answering"
+                    },
                     history.len()
                 );
                 let h = std::mem::take(&mut history);
+                let kind = if heard {
+                    FindingKind::ProbeFails
+                } else {
+                    FindingKind::StoppedAnswering
+                };
                 let d = Detected {
-                    kind: FindingKind::StoppedAnswering,
+                    kind,
                     case_id: first,
                     findings: f,
                     history: h,
                 };
                 findings.push(record(opts, &profile.device.id, d, &probe, log));
-                stopped = Some("the drive stopped answering".to_string());
+                stopped = Some(
+                    if heard {
+                        "a wrong answer to the liveness probe"
+                    } else {
+                        "the drive stopped answering"
+                    }
+                    .to_string(),
+                );
                 break;
             }
             history.clear();

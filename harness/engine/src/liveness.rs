@@ -91,11 +91,27 @@ pub fn ask(t: &mut dyn Target, request: &[u8], bound: Duration) -> Result<Heard,
             break;
         }
     }
+    if framing == Framing::Tcp && answers_in_mbap(&foreign, request) {
+        // A Modbus server whose answer is malformed (its MBAP length disagrees with its bytes, say): the
+        // cases judge it; refusing to run would hide the fault behind "not a Modbus server".
+        return Ok(Heard::Modbus);
+    }
     Ok(if foreign.is_empty() {
         Heard::Nothing
     } else {
         Heard::Foreign(looks_like(&foreign, request))
     })
+}
+
+/// True when `bytes` begin as a Modbus/TCP answer to `request`: its transaction id, protocol id 0, its unit
+/// id and its function code (or the exception form of it), whatever follows.
+fn answers_in_mbap(bytes: &[u8], request: &[u8]) -> bool {
+    match (bytes.get(..8), request.get(..8)) {
+        (Some(b), Some(r)) => {
+            b[..4] == r[..4] && b[6] == r[6] && (b[7] & 0x7F) == r[7] && !bytes.starts_with(request)
+        }
+        _ => false,
+    }
 }
 
 /// What bytes that are not Modbus look like ("HTTP (...)", "TLS", "SSH", an echo of the request, text, or
@@ -229,5 +245,37 @@ mod tests {
         assert!(looks_like(b"SSH-2.0-OpenSSH_9.6\r\n", &req).contains("SSH"));
         assert!(looks_like(&req, &req).contains("echo"));
         assert!(looks_like(&[0xFE, 0x00, 0x81], &req).contains("FE 00 81"));
+    }
+
+    /// A drive whose answers carry a wrong MBAP length is a Modbus server with a fault (its cases FAIL),
+    /// not "not a Modbus server"; an echo of the request is still not Modbus.
+    #[test]
+    fn a_malformed_modbus_answer_is_modbus_and_an_echo_is_not() {
+        use crate::targets::sim::SimTarget;
+        use drives::{Fault, FaultSet, Station};
+        let p = test_support::profile("generic");
+        let req = [0, 1, 0, 0, 0, 6, 1, 3, 0, 0, 0, 1];
+        for (faults, want) in [
+            (FaultSet::none(), Heard::Modbus),
+            (FaultSet::of(&[Fault::MbapLength]), Heard::Modbus),
+        ] {
+            let station = Station::new(drives::build(p.clone(), faults.clone()), faults, 1);
+            let mut t = SimTarget::new(station);
+            assert_eq!(
+                ask(&mut t, &req, Duration::from_millis(200)).expect("ask"),
+                want
+            );
+        }
+        assert!(answers_in_mbap(&[0, 1, 0, 0, 0, 6, 1, 3, 2, 0, 0], &req));
+        assert!(answers_in_mbap(&[0, 1, 0, 0, 0, 3, 1, 0x83, 2], &req));
+        assert!(!answers_in_mbap(&req, &req), "an echo");
+        assert!(
+            !answers_in_mbap(&[0, 2, 0, 0, 0, 6, 1, 3, 2, 0, 0], &req),
+            "another tid"
+        );
+        assert!(
+            !answers_in_mbap(&[0, 1, 0, 0, 0, 6, 1, 4, 2, 0, 0], &req),
+            "another fc"
+        );
     }
 }

@@ -159,3 +159,24 @@ fn a_drive_that_stops_answering_is_probed_at_once() {
         f.reproducer.steps.len()
     );
 }
+
+/// A drive whose answers carry a wrong MBAP length is alive: its wrong answers are findings, never "stopped
+/// answering" (the incomplete frame it sends is heard), and a drive that does stop is still told apart.
+#[test]
+fn a_drive_that_answers_malformed_is_not_taken_for_one_that_stopped() {
+    let dir = TempDir::new("fuzz-malformed-alive");
+    for (fault, stops) in [
+        (Fault::MbapLength, false),
+        (Fault::StopAfterMalformed, true),
+    ] {
+        let out = quiet(&options(&[fault], dir.path(), false));
+        let kinds: Vec<FindingKind> = out.findings.iter().map(|f| f.kind).collect();
+        assert!(!kinds.is_empty(), "{fault:?}: nothing found");
+        assert_eq!(
+            kinds.contains(&FindingKind::StoppedAnswering),
+            stops,
+            "{fault:?}: {kinds:?}, {}",
+            out.stopped
+        );
+    }
+}

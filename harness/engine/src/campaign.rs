@@ -401,20 +401,24 @@ fn unanswered(result: &crate::observe::CaseResult) -> bool {
     })
 }
 
-/// True when any bytes came back in the case (a frame, garbage, or part of a frame before a silence or a
-/// close).
+/// True when any bytes came back in the case: a frame, garbage, part of a frame before a silence or a
+/// close, or a late answer to an earlier request (on the wire, not taken for a step's answer).
 fn heard_anything(result: &crate::observe::CaseResult) -> bool {
     use crate::targets::Received;
     result
-        .steps
+        .wire
         .iter()
-        .flat_map(|s| &s.observed)
-        .any(|o| match o {
-            Received::Frame { .. } | Received::Garbage { .. } => true,
-            Received::Silence { partial, .. } | Received::Closed { partial, .. } => {
-                !partial.is_empty()
-            }
-        })
+        .any(|w| w.dir == crate::observe::Dir::Rx && !w.bytes.is_empty())
+        || result
+            .steps
+            .iter()
+            .flat_map(|s| &s.observed)
+            .any(|o| match o {
+                Received::Frame { .. } | Received::Garbage { .. } => true,
+                Received::Silence { partial, .. } | Received::Closed { partial, .. } => {
+                    !partial.is_empty()
+                }
+            })
 }
 
 /// The campaign's loop (see [`campaign`]).
@@ -495,7 +499,7 @@ fn fuzz_loop(
                     log,
                     "finding: {} within the {} case(s) since the last good probe (from {first})",
                     if heard {
-                        "the liveness probe was answered wrongly"
+                        "the liveness probe was answered wrongly or late"
                     } else {
                         "the drive stopped answering"
                     },
@@ -516,7 +520,7 @@ fn fuzz_loop(
                 findings.push(record(opts, &profile.device.id, d, &probe, log));
                 stopped = Some(
                     if heard {
-                        "a wrong answer to the liveness probe"
+                        "a wrong or late answer to the liveness probe"
                     } else {
                         "the drive stopped answering"
                     }

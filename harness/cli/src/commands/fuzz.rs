@@ -195,7 +195,7 @@ pub fn run(args: &FuzzArgs) -> ExitCode {
             for f in &o.findings {
                 let kind = match f.kind {
                     FindingKind::StoppedAnswering => "STOPPED ANSWERING",
-                    FindingKind::ProbeFails => "PROBE ANSWERED WRONGLY",
+                    FindingKind::ProbeFails => "PROBE ANSWERED WRONGLY OR LATE",
                     FindingKind::Fail => "FAIL",
                 };
                 println!(

@@ -160,8 +160,9 @@ fn a_drive_that_stops_answering_is_probed_at_once() {
     );
 }
 
-/// A drive whose answers carry a wrong MBAP length is alive: its wrong answers are findings, never "stopped
-/// answering" (the incomplete frame it sends is heard), and a drive that does stop is still told apart.
+/// A drive whose answers carry a wrong MBAP length, or come late, is alive: its wrong answers are findings,
+/// never "stopped answering" (the incomplete frame, the late answer, is heard), and a drive that does stop
+/// is still told apart.
 #[test]
 fn a_drive_that_answers_malformed_is_not_taken_for_one_that_stopped() {
     let dir = TempDir::new("fuzz-malformed-alive");

@@ -19,10 +19,17 @@
 #   --profile P      use profile P for every fault instead of the one chosen below
 #   --allow-writes   add --allow-writes to every campaign (against a real target `fuzz` sends reads only
 #                    without it, so faults that only a write shows cannot be found)
+#   --allow-destructive, --allow-motion
+#                    add these to every campaign too (with --allow-writes): FC 08 state changes (08/0A clear
+#                    counters, 08/01 restart, 08/04 listen only) are destructive, FC 15 file records rate as
+#                    motion and destructive (the classifier cannot tell what a file holds)
+#   --expect TEXT    count only a `finding:` line containing TEXT (e.g. the case kind `comm-event-log`), and
+#                    run the campaigns with --keep-going so that another finding does not end them first
 #
 # The profile is the one whose behaviour the fault concerns: sd2x for watchdog-disabled, mdrive for the
 # MDrive/LMD mnemonic faults, word order, 32-bit halves and undeclared functions, generic (which declares the
-# whole public function code set) for the rest. RTU-only faults are run over RTU over TCP
+# whole public function code set) for the rest. RTU-only faults (those of framing and of the serial line's
+# state: the event log after a restart, listen only mode) are run over RTU over TCP
 # (`simulate --rtu-over-tcp`, `fuzz --target rtu+tcp://`). Reproducers go to a temporary directory. Once three
 # seeds of a fault found nothing the median is "not found" and its other seeds are not run.
 #
@@ -39,6 +46,7 @@ CORE=0
 FAULTS=""
 WRITES=""
 PROFILE=""
+EXPECT=""
 while [ $# -gt 0 ]; do
   case "$1" in
     --bin) BIN=$2; shift ;;
@@ -46,9 +54,11 @@ while [ $# -gt 0 ]; do
     --duration) DURATION=$2; shift ;;
     --core) CORE=$2; shift ;;
     --faults) FAULTS=$2; shift ;;
-    --allow-writes) WRITES=--allow-writes ;;
+    --allow-writes) WRITES="$WRITES --allow-writes" ;;
+    --allow-destructive|--allow-motion) WRITES="$WRITES $1" ;;
     --profile) PROFILE=$2; shift ;;
-    -h|--help) sed -n '2,30p' "$0"; exit 0 ;;
+    --expect) EXPECT=$2; shift ;;
+    -h|--help) sed -n '2,37p' "$0"; exit 0 ;;
     *) echo "first-finding.sh: unknown argument $1" >&2; exit 2 ;;
   esac
   shift
@@ -61,12 +71,15 @@ if [ -z "$BIN" ]; then
   [ -x "$BIN" ] || (cd "$root" && cargo build --release --bin modbus-harness >&2)
 fi
 
-exec python3 - "$BIN" "$SEEDS" "$DURATION" "$CORE" "$FAULTS" "$WRITES" "$PROFILE" <<'EOF'
+exec python3 - "$BIN" "$SEEDS" "$DURATION" "$CORE" "$FAULTS" "$WRITES" "$PROFILE" "$EXPECT" <<'EOF'
 import os, select, signal, statistics, subprocess, sys, tempfile, time
 
 bin_, seeds, duration, core, only = sys.argv[1], int(sys.argv[2]), int(sys.argv[3]), sys.argv[4], sys.argv[5]
-extra = [sys.argv[6]] if sys.argv[6] else []
+extra = sys.argv[6].split()
 forced = sys.argv[7]
+expect = sys.argv[8].encode()
+if expect:
+    extra.append("--keep-going")
 pin = ["taskset", "-c", core]
 procs = []
 
@@ -91,7 +104,8 @@ def on_signal(sig, _frame):
 signal.signal(signal.SIGINT, on_signal)
 signal.signal(signal.SIGTERM, on_signal)
 
-RTU_ONLY = {"wrong-crc", "broadcast-answered", "counters-frozen", "crc-unchecked"}
+RTU_ONLY = {"wrong-crc", "broadcast-answered", "counters-frozen", "crc-unchecked", "event-log-oldest-first",
+            "listen-only-ignored"}
 MDRIVE = {"write-only-readable", "mnemonic-params-unchecked", "half-register-widened", "word-order",
           "undeclared-function-served"}
 
@@ -102,8 +116,9 @@ def profile_of(fault):
         return "sd2x"
     return "mdrive" if fault in MDRIVE else "generic"
 
-def lines_until(p, stream, deadline, want):
-    """Read `stream` of `p` line by line until a line starting with `want`; its time, or None."""
+def lines_until(p, stream, deadline, want, containing=b""):
+    """Read `stream` of `p` line by line until a line starting with `want` (and containing `containing`); its
+    time, or None."""
     buf = b""
     fd = stream.fileno()
     while time.monotonic() < deadline:
@@ -117,7 +132,7 @@ def lines_until(p, stream, deadline, want):
             return None, buf
         buf += chunk
         for line in buf.split(b"\n")[:-1]:
-            if line.startswith(want):
+            if line.startswith(want) and containing in line:
                 return time.monotonic(), line
         buf = buf[buf.rfind(b"\n") + 1:] if b"\n" in buf else buf
     return None, buf
@@ -142,7 +157,7 @@ def campaign(fault, seed, regressions):
                                 stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
         procs.append(fuzz)
         try:
-            at, _ = lines_until(fuzz, fuzz.stderr, t0 + duration + 15, b"finding:")
+            at, _ = lines_until(fuzz, fuzz.stderr, t0 + duration + 15, b"finding:", expect)
         finally:
             stop(fuzz)
             if fuzz in procs:
@@ -184,7 +199,8 @@ load_after = open("/proc/loadavg").read().split()[:3]
 
 print(f"Run {started}, {os.cpu_count()} cores, both processes pinned to core {core}; "
       f"load average {' '.join(load_before)} before, {' '.join(load_after)} after; seeds 1..{seeds}, "
-      f"--duration {duration}s{' --allow-writes' if extra else ''}; time from the start of `fuzz` to its first `finding:` line.")
+      f"--duration {duration}s{''.join(' ' + e for e in extra)}; time from the start of `fuzz` to its first `finding:` line"
+      f"{' containing ' + repr(expect.decode()) if expect else ''}.")
 print()
 print("| fault | profile | median time to first finding | per seed (s; – not found) |")
 print("|---|---|---:|---|")

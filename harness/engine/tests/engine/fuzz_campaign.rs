@@ -12,7 +12,16 @@ use engine::targets::TargetUrl;
 use test_support::TempDir;
 
 fn options(faults: &[Fault], dir: &std::path::Path, keep_going: bool) -> CampaignOptions {
-    let mut base = Options::new(TargetUrl::parse("sim:mdrive").unwrap());
+    options_on("sim:mdrive", faults, dir, keep_going)
+}
+
+fn options_on(
+    target: &str,
+    faults: &[Fault],
+    dir: &std::path::Path,
+    keep_going: bool,
+) -> CampaignOptions {
+    let mut base = Options::new(TargetUrl::parse(target).unwrap());
     base.faults = FaultSet::of(faults);
     CampaignOptions {
         base,
@@ -168,6 +177,7 @@ fn a_drive_that_answers_malformed_is_not_taken_for_one_that_stopped() {
     let dir = TempDir::new("fuzz-malformed-alive");
     for (fault, stops) in [
         (Fault::MbapLength, false),
+        (Fault::LateResponse, false),
         (Fault::StopAfterMalformed, true),
     ] {
         let out = quiet(&options(&[fault], dir.path(), false));
@@ -180,4 +190,58 @@ fn a_drive_that_answers_malformed_is_not_taken_for_one_that_stopped() {
             out.stopped
         );
     }
+}
+
+/// The faults of the public function codes the generator draws on the generic profile (issue 17 item 5:
+/// FC 07, 0B, 0C, 11, 14, 15, 16, 18, and 08/04 followed by 08/01), each with the framing where the function
+/// shows it (the event log after a restart and listen only mode act on a serial line).
+const PUBLIC_FC_FAULTS: &[(Fault, &str)] = &[
+    (Fault::ExceptionStatusReversed, "sim:generic"),
+    (Fault::EventCounterCountsExceptions, "sim:generic"),
+    (Fault::EventLogOldestFirst, "sim:generic?transport=rtu"),
+    (Fault::RunIndicatorOne, "sim:generic"),
+    (Fault::FileRecordLengthWrong, "sim:generic"),
+    (Fault::FileWriteFirstOnly, "sim:generic"),
+    (Fault::MaskWriteWrong, "sim:generic"),
+    (Fault::FifoOffByOne, "sim:generic"),
+    (Fault::ListenOnlyIgnored, "sim:generic?transport=rtu"),
+];
+
+/// Each fault of [`PUBLIC_FC_FAULTS`] is found by a short seeded campaign, and the same campaigns find
+/// nothing on a healthy drive (no case of these function codes FAILs a conforming answer).
+#[test]
+fn the_public_function_code_faults_are_found_and_a_healthy_generic_drive_gives_none() {
+    let dir = TempDir::new("fuzz-public-fc");
+    let mut problems = Vec::new();
+    for (fault, target) in PUBLIC_FC_FAULTS {
+        let mut o = options_on(target, &[*fault], dir.path(), false);
+        o.max_cases = Some(1500);
+        let out = quiet(&o);
+        if !out
+            .findings
+            .iter()
+            .any(|f| f.kind == FindingKind::Fail && f.replayed == Some(true))
+        {
+            problems.push(format!(
+                "{fault:?} on {target}: not found in {} cases ({:?})",
+                out.cases,
+                out.findings.iter().map(|f| &f.findings).collect::<Vec<_>>()
+            ));
+        }
+    }
+    for target in ["sim:generic", "sim:generic?transport=rtu"] {
+        let mut o = options_on(target, &[], dir.path(), true);
+        o.max_cases = Some(1500);
+        let out = quiet(&o);
+        if !out.findings.is_empty() {
+            problems.push(format!(
+                "healthy {target}: {:?}",
+                out.findings
+                    .iter()
+                    .map(|f| (&f.case_id, &f.findings))
+                    .collect::<Vec<_>>()
+            ));
+        }
+    }
+    assert!(problems.is_empty(), "{problems:#?}");
 }

@@ -177,11 +177,16 @@ impl Around {
         );
     }
 
+    /// The steps before and the steps after a case's own.
+    pub(super) fn split(self) -> (Vec<Step>, Vec<Step>) {
+        (self.before, self.after)
+    }
+
     /// The case's steps with the precondition before them and the restores after.
     pub(super) fn wrap(self, body: Vec<Step>) -> Vec<Step> {
-        let mut steps = self.before;
+        let (mut steps, after) = self.split();
         steps.extend(body);
-        steps.extend(self.after);
+        steps.extend(after);
         steps
     }
 }

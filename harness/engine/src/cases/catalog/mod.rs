@@ -11,7 +11,7 @@ mod ds402;
 mod golden;
 mod mcode;
 mod profile;
-mod public_fc;
+pub mod public_fc;
 mod rtu;
 mod spec;
 mod tcp;
@@ -62,7 +62,16 @@ struct Ctx<'a> {
     cases: Vec<Case>,
 }
 
-impl Ctx<'_> {
+impl<'a> Ctx<'a> {
+    /// A context that builds requests for `p` and `unit`, no cases.
+    fn bare(p: &'a Profile, unit: u8) -> Self {
+        Ctx {
+            p,
+            unit,
+            cases: Vec::new(),
+        }
+    }
+
     /// Add a case checking a MUST-level requirement (every catalog case is one; SHOULD-level deviations
     /// are found inside steps, e.g. RTU timing).
     fn push(

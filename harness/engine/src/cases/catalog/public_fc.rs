@@ -12,14 +12,71 @@ use super::{APP, Ctx, capture, exchange, pdu};
 use crate::cases::{Compare, Outgoing, Step, Tag};
 use codec::codes::diag;
 use codec::{FileRecordRef, FileRecordWrite, FunctionCode, Request};
-use drives::profile::Table;
+use drives::profile::{Profile, Table};
+
+/// One request of this family with what it needs around it: the steps that establish its precondition and
+/// keep what it changes, the request and how its answer is judged, the steps that check and put back what it
+/// changed; the transport tags it needs and the freedoms its answer may use. The catalog's cases here are
+/// built from these, and so are the generated cases of these function codes (`cases::generated`, which may
+/// alter the request itself).
+#[derive(Clone, Debug)]
+pub struct Exercise {
+    pub before: Vec<Step>,
+    pub pdu: Vec<u8>,
+    pub compare: Compare,
+    pub note: String,
+    pub after: Vec<Step>,
+    /// `RtuOnly` / `TcpOnly` where the request means something on one framing only; the safety tags are the
+    /// classifier's.
+    pub tags: Vec<Tag>,
+    /// Freedoms (`corpus/freedoms/`) the answers may use, beyond those the reference drive decides by.
+    pub freedoms: Vec<String>,
+}
+
+impl Exercise {
+    fn plain(pdu: Vec<u8>, compare: Compare, note: impl Into<String>) -> Self {
+        Self {
+            before: Vec::new(),
+            pdu,
+            compare,
+            note: note.into(),
+            after: Vec::new(),
+            tags: Vec::new(),
+            freedoms: Vec::new(),
+        }
+    }
+
+    /// The request inside `a` (its precondition and restores), `checks` right after the request.
+    fn around(
+        a: Around,
+        pdu: Vec<u8>,
+        compare: Compare,
+        note: impl Into<String>,
+        checks: Vec<Step>,
+    ) -> Self {
+        let (before, after) = a.split();
+        let mut e = Self::plain(pdu, compare, note);
+        e.before = before;
+        e.after = checks;
+        e.after.extend(after);
+        e
+    }
+
+    /// The steps in order, as a catalog case runs them.
+    fn steps(self) -> Vec<Step> {
+        let mut steps = self.before;
+        steps.push(exchange(Outgoing::Pdu(self.pdu), self.compare, self.note));
+        steps.extend(self.after);
+        steps
+    }
+}
 
 /// The family, function by function.
 pub(super) fn cases(cx: &mut Ctx) {
     read_exception_status(cx);
     diagnostics(cx);
     comm_event_counter_and_log(cx);
-    report_server_id(cx);
+    report_server_id_case(cx);
     file_records(cx);
     mask_write(cx);
     fifo(cx);
@@ -50,49 +107,67 @@ fn exception_request(cx: &Ctx) -> Vec<u8> {
     }
 }
 
-/// FC 07 (6.7): the eight exception status outputs. Where the profile maps them to coils, the coils are set
-/// to a pattern that reads differently bit-reversed (outputs 1 and 2 on) and the status must show it;
-/// otherwise the contents are device specific and only the format is checked.
-fn read_exception_status(cx: &mut Ctx) {
-    if !cx.supports(FunctionCode::READ_EXCEPTION_STATUS) {
-        return;
-    }
+/// The first of the eight coils the profile maps the exception status outputs to, where they are consecutive
+/// and can be read (FC 01) and set (FC 0F).
+fn exception_status_coils(cx: &Ctx) -> Option<u16> {
     let coils: Vec<u16> =
         cx.p.exception_status
             .as_ref()
             .map(|e| e.get_ref().coils.clone())
             .unwrap_or_default();
-    let mapped = coils.len() == 8
+    (coils.len() == 8
         && coils.windows(2).all(|w| w[1] == w[0] + 1)
         && cx.supports(FunctionCode::WRITE_MULTIPLE_COILS)
-        && cx.supports(FunctionCode::READ_COILS);
-    if mapped {
-        let first = coils[0];
-        let mut a = Around::new();
-        a.keep_coils(cx, first, 8);
-        let steps = a.wrap(vec![
-            exchange(
-                Outgoing::Pdu(pdu(&Request::WriteMultipleCoils {
-                    address: first,
-                    quantity: 8,
-                    data: vec![0b0000_0110],
-                })),
-                Compare::Exact,
-                format!("coils {first}..+8 set to 0b00000110 (outputs 1 and 2 on)"),
-            ),
-            exchange(
-                Outgoing::Pdu(vec![0x07]),
-                Compare::Exact,
-                "FC 07: output 0 in the least significant bit",
-            ),
-        ]);
+        && cx.supports(FunctionCode::READ_COILS))
+    .then(|| coils[0])
+}
+
+/// FC 07 (6.7). With `pattern`, where the profile maps the outputs to coils: the coils kept, set to the
+/// pattern, the status read exactly (output 0 in the least significant bit), the coils put back. Otherwise
+/// the contents are device specific and only the format is checked. `None` without FC 07.
+pub fn exception_status(p: &Profile, unit: u8, pattern: Option<u8>) -> Option<Exercise> {
+    let cx = Ctx::bare(p, unit);
+    if !cx.supports(FunctionCode::READ_EXCEPTION_STATUS) {
+        return None;
+    }
+    let (Some(first), Some(pattern)) = (exception_status_coils(&cx), pattern) else {
+        return Some(Exercise::plain(vec![0x07], Compare::Structure, "FC 07"));
+    };
+    let mut a = Around::new();
+    a.keep_coils(&cx, first, 8);
+    a.set(exchange(
+        Outgoing::Pdu(pdu(&Request::WriteMultipleCoils {
+            address: first,
+            quantity: 8,
+            data: vec![pattern],
+        })),
+        Compare::Exact,
+        format!("coils {first}..+8 set to 0b{pattern:08b}"),
+    ));
+    Some(Exercise::around(
+        a,
+        vec![0x07],
+        Compare::Exact,
+        "FC 07: output 0 in the least significant bit",
+        Vec::new(),
+    ))
+}
+
+/// FC 07 (6.7): the eight exception status outputs. Where the profile maps them to coils, the coils are set
+/// to a pattern that reads differently bit-reversed (outputs 1 and 2 on) and the status must show it;
+/// otherwise the contents are device specific and only the format is checked.
+fn read_exception_status(cx: &mut Ctx) {
+    let Some(e) = exception_status(cx.p, cx.unit, Some(0b0000_0110)) else {
+        return;
+    };
+    if exception_status_coils(cx).is_some() {
         cx.push(
             "spec/app-6.7/read-exception-status/outputs".into(),
             "FC 07 reports the exception status outputs, output 0 in bit 0",
             format!("{APP}, section 6.7; the profile's [exception_status] coils"),
             "Read Exception Status returns the eight exception status outputs in one byte, the output of the lowest number in the least significant bit.",
             vec![Tag::Write],
-            steps,
+            e.steps(),
         );
     } else {
         cx.push(
@@ -101,7 +176,7 @@ fn read_exception_status(cx: &mut Ctx) {
             format!("{APP}, section 6.7"),
             "Read Exception Status returns the eight exception status outputs in one byte; their contents are device specific.",
             vec![],
-            vec![exchange(Outgoing::Pdu(vec![0x07]), Compare::Structure, "FC 07")],
+            e.steps(),
         );
     }
 }
@@ -273,58 +348,93 @@ fn diagnostics(cx: &mut Ctx) {
     }
 }
 
+/// What comes before an FC 0B / FC 0C request in [`comm_event`].
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Prelude {
+    /// Nothing: the counts and events are the drive's history, the format only is checked.
+    None,
+    /// 08/0A (Clear Counters and Diagnostic Register, spec 6.8.1), a successful read and two exception
+    /// responses: FC 0B's count is then fixed by spec 6.9 (one completion; whether the clearing request counts
+    /// is the freedom `event-counter-clear-counted`). The log is not cleared: FC 0C in format only.
+    Clear,
+    /// 08/01 with FF 00 (Restart Communications Option, clearing the log; serial line only, spec 6.8.1), a
+    /// successful read and two exception responses: the count and the events are fixed by spec 6.9 and 6.10.
+    Restart,
+}
+
+/// FC 0B (6.9) or FC 0C (6.10), after `prelude`. `None` when the profile lacks the function code, or the
+/// FC 08 sub-function of the prelude.
+pub fn comm_event(p: &Profile, unit: u8, fc: u8, prelude: Prelude) -> Option<Exercise> {
+    let cx = Ctx::bare(p, unit);
+    if !cx.supports(fc) || !matches!(fc, 0x0B | 0x0C) {
+        return None;
+    }
+    let (sub, data, what) = match prelude {
+        Prelude::None => {
+            return Some(Exercise::plain(
+                vec![fc],
+                Compare::Structure,
+                format!("FC {fc:02X}"),
+            ));
+        }
+        Prelude::Clear => (diag::CLEAR_COUNTERS, 0, "08/0A: clear the counters"),
+        Prelude::Restart => (
+            diag::RESTART_COMMUNICATIONS,
+            diag::RESTART_CLEAR_LOG,
+            "08/01 FF 00: restart, clear the counters and the log",
+        ),
+    };
+    if !cx.supports(FunctionCode::DIAGNOSTICS) || !declares_sub(&cx, sub) {
+        return None;
+    }
+    let read = super::known_good_read(cx.p);
+    let bad = exception_request(&cx);
+    let mut e = Exercise::plain(
+        vec![fc],
+        if prelude == Prelude::Clear && fc == 0x0C {
+            Compare::Structure
+        } else {
+            Compare::Exact
+        },
+        format!("FC {fc:02X}"),
+    );
+    e.before = vec![
+        exchange(Outgoing::Pdu(diag_pdu(sub, data)), Compare::Exact, what),
+        exchange(
+            Outgoing::Pdu(read),
+            Compare::Structure,
+            "one successful read",
+        ),
+        exchange(
+            Outgoing::Pdu(bad.clone()),
+            Compare::Structure,
+            "an exception response",
+        ),
+        exchange(
+            Outgoing::Pdu(bad),
+            Compare::Structure,
+            "another exception response",
+        ),
+    ];
+    match prelude {
+        // 08/01 acts on a serial port (on Modbus/TCP it is not defined: exception 01 on the generic drive).
+        Prelude::Restart => e.tags.push(Tag::RtuOnly),
+        Prelude::Clear if fc == 0x0B => e.freedoms.push("event-counter-clear-counted".into()),
+        _ => {}
+    }
+    Some(e)
+}
+
 /// FC 0B (6.9) and FC 0C (6.10). On a serial line the port is restarted first (08/01 with FF 00 clears the
 /// counters, the event counter and the log, spec 6.8.1), so that the counts and the events that follow are
 /// fixed by the spec: one successful read, two exception responses (not counted as completions), then FC
 /// 0B, then FC 0C (its events the most recent first). Over Modbus/TCP the format only.
 fn comm_event_counter_and_log(cx: &mut Ctx) {
-    let fc0b = cx.supports(FunctionCode::GET_COMM_EVENT_COUNTER);
-    let fc0c = cx.supports(FunctionCode::GET_COMM_EVENT_LOG);
-    if !fc0b && !fc0c {
-        return;
-    }
-    let read = super::known_good_read(cx.p);
-    let bad = exception_request(cx);
-    let restart =
-        cx.supports(FunctionCode::DIAGNOSTICS) && declares_sub(cx, diag::RESTART_COMMUNICATIONS);
-    for (fc, ok, section, name) in [
-        (0x0Bu8, fc0b, "6.9", "get-comm-event-counter"),
-        (0x0C, fc0c, "6.10", "get-comm-event-log"),
+    for (fc, section, name) in [
+        (0x0Bu8, "6.9", "get-comm-event-counter"),
+        (0x0C, "6.10", "get-comm-event-log"),
     ] {
-        if !ok {
-            continue;
-        }
-        if restart {
-            let steps = vec![
-                exchange(
-                    Outgoing::Pdu(diag_pdu(
-                        diag::RESTART_COMMUNICATIONS,
-                        diag::RESTART_CLEAR_LOG,
-                    )),
-                    Compare::Exact,
-                    "08/01 FF 00: restart, clear the counters and the log",
-                ),
-                exchange(
-                    Outgoing::Pdu(read.clone()),
-                    Compare::Structure,
-                    "one successful read",
-                ),
-                exchange(
-                    Outgoing::Pdu(bad.clone()),
-                    Compare::Structure,
-                    "an exception response",
-                ),
-                exchange(
-                    Outgoing::Pdu(bad.clone()),
-                    Compare::Structure,
-                    "another exception response",
-                ),
-                exchange(
-                    Outgoing::Pdu(vec![fc]),
-                    Compare::Exact,
-                    format!("FC {fc:02X}"),
-                ),
-            ];
+        if let Some(e) = comm_event(cx.p, cx.unit, fc, Prelude::Restart) {
             cx.push(
                 format!("spec/app-{section}/{name}/after-restart"),
                 format!("FC {fc:02X} after a restart, a read and two exceptions"),
@@ -335,12 +445,11 @@ fn comm_event_counter_and_log(cx: &mut Ctx) {
                     "The event log returns status, the event counter, the message count and the events, the most recent first; a restart with FF 00 clears the log and logs the restart."
                 },
                 vec![Tag::RtuOnly, Tag::Destructive],
-                steps,
+                e.steps(),
             );
         }
         if fc == 0x0B
-            && cx.supports(FunctionCode::DIAGNOSTICS)
-            && declares_sub(cx, diag::CLEAR_COUNTERS)
+            && let Some(e) = comm_event(cx.p, cx.unit, fc, Prelude::Clear)
         {
             // Over Modbus/TCP the counter is cleared with 08/0A; whether the clearing request then counts as
             // a completion is the freedom `event-counter-clear-counted` (one more, never two).
@@ -350,102 +459,189 @@ fn comm_event_counter_and_log(cx: &mut Ctx) {
                 format!("{APP}, sections 6.9 and 6.8.1 (sub-function 0A)"),
                 "The event counter counts each successful message completion, not exception responses nor FC 0B itself; Clear Counters and Diagnostic Register clears it.",
                 vec![Tag::TcpOnly],
-                vec![
-                    exchange(
-                        Outgoing::Pdu(diag_pdu(diag::CLEAR_COUNTERS, 0)),
-                        Compare::Exact,
-                        "08/0A: clear the counters",
-                    ),
-                    exchange(Outgoing::Pdu(read.clone()), Compare::Structure, "one successful read"),
-                    exchange(Outgoing::Pdu(bad.clone()), Compare::Structure, "an exception response"),
-                    exchange(Outgoing::Pdu(bad.clone()), Compare::Structure, "another exception response"),
-                    exchange(Outgoing::Pdu(vec![fc]), Compare::Exact, "FC 0B"),
-                ],
+                e.steps(),
             );
         }
-        cx.push(
-            format!("spec/app-{section}/{name}/format"),
-            format!("FC {fc:02X}: the answer's format"),
-            format!("{APP}, section {section}"),
-            if fc == 0x0B {
-                "Get Comm Event Counter returns a 2-byte status and a 2-byte event count."
-            } else {
-                "Get Comm Event Log returns a byte count, the status, the event count, the message count and 0-64 event bytes."
-            },
-            vec![Tag::TcpOnly],
-            vec![exchange(Outgoing::Pdu(vec![fc]), Compare::Structure, format!("FC {fc:02X}"))],
-        );
+        if let Some(e) = comm_event(cx.p, cx.unit, fc, Prelude::None) {
+            cx.push(
+                format!("spec/app-{section}/{name}/format"),
+                format!("FC {fc:02X}: the answer's format"),
+                format!("{APP}, section {section}"),
+                if fc == 0x0B {
+                    "Get Comm Event Counter returns a 2-byte status and a 2-byte event count."
+                } else {
+                    "Get Comm Event Log returns a byte count, the status, the event count, the message count and 0-64 event bytes."
+                },
+                vec![Tag::TcpOnly],
+                e.steps(),
+            );
+        }
     }
+}
+
+/// FC 11 (6.13): exactly where the profile declares the server id and additional data, else in format; the
+/// run indicator is either admissible value (0x00 OFF, 0xFF ON: the freedom `run-indicator-status`). `None`
+/// without FC 11.
+pub fn report_server_id(p: &Profile) -> Option<Exercise> {
+    p.function(FunctionCode::REPORT_SERVER_ID)?;
+    let mut e = Exercise::plain(
+        vec![0x11],
+        if p.server_id.is_some() {
+            Compare::Exact
+        } else {
+            Compare::Structure
+        },
+        "FC 11",
+    );
+    e.freedoms.push("run-indicator-status".into());
+    Some(e)
 }
 
 /// FC 11 (6.13): the server id, the run indicator (00 or FF) and the additional data the profile declares;
 /// without a declaration, the format only.
-fn report_server_id(cx: &mut Ctx) {
-    if !cx.supports(FunctionCode::REPORT_SERVER_ID) {
+fn report_server_id_case(cx: &mut Ctx) {
+    let Some(e) = report_server_id(cx.p) else {
         return;
-    }
-    let declared = cx.p.server_id.is_some();
+    };
     cx.push(
         "spec/app-6.13/report-server-id".into(),
         "FC 11 reports the server id and the run indicator",
         format!("{APP}, section 6.13"),
         "Report Server ID returns the device specific server id, the run indicator status (0x00 OFF, 0xFF ON) and device specific additional data.",
         vec![],
-        vec![exchange(
-            Outgoing::Pdu(vec![0x11]),
-            if declared { Compare::Exact } else { Compare::Structure },
-            "FC 11",
-        )],
+        e.steps(),
     );
 }
 
-/// FC 14 (6.14) and FC 15 (6.15) on the files the profile declares.
-fn file_records(cx: &mut Ctx) {
-    let files: Vec<(u16, u16, bool)> =
-        cx.p.files
-            .iter()
-            .map(|f| f.get_ref())
-            .map(|f| (f.number, f.records, f.access.writable()))
-            .collect();
-    if files.is_empty() {
-        return;
-    }
-    let group = |file: u16, record: u16, len: u16| FileRecordRef {
+/// The files of a profile: (number, records, writable).
+pub fn files(p: &Profile) -> Vec<(u16, u16, bool)> {
+    p.files
+        .iter()
+        .map(|f| f.get_ref())
+        .map(|f| (f.number, f.records, f.access.writable()))
+        .collect()
+}
+
+/// One group of file records (reference type 6, spec 6.14).
+fn group(file: u16, record: u16, len: u16) -> FileRecordRef {
+    FileRecordRef {
         reference_type: 6,
         file_number: file,
         record_number: record,
         record_length: len,
+    }
+}
+
+/// FC 14 of `groups` (file, first record, number of records) in one request, exactly: the records hold what
+/// the profile declares (0 where it declares nothing). `None` without FC 14.
+pub fn read_file_records(p: &Profile, groups: &[(u16, u16, u16)]) -> Option<Exercise> {
+    p.function(FunctionCode::READ_FILE_RECORD)?;
+    let subs = groups.iter().map(|(f, r, n)| group(*f, *r, *n)).collect();
+    let what = groups
+        .iter()
+        .map(|(f, r, n)| format!("file {f} records {r}..+{n}"))
+        .collect::<Vec<_>>()
+        .join(", ");
+    Some(Exercise::plain(
+        pdu(&Request::ReadFileRecord { sub_requests: subs }),
+        Compare::Exact,
+        format!("FC 14 of {what}"),
+    ))
+}
+
+/// FC 15 of `groups` (file, first record, values) in one request: what the groups hold is read first (FC 14),
+/// the request must be echoed, every group is read back, then put back. `None` without FC 14 and FC 15.
+pub fn write_file_records(
+    p: &Profile,
+    unit: u8,
+    groups: &[(u16, u16, Vec<u16>)],
+) -> Option<Exercise> {
+    let cx = Ctx::bare(p, unit);
+    if !cx.supports(FunctionCode::WRITE_FILE_RECORD) || !cx.supports(FunctionCode::READ_FILE_RECORD)
+    {
+        return None;
+    }
+    let read = |file: u16, record: u16, len: usize| {
+        Outgoing::Pdu(pdu(&Request::ReadFileRecord {
+            sub_requests: vec![group(file, record, len as u16)],
+        }))
     };
-    if cx.supports(FunctionCode::READ_FILE_RECORD) {
-        // Two groups, from the files with declared contents first, each from its first non-zero record, so
-        // that the values read are the profile's, not zeros any drive would answer.
-        let mut with_values: Vec<(u16, u16, u16)> =
-            cx.p.files
-                .iter()
-                .map(|f| f.get_ref())
-                .map(|f| {
-                    let start = f.values.iter().position(|v| *v != 0).unwrap_or(0) as u16;
-                    (f.number, start, f.records.saturating_sub(start).min(4))
-                })
-                .filter(|g| g.2 > 0)
-                .collect();
-        with_values.sort_by_key(|g| g.1 == 0);
-        let subs: Vec<FileRecordRef> = with_values
+    let mut a = Around::new();
+    let mut before = Vec::new();
+    let mut undo = Vec::new();
+    let mut read_back = Vec::new();
+    for (file, record, values) in groups {
+        let (file, record, len) = (*file, *record, values.len());
+        let slot = a.slot();
+        before.push(capture(
+            read(file, record, len),
+            Compare::Structure,
+            slot,
+            format!("read file {file} records {record}..+{len} first"),
+        ));
+        undo.push(exchange(
+            Outgoing::RestoreRead { slot },
+            Compare::Exact,
+            format!("put back file {file} records {record}..+{len}"),
+        ));
+        read_back.push(exchange(
+            read(file, record, len),
+            Compare::Exact,
+            format!("read back file {file} records {record}..+{len}"),
+        ));
+    }
+    for s in before {
+        a.set(s);
+    }
+    a.undo(undo);
+    let write = Request::WriteFileRecord {
+        sub_requests: groups
             .iter()
-            .take(2)
-            .map(|(n, start, len)| group(*n, *start, *len))
+            .map(|(file, record, values)| FileRecordWrite {
+                reference_type: 6,
+                file_number: *file,
+                record_number: *record,
+                values: values.clone(),
+            })
+            .collect(),
+    };
+    Some(Exercise::around(
+        a,
+        pdu(&write),
+        Compare::Exact,
+        format!("FC 15, {} group(s): the request echoed", groups.len()),
+        read_back,
+    ))
+}
+
+/// FC 14 (6.14) and FC 15 (6.15) on the files the profile declares.
+fn file_records(cx: &mut Ctx) {
+    let files = files(cx.p);
+    if files.is_empty() {
+        return;
+    }
+    // Two groups, from the files with declared contents first, each from its first non-zero record, so
+    // that the values read are the profile's, not zeros any drive would answer.
+    let mut with_values: Vec<(u16, u16, u16)> =
+        cx.p.files
+            .iter()
+            .map(|f| f.get_ref())
+            .map(|f| {
+                let start = f.values.iter().position(|v| *v != 0).unwrap_or(0) as u16;
+                (f.number, start, f.records.saturating_sub(start).min(4))
+            })
+            .filter(|g| g.2 > 0)
             .collect();
+    with_values.sort_by_key(|g| g.1 == 0);
+    with_values.truncate(2);
+    if let Some(e) = read_file_records(cx.p, &with_values) {
         cx.push(
             "spec/app-6.14/read-file-record".into(),
-            format!("FC 14 reads {} groups of file records", subs.len()),
+            format!("FC 14 reads {} groups of file records", with_values.len()),
             format!("{APP}, section 6.14; the profile's [[file]] tables"),
             "Read File Record returns one sub-response per group: its file response length (the reference type byte and the records), reference type 6 and the records' values.",
             vec![],
-            vec![exchange(
-                Outgoing::Pdu(pdu(&Request::ReadFileRecord { sub_requests: subs })),
-                Compare::Exact,
-                "two groups",
-            )],
+            e.steps(),
         );
     }
     let writable: Vec<(u16, u16)> = files
@@ -453,150 +649,124 @@ fn file_records(cx: &mut Ctx) {
         .filter(|f| f.2 && f.1 >= 3)
         .map(|f| (f.0, f.1))
         .collect();
-    if cx.supports(FunctionCode::WRITE_FILE_RECORD)
-        && cx.supports(FunctionCode::READ_FILE_RECORD)
-        && !writable.is_empty()
-    {
-        // Two groups: records 1-2 of the first writable file and records 0-2 of the last one (the same file
-        // when there is only one). What they hold is read first and written back after.
-        let (fa, _) = writable[0];
-        let (fb, nb) = *writable.last().expect("not empty");
-        let (ra, rb) = if fa == fb { (0, nb - 3) } else { (1, 0) };
-        let groups = [(fa, ra, 2u16), (fb, rb, 3u16)];
-        let mut a = Around::new();
-        let mut before = Vec::new();
-        let mut undo = Vec::new();
-        for (file, record, len) in groups {
-            let slot = a.slot();
-            before.push(capture(
-                Outgoing::Pdu(pdu(&Request::ReadFileRecord {
-                    sub_requests: vec![group(file, record, len)],
-                })),
-                Compare::Structure,
-                slot,
-                format!("read file {file} records {record}..+{len} first"),
-            ));
-            undo.push(exchange(
-                Outgoing::RestoreRead { slot },
-                Compare::Exact,
-                format!("put back file {file} records {record}..+{len}"),
-            ));
-        }
-        for s in before {
-            a.set(s);
-        }
-        a.undo(undo);
-        let write = Request::WriteFileRecord {
-            sub_requests: vec![
-                FileRecordWrite {
-                    reference_type: 6,
-                    file_number: groups[0].0,
-                    record_number: groups[0].1,
-                    values: vec![0x06AF, 0x04BE],
-                },
-                FileRecordWrite {
-                    reference_type: 6,
-                    file_number: groups[1].0,
-                    record_number: groups[1].1,
-                    values: vec![0x100D, 0xA55A, 0x0001],
-                },
-            ],
-        };
-        let read_back: Vec<Step> = groups
-            .iter()
-            .map(|(file, record, len)| {
-                exchange(
-                    Outgoing::Pdu(pdu(&Request::ReadFileRecord {
-                        sub_requests: vec![group(*file, *record, *len)],
-                    })),
-                    Compare::Exact,
-                    format!("read back file {file} records {record}..+{len}"),
-                )
-            })
-            .collect();
-        let mut body = vec![exchange(
-            Outgoing::Pdu(pdu(&write)),
-            Compare::Exact,
-            "FC 15, two groups: the request echoed",
-        )];
-        body.extend(read_back);
+    let (Some(&(fa, _)), Some(&(fb, nb))) = (writable.first(), writable.last()) else {
+        return;
+    };
+    // Two groups: records 1-2 of the first writable file and records 0-2 of the last one (the same file
+    // when there is only one). What they hold is read first and written back after.
+    let (ra, rb) = if fa == fb { (0, nb - 3) } else { (1, 0) };
+    let groups = [
+        (fa, ra, vec![0x06AF, 0x04BE]),
+        (fb, rb, vec![0x100D, 0xA55A, 0x0001]),
+    ];
+    if let Some(e) = write_file_records(cx.p, cx.unit, &groups) {
         cx.push(
             "spec/app-6.15/write-file-record/read-back".into(),
             "FC 15 writes every group of a request (read back with FC 14)",
             format!("{APP}, sections 6.15 and 6.14; the profile's [[file]] tables"),
             "Write File Record writes every group of the request and returns an echo of the request; FC 14 reads the values written.",
             vec![Tag::Write],
-            a.wrap(body),
+            e.steps(),
         );
     }
 }
 
-/// FC 16 (6.16): the spec's example on the first writable holding register, read back, then put back.
-fn mask_write(cx: &mut Ctx) {
+/// The holding registers FC 16 can be tried on: one word wide, read and written, any 16-bit value in range,
+/// neither motion nor destructive.
+pub fn mask_registers(p: &Profile) -> Vec<u16> {
+    p.registers
+        .iter()
+        .map(|r| r.get_ref())
+        .filter(|r| super::spec::settable(r, 0, 0xFFFF))
+        .map(|r| r.address)
+        .collect()
+}
+
+/// FC 16 (6.16) on the holding register at `address`: kept, set to `current`, masked (the request must be
+/// echoed), read back, put back. `None` without FC 16 or a register write.
+pub fn mask_write_register(
+    p: &Profile,
+    unit: u8,
+    address: u16,
+    current: u16,
+    and_mask: u16,
+    or_mask: u16,
+) -> Option<Exercise> {
+    let cx = Ctx::bare(p, unit);
     if !cx.supports(FunctionCode::MASK_WRITE_REGISTER) || !cx.can_write_registers() {
-        return;
+        return None;
     }
-    let Some(address) =
-        cx.p.registers
-            .iter()
-            .map(|r| r.get_ref())
-            .find(|r| {
-                r.width == 1
-                    && r.table != Table::Input
-                    && r.access == drives::profile::Access::Rw
-                    && r.min.is_none_or(|m| m <= 0)
-                    && r.max.is_none_or(|m| m >= 0xFFFF)
-            })
-            .map(|r| r.address)
-    else {
-        return;
-    };
     let mut a = Around::new();
-    a.keep_registers(cx, address, 1);
-    let steps = a.wrap(vec![
-        exchange(
-            Outgoing::Pdu(pdu(&cx.write_request(address, vec![0x0012]))),
-            Compare::Exact,
-            "current contents 0x0012",
-        ),
-        exchange(
-            Outgoing::Pdu(pdu(&Request::MaskWriteRegister {
-                address,
-                and_mask: 0x00F2,
-                or_mask: 0x0025,
-            })),
-            Compare::Exact,
-            "AND 0x00F2, OR 0x0025: the request echoed",
-        ),
-        exchange(
+    a.keep_registers(&cx, address, 1);
+    a.set(exchange(
+        Outgoing::Pdu(pdu(&cx.write_request(address, vec![current]))),
+        Compare::Exact,
+        format!("current contents 0x{current:04X}"),
+    ));
+    // Spec 6.16: Result = (Current Contents AND And_Mask) OR (Or_Mask AND (NOT And_Mask)).
+    let result = (current & and_mask) | (or_mask & !and_mask);
+    Some(Exercise::around(
+        a,
+        pdu(&Request::MaskWriteRegister {
+            address,
+            and_mask,
+            or_mask,
+        }),
+        Compare::Exact,
+        format!("AND 0x{and_mask:04X}, OR 0x{or_mask:04X}: the request echoed"),
+        vec![exchange(
             Outgoing::Pdu(pdu(&cx.read_request(address, 1, Table::Holding))),
             Compare::Exact,
-            "read back: 0x0017",
-        ),
-    ]);
+            format!("read back: 0x{result:04X}"),
+        )],
+    ))
+}
+
+/// FC 16 (6.16): the spec's example on the first writable holding register, read back, then put back.
+fn mask_write(cx: &mut Ctx) {
+    let Some(&address) = mask_registers(cx.p).first() else {
+        return;
+    };
+    let Some(e) = mask_write_register(cx.p, cx.unit, address, 0x0012, 0x00F2, 0x0025) else {
+        return;
+    };
     cx.push(
         format!("spec/app-6.16/mask-write/0x{address:04X}"),
         "FC 16 with the spec's example masks, read back",
         format!("{APP}, section 6.16"),
         "Mask Write Register sets the register to (current AND And_Mask) OR (Or_Mask AND (NOT And_Mask)) and echoes the request.",
         vec![Tag::Write],
-        steps,
+        e.steps(),
     );
+}
+
+/// The queues of a profile: (pointer address, registers queued).
+pub fn fifos(p: &Profile) -> Vec<(u16, usize)> {
+    p.fifos
+        .iter()
+        .map(|f| f.get_ref())
+        .map(|f| (f.address, f.values.len()))
+        .collect()
+}
+
+/// FC 18 (6.18) of the queue at `address`, exactly: the queue holds what the profile declares. `None` without
+/// FC 18.
+pub fn read_fifo(p: &Profile, address: u16) -> Option<Exercise> {
+    p.function(FunctionCode::READ_FIFO_QUEUE)?;
+    Some(Exercise::plain(
+        pdu(&Request::ReadFifoQueue { address }),
+        Compare::Exact,
+        format!("FC 18 of the queue at 0x{address:04X}"),
+    ))
 }
 
 /// FC 18 (6.18): every queue the profile declares, read whole; a queue of more than 31 registers is
 /// answered with exception 03.
 fn fifo(cx: &mut Ctx) {
-    if !cx.supports(FunctionCode::READ_FIFO_QUEUE) {
-        return;
-    }
-    let queues: Vec<(u16, usize)> =
-        cx.p.fifos
-            .iter()
-            .map(|f| f.get_ref())
-            .map(|f| (f.address, f.values.len()))
-            .collect();
-    for (address, n) in queues {
+    for (address, n) in fifos(cx.p) {
+        let Some(e) = read_fifo(cx.p, address) else {
+            return;
+        };
         let over = n > usize::from(codec::codes::MAX_FIFO_COUNT);
         cx.push(
             format!("spec/app-6.18/read-fifo-queue/0x{address:04X}"),
@@ -608,11 +778,7 @@ fn fifo(cx: &mut Ctx) {
                 "Read FIFO Queue returns the byte count, the FIFO count and every queued register, the count first."
             },
             vec![],
-            vec![exchange(
-                Outgoing::Pdu(pdu(&Request::ReadFifoQueue { address })),
-                Compare::Exact,
-                format!("{n} queued"),
-            )],
+            e.steps(),
         );
     }
 }

@@ -407,13 +407,19 @@ fn bit_padding(cx: &mut Ctx) {
 /// which are command words, so none is taken; the SD2x, whose writable registers are all motion or the
 /// watchdog, has no such case).
 fn test_register(r: &drives::profile::Register) -> bool {
+    settable(r, 0x1111, 0x2222)
+}
+
+/// A one-word holding register, read and written, neither `motion` nor `destructive`, whose range holds
+/// `low..=high`.
+pub(super) fn settable(r: &drives::profile::Register, low: i64, high: i64) -> bool {
     r.width == 1
         && r.table != Table::Input
         && r.access == drives::profile::Access::Rw
         && !r.motion
         && !r.destructive
-        && r.min.is_none_or(|m| m <= 0x1111)
-        && r.max.is_none_or(|m| m >= 0x2222)
+        && r.min.is_none_or(|m| m <= low)
+        && r.max.is_none_or(|m| m >= high)
 }
 
 /// FC 16 over the last two writable holding registers and the address after them, past the map: the request

@@ -10,11 +10,14 @@
 use std::collections::BTreeSet;
 
 use super::spec::{
-    Alter, Edge, MAX_BATCH_EXTRA, MAX_EXTEND, MAX_SPLIT_GAP_US, Op, Quantity, Req, Spec, Value,
+    Alter, Edge, FileGroup, MAX_BATCH_EXTRA, MAX_EXTEND, MAX_FILE_GROUP, MAX_SPLIT_GAP_US, Op,
+    Quantity, Req, Spec, Value,
 };
 use crate::cases::catalog::known_good_read;
+use crate::cases::catalog::public_fc::{self, Exercise, Prelude};
 use crate::{Case, Compare, Level, Mutation, Outgoing, Step, Tag};
 use codec::FunctionCode;
+use codec::codes::diag;
 use codec::{CanOpenAccess, MAX_PDU_LEN, Mnemonic, Request};
 use drives::profile::{Bit, Object, Profile, Register, Table, VendorMnemonic};
 
@@ -36,6 +39,12 @@ pub struct GenContext {
     pub(super) id_objects: Vec<u8>,
     functions: Vec<u8>,
     pub(super) unsupported: Vec<u8>,
+    /// The profile's files: (number, records, writable).
+    pub(super) files: Vec<(u16, u16, bool)>,
+    /// The holding registers FC 16 may be tried on.
+    pub(super) mask_regs: Vec<u16>,
+    /// The profile's queues (pointer addresses).
+    pub(super) fifos: Vec<u16>,
     known_good: Vec<u8>,
     /// The profile has motion registers, coils or mnemonics: values may change by themselves.
     can_move: bool,
@@ -114,6 +123,12 @@ impl GenContext {
             id_objects: profile.identification.iter().map(|o| o.object_id).collect(),
             functions,
             unsupported,
+            files: public_fc::files(profile)
+                .into_iter()
+                .filter(|f| f.1 > 0)
+                .collect(),
+            mask_regs: public_fc::mask_registers(profile),
+            fifos: public_fc::fifos(profile).into_iter().map(|q| q.0).collect(),
             known_good: known_good_read(profile),
             can_move: profile.registers.iter().any(|r| r.get_ref().motion)
                 || profile.coils.iter().any(|c| c.get_ref().motion)
@@ -263,13 +278,23 @@ fn read_request(fc: u8, address: u16, quantity: u16) -> Request {
     }
 }
 
-/// A request built from a [`Req`]: the PDU, how it is judged, and the steps of a read-write-restore check.
+/// A request built from a [`Req`]: the PDU, how it is judged, and the steps of a read-write-restore check;
+/// for the function codes the catalog builds (`public_fc`), the steps around the request and what its
+/// answers may choose.
 struct Built {
     pdu: Vec<u8>,
     compare: Compare,
     kind: &'static str,
     note: String,
     check: Option<Check>,
+    /// Steps before the request (its precondition, what it changes kept), sent whatever the alteration.
+    before: Vec<Step>,
+    /// Steps after it (read back, put back), sent whatever the alteration.
+    after: Vec<Step>,
+    /// Transport tags the request needs.
+    tags: Vec<Tag>,
+    /// Freedoms its answers may use.
+    freedoms: Vec<String>,
 }
 
 /// Read first into slot 0, read back after the write, restore from slot 0.
@@ -287,6 +312,25 @@ impl Built {
             kind,
             note,
             check: None,
+            before: Vec::new(),
+            after: Vec::new(),
+            tags: Vec::new(),
+            freedoms: Vec::new(),
+        }
+    }
+
+    /// A request of the catalog's public function code family, with what it needs around it.
+    fn exercise(e: Exercise, kind: &'static str) -> Self {
+        Built {
+            pdu: e.pdu,
+            compare: e.compare,
+            kind,
+            note: e.note,
+            check: None,
+            before: e.before,
+            after: e.after,
+            tags: e.tags,
+            freedoms: e.freedoms,
         }
     }
 }
@@ -335,8 +379,122 @@ impl Req {
             Req::VendorRead { mnemonic } => vendor_read(cx, mnemonic),
             Req::VendorWrite { mnemonic } => vendor_write(cx, mnemonic),
             Req::Unsupported { fc, len } => unsupported(cx, fc, len),
+            Req::ExceptionStatus { pattern } => exercise(
+                cx,
+                0x07,
+                public_fc::exception_status(&cx.profile, cx.unit, pattern),
+                "exception-status",
+            ),
+            Req::CommEvent { log, prelude } => comm_event(cx, log, prelude),
+            Req::ServerId => exercise(
+                cx,
+                0x11,
+                public_fc::report_server_id(&cx.profile),
+                "server-id",
+            ),
+            Req::FileRead { first, second } => file_read(cx, first, second),
+            Req::FileWrite {
+                first,
+                second,
+                word,
+            } => file_write(cx, first, second, word),
+            Req::MaskWrite {
+                reg,
+                current,
+                and,
+                or,
+            } => mask_write(cx, reg, current, and, or),
+            Req::Fifo { queue } => {
+                let e = pick(&cx.fifos, queue).and_then(|q| public_fc::read_fifo(&cx.profile, *q));
+                exercise(cx, 0x18, e, "fifo")
+            }
         }
     }
+}
+
+/// A request of the catalog's public function code family as built, or, where the profile lacks function
+/// code `fc` (or what it acts on), `fc` sent as a function code the profile does not support.
+fn exercise(cx: &GenContext, fc: u8, e: Option<Exercise>, kind: &'static str) -> Built {
+    match e {
+        Some(e) => Built::exercise(e, kind),
+        None => {
+            let i = cx.unsupported.iter().position(|c| *c == fc).unwrap_or(0);
+            unsupported(cx, i as u16, 0)
+        }
+    }
+}
+
+/// FC 0B or FC 0C after a prelude. Spec 6.9 fixes the count after a clear and 6.10 the log after a restart
+/// (`public_fc::comm_event`); without a prelude they are the drive's history, compared in format only. A
+/// prelude the profile cannot send (an FC 08 sub-function it lacks) is left out.
+fn comm_event(cx: &GenContext, log: bool, prelude: u8) -> Built {
+    let fc = if (log && cx.supports(0x0Cu8)) || !cx.supports(0x0Bu8) {
+        0x0C
+    } else {
+        0x0B
+    };
+    let prelude = [Prelude::None, Prelude::Clear, Prelude::Restart][usize::from(prelude % 3)];
+    let e = public_fc::comm_event(&cx.profile, cx.unit, fc, prelude)
+        .or_else(|| public_fc::comm_event(&cx.profile, cx.unit, fc, Prelude::None));
+    exercise(
+        cx,
+        fc,
+        e,
+        if fc == 0x0C {
+            "comm-event-log"
+        } else {
+            "comm-event-counter"
+        },
+    )
+}
+
+/// A group of file records of `files` (file, first record, length): records inside the file, at most
+/// [`MAX_FILE_GROUP`].
+fn file_group(files: &[(u16, u16, bool)], g: FileGroup) -> Option<(u16, u16, u16)> {
+    let &(file, records, _) = pick(files, g.file)?;
+    let record = g.record % records.max(1);
+    let room = (records - record).clamp(1, MAX_FILE_GROUP);
+    Some((file, record, 1 + u16::from(g.len) % room))
+}
+
+/// FC 14 of one or two groups inside the profile's files (spec 6.14).
+fn file_read(cx: &GenContext, first: FileGroup, second: Option<FileGroup>) -> Built {
+    let groups: Vec<(u16, u16, u16)> = [Some(first), second]
+        .into_iter()
+        .flatten()
+        .filter_map(|g| file_group(&cx.files, g))
+        .collect();
+    let e = (!groups.is_empty())
+        .then(|| public_fc::read_file_records(&cx.profile, &groups))
+        .flatten();
+    exercise(cx, 0x14, e, "file-read")
+}
+
+/// FC 15 of one or two groups inside the profile's writable files (spec 6.15), read back and put back.
+fn file_write(cx: &GenContext, first: FileGroup, second: Option<FileGroup>, word: u16) -> Built {
+    let writable: Vec<(u16, u16, bool)> = cx.files.iter().filter(|f| f.2).copied().collect();
+    let mut next = word;
+    let groups: Vec<(u16, u16, Vec<u16>)> = [Some(first), second]
+        .into_iter()
+        .flatten()
+        .filter_map(|g| file_group(&writable, g))
+        .map(|(file, record, len)| {
+            let values = (0..len).map(|i| next.wrapping_add(i)).collect();
+            next = next.wrapping_add(len);
+            (file, record, values)
+        })
+        .collect();
+    let e = (!groups.is_empty())
+        .then(|| public_fc::write_file_records(&cx.profile, cx.unit, &groups))
+        .flatten();
+    exercise(cx, 0x15, e, "file-write")
+}
+
+/// FC 16 on a register FC 16 may be tried on (spec 6.16), first set to `current`, read back, put back.
+fn mask_write(cx: &GenContext, reg: u16, current: u16, and: u16, or: u16) -> Built {
+    let e = pick(&cx.mask_regs, reg)
+        .and_then(|a| public_fc::mask_write_register(&cx.profile, cx.unit, *a, current, and, or));
+    exercise(cx, 0x16, e, "mask-write")
 }
 
 /// FC 03/04 of one register at its width (a span read when the profile has no registers).
@@ -429,15 +587,6 @@ fn write_register(cx: &GenContext, reg: u16, value: Value, fc06: bool, check: bo
         && (cx.supports(FunctionCode::READ_HOLDING_REGISTERS)
             || cx.supports(FunctionCode::READ_INPUT_REGISTERS));
     Built {
-        pdu: to_pdu(&req),
-        compare: Compare::Exact,
-        kind: "write-reg",
-        note: format!(
-            "FC {:02X} write of {} = {v}{}",
-            req.function().0,
-            reg_name(r),
-            value_label(value)
-        ),
         check: checked.then(|| Check {
             read: to_pdu(&read_request(
                 cx.read_fc(r.table, false),
@@ -446,6 +595,17 @@ fn write_register(cx: &GenContext, reg: u16, value: Value, fc06: bool, check: bo
             )),
             address: r.address,
         }),
+        ..Built::plain(
+            to_pdu(&req),
+            Compare::Exact,
+            "write-reg",
+            format!(
+                "FC {:02X} write of {} = {v}{}",
+                req.function().0,
+                reg_name(r),
+                value_label(value)
+            ),
+        )
     }
 }
 
@@ -544,14 +704,6 @@ fn write_coil(cx: &GenContext, coil: u16, on: bool, check: bool) -> Built {
     let address = c.map_or(0, |c| c.address);
     let value = if on { 0xFF00 } else { 0x0000 };
     Built {
-        pdu: to_pdu(&Request::WriteSingleCoil { address, value }),
-        compare: Compare::Exact,
-        kind: "write-coil",
-        note: format!(
-            "FC 05 coil {address}{} {}",
-            c.map_or(String::new(), |c| format!(" {}", c.name)),
-            if on { "ON" } else { "OFF" }
-        ),
         check: (check && c.is_some_and(|c| !c.motion) && cx.supports(FunctionCode::READ_COILS))
             .then(|| Check {
                 read: to_pdu(&Request::ReadCoils {
@@ -560,6 +712,16 @@ fn write_coil(cx: &GenContext, coil: u16, on: bool, check: bool) -> Built {
                 }),
                 address,
             }),
+        ..Built::plain(
+            to_pdu(&Request::WriteSingleCoil { address, value }),
+            Compare::Exact,
+            "write-coil",
+            format!(
+                "FC 05 coil {address}{} {}",
+                c.map_or(String::new(), |c| format!(" {}", c.name)),
+                if on { "ON" } else { "OFF" }
+            ),
+        )
     }
 }
 
@@ -829,14 +991,48 @@ impl Op {
         format!("{}{}", self.req.build(cx).kind, self.alter.label())
     }
 
-    /// Push the operation's steps and add its tags; returns the note of its main exchange.
-    fn build(&self, cx: &GenContext, steps: &mut Vec<Step>, tags: &mut BTreeSet<Tag>) -> String {
+    /// Push the operation's steps, add its tags and the freedoms its answers may use; returns the note of its
+    /// main exchange.
+    fn build(
+        &self,
+        cx: &GenContext,
+        steps: &mut Vec<Step>,
+        tags: &mut BTreeSet<Tag>,
+        freedoms: &mut Vec<String>,
+    ) -> String {
         let b = self.req.build(cx);
+        steps.extend(b.before.iter().cloned());
+        tags.extend(b.tags.iter().copied());
+        for f in &b.freedoms {
+            if !freedoms.contains(f) {
+                freedoms.push(f.clone());
+            }
+        }
         let mut tail = Vec::new();
         let (send, compare, what) = self.alter.apply(cx, &b, steps, &mut tail, tags);
+        let listen_only = forces_listen_only(&send);
         let note = format!("{}{what}", b.note);
         steps.push(exchange(send, compare, None, note.clone()));
         steps.extend(tail);
+        steps.extend(b.after.iter().cloned());
+        if listen_only {
+            // Force Listen Only Mode gets no response and silences the drive until Restart Communications
+            // Option, which itself gets no response in listen only mode (spec 6.8.1): end it as a client
+            // would, so that what follows is answered again (a drive that never entered the mode echoes it).
+            steps.push(exchange(
+                Outgoing::Pdu(
+                    Request::Diagnostics {
+                        sub_function: diag::RESTART_COMMUNICATIONS,
+                        data: vec![0, 0],
+                    }
+                    .to_bytes()
+                    .unwrap_or_default(),
+                ),
+                Compare::Exact,
+                None,
+                "08/01 00 00: restart communications, ending listen only mode",
+            ));
+        }
         if self.liveness && self.alter != Alter::None {
             steps.push(exchange(
                 Outgoing::Pdu(cx.known_good.clone()),
@@ -846,6 +1042,19 @@ impl Op {
             ));
         }
         note
+    }
+}
+
+/// True when a request `send` sends (as altered) is 08/04, Force Listen Only Mode.
+fn forces_listen_only(send: &Outgoing) -> bool {
+    let is = |pdu: &[u8]| pdu.starts_with(&[0x08, 0x00, 0x04]);
+    match send {
+        Outgoing::Pdu(p) | Outgoing::PduToUnit { pdu: p, .. } => is(p),
+        Outgoing::Mutated { pdu, mutation } => {
+            is(&mutation.apply_to_pdu(pdu).unwrap_or_else(|| pdu.clone()))
+        }
+        Outgoing::Batch(pdus) => pdus.iter().any(|p| is(p)),
+        Outgoing::Restore { .. } | Outgoing::RestoreRead { .. } => false,
     }
 }
 
@@ -1122,8 +1331,9 @@ impl Spec {
         let mut steps = Vec::new();
         let mut tags = BTreeSet::new();
         let mut notes = Vec::new();
+        let mut freedoms = Vec::new();
         for op in self.ops() {
-            notes.push(op.build(cx, &mut steps, &mut tags));
+            notes.push(op.build(cx, &mut steps, &mut tags, &mut freedoms));
         }
         let title = match notes.as_slice() {
             [] => "no request".to_string(),
@@ -1142,7 +1352,7 @@ impl Spec {
             tags: tags.into_iter().collect(),
             steps,
             requirements: Vec::new(),
-            freedoms: Vec::new(),
+            freedoms,
         }
         // Restores and the whole of each request rated again by the classifier.
         .retagged(&cx.profile, cx.unit)

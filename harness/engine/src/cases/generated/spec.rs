@@ -13,6 +13,8 @@ pub const MAX_BATCH_EXTRA: usize = 3;
 pub const MAX_EXTEND: usize = 4;
 /// Gap between the two pieces of a split request, at most (µs): well inside t1.5 at 19200 baud (859 µs).
 pub const MAX_SPLIT_GAP_US: u64 = 100;
+/// At most this many records in one generated group of file records.
+pub const MAX_FILE_GROUP: u16 = 8;
 
 /// One generated case: a short sequence of operations.
 #[derive(Clone, Debug, PartialEq, Eq)]
@@ -137,6 +139,45 @@ pub enum Req {
     VendorWrite { mnemonic: u16 },
     /// A function code the profile does not support, with a few data bytes.
     Unsupported { fc: u16, len: u8 },
+    /// FC 07: read exception status; with `pattern`, the outputs the profile maps to coils set to it first
+    /// (a write, put back after).
+    ExceptionStatus { pattern: Option<u8> },
+    /// FC 0B (FC 0C with `log`) after a prelude (`prelude` modulo 3: none, 08/0A clear counters, 08/01 FF 00
+    /// restart), a successful read and two exception responses.
+    CommEvent { log: bool, prelude: u8 },
+    /// FC 11: report server id.
+    ServerId,
+    /// FC 14: one or two groups of file records.
+    FileRead {
+        first: FileGroup,
+        second: Option<FileGroup>,
+    },
+    /// FC 15: one or two groups of a writable file set to `word`, `word + 1`, ...; read first, read back and
+    /// put back.
+    FileWrite {
+        first: FileGroup,
+        second: Option<FileGroup>,
+        word: u16,
+    },
+    /// FC 16: mask write of a register first set to `current`; read back and put back.
+    MaskWrite {
+        reg: u16,
+        current: u16,
+        and: u16,
+        or: u16,
+    },
+    /// FC 18: read a queue of the profile.
+    Fifo { queue: u16 },
+}
+
+/// A group of file records: indices into the profile's files and their records, a length (taken modulo
+/// what fits, at most [`MAX_FILE_GROUP`] records).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[cfg_attr(feature = "arbitrary", derive(arbitrary::Arbitrary))]
+pub struct FileGroup {
+    pub file: u16,
+    pub record: u16,
+    pub len: u8,
 }
 
 /// What is done on purpose to a request.

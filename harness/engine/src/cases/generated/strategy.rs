@@ -12,7 +12,7 @@ use super::build::GenContext;
 use codec::FunctionCode;
 
 use super::spec::{
-    Alter, Edge, MAX_BATCH_EXTRA, MAX_EXTEND, MAX_OPS, Op, Quantity, Req, Spec, Value,
+    Alter, Edge, FileGroup, MAX_BATCH_EXTRA, MAX_EXTEND, MAX_OPS, Op, Quantity, Req, Spec, Value,
 };
 
 /// The weighted alternatives of the request union, in union order.
@@ -71,6 +71,7 @@ impl GenContext {
         self.diagnostic_and_id_arms(&mut arms);
         self.object_arms(&mut arms);
         self.vendor_arms(&mut arms);
+        self.public_fc_arms(&mut arms);
         self.unsupported_arm(&mut arms);
         if arms.is_empty() {
             return Just(Req::Unsupported { fc: 0, len: 0 }).boxed();
@@ -311,6 +312,86 @@ impl GenContext {
                 1,
                 index(self.write_mnemonics.len())
                     .prop_map(|mnemonic| Req::VendorWrite { mnemonic })
+                    .boxed(),
+            ));
+        }
+    }
+
+    /// FC 07, 0B/0C, 11, 14, 15, 16 and 18 (spec 6.7-6.18), each where the profile declares it and has what
+    /// it acts on (coils, files, registers, queues); the writes (FC 15, FC 16, FC 07 with a pattern) are
+    /// tagged so by the classifier, so that a campaign sends them only where writes are allowed.
+    fn public_fc_arms(&self, arms: &mut Arms) {
+        if self.supports(FunctionCode::READ_EXCEPTION_STATUS) {
+            arms.push((
+                1,
+                proptest::option::of(any::<u8>())
+                    .prop_map(|pattern| Req::ExceptionStatus { pattern })
+                    .boxed(),
+            ));
+        }
+        if self.supports(FunctionCode::GET_COMM_EVENT_COUNTER)
+            || self.supports(FunctionCode::GET_COMM_EVENT_LOG)
+        {
+            arms.push((
+                1,
+                (any::<bool>(), 0u8..3)
+                    .prop_map(|(log, prelude)| Req::CommEvent { log, prelude })
+                    .boxed(),
+            ));
+        }
+        if self.supports(FunctionCode::REPORT_SERVER_ID) {
+            arms.push((1, Just(Req::ServerId).boxed()));
+        }
+        let group = || {
+            (index(self.files.len()), any::<u16>(), any::<u8>())
+                .prop_map(|(file, record, len)| FileGroup { file, record, len })
+        };
+        if self.supports(FunctionCode::READ_FILE_RECORD) && !self.files.is_empty() {
+            arms.push((
+                1,
+                (group(), proptest::option::of(group()))
+                    .prop_map(|(first, second)| Req::FileRead { first, second })
+                    .boxed(),
+            ));
+        }
+        if self.supports(FunctionCode::WRITE_FILE_RECORD)
+            && self.supports(FunctionCode::READ_FILE_RECORD)
+            && self.files.iter().any(|f| f.2)
+        {
+            arms.push((
+                1,
+                (group(), proptest::option::of(group()), any::<u16>())
+                    .prop_map(|(first, second, word)| Req::FileWrite {
+                        first,
+                        second,
+                        word,
+                    })
+                    .boxed(),
+            ));
+        }
+        if self.supports(FunctionCode::MASK_WRITE_REGISTER) && !self.mask_regs.is_empty() {
+            arms.push((
+                1,
+                (
+                    index(self.mask_regs.len()),
+                    any::<u16>(),
+                    any::<u16>(),
+                    any::<u16>(),
+                )
+                    .prop_map(|(reg, current, and, or)| Req::MaskWrite {
+                        reg,
+                        current,
+                        and,
+                        or,
+                    })
+                    .boxed(),
+            ));
+        }
+        if self.supports(FunctionCode::READ_FIFO_QUEUE) && !self.fifos.is_empty() {
+            arms.push((
+                1,
+                index(self.fifos.len())
+                    .prop_map(|queue| Req::Fifo { queue })
                     .boxed(),
             ));
         }

@@ -145,6 +145,9 @@ pub struct Runner {
     /// The step being run is followed by a new connection (`Step::Reconnect`): its connection may be
     /// half-closed to prove a silence (see `prove_silence_by_close`).
     reconnect_next: bool,
+    /// RTU on a real target: a malformed frame went out, so the next one waits for the line's t3.5 first
+    /// (see `send_pieces`).
+    resync_rtu: bool,
 }
 
 /// How the silences due on Modbus/TCP to a real target were settled.
@@ -197,6 +200,7 @@ impl Runner {
             sentinel_given_up: false,
             silences: Silences::default(),
             reconnect_next: false,
+            resync_rtu: false,
         }
     }
 
@@ -1002,6 +1006,21 @@ impl Runner {
         wire: &mut Vec<WireEvent>,
     ) -> Result<(Vec<Finding>, Duration), TargetError> {
         let malformed = frames.iter().any(|f| f.malformed);
+        // RTU: a malformed frame may leave bytes that the drive's framer holds until the line falls silent for
+        // t3.5 (a frame one byte longer than its function's length rule whose first bytes make a valid frame,
+        // say: the rest waits). The reference drops them at that silence, so the target must have it too
+        // before the next frame, or the leftovers would corrupt it. (Real targets: on `sim:` the reference
+        // and the drive share the clock.) A master resynchronising a slave does the same.
+        if std::mem::take(&mut self.resync_rtu) {
+            let t3_5 = self
+                .target
+                .rtu_timing()
+                .unwrap_or_else(codec::RtuTiming::tcp_carrier)
+                .t3_5;
+            self.target.idle(t3_5);
+            self.sync_shadow();
+        }
+        self.resync_rtu = malformed && !self.cfg.is_sim && self.target.framing() == Framing::Rtu;
         let mut precondition = Vec::new();
         // On the target's clock: virtual on `sim:`, where a stall of the harness is not a gap on the line.
         let mut last_write: Option<Duration> = None;

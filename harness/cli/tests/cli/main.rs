@@ -9,6 +9,7 @@ mod generated_snapshots;
 mod junit_schema;
 mod leave_as_found;
 mod profiles;
+mod rtu_resync;
 mod run;
 mod safety;
 mod sentinel;

@@ -389,13 +389,15 @@ fn signature(kind: FindingKind, case_id: &str, first: &str) -> String {
 
 /// True when a step expected an answer and got silence or a close: the drive may have stopped answering.
 fn unanswered(result: &crate::observe::CaseResult) -> bool {
+    // Part of a frame before the silence (an answer whose MBAP length promises a byte more than it has,
+    // say) is an answer, wrong: judged as the case's FAIL, not probed as a drive that stopped.
     result.steps.iter().any(|s| {
         s.expected.is_some()
             && s.observed.iter().any(|o| {
                 matches!(
                     o,
-                    crate::targets::Received::Silence { .. }
-                        | crate::targets::Received::Closed { .. }
+                    crate::targets::Received::Silence { partial, .. }
+                        | crate::targets::Received::Closed { partial, .. } if partial.is_empty()
                 )
             })
     })

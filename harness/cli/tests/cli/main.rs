@@ -6,6 +6,7 @@ mod dead_target;
 mod decode;
 mod edges;
 mod generated_snapshots;
+mod html_browser;
 mod junit_schema;
 mod leave_as_found;
 mod profiles;

@@ -1,5 +1,7 @@
-//! `report.html`: one self-contained page (inline CSS and JS), case rows streamed to `report.html.partial`,
-//! header (run info, counts, verdict filter) and footer (script) added at `finish`.
+//! `report.html`: one self-contained page (inline CSS and JS), case rows streamed to `report.html.partial`
+//! (every verdict but PASS) and `report.html.pass.partial` (PASS), put together at `finish` as header (run
+//! info, counts, verdict filter), the rows that need a look first (FAIL and the others, in run order), the
+//! PASS rows, and the footer (script).
 //!
 //! A page with a million cases is of no use in a browser: each verdict shows at most
 //! [`HTML_ROWS_PER_VERDICT`] cases in full; the page says how many more there are, and `index.json` and
@@ -27,6 +29,9 @@ pub struct HtmlSink {
     partial: PathBuf,
     info: RunInfo,
     out: Option<BufWriter<File>>,
+    /// The PASS rows, which go after all others.
+    passes: PathBuf,
+    pass_out: Option<BufWriter<File>>,
     shown: [usize; 6],
     omitted: [usize; 6],
 }
@@ -36,11 +41,15 @@ impl HtmlSink {
     pub fn create(dir: &Path, info: &RunInfo) -> io::Result<Self> {
         let partial = partial_path(dir, HTML_FILE);
         let file = File::create(&partial).map_err(with_path("cannot create", &partial))?;
+        let passes = dir.join(format!("{HTML_FILE}.pass.partial"));
+        let pass_file = File::create(&passes).map_err(with_path("cannot create", &passes))?;
         Ok(Self {
             dir: dir.to_path_buf(),
             partial,
             info: info.clone(),
             out: Some(BufWriter::new(file)),
+            passes,
+            pass_out: Some(BufWriter::new(pass_file)),
             shown: [0; 6],
             omitted: [0; 6],
         })
@@ -52,14 +61,15 @@ impl HtmlSink {
         let mut out = BufWriter::new(file);
         let write = |out: &mut BufWriter<File>| -> io::Result<()> {
             out.write_all(header(&self.info, summary).as_bytes())?;
-            let mut rows = File::open(&self.partial)?;
-            io::copy(&mut rows, out)?;
+            io::copy(&mut File::open(&self.partial)?, out)?;
+            io::copy(&mut File::open(&self.passes)?, out)?;
             out.write_all(footer(&self.omitted).as_bytes())?;
             out.flush()
         };
         write(&mut out).map_err(with_path("cannot write", &tmp))?;
         drop(out);
         promote(&tmp, &self.dir.join(HTML_FILE))?;
+        fs::remove_file(&self.passes).map_err(with_path("cannot remove", &self.passes))?;
         fs::remove_file(&self.partial).map_err(with_path("cannot remove", &self.partial))
     }
 }
@@ -73,8 +83,12 @@ impl Sink for HtmlSink {
         }
         self.shown[v] += 1;
         let row = case_row(case, result);
-        let partial = &self.partial;
-        let out = self.out.as_mut().ok_or_else(|| {
+        let (out, partial) = if result.verdict == Verdict::Pass {
+            (self.pass_out.as_mut(), &self.passes)
+        } else {
+            (self.out.as_mut(), &self.partial)
+        };
+        let out = out.ok_or_else(|| {
             io::Error::other(format!("{}: report already finished", partial.display()))
         })?;
         out.write_all(row.as_bytes())
@@ -82,6 +96,10 @@ impl Sink for HtmlSink {
     }
 
     fn flush(&mut self) -> io::Result<()> {
+        if let Some(out) = self.pass_out.as_mut() {
+            out.flush()
+                .map_err(with_path("cannot write", &self.passes))?;
+        }
         match self.out.as_mut() {
             Some(out) => out
                 .flush()
@@ -100,6 +118,9 @@ impl Sink for HtmlSink {
         out.flush()
             .map_err(with_path("cannot write", &self.partial))?;
         drop(out);
+        if let Some(mut p) = self.pass_out.take() {
+            p.flush().map_err(with_path("cannot write", &self.passes))?;
+        }
         self.assemble(summary)
     }
 }

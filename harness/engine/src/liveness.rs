@@ -91,9 +91,9 @@ pub fn ask(t: &mut dyn Target, request: &[u8], bound: Duration) -> Result<Heard,
             break;
         }
     }
-    if framing == Framing::Tcp && answers_in_mbap(&foreign, request) {
-        // A Modbus server whose answer is malformed (its MBAP length disagrees with its bytes, say): the
-        // cases judge it; refusing to run would hide the fault behind "not a Modbus server".
+    if begins_an_answer(&foreign, request, framing) {
+        // A Modbus server whose answer is malformed (its MBAP length disagrees with its bytes, its CRC is
+        // wrong, say): the cases judge it; refusing to run would hide the fault behind "not a Modbus server".
         return Ok(Heard::Modbus);
     }
     Ok(if foreign.is_empty() {
@@ -103,12 +103,19 @@ pub fn ask(t: &mut dyn Target, request: &[u8], bound: Duration) -> Result<Heard,
     })
 }
 
-/// True when `bytes` begin as a Modbus/TCP answer to `request`: its transaction id, protocol id 0, its unit
-/// id and its function code (or the exception form of it), whatever follows.
-fn answers_in_mbap(bytes: &[u8], request: &[u8]) -> bool {
-    match (bytes.get(..8), request.get(..8)) {
+/// True when `bytes` begin as an answer to `request`, whatever follows: on Modbus/TCP its transaction id,
+/// protocol id 0, unit id and function code (or the exception form of it); on RTU its address and function
+/// code. An echo of the request is not an answer.
+fn begins_an_answer(bytes: &[u8], request: &[u8], framing: Framing) -> bool {
+    let fc_at = if framing == Framing::Tcp { 7 } else { 1 };
+    match (bytes.get(..=fc_at), request.get(..=fc_at)) {
         (Some(b), Some(r)) => {
-            b[..4] == r[..4] && b[6] == r[6] && (b[7] & 0x7F) == r[7] && !bytes.starts_with(request)
+            let head = if framing == Framing::Tcp {
+                b[..4] == r[..4] && b[6] == r[6]
+            } else {
+                b[0] == r[0]
+            };
+            head && (b[fc_at] & 0x7F) == r[fc_at] && !bytes.starts_with(request)
         }
         _ => false,
     }
@@ -247,35 +254,52 @@ mod tests {
         assert!(looks_like(&[0xFE, 0x00, 0x81], &req).contains("FE 00 81"));
     }
 
-    /// A drive whose answers carry a wrong MBAP length is a Modbus server with a fault (its cases FAIL),
-    /// not "not a Modbus server"; an echo of the request is still not Modbus.
+    /// A drive whose answers carry a wrong MBAP length, or a wrong CRC, is a Modbus server with a fault (its
+    /// cases FAIL), not "not a Modbus server"; an echo of the request is still not Modbus.
     #[test]
     fn a_malformed_modbus_answer_is_modbus_and_an_echo_is_not() {
         use crate::targets::sim::SimTarget;
         use drives::{Fault, FaultSet, Station};
         let p = test_support::profile("generic");
         let req = [0, 1, 0, 0, 0, 6, 1, 3, 0, 0, 0, 1];
-        for (faults, want) in [
-            (FaultSet::none(), Heard::Modbus),
-            (FaultSet::of(&[Fault::MbapLength]), Heard::Modbus),
+        let rtu_req = [1, 3, 0, 0, 0, 1, 0x84, 0x0A];
+        for (fault, framing, req) in [
+            (None, Framing::Tcp, &req[..]),
+            (Some(Fault::MbapLength), Framing::Tcp, &req[..]),
+            (None, Framing::Rtu, &rtu_req[..]),
+            (Some(Fault::WrongCrc), Framing::Rtu, &rtu_req[..]),
         ] {
+            let faults = FaultSet::of(fault.as_slice());
             let station = Station::new(drives::build(p.clone(), faults.clone()), faults, 1);
-            let mut t = SimTarget::new(station);
-            assert_eq!(
-                ask(&mut t, &req, Duration::from_millis(200)).expect("ask"),
-                want
-            );
+            let mut t = SimTarget::with_framing(station, framing, None);
+            let heard = ask(&mut t, req, Duration::from_millis(200)).expect("ask");
+            assert_eq!(heard, Heard::Modbus, "{fault:?} {framing:?}");
         }
-        assert!(answers_in_mbap(&[0, 1, 0, 0, 0, 6, 1, 3, 2, 0, 0], &req));
-        assert!(answers_in_mbap(&[0, 1, 0, 0, 0, 3, 1, 0x83, 2], &req));
-        assert!(!answers_in_mbap(&req, &req), "an echo");
+        let tcp = Framing::Tcp;
+        assert!(begins_an_answer(
+            &[0, 1, 0, 0, 0, 6, 1, 3, 2, 0, 0],
+            &req,
+            tcp
+        ));
+        assert!(begins_an_answer(&[0, 1, 0, 0, 0, 3, 1, 0x83, 2], &req, tcp));
+        assert!(!begins_an_answer(&req, &req, tcp), "an echo");
         assert!(
-            !answers_in_mbap(&[0, 2, 0, 0, 0, 6, 1, 3, 2, 0, 0], &req),
+            !begins_an_answer(&[0, 2, 0, 0, 0, 6, 1, 3, 2, 0, 0], &req, tcp),
             "another tid"
         );
         assert!(
-            !answers_in_mbap(&[0, 1, 0, 0, 0, 6, 1, 4, 2, 0, 0], &req),
+            !begins_an_answer(&[0, 1, 0, 0, 0, 6, 1, 4, 2, 0, 0], &req, tcp),
             "another fc"
+        );
+        let rtu = Framing::Rtu;
+        assert!(
+            begins_an_answer(&[1, 3, 2, 0, 0, 0x47, 0x44], &rtu_req, rtu),
+            "bad CRC"
+        );
+        assert!(!begins_an_answer(&rtu_req, &rtu_req, rtu), "an echo");
+        assert!(
+            !begins_an_answer(&[2, 3, 2, 0, 0, 0x47, 0x44], &rtu_req, rtu),
+            "another address"
         );
     }
 }

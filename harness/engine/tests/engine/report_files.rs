@@ -353,13 +353,14 @@ fn interrupted_and_killed_runs() {
         reports.case(case, result).expect("case");
     }
     reports.flush().expect("flush");
+    // Flushed, before the writer is gone: every case handed over is a complete line.
+    assert_eq!(line_ids(&dir.path().join("cases.jsonl.partial")), IDS[..3]);
     drop(reports);
+    assert_eq!(line_ids(&dir.path().join("cases.jsonl.partial")), IDS[..3]);
     for name in REPORT_FILES {
         assert!(!dir.path().join(name).exists(), "{name} must not exist");
         assert!(dir.path().join(format!("{name}.partial")).exists());
     }
-    // Flushed: every case handed over is a complete line.
-    assert_eq!(line_ids(&dir.path().join("cases.jsonl.partial")), IDS[..3]);
     let partial = read(&dir.path().join("index.json.partial"));
     let entries: Vec<serde_json::Value> = partial
         .lines()

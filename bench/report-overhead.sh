@@ -9,8 +9,8 @@
 #   --cases N    generated cases per run (default 100000)
 #   --rounds R   rounds (default 3); each round runs every binary without and with --report
 #   --profile P  the sim: profile (default mdrive)
-#   --dir D      where the report directory goes (default $TMPDIR or /tmp; its file system decides most of the
-#                cost: one file per case)
+#   --dir D      where the report directory goes (default $TMPDIR or /tmp; its file system decides part of the
+#                cost: a few streamed files, plus one file per case that did not PASS)
 #   --pin CORES  taskset core list; repeatable, each one a separate column set (default: "0" and "0,1")
 #
 # Prints a Markdown table on stdout and progress on stderr. Every run is bounded by `timeout`; the report

@@ -10,7 +10,8 @@
 #                 gives the median of the rounds and ratios of medians
 #   --core C      the core everything is pinned to (default 0)
 #   --cases N     cases of the memory run (default 1000000)
-#   --report-cases N  cases of the memory run that also writes --report (one file per case; default 100000)
+#   --report-cases N  cases of the memory run that also writes --report (every case in cases.jsonl, a file
+#                 per non-PASS case; default 100000)
 #   --out FILE    also write the Markdown table to FILE
 #   --smoke       for CI: debug build, 0.2 s per figure, 1 round, 2,000-case memory runs; checks that every
 #                 figure was produced (not its value) and exits non-zero otherwise. About 30 s after the build.
@@ -248,7 +249,7 @@ mem() {
 : >"$work/mem.tsv"
 if "$mh" run --help 2>/dev/null | grep -q -- '--generated'; then
   mem generated "$mh" run --target sim:generic --generated "$CASES" --seed 1 --no-progress
-  # Reports stream to disk: one JSON file per case, so this one is smaller (REPORT_CASES).
+  # Reports stream ~4 KB a case to disk (cases.jsonl and the other formats), so this one is smaller (REPORT_CASES).
   mem generated-report "$mh" run --target sim:generic --generated "$REPORT_CASES" --seed 1 --no-progress --report "$work/report"
   rm -rf "$work/report"
 else

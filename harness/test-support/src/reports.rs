@@ -12,6 +12,15 @@ use engine::{
 /// A finding that tries to inject markup into the HTML and XML reports.
 pub const INJECTED: &str = "register 0 is <script>alert(1)</script> & \"quoted\"";
 
+/// The files a finished `--report DIR` holds besides `cases/`.
+pub const REPORT_FILES: [&str; 5] = [
+    "index.json",
+    "cases.jsonl",
+    "junit.xml",
+    "report.html",
+    "session.pcapng",
+];
+
 /// Run info for a report test.
 pub fn run_info(transport: Transport, server_port: u16) -> RunInfo {
     RunInfo {

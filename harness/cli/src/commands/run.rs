@@ -96,7 +96,8 @@ pub struct RunArgs {
     /// Unit id (Modbus/TCP) or slave address (RTU); default: the profile's.
     #[arg(long)]
     unit: Option<u8>,
-    /// Write JSON, JUnit XML, HTML and pcapng reports into this directory.
+    /// Write reports into this directory: index.json, cases.jsonl (every case, one line each), cases/ (a
+    /// file per case that did not PASS), junit.xml, report.html, session.pcapng.
     #[arg(long)]
     report: Option<PathBuf>,
     /// Expectations file: known deviations of this target, each with a reason (TOML). Entries that match

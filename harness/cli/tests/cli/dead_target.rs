@@ -146,18 +146,26 @@ fn an_http_server_is_named_not_modbus() {
     stop.store(true, Ordering::SeqCst);
 }
 
-/// The per-case JSON files of a report directory, as text.
-fn case_files(dir: &Path) -> Vec<String> {
-    std::fs::read_dir(dir.join("cases"))
-        .expect("cases/")
-        .filter_map(Result::ok)
-        .filter_map(|e| std::fs::read_to_string(e.path()).ok())
+/// Every case's record in a report directory (the lines of `cases.jsonl`), as text; each line must parse,
+/// the last one too.
+fn case_records(dir: &Path) -> Vec<String> {
+    let text = std::fs::read_to_string(dir.join("cases.jsonl")).expect("cases.jsonl");
+    assert!(
+        text.ends_with('\n'),
+        "cases.jsonl: the last line is cut short"
+    );
+    text.lines()
+        .inspect(|l| {
+            serde_json::from_str::<serde_json::Value>(l)
+                .unwrap_or_else(|e| panic!("cases.jsonl: {e}: {l}"));
+        })
+        .map(str::to_string)
         .collect()
 }
 
 /// No `.partial` file is left anywhere in the report directory: every report was completed.
 fn assert_complete(dir: &Path) {
-    for f in ["index.json", "junit.xml", "report.html", "session.pcapng"] {
+    for f in test_support::reports::REPORT_FILES {
         assert!(dir.join(f).is_file(), "{f} missing in {}", dir.display());
     }
     let partial: Vec<_> = walk(dir)
@@ -240,7 +248,12 @@ fn a_drive_that_dies_is_one_fail_then_skipped_with_complete_reports() {
         "{ended}"
     );
     // The failing case carries the finding with the request's bytes.
-    let cases = case_files(&report);
+    let cases = case_records(&report);
+    // A line for every case, SKIPPED ones included, as in the index.
+    assert_eq!(
+        Some(cases.len()),
+        index(&report)["cases"].as_array().map(Vec::len)
+    );
     let fail = cases
         .iter()
         .find(|c| c.contains("the target stopped answering after this request: "))
@@ -481,7 +494,7 @@ fn a_late_answer_is_attributed_to_its_request_by_transaction_id() {
     // Only the late one FAILs: the later case that met its answer is not blamed for it.
     assert_eq!(summary["counts"]["FAIL"], 1, "{summary}");
     let late = summary["failing"][0].as_str().expect("the late case");
-    let cases = case_files(&report);
+    let cases = case_records(&report);
     let noted = cases
         .iter()
         .find(|c| c.contains("a late answer (transaction id"))

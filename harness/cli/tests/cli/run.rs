@@ -110,7 +110,7 @@ fn a_run_writes_every_report_and_exits_by_verdict() {
     );
     // The result line is a whole line: a shell prompt or the next command's output starts on its own.
     assert!(out.ends_with(")\n"), "no newline after the result: {out:?}");
-    for f in ["index.json", "junit.xml", "report.html", "session.pcapng"] {
+    for f in test_support::reports::REPORT_FILES {
         assert!(report.join(f).is_file(), "{f} missing");
     }
     let (code, out, _) = harness(&[
@@ -294,4 +294,23 @@ fn an_interrupted_run_leaves_a_complete_report() {
     for f in ["junit.xml", "report.html", "session.pcapng"] {
         assert!(dir.path().join("r").join(f).is_file(), "{f} missing");
     }
+    // cases.jsonl has a whole line for each of the 10 cases that ran, in the index's order.
+    let lines =
+        std::fs::read_to_string(dir.path().join("r/cases.jsonl")).expect("cases.jsonl written");
+    assert!(lines.ends_with('\n'), "the last line is cut short");
+    let ids: Vec<String> = lines
+        .lines()
+        .map(|l| {
+            let record: serde_json::Value = serde_json::from_str(l).expect("line parses");
+            record["result"]["id"].as_str().expect("id").to_string()
+        })
+        .collect();
+    let indexed: Vec<String> = index["cases"]
+        .as_array()
+        .expect("cases")
+        .iter()
+        .filter_map(|c| c["id"].as_str().map(str::to_string))
+        .collect();
+    assert_eq!(ids, indexed);
+    assert!(!dir.path().join("r/cases.jsonl.partial").exists());
 }

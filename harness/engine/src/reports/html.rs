@@ -5,7 +5,7 @@
 //!
 //! A page with a million cases is of no use in a browser: each verdict shows at most
 //! [`HTML_ROWS_PER_VERDICT`] cases in full; the page says how many more there are, and `index.json` and
-//! `cases/` hold them all.
+//! `cases.jsonl` hold them all (`cases/` the non-PASS ones).
 
 use std::fmt::Write as _;
 use std::fs::{self, File};
@@ -13,8 +13,8 @@ use std::io::{self, BufWriter, Write};
 use std::path::{Path, PathBuf};
 
 use super::{
-    HTML_FILE, INDEX_FILE, RunInfo, Sink, Summary, dir_label, iso8601_utc, partial_path, promote,
-    with_path,
+    CASE_LINES_FILE, CASES_DIR, HTML_FILE, INDEX_FILE, RunInfo, STREAM_BUFFER, Sink, Stream,
+    Summary, dir_label, iso8601_utc, promote, with_path,
 };
 use crate::targets::Received;
 use crate::{Case, CaseResult, Dir, StepResult, Verdict};
@@ -26,12 +26,11 @@ pub const HTML_ROWS_PER_VERDICT: usize = 20_000;
 /// Writes `report.html`.
 pub struct HtmlSink {
     dir: PathBuf,
-    partial: PathBuf,
+    /// The case rows that need a look (every verdict but PASS), `report.html.partial`.
+    rows: Stream,
+    /// The PASS rows, which go after all others, `report.html.pass.partial`.
+    passes: Stream,
     info: RunInfo,
-    out: Option<BufWriter<File>>,
-    /// The PASS rows, which go after all others.
-    passes: PathBuf,
-    pass_out: Option<BufWriter<File>>,
     shown: [usize; 6],
     omitted: [usize; 6],
 }
@@ -39,17 +38,11 @@ pub struct HtmlSink {
 impl HtmlSink {
     /// Start `report.html.partial` in `dir`.
     pub fn create(dir: &Path, info: &RunInfo) -> io::Result<Self> {
-        let partial = partial_path(dir, HTML_FILE);
-        let file = File::create(&partial).map_err(with_path("cannot create", &partial))?;
-        let passes = dir.join(format!("{HTML_FILE}.pass.partial"));
-        let pass_file = File::create(&passes).map_err(with_path("cannot create", &passes))?;
         Ok(Self {
             dir: dir.to_path_buf(),
-            partial,
+            rows: Stream::create(dir, HTML_FILE)?,
+            passes: Stream::create(dir, &format!("{HTML_FILE}.pass"))?,
             info: info.clone(),
-            out: Some(BufWriter::new(file)),
-            passes,
-            pass_out: Some(BufWriter::new(pass_file)),
             shown: [0; 6],
             omitted: [0; 6],
         })
@@ -58,19 +51,21 @@ impl HtmlSink {
     fn assemble(&self, summary: &Summary) -> io::Result<()> {
         let tmp = self.dir.join(format!("{HTML_FILE}.tmp"));
         let file = File::create(&tmp).map_err(with_path("cannot create", &tmp))?;
-        let mut out = BufWriter::new(file);
+        let mut out = BufWriter::with_capacity(STREAM_BUFFER, file);
         let write = |out: &mut BufWriter<File>| -> io::Result<()> {
             out.write_all(header(&self.info, summary).as_bytes())?;
-            io::copy(&mut File::open(&self.partial)?, out)?;
-            io::copy(&mut File::open(&self.passes)?, out)?;
+            io::copy(&mut File::open(self.rows.partial())?, out)?;
+            io::copy(&mut File::open(self.passes.partial())?, out)?;
             out.write_all(footer(&self.omitted).as_bytes())?;
             out.flush()
         };
         write(&mut out).map_err(with_path("cannot write", &tmp))?;
         drop(out);
         promote(&tmp, &self.dir.join(HTML_FILE))?;
-        fs::remove_file(&self.passes).map_err(with_path("cannot remove", &self.passes))?;
-        fs::remove_file(&self.partial).map_err(with_path("cannot remove", &self.partial))
+        for partial in [self.passes.partial(), self.rows.partial()] {
+            fs::remove_file(partial).map_err(with_path("cannot remove", partial))?;
+        }
+        Ok(())
     }
 }
 
@@ -83,44 +78,22 @@ impl Sink for HtmlSink {
         }
         self.shown[v] += 1;
         let row = case_row(case, result);
-        let (out, partial) = if result.verdict == Verdict::Pass {
-            (self.pass_out.as_mut(), &self.passes)
+        let rows = if result.verdict == Verdict::Pass {
+            &mut self.passes
         } else {
-            (self.out.as_mut(), &self.partial)
+            &mut self.rows
         };
-        let out = out.ok_or_else(|| {
-            io::Error::other(format!("{}: report already finished", partial.display()))
-        })?;
-        out.write_all(row.as_bytes())
-            .map_err(with_path("cannot write", partial))
+        rows.write(|out| out.write_all(row.as_bytes()))
     }
 
     fn flush(&mut self) -> io::Result<()> {
-        if let Some(out) = self.pass_out.as_mut() {
-            out.flush()
-                .map_err(with_path("cannot write", &self.passes))?;
-        }
-        match self.out.as_mut() {
-            Some(out) => out
-                .flush()
-                .map_err(with_path("cannot write", &self.partial)),
-            None => Ok(()),
-        }
+        self.passes.flush()?;
+        self.rows.flush()
     }
 
     fn finish(&mut self, summary: &Summary) -> io::Result<()> {
-        let mut out = self.out.take().ok_or_else(|| {
-            io::Error::other(format!(
-                "{}: report already finished",
-                self.partial.display()
-            ))
-        })?;
-        out.flush()
-            .map_err(with_path("cannot write", &self.partial))?;
-        drop(out);
-        if let Some(mut p) = self.pass_out.take() {
-            p.flush().map_err(with_path("cannot write", &self.passes))?;
-        }
+        self.passes.close()?;
+        self.rows.close()?;
         self.assemble(summary)
     }
 }
@@ -443,7 +416,7 @@ fn footer(omitted: &[usize; 6]) -> String {
         if *n > 0 {
             let _ = writeln!(
                 s,
-                "<p class=\"banner\">{n} more {v} case(s) are not shown (at most {HTML_ROWS_PER_VERDICT} per verdict); {INDEX_FILE} and cases/ have every case.</p>"
+                "<p class=\"banner\">{n} more {v} case(s) are not shown (at most {HTML_ROWS_PER_VERDICT} per verdict); {INDEX_FILE} and {CASE_LINES_FILE} have every case, {CASES_DIR}/ the non-PASS ones.</p>"
             );
         }
     }

@@ -1,30 +1,39 @@
-//! `index.json` (streamed: the case array grows line by line, the summary closes it) and `cases/*.json`.
+//! `index.json` (streamed: the case array grows line by line, the summary closes it), `cases.jsonl` (every
+//! case's full record, one line each, streamed) and `cases/*.json` (the same record, pretty, for the cases
+//! whose verdict is not PASS).
+//!
+//! One streamed file for every case instead of one file per case: opening, writing and closing a file per
+//! case was most of what `--report` cost (three system calls and a directory entry per case, ~75 % of the
+//! samples in the kernel on ext4; BENCHMARKS.md, issue 17 item 3). The files a user opens to debug a
+//! failure stay one per case.
 
-use std::fs::{self, File};
-use std::io::{self, BufWriter, Write};
+use std::fs;
+use std::io::{self, Write};
 use std::path::{Path, PathBuf};
 
 use serde::Serialize;
 
 use super::{
-    CASES_DIR, INDEX_FILE, RunInfo, Sink, Summary, case_file_name, partial_path, promote, with_path,
+    CASE_LINES_FILE, CASES_DIR, INDEX_FILE, RunInfo, Sink, Stream, Summary, case_file_name,
+    promote, with_path,
 };
-use crate::{Case, CaseResult};
+use crate::{Case, CaseResult, Verdict};
 
-/// Format tag at the top of `index.json`, bumped when its layout changes.
-pub const INDEX_FORMAT: &str = "modbus-harness-report/1";
+/// Format tag at the top of `index.json`, bumped when its layout changes (2: `file` only for the cases that
+/// have a case file, the non-PASS ones; every case's record is in `cases.jsonl`).
+pub const INDEX_FORMAT: &str = "modbus-harness-report/2";
 
-/// Writes `index.json` and one JSON file per case in `cases/`.
+/// Writes `index.json`, `cases.jsonl` and a JSON file in `cases/` per non-PASS case.
 pub struct JsonSink {
     dir: PathBuf,
-    partial: PathBuf,
-    out: Option<BufWriter<File>>,
+    index: Stream,
+    lines: Stream,
     first: bool,
     /// Reused for each case file: bounded by the largest case, not by the number of cases.
     scratch: Vec<u8>,
 }
 
-/// What a case file holds.
+/// What a case file holds, and what a line of `cases.jsonl` holds.
 #[derive(Serialize)]
 struct CaseFile<'a> {
     case: &'a Case,
@@ -41,47 +50,53 @@ struct IndexEntry<'a> {
     verdict_before_expectations: Option<&'static str>,
     reference: &'a str,
     duration_us: u64,
-    file: String,
+    /// The case file, for the cases that have one (not PASS).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    file: Option<String>,
 }
 
 impl JsonSink {
-    /// Start `index.json.partial` in `dir` with the run info; case files go to `dir/cases/`.
+    /// Start `index.json.partial` in `dir` with the run info, and `cases.jsonl.partial`; case files go to
+    /// `dir/cases/`.
     pub fn create(dir: &Path, info: &RunInfo) -> io::Result<Self> {
-        let partial = partial_path(dir, INDEX_FILE);
-        let file = File::create(&partial).map_err(with_path("cannot create", &partial))?;
-        let mut out = BufWriter::new(file);
+        let mut index = Stream::create(dir, INDEX_FILE)?;
         let run = serde_json::to_string(info).map_err(io::Error::other)?;
-        write!(
-            out,
-            "{{\"format\":\"{INDEX_FORMAT}\",\n\"run\":{run},\n\"cases\":["
-        )
-        .map_err(with_path("cannot write", &partial))?;
+        index.write(|out| {
+            write!(
+                out,
+                "{{\"format\":\"{INDEX_FORMAT}\",\n\"run\":{run},\n\"cases\":["
+            )
+        })?;
         Ok(Self {
             dir: dir.to_path_buf(),
-            partial,
-            out: Some(out),
+            index,
+            lines: Stream::create(dir, CASE_LINES_FILE)?,
             first: true,
             scratch: Vec::new(),
-        })
-    }
-
-    fn out(&mut self) -> io::Result<&mut BufWriter<File>> {
-        let partial = &self.partial;
-        self.out.as_mut().ok_or_else(|| {
-            io::Error::other(format!("{}: report already finished", partial.display()))
         })
     }
 }
 
 impl Sink for JsonSink {
     fn case(&mut self, case: &Case, result: &CaseResult) -> io::Result<()> {
-        let name = case_file_name(&result.id);
-        let path = self.dir.join(CASES_DIR).join(&name);
-        self.scratch.clear();
-        serde_json::to_writer_pretty(&mut self.scratch, &CaseFile { case, result })
-            .map_err(|e| io::Error::other(format!("cannot serialise case {}: {e}", result.id)))?;
-        self.scratch.push(b'\n');
-        fs::write(&path, &self.scratch).map_err(with_path("cannot write", &path))?;
+        let record = CaseFile { case, result };
+        let cannot = |e| io::Error::other(format!("cannot serialise case {}: {e}", result.id));
+        // Serialised straight into the stream's buffer: no copy per case.
+        self.lines.write(|out| {
+            serde_json::to_writer(&mut *out, &record).map_err(cannot)?;
+            out.write_all(b"\n")
+        })?;
+        let file = if result.verdict == Verdict::Pass {
+            None
+        } else {
+            let name = case_file_name(&result.id);
+            let path = self.dir.join(CASES_DIR).join(&name);
+            self.scratch.clear();
+            serde_json::to_writer_pretty(&mut self.scratch, &record).map_err(cannot)?;
+            self.scratch.push(b'\n');
+            fs::write(&path, &self.scratch).map_err(with_path("cannot write", &path))?;
+            Some(format!("{CASES_DIR}/{name}"))
+        };
 
         let entry = IndexEntry {
             id: &result.id,
@@ -90,35 +105,28 @@ impl Sink for JsonSink {
             verdict_before_expectations: result.expected_deviation.as_ref().map(|(v, _)| v.label()),
             reference: &case.reference,
             duration_us: result.duration.as_micros() as u64,
-            file: format!("{CASES_DIR}/{name}"),
+            file,
         };
         let sep = if self.first { "\n" } else { ",\n" };
         self.first = false;
-        let partial = self.partial.clone();
-        let out = self.out()?;
-        out.write_all(sep.as_bytes())
-            .and_then(|()| serde_json::to_writer(&mut *out, &entry).map_err(io::Error::other))
-            .map_err(with_path("cannot write", &partial))
+        self.index.write(|out| {
+            out.write_all(sep.as_bytes())?;
+            serde_json::to_writer(&mut *out, &entry).map_err(io::Error::other)
+        })
     }
 
     fn flush(&mut self) -> io::Result<()> {
-        let partial = self.partial.clone();
-        match self.out.as_mut() {
-            Some(out) => out.flush().map_err(with_path("cannot write", &partial)),
-            None => Ok(()),
-        }
+        let lines = self.lines.flush();
+        super::first_error([lines, self.index.flush()].into_iter())
     }
 
     fn finish(&mut self, summary: &Summary) -> io::Result<()> {
-        let partial = self.partial.clone();
-        let mut out = self.out.take().ok_or_else(|| {
-            io::Error::other(format!("{}: report already finished", partial.display()))
-        })?;
+        self.lines.close()?;
+        promote(self.lines.partial(), &self.dir.join(CASE_LINES_FILE))?;
         let summary = serde_json::to_string(&summary.to_json()).map_err(io::Error::other)?;
-        write!(out, "\n],\n\"summary\":{summary}\n}}\n")
-            .and_then(|()| out.flush())
-            .map_err(with_path("cannot write", &partial))?;
-        drop(out);
-        promote(&partial, &self.dir.join(INDEX_FILE))
+        self.index
+            .write(|out| write!(out, "\n],\n\"summary\":{summary}\n}}\n"))?;
+        self.index.close()?;
+        promote(self.index.partial(), &self.dir.join(INDEX_FILE))
     }
 }

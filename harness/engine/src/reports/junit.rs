@@ -78,7 +78,11 @@ impl JunitSink {
             dir: dir.to_path_buf(),
             partial,
             info: info.clone(),
-            xml: Some(Writer::new_with_indent(BufWriter::new(file), b' ', 2)),
+            xml: Some(Writer::new_with_indent(
+                BufWriter::with_capacity(super::STREAM_BUFFER, file),
+                b' ',
+                2,
+            )),
             tests: 0,
             failures: 0,
             skipped: 0,
@@ -132,7 +136,11 @@ impl JunitSink {
     fn assemble(&self, summary: &Summary) -> io::Result<()> {
         let tmp = self.dir.join(format!("{JUNIT_FILE}.tmp"));
         let file = File::create(&tmp).map_err(with_path("cannot create", &tmp))?;
-        let mut xml = Writer::new_with_indent(BufWriter::new(file), b' ', 2);
+        let mut xml = Writer::new_with_indent(
+            BufWriter::with_capacity(super::STREAM_BUFFER, file),
+            b' ',
+            2,
+        );
         let tests = self.tests.to_string();
         let failures = self.failures.to_string();
         let skipped = self.skipped.to_string();

@@ -1,5 +1,6 @@
-//! Run reports, written as the run goes: JSON index and per-case files, JUnit XML, a self-contained HTML page,
-//! a pcapng of the session, and the terminal summary printed last.
+//! Run reports, written as the run goes: JSON index, every case's record in one JSON-lines file (and a file of
+//! its own for each case that did not PASS), JUnit XML, a self-contained HTML page, a pcapng of the session,
+//! and the terminal summary printed last.
 //!
 //! Memory does not grow with the number of cases: every case is written out when it completes (on the
 //! `report-writer` thread, at most a few batches behind the run), and only counters and a capped list of
@@ -9,8 +10,9 @@
 //!
 //! | file | content |
 //! |---|---|
-//! | `index.json` | run info, one entry per case (id, title, verdict, reference, case file), the summary |
-//! | `cases/<name>.json` | the case (requirement, reference, level, tags, steps) and its full [`CaseResult`] |
+//! | `index.json` | run info, one entry per case (id, title, verdict, reference, case file if any), the summary |
+//! | `cases.jsonl` | every case, one line each in run order: `{"case":…,"result":…}`, the case (requirement, reference, level, tags, steps) and its full [`CaseResult`] |
+//! | `cases/<name>.json` | the same record, pretty-printed, for each case whose verdict is not PASS (what one opens to debug a failure) |
 //! | `junit.xml` | one `<testsuite>`, one `<testcase>` per case |
 //! | `report.html` | one self-contained page (inline CSS and JS), filterable by verdict |
 //! | `session.pcapng` | every [`WireEvent`] on a synthetic TCP connection per case (see [`pcap_decode_args`]) |
@@ -18,13 +20,16 @@
 //! # Interrupted runs
 //!
 //! While the run goes, the streamed files carry a `.partial` suffix: `index.json.partial` (a prefix of
-//! `index.json`, one case entry per line), `session.pcapng.partial` (readable by Wireshark up to the last
-//! complete packet), `junit.xml.partial` and `report.html.partial` (the `<testcase>` elements and the HTML
-//! case rows, without header and footer). [`Reports::finish`] (also called with `interrupted = true` when a
-//! run is stopped) completes each file and renames it to its final name, so a file without a suffix is
-//! always complete. A process that is killed leaves the `.partial` files (and at worst a `.tmp` file of an
-//! assembly cut short), never a truncated `index.json`, `junit.xml`, `report.html` or `session.pcapng`.
-//! Case files in `cases/` are each complete when their entry appears in the index.
+//! `index.json`, one case entry per line), `cases.jsonl.partial` (whole lines up to the last flush),
+//! `session.pcapng.partial` (readable by Wireshark up to the last complete packet), `junit.xml.partial` and
+//! `report.html.partial` (the `<testcase>` elements and the HTML case rows, without header and footer).
+//! [`Reports::finish`] (also called with `interrupted = true` when a run is stopped) completes each file and
+//! renames it to its final name, so a file without a suffix is always complete. A process that is killed
+//! leaves the `.partial` files (and at worst a `.tmp` file of an assembly cut short), never a truncated
+//! `index.json`, `cases.jsonl`, `junit.xml`, `report.html` or `session.pcapng`.
+//! Case files in `cases/` are each complete when their entry appears in the index. A run that ends early
+//! (an error, Ctrl-C, a target that stopped answering) is finished like any other: its `cases.jsonl` has
+//! one complete line per case that ran.
 
 mod html;
 mod json;
@@ -35,8 +40,8 @@ mod writer;
 
 use std::collections::BTreeMap;
 use std::fmt::Write as _;
-use std::fs;
-use std::io;
+use std::fs::{self, File};
+use std::io::{self, BufWriter, Write as _};
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
@@ -55,7 +60,9 @@ pub use pcap::{CLIENT_PORT_BASE, CLIENT_PORTS, PcapSink};
 
 /// The run index.
 pub const INDEX_FILE: &str = "index.json";
-/// The folder of per-case JSON files.
+/// Every case's full record, one JSON object per line, in run order.
+pub const CASE_LINES_FILE: &str = "cases.jsonl";
+/// The folder of the case files of the cases whose verdict is not PASS.
 pub const CASES_DIR: &str = "cases";
 /// The JUnit XML file.
 pub const JUNIT_FILE: &str = "junit.xml";
@@ -63,6 +70,9 @@ pub const JUNIT_FILE: &str = "junit.xml";
 pub const HTML_FILE: &str = "report.html";
 /// The pcapng capture.
 pub const PCAP_FILE: &str = "session.pcapng";
+/// The buffer of each streamed file: a write system call per 64 KiB, not per case (a case's records in all
+/// formats are a few KiB).
+pub(crate) const STREAM_BUFFER: usize = 64 * 1024;
 /// Suffix of a streamed file whose run has not finished.
 pub const PARTIAL_SUFFIX: &str = ".partial";
 
@@ -378,7 +388,13 @@ fn first_error(results: impl Iterator<Item = io::Result<()>>) -> io::Result<()> 
 
 /// Remove the final and partial files of an earlier run, and its case files, so nothing stale remains.
 fn clean_earlier_run(dir: &Path) -> io::Result<()> {
-    for name in [INDEX_FILE, JUNIT_FILE, HTML_FILE, PCAP_FILE] {
+    for name in [
+        INDEX_FILE,
+        CASE_LINES_FILE,
+        JUNIT_FILE,
+        HTML_FILE,
+        PCAP_FILE,
+    ] {
         for suffix in ["", PARTIAL_SUFFIX, ".tmp"] {
             remove_if_exists(&dir.join(format!("{name}{suffix}")))?;
         }
@@ -407,6 +423,61 @@ pub(crate) fn with_path(what: &'static str, path: &Path) -> impl FnOnce(io::Erro
     move |e| io::Error::new(e.kind(), format!("{what} {}: {e}", path.display()))
 }
 
+/// A streamed file: written through a [`STREAM_BUFFER`] to its `.partial` name; its sink completes it and
+/// gives it its final name.
+pub(crate) struct Stream {
+    partial: PathBuf,
+    out: Option<BufWriter<File>>,
+}
+
+impl Stream {
+    /// Create `dir/name.partial`.
+    pub(crate) fn create(dir: &Path, name: &str) -> io::Result<Self> {
+        let partial = partial_path(dir, name);
+        let file = File::create(&partial).map_err(with_path("cannot create", &partial))?;
+        Ok(Self {
+            partial,
+            out: Some(BufWriter::with_capacity(STREAM_BUFFER, file)),
+        })
+    }
+
+    /// The `.partial` file.
+    pub(crate) fn partial(&self) -> &Path {
+        &self.partial
+    }
+
+    /// Write with `f`; an error names the file, and so does a write after [`Stream::close`].
+    pub(crate) fn write(
+        &mut self,
+        f: impl FnOnce(&mut BufWriter<File>) -> io::Result<()>,
+    ) -> io::Result<()> {
+        match self.out.as_mut() {
+            Some(out) => f(out).map_err(with_path("cannot write", &self.partial)),
+            None => Err(io::Error::other(format!(
+                "{}: report already finished",
+                self.partial.display()
+            ))),
+        }
+    }
+
+    /// Push the buffered bytes to the file (nothing once closed).
+    pub(crate) fn flush(&mut self) -> io::Result<()> {
+        match self.out.as_mut() {
+            Some(out) => out
+                .flush()
+                .map_err(with_path("cannot write", &self.partial)),
+            None => Ok(()),
+        }
+    }
+
+    /// Flush and close the file; a second call is an error.
+    pub(crate) fn close(&mut self) -> io::Result<()> {
+        self.write(|out| out.flush())?;
+        self.out = None;
+        Ok(())
+    }
+}
+
 /// `path` with `.partial` appended.
 pub(crate) fn partial_path(dir: &Path, name: &str) -> PathBuf {
     dir.join(format!("{name}{PARTIAL_SUFFIX}"))
@@ -422,7 +493,7 @@ pub(crate) fn promote(from: &Path, to: &Path) -> io::Result<()> {
     })
 }
 
-/// The file name (in `cases/`) of a case: the id with `/` as `__`; ids with other characters, `..`,
+/// The file name (in `cases/`) of a case that did not PASS: the id with `/` as `__`; ids with other characters, `..`,
 /// or more than 120 characters get a readable prefix and `~` plus a hash of the id, so names never collide.
 pub fn case_file_name(id: &str) -> String {
     let plain = !id.is_empty()
@@ -574,7 +645,7 @@ pub fn terminal_summary(summary: &Summary, info: &RunInfo) -> String {
     if let Some(dir) = &info.report_dir {
         let _ = writeln!(
             s,
-            "reports: {} ({INDEX_FILE}, {JUNIT_FILE}, {HTML_FILE}, {PCAP_FILE}, {CASES_DIR}/)",
+            "reports: {} ({INDEX_FILE}, {JUNIT_FILE}, {HTML_FILE}, {PCAP_FILE}, {CASE_LINES_FILE}, {CASES_DIR}/ for the non-PASS cases)",
             dir.display()
         );
         let _ = writeln!(

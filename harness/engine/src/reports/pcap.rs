@@ -101,8 +101,11 @@ impl PcapSink {
             ],
             ..Default::default()
         };
-        let mut pcap = PcapNgWriter::with_section_header(BufWriter::new(file), section)
-            .map_err(pcap_error(&partial))?;
+        let mut pcap = PcapNgWriter::with_section_header(
+            BufWriter::with_capacity(super::STREAM_BUFFER, file),
+            section,
+        )
+        .map_err(pcap_error(&partial))?;
         let interface = InterfaceDescriptionBlock {
             linktype: DataLink::ETHERNET,
             snaplen: 65_535,

@@ -1,6 +1,6 @@
 //! The report writer thread: [`super::Reports`] hands each completed (case, result) to it in small batches
-//! over a bounded channel, so that serialising and writing the files (one per case, mostly file-system
-//! time) runs beside the run loop instead of inside it.
+//! over a bounded channel, so that serialising and writing the files (mostly serialising, since every case
+//! but the non-PASS ones goes to streamed files only) runs beside the run loop instead of inside it.
 //!
 //! Memory stays flat: at most [`BATCH`] cases are being collected, one batch waits in the channel, one is
 //! being written and one written batch waits to be dropped; when the writer falls behind, handing over the

@@ -1,5 +1,5 @@
-//! The report files: index.json, cases/, junit.xml, report.html, session.pcapng (checked with tshark when
-//! installed), the terminal summary, and what an interrupted or killed run leaves.
+//! The report files: index.json, cases.jsonl, cases/, junit.xml, report.html, session.pcapng (checked with
+//! tshark when installed), the terminal summary, and what an interrupted or killed run leaves.
 
 use std::path::Path;
 use std::process::Command;
@@ -11,7 +11,7 @@ use engine::reports::{
     terminal_summary,
 };
 use quick_xml::events::Event;
-use test_support::reports::{IDS, INJECTED, run_info, sample};
+use test_support::reports::{IDS, INJECTED, REPORT_FILES, run_info, sample};
 
 /// Write the sample run for `transport` into `dir` and return its summary.
 fn write_sample(dir: &Path, transport: Transport, port: u16) -> Summary {
@@ -29,19 +29,55 @@ fn read(path: &Path) -> String {
     std::fs::read_to_string(path).unwrap_or_else(|e| panic!("{}: {e}", path.display()))
 }
 
+/// The lines of a JSON-lines file, each parsed; the file must end with a complete line.
+fn json_lines(path: &Path) -> Vec<serde_json::Value> {
+    let text = read(path);
+    assert!(
+        text.is_empty() || text.ends_with('\n'),
+        "{}: the last line is cut short",
+        path.display()
+    );
+    text.lines()
+        .map(|l| serde_json::from_str(l).unwrap_or_else(|e| panic!("line {l:?}: {e}")))
+        .collect()
+}
+
+/// The case ids of the lines of a `cases.jsonl`, in order.
+fn line_ids(path: &Path) -> Vec<String> {
+    json_lines(path)
+        .iter()
+        .map(|l| l["result"]["id"].as_str().expect("id").to_string())
+        .collect()
+}
+
+/// The names in `dir/cases/`, sorted.
+fn case_file_names(dir: &Path) -> Vec<String> {
+    let mut names: Vec<String> = std::fs::read_dir(dir.join("cases"))
+        .expect("cases/")
+        .map(|e| e.expect("entry").file_name().to_string_lossy().into_owned())
+        .collect();
+    names.sort();
+    names
+}
+
 #[test]
 fn index_json_has_every_case_and_the_counts() {
     let dir = tempfile::tempdir().expect("tempdir");
     write_sample(dir.path(), Transport::Tcp, 502);
     let index: serde_json::Value =
         serde_json::from_str(&read(&dir.path().join("index.json"))).expect("index.json parses");
-    assert_eq!(index["format"], "modbus-harness-report/1");
+    assert_eq!(index["format"], "modbus-harness-report/2");
     assert_eq!(index["run"]["profile"], "mdrive");
     assert_eq!(index["run"]["transport"], "tcp");
     let cases = index["cases"].as_array().expect("cases array");
     assert_eq!(cases.len(), IDS.len());
     for (entry, id) in cases.iter().zip(IDS) {
         assert_eq!(entry["id"], id);
+        // A case file is named for the cases that have one, the non-PASS ones.
+        if entry["verdict"] == "PASS" {
+            assert!(entry.get("file").is_none(), "{entry}");
+            continue;
+        }
         let file = entry["file"].as_str().expect("file name");
         assert_eq!(file, format!("cases/{}", case_file_name(id)));
         let case: serde_json::Value =
@@ -76,6 +112,33 @@ fn index_json_has_every_case_and_the_counts() {
             "left over: {name}"
         );
     }
+}
+
+#[test]
+fn cases_jsonl_has_every_case_and_cases_dir_the_non_pass_ones() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    write_sample(dir.path(), Transport::Tcp, 502);
+    let sample = sample(Transport::Tcp);
+    let lines = json_lines(&dir.path().join("cases.jsonl"));
+    // One line per case, in run order, each the whole record: the case and its full result.
+    assert_eq!(lines.len(), sample.len());
+    let mut non_pass = Vec::new();
+    for (line, (case, result)) in lines.iter().zip(&sample) {
+        let want = serde_json::json!({ "case": case, "result": result });
+        assert_eq!(line, &want, "the line of {}", result.id);
+        if result.verdict != Verdict::Pass {
+            // The case file holds the same record.
+            let file = dir.path().join("cases").join(case_file_name(&result.id));
+            let file: serde_json::Value =
+                serde_json::from_str(&read(&file)).expect("case file parses");
+            assert_eq!(file, want, "the case file of {}", result.id);
+            non_pass.push(case_file_name(&result.id));
+        }
+    }
+    // `cases/` holds exactly the non-PASS cases.
+    non_pass.sort();
+    assert_eq!(non_pass.len(), 4, "the sample has 2 PASS and 4 others");
+    assert_eq!(case_file_names(dir.path()), non_pass);
 }
 
 /// Attributes of an XML start tag as (name, unescaped value).
@@ -290,8 +353,11 @@ fn interrupted_and_killed_runs() {
         reports.case(case, result).expect("case");
     }
     reports.flush().expect("flush");
+    // Flushed, before the writer is gone: every case handed over is a complete line.
+    assert_eq!(line_ids(&dir.path().join("cases.jsonl.partial")), IDS[..3]);
     drop(reports);
-    for name in ["index.json", "junit.xml", "report.html", "session.pcapng"] {
+    assert_eq!(line_ids(&dir.path().join("cases.jsonl.partial")), IDS[..3]);
+    for name in REPORT_FILES {
         assert!(!dir.path().join(name).exists(), "{name} must not exist");
         assert!(dir.path().join(format!("{name}.partial")).exists());
     }
@@ -323,22 +389,24 @@ fn interrupted_and_killed_runs() {
     assert_eq!(index["summary"]["interrupted"], true);
     assert_eq!(index["cases"].as_array().map(Vec::len), Some(2));
     assert!(read(&dir.path().join("report.html")).contains("interrupted"));
-    // Case files of the killed run were removed when the new run started.
-    let case_files = std::fs::read_dir(dir.path().join("cases"))
-        .expect("cases")
-        .count();
-    assert_eq!(case_files, 2);
+    // The interrupted run's cases.jsonl is complete: a line for each case that ran, nothing of the killed run.
+    assert_eq!(line_ids(&dir.path().join("cases.jsonl")), IDS[..2]);
+    assert!(!dir.path().join("cases.jsonl.partial").exists());
+    // Case files of the killed run (IDS[1] and IDS[2]) were removed when the new run started: only the
+    // FAIL of the two cases that ran has one.
+    assert_eq!(case_file_names(dir.path()), [case_file_name(IDS[1])]);
 }
 
 #[test]
 fn an_error_of_the_writer_thread_is_returned_and_finish_joins_it() {
-    // The case files cannot be written once `cases/` is gone: the writer thread stops at the first error,
-    // and a later `case`, `flush` or `finish` returns it, naming the file.
+    // The case file of a FAIL cannot be written once `cases/` is gone: the writer thread stops at the first
+    // error, and a later `case`, `flush` or `finish` returns it, naming the file.
     let dir = tempfile::tempdir().expect("tempdir");
     let info = run_info(Transport::Tcp, 502);
     let mut reports = Reports::create(dir.path(), &info).expect("create");
     std::fs::remove_dir_all(dir.path().join("cases")).expect("remove cases/");
-    let (case, result) = test_support::reports::numbered_pass(Transport::Tcp, 1);
+    let (case, mut result) = test_support::reports::numbered_pass(Transport::Tcp, 1);
+    result.verdict = Verdict::Fail;
     let mut err = None;
     for _ in 0..100 {
         if let Err(e) = reports.case(&case, &result) {
@@ -357,6 +425,14 @@ fn an_error_of_the_writer_thread_is_returned_and_finish_joins_it() {
     assert!(reports.flush().is_err());
     let summary = reports.summary(false, Duration::ZERO);
     assert!(reports.finish(&summary).is_err());
+    // What the stopped writer had taken is in the files, whole lines only.
+    let lines = json_lines(&dir.path().join("cases.jsonl.partial"));
+    assert!(!lines.is_empty());
+    assert!(
+        lines
+            .iter()
+            .all(|l| l["result"]["id"] == result.id.as_str())
+    );
 }
 
 #[test]

@@ -1,5 +1,6 @@
 //! The report layer keeps no per-case data: 100,000 cases go through `Reports` while the live heap stays
-//! flat and the summary's failing list stays capped. (No timing is measured.)
+//! flat and the summary's failing list stays capped; the files still hold every case (one line each in
+//! `cases.jsonl`, a case file for each FAIL). (No timing is measured.)
 
 use std::sync::atomic::Ordering;
 use std::time::Duration;
@@ -65,4 +66,25 @@ fn memory_does_not_grow_with_the_number_of_cases() {
     assert_eq!(index["summary"]["counts"]["FAIL"], CASES / FAIL_EVERY);
     let junit = std::fs::read_to_string(dir.path().join("junit.xml")).expect("junit.xml");
     assert_eq!(junit.matches("<testcase ").count(), CASES);
+    // cases.jsonl has a line per case, in order; cases/ a file per FAIL only.
+    let lines = std::io::BufReader::new(
+        std::fs::File::open(dir.path().join("cases.jsonl")).expect("cases.jsonl"),
+    );
+    let mut n = 0;
+    for line in std::io::BufRead::lines(lines) {
+        let record: serde_json::Value =
+            serde_json::from_str(&line.expect("read line")).expect("line parses");
+        let want = if n % FAIL_EVERY == 0 { "FAIL" } else { "PASS" };
+        assert_eq!(record["result"]["verdict"], want, "line {n}: {record}");
+        assert_eq!(
+            record["result"]["id"],
+            numbered_pass(Transport::Tcp, n).1.id
+        );
+        n += 1;
+    }
+    assert_eq!(n, CASES);
+    let case_files = std::fs::read_dir(dir.path().join("cases"))
+        .expect("cases/")
+        .count();
+    assert_eq!(case_files, CASES / FAIL_EVERY);
 }

@@ -53,7 +53,7 @@ use crate::targets::Received;
 use crate::{Case, CaseResult, Dir, Verdict, WireEvent};
 use codec::hex_spaced;
 
-pub use html::{HTML_ROWS_PER_VERDICT, HtmlSink, escape_html};
+pub use html::{HTML_PASS_ROWS, HTML_ROWS_PER_VERDICT, HtmlSink, escape_html};
 pub use json::{INDEX_FORMAT, JsonSink};
 pub use junit::{JunitSink, junit_names};
 pub use pcap::{CLIENT_PORT_BASE, CLIENT_PORTS, PcapSink};

@@ -304,6 +304,40 @@ fn html_has_every_case_and_escapes_findings() {
     assert_eq!(html.matches("<details class=\"case").count(), 6);
 }
 
+/// A large run's page stays bounded: PASS rows stop at `HTML_PASS_ROWS` with a banner that counts the rest,
+/// every other verdict is shown, and it comes before the PASS rows.
+#[test]
+fn html_shows_every_failure_first_and_a_bounded_number_of_passes() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let mut reports = Reports::create(dir.path(), &run_info(Transport::Tcp, 502)).expect("create");
+    let extra = 250;
+    let total = reports::HTML_PASS_ROWS + extra;
+    for n in 0..total {
+        let (case, mut result) = test_support::reports::numbered_pass(Transport::Tcp, n);
+        if n % 100 == 99 {
+            result.verdict = Verdict::Fail;
+        }
+        reports.case(&case, &result).expect("write case");
+    }
+    let summary = reports.summary(false, Duration::from_secs(1));
+    reports.finish(&summary).expect("finish");
+    let html = read(&dir.path().join("report.html"));
+    let fails = total / 100;
+    let passes = html.matches("<details class=\"case v-PASS\"").count();
+    assert_eq!(passes, reports::HTML_PASS_ROWS);
+    assert_eq!(
+        html.matches("<details class=\"case v-FAIL\"").count(),
+        fails
+    );
+    let banner = format!("{} more PASS case(s) are not shown", total - fails - passes);
+    assert!(html.contains(&banner), "no banner {banner:?}");
+    let last_fail = html.rfind("v-FAIL\"").expect("a FAIL row");
+    let first_pass = html
+        .find("<details class=\"case v-PASS\"")
+        .expect("a PASS row");
+    assert!(last_fail < first_pass, "a FAIL row after a PASS row");
+}
+
 #[test]
 fn terminal_summary_ends_with_the_result_line() {
     let dir = tempfile::tempdir().expect("tempdir");

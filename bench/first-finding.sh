@@ -104,8 +104,10 @@ def on_signal(sig, _frame):
 signal.signal(signal.SIGINT, on_signal)
 signal.signal(signal.SIGTERM, on_signal)
 
+# answer-other-unit: on Modbus/TCP the generic and MDrive profiles answer every unit id (unit_ids 0-255), so
+# the fault changes nothing there; on RTU a frame for another address must go unanswered.
 RTU_ONLY = {"wrong-crc", "broadcast-answered", "counters-frozen", "crc-unchecked", "event-log-oldest-first",
-            "listen-only-ignored"}
+            "listen-only-ignored", "answer-other-unit"}
 MDRIVE = {"write-only-readable", "mnemonic-params-unchecked", "half-register-widened", "word-order",
           "undeclared-function-served"}
 

@@ -510,16 +510,32 @@ impl Runner {
     }
 
     /// A silence may be proven by half-closing the connection (see `prove_silence_by_close`): Modbus/TCP to a
-    /// real target, sentinels not turned off, the reference keeps the connection, the case reconnects next,
-    /// and no sentinel can prove it.
-    fn close_may_prove(&self, frames: &[Framed], reference_closed: bool) -> bool {
+    /// real target, proofs not turned off, the reference keeps the connection, the case reconnects next.
+    fn close_may_prove(&self, reference_closed: bool) -> bool {
         self.cfg.timing.sentinel
             && self.reconnect_next
             && !self.cfg.is_sim
             && !reference_closed
             && self.target.framing() == Framing::Tcp
-            && !frames.is_empty()
-            && !self.sentinel_may_prove(frames, reference_closed)
+    }
+
+    /// A silence that is due, settled by a proof where one applies: a sentinel first, else the target's
+    /// close; `None` where neither applies (or the target keeps a half-closed connection: then the window
+    /// was listened out inside, and its observation is returned).
+    fn prove_silence_if_possible(
+        &mut self,
+        frames: &[Framed],
+        reference_closed: bool,
+        findings: &mut Vec<Finding>,
+        wire: &mut Vec<WireEvent>,
+    ) -> Result<Option<Received>, TargetError> {
+        if self.sentinel_may_prove(frames, reference_closed) {
+            return self.prove_silence(frames, findings, wire).map(Some);
+        }
+        if self.close_may_prove(reference_closed) {
+            return self.prove_silence_by_close();
+        }
+        Ok(None)
     }
 
     /// Silence proven by a sentinel (issue 17): the known-good read is sent right behind the request that
@@ -1096,22 +1112,20 @@ impl Runner {
                 self.cfg.timing.timeout
             };
             let start = self.target.now();
-            let by_close = expected.is_empty() && self.close_may_prove(frames, reference_closed);
-            let mut got =
-                if expected.is_empty() && self.sentinel_may_prove(frames, reference_closed) {
-                    self.prove_silence(frames, &mut findings, wire)?
-                } else if let Some(got) = by_close
-                    .then(|| self.prove_silence_by_close())
-                    .transpose()?
-                    .flatten()
-                {
-                    got
-                } else {
+            let proven = if expected.is_empty() {
+                self.prove_silence_if_possible(frames, reference_closed, &mut findings, wire)?
+            } else {
+                None
+            };
+            let mut got = match proven {
+                Some(got) => got,
+                None => {
                     if expected.is_empty() && !self.cfg.is_sim && framing == Framing::Tcp {
                         self.silences.listened += 1;
                     }
                     self.target.recv(wait)?
-                };
+                }
+            };
             if framing == Framing::Tcp {
                 got = self.skip_late(got, frames, (start, wait), &mut findings, wire)?;
             }

@@ -800,10 +800,11 @@ fn a_default_fuzz_and_probe_leave_every_preset_drive_as_found() {
 /// `fuzz --allow-writes` against a preset drive: the writes happen (the drive's journal shows values
 /// changed), the campaign judges them against a reference that took the values the drive was found with
 /// (no false FAIL: a fresh reference refuses or accepts writes differently when another parameter is off
-/// its factory value), and the drive is left as found, journal state `restored`.
+/// its factory value), and the drive is left as found, journal state `restored`. The generic drive too: it
+/// declares FC 0x16 (mask write) and FC 0x07, whose generated cases write (a mask, a coil pattern first).
 #[test]
 fn fuzz_with_writes_judges_against_the_drive_as_found_and_leaves_it_so() {
-    let threads: Vec<_> = ["mdrive", "lmd"]
+    let threads: Vec<_> = ["mdrive", "lmd", "generic"]
         .into_iter()
         .map(|name| {
             std::thread::spawn(move || {

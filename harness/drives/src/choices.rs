@@ -38,6 +38,12 @@ pub mod ids {
     pub const SDO_LENGTH_ERROR: &str = "sd2x-sdo-length-error";
     /// FC 0x42 response field "bytes written": the 4 mnemonic characters, or the parameter bytes.
     pub const FC42_BYTES_WRITTEN: &str = "fc42-bytes-written";
+    /// FC 11's run indicator: ON or OFF.
+    pub const RUN_INDICATOR_STATUS: &str = "run-indicator-status";
+    /// FC 0B after 08/0A: whether the clearing request counted as a completion.
+    pub const EVENT_COUNTER_CLEAR_COUNTED: &str = "event-counter-clear-counted";
+    /// What the FC 08 bus message, slave message and no-response counters count.
+    pub const DIAGNOSTIC_COUNTER_SEMANTICS: &str = "diagnostic-counter-semantics";
 
     /// Every id above.
     pub const ALL: &[&str] = &[
@@ -52,6 +58,9 @@ pub mod ids {
         MNEMONIC_BAD_PARAMETER,
         SDO_LENGTH_ERROR,
         FC42_BYTES_WRITTEN,
+        DIAGNOSTIC_COUNTER_SEMANTICS,
+        RUN_INDICATOR_STATUS,
+        EVENT_COUNTER_CLEAR_COUNTED,
     ];
 }
 
@@ -317,8 +326,6 @@ pub fn simulated(f: &Freedom, value: &FreedomValue) -> bool {
     match f.kind {
         FreedomKind::Optional | FreedomKind::Access | FreedomKind::WordOrder => true,
         FreedomKind::ServedExtra => value_matches(value, "served"),
-        // Refusals are simulated; accepting half a register is not.
-        _ if f.id == ids::PARTIAL_REGISTER_WRITE => Choices::exception_value(value).is_some(),
         _ => ids::ALL.contains(&f.id.as_str()),
     }
 }

@@ -55,6 +55,72 @@ pub struct Counters {
     /// Frames lost to a character overrun (0x12): here, more than 256 bytes without a frame boundary, more than
     /// the receive buffer stores.
     pub overrun: u16,
+    /// Not an FC 08 counter: frames with a good CRC for another slave (what a drive whose no-response count
+    /// includes them adds; the freedom `diagnostic-counter-semantics`).
+    pub other_slave: u16,
+    /// Not an FC 08 counter: responses sent (normal and exception), what a drive whose slave message count
+    /// is "messages sent by the system" (SD2x manual) reports.
+    pub responses_sent: u16,
+}
+
+/// The readings of the FC 08 counters the sources admit (the freedom `diagnostic-counter-semantics`), by
+/// the name its data gives each: what each counts, from the counters a station keeps.
+pub mod counter_semantics {
+    use codec::codes::diag;
+
+    use super::Counters;
+
+    /// The reference: the serial line guide's and the application protocol's common reading.
+    pub const STANDARD: &str = "standard";
+    /// 0x0B counts bad-CRC frames too (application protocol 6.8.1: every message "detected").
+    pub const BUS_COUNT_INCLUDES_BAD_CRC: &str = "bus-count-includes-bad-crc";
+    /// 0x0F counts frames for other slaves too (serial line guide 6.1.1: messages "received").
+    pub const NO_RESPONSE_INCLUDES_OTHER_SLAVES: &str = "no-response-includes-other-slaves";
+    /// 0x0E counts the responses sent before this one (SD2x manual: messages "sent by the system").
+    pub const SLAVE_COUNT_IS_RESPONSES_SENT: &str = "slave-count-is-responses-sent";
+    /// 0x0B and 0x0E do not count the request that reads them.
+    pub const EXCLUDES_CURRENT_REQUEST: &str = "excludes-current-request";
+
+    /// Every reading but the reference's.
+    pub const OTHERS: &[&str] = &[
+        BUS_COUNT_INCLUDES_BAD_CRC,
+        NO_RESPONSE_INCLUDES_OTHER_SLAVES,
+        SLAVE_COUNT_IS_RESPONSES_SENT,
+        EXCLUDES_CURRENT_REQUEST,
+    ];
+
+    /// The value sub-function `sub` reports under the reading `semantics`, read by the request being
+    /// answered (counted already in `c` as the standard reading counts it). `None`: not a counter the
+    /// reading is about, or an unknown reading.
+    pub fn value(semantics: &str, sub: u16, c: &Counters) -> Option<u16> {
+        Some(match (semantics, sub) {
+            (STANDARD, diag::BUS_MESSAGE_COUNT) => c.bus_message,
+            (STANDARD, diag::SERVER_MESSAGE_COUNT) => c.slave_message,
+            (STANDARD, diag::SERVER_NO_RESPONSE_COUNT) => c.no_response,
+            (BUS_COUNT_INCLUDES_BAD_CRC, diag::BUS_MESSAGE_COUNT) => {
+                c.bus_message.wrapping_add(c.crc_error)
+            }
+            (NO_RESPONSE_INCLUDES_OTHER_SLAVES, diag::SERVER_NO_RESPONSE_COUNT) => {
+                c.no_response.wrapping_add(c.other_slave)
+            }
+            (SLAVE_COUNT_IS_RESPONSES_SENT, diag::SERVER_MESSAGE_COUNT) => c.responses_sent,
+            (EXCLUDES_CURRENT_REQUEST, diag::BUS_MESSAGE_COUNT) => c.bus_message.wrapping_sub(1),
+            (EXCLUDES_CURRENT_REQUEST, diag::SERVER_MESSAGE_COUNT) => {
+                c.slave_message.wrapping_sub(1)
+            }
+            _ => return None,
+        })
+    }
+
+    /// The other readings' values of sub-function `sub` where they differ from the reference's.
+    pub fn alternatives(sub: u16, c: &Counters) -> Vec<(&'static str, u16)> {
+        let standard = value(STANDARD, sub, c);
+        OTHERS
+            .iter()
+            .filter_map(|s| value(s, sub, c).map(|v| (*s, v)))
+            .filter(|(_, v)| Some(*v) != standard)
+            .collect()
+    }
 }
 
 /// The communication state the serial line functions report beyond the FC 08 counters (MODBUS Application
@@ -74,6 +140,9 @@ pub struct CommState {
     pub ascii_delimiter: u8,
     /// The overrun error flag, set with the overrun counter and reset by 08/14.
     pub overrun_flag: bool,
+    /// The event counter was last cleared by 08/0A (not by a restart): whether that request counted is the
+    /// freedom `event-counter-clear-counted`.
+    pub cleared_by_0a: bool,
 }
 
 impl CommState {
@@ -82,6 +151,7 @@ impl CommState {
             event_count: 0,
             events: VecDeque::with_capacity(event::LOG_CAPACITY),
             listen_only: false,
+            cleared_by_0a: false,
             diagnostic_register: power_up_diagnostic_register(profile),
             ascii_delimiter: b'\n',
             overrun_flag: false,
@@ -177,6 +247,9 @@ pub struct Station {
     choices: Choices,
     /// Freedoms that decided answers since the last [`Station::take_decisions`].
     decisions: Vec<Decision>,
+    /// The FC 08 counter values the other readings of `diagnostic-counter-semantics` would have reported
+    /// since the last [`Station::take_counter_alternatives`]: (sub-function, reading, value).
+    counter_alternatives: Vec<(u16, &'static str, u16)>,
     /// Where each accepted write is reported (`simulate --journal`).
     sink: Option<WriteSink>,
     /// Holding registers that keep the first value written to them (`simulate --latch`), and those of them
@@ -199,6 +272,7 @@ impl Station {
             dead: false,
             choices: Choices::reference(),
             decisions: Vec::new(),
+            counter_alternatives: Vec::new(),
             sink: None,
             latched: BTreeSet::new(),
             latched_taken: BTreeSet::new(),
@@ -280,6 +354,13 @@ impl Station {
         std::mem::take(&mut self.decisions)
     }
 
+    /// The FC 08 counter values the other admissible readings of the counters (the freedom
+    /// `diagnostic-counter-semantics`) would have given where they differ from this drive's, for the counter
+    /// reads answered since the last call: (sub-function, reading, value).
+    pub fn take_counter_alternatives(&mut self) -> Vec<(u16, &'static str, u16)> {
+        std::mem::take(&mut self.counter_alternatives)
+    }
+
     /// The drive model.
     pub fn model(&self) -> &dyn DriveModel {
         self.model.as_ref()
@@ -345,6 +426,7 @@ impl Station {
         self.comm.diagnostic_register = power_up_diagnostic_register(self.model.profile());
         self.comm.ascii_delimiter = b'\n';
         self.comm.overrun_flag = false;
+        self.comm.cleared_by_0a = false;
         if clear_log {
             self.comm.events.clear();
         }
@@ -519,6 +601,9 @@ impl Station {
         self.count(|c| c.bus_message = c.bus_message.wrapping_add(1));
         let broadcast = adu.address == rtu::BROADCAST && self.profile().device.broadcast;
         let ours = adu.address == self.unit || broadcast;
+        if !ours {
+            self.count(|c| c.other_slave = c.other_slave.wrapping_add(1));
+        }
         if !ours && !self.faults.has(Fault::AnswerOtherUnit) {
             return None;
         }
@@ -556,6 +641,7 @@ impl Station {
             let n = bytes.len();
             bytes[n - 2] ^= 0xFF;
         }
+        self.count(|c| c.responses_sent = c.responses_sent.wrapping_add(1));
         Some(self.wire(bytes))
     }
 
@@ -751,10 +837,15 @@ impl Station {
                     let d = self.diagnostics(&req, via);
                     return Some((d.resp, d.counted));
                 }
-                Request::GetCommEventCounter => Some(Response::GetCommEventCounter {
-                    status: 0,
-                    event_count: self.comm.event_count,
-                }),
+                Request::GetCommEventCounter => {
+                    if self.comm.cleared_by_0a {
+                        self.decisions.push(ids::EVENT_COUNTER_CLEAR_COUNTED);
+                    }
+                    Some(Response::GetCommEventCounter {
+                        status: 0,
+                        event_count: self.comm.event_count,
+                    })
+                }
                 Request::GetCommEventLog => {
                     let mut events: Vec<u8> = self.comm.events.iter().copied().collect();
                     if self.faults.has(Fault::EventLogOldestFirst) {
@@ -811,6 +902,9 @@ impl Station {
                             }
                         }
                     }
+                    if let Some(Response::ReportServerId { data }) = resp.as_mut() {
+                        self.run_indicator(data);
+                    }
                     if self.faults.has(Fault::BitPaddingOnes) {
                         resp.map(|r| pad_with_ones(&req, r))
                     } else {
@@ -821,6 +915,28 @@ impl Station {
         };
         let completed = resp.as_ref().is_some_and(|r| !r.is_exception());
         Some((resp, completed))
+    }
+
+    /// FC 11's run indicator (the byte after the profile's server id): ON or OFF is the drive's state, which
+    /// the spec does not fix (the freedom `run-indicator-status`).
+    fn run_indicator(&mut self, data: &mut [u8]) {
+        let Some(at) = self
+            .profile()
+            .server_id
+            .as_ref()
+            .map(|s| s.get_ref().id.len())
+        else {
+            return;
+        };
+        let Some(byte) = data.get_mut(at).filter(|b| matches!(**b, 0x00 | 0xFF)) else {
+            return;
+        };
+        self.decisions.push(ids::RUN_INDICATOR_STATUS);
+        match self.choices.name(ids::RUN_INDICATOR_STATUS) {
+            Some("off") => *byte = 0x00,
+            Some("on") => *byte = 0xFF,
+            _ => {}
+        }
     }
 
     /// The exception a product that lacks an item the request touches answers with (the `optional`
@@ -1014,10 +1130,13 @@ impl Station {
                 self.counters = Counters::default();
                 self.comm.event_count = 0;
                 self.comm.diagnostic_register = 0;
-                return DiagOutcome {
-                    counted: false,
-                    ..echo()
-                };
+                self.comm.cleared_by_0a = true;
+                // Whether the clearing request then counts as a completion, the spec leaves open.
+                let counted = self
+                    .choices
+                    .name(ids::EVENT_COUNTER_CLEAR_COUNTED)
+                    .is_some_and(|v| v == "counted");
+                return DiagOutcome { counted, ..echo() };
             }
             DiagCounter::Restart => {
                 // The normal response goes out before the restart is executed.
@@ -1046,11 +1165,30 @@ impl Station {
                 return echo();
             }
             DiagCounter::DiagnosticRegister => self.comm.diagnostic_register,
-            DiagCounter::BusMessage => c.bus_message,
+            DiagCounter::BusMessage | DiagCounter::SlaveMessage | DiagCounter::NoResponse => {
+                // What these count, the sources say several ways: the drive's reading decides.
+                let sub = *sub_function;
+                let standard = counter_semantics::value(counter_semantics::STANDARD, sub, &c)
+                    .unwrap_or_default();
+                let others = counter_semantics::alternatives(sub, &c);
+                let mine = self
+                    .choices
+                    .name(ids::DIAGNOSTIC_COUNTER_SEMANTICS)
+                    .and_then(|s| counter_semantics::value(s, sub, &c))
+                    .unwrap_or(standard);
+                if !others.is_empty() {
+                    self.decisions.push(ids::DIAGNOSTIC_COUNTER_SEMANTICS);
+                    self.counter_alternatives.extend(
+                        std::iter::once((counter_semantics::STANDARD, standard))
+                            .chain(others)
+                            .filter(|(_, v)| *v != mine)
+                            .map(|(s, v)| (sub, s, v)),
+                    );
+                }
+                mine
+            }
             DiagCounter::CrcError => c.crc_error,
             DiagCounter::Exception => c.exception,
-            DiagCounter::SlaveMessage => c.slave_message,
-            DiagCounter::NoResponse => c.no_response,
             DiagCounter::Nak => c.nak,
             DiagCounter::Busy => c.busy,
             DiagCounter::Overrun => c.overrun,

@@ -1100,6 +1100,7 @@ impl Runner {
         // The reference answers: every frame it sends before it falls silent, and which freedoms decided them.
         let (expected, reference_closed) = self.shadow.settle();
         let decisions = self.shadow.take_decisions();
+        let counter_alternatives = self.shadow.take_counter_alternatives();
         let mut observed = Vec::new();
         let mut findings: Vec<Finding> = precondition;
         let unit = self.cfg.unit;
@@ -1152,6 +1153,7 @@ impl Runner {
                 malformed: frames.get(i).or(frames.last()).is_some_and(|f| f.malformed),
                 batch: frames.len() > 1,
                 decided: &decisions,
+                counter_alternatives: &counter_alternatives,
             };
             let requirements = Arc::clone(&self.requirements);
             let applicable =

@@ -312,7 +312,12 @@ impl RegisterBank {
         if end > 0x1_0000 {
             return Err(ExceptionCode::ILLEGAL_DATA_ADDRESS.into());
         }
-        // Pass 1: every address belongs to a writable register that the range covers completely.
+        // Pass 1: every address belongs to a writable register that the range covers completely (or, for a
+        // drive that takes half of a 32-bit register, partly: the freedom `partial-register-write`).
+        let takes_halves = self
+            .choices
+            .name(ids::PARTIAL_REGISTER_WRITE)
+            .is_some_and(|v| v == "response");
         let mut spans = Vec::new();
         let mut a = u32::from(address);
         while a < end {
@@ -322,7 +327,7 @@ impl RegisterBank {
             let Some(slot) = self.slot(idx) else {
                 return Err(ExceptionCode::ILLEGAL_DATA_ADDRESS.into());
             };
-            if u32::from(slot.reg.address) != a || slot.reg.end() > end {
+            if (u32::from(slot.reg.address) != a || slot.reg.end() > end) && !takes_halves {
                 return Err(self.choices.reject(
                     ids::PARTIAL_REGISTER_WRITE,
                     ExceptionCode::ILLEGAL_DATA_ADDRESS,
@@ -333,17 +338,27 @@ impl RegisterBank {
                     .choices
                     .reject(ids::WRITE_READ_ONLY, ExceptionCode::ILLEGAL_DATA_ADDRESS));
             }
-            spans.push((idx, (a - u32::from(address)) as usize));
+            spans.push(idx);
             a = slot.reg.end();
         }
-        // Pass 2: every value within the register's range.
+        // Pass 2: every value within the register's range (a half written keeps the other half).
         let mut changes = Vec::with_capacity(spans.len());
-        for (idx, off) in spans {
+        for idx in spans {
             let Some(slot) = self.slot(idx) else {
                 return Err(ExceptionCode::ILLEGAL_DATA_ADDRESS.into());
             };
-            let w = words.get(off..).unwrap_or(&[]);
-            let value = self.value_of_words(slot.reg, w);
+            let mut reg_words = self.words(slot.reg, slot.value);
+            for (i, w) in reg_words
+                .iter_mut()
+                .enumerate()
+                .take(usize::from(slot.reg.width))
+            {
+                let addr = u32::from(slot.reg.address) + i as u32;
+                if (u32::from(address)..end).contains(&addr) {
+                    *w = words[(addr - u32::from(address)) as usize];
+                }
+            }
+            let value = self.value_of_words(slot.reg, &reg_words);
             let (lo, hi) = slot.reg.range();
             if (value < lo || value > hi) && !self.range_unchecked {
                 return Err(self

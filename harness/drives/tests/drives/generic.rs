@@ -359,3 +359,64 @@ proptest! {
         }
     }
 }
+
+/// A generic station (Modbus/TCP view) taking the choices `specs`.
+fn sim_choosing(specs: &[&str]) -> Sim {
+    let requirements = drives::corpus::Corpus::Embedded
+        .requirements()
+        .expect("requirements");
+    let choices =
+        drives::Choices::parse_all(specs, &requirements, "generic").expect("simulated choices");
+    let p = profile("generic");
+    let mut sim = Sim::with(p.clone(), &[]);
+    sim.station = Station::new(
+        drives::build_with(p, FaultSet::default(), choices.clone()),
+        FaultSet::default(),
+        sim.unit,
+    )
+    .with_choices(choices);
+    sim
+}
+
+/// `run-indicator-status=off`: FC 11 reports the run indicator 0x00, the rest as the profile declares it;
+/// `event-counter-clear-counted=counted`: FC 0B after 08/0A counts the clearing request.
+#[test]
+fn run_indicator_and_event_counter_take_the_drives_choice() {
+    let ask = |sim: &mut Sim, req: Request| {
+        Response::decode(&sim.pdu(&req.to_bytes().expect("encodes"))).expect("decodes")
+    };
+    let server_id = |sim: &mut Sim| match ask(sim, Request::ReportServerId) {
+        Response::ReportServerId { data } => data,
+        r => panic!("{r:?}"),
+    };
+    let events_after_clear = |sim: &mut Sim| {
+        ask(
+            sim,
+            Request::Diagnostics {
+                sub_function: 0x0A,
+                data: vec![0, 0],
+            },
+        );
+        match ask(sim, Request::GetCommEventCounter) {
+            Response::GetCommEventCounter { event_count, .. } => event_count,
+            r => panic!("{r:?}"),
+        }
+    };
+    let mut reference = sim_choosing(&[]);
+    let mut other = sim_choosing(&[
+        "run-indicator-status=off",
+        "event-counter-clear-counted=counted",
+    ]);
+    let (on, off) = (server_id(&mut reference), server_id(&mut other));
+    let at = profile("generic")
+        .server_id
+        .expect("server id")
+        .get_ref()
+        .id
+        .len();
+    assert_eq!((on[at], off[at]), (0xFF, 0x00));
+    assert_eq!(on[..at], off[..at]);
+    assert_eq!(on[at + 1..], off[at + 1..]);
+    assert_eq!(events_after_clear(&mut reference), 0);
+    assert_eq!(events_after_clear(&mut other), 1);
+}

@@ -830,3 +830,34 @@ proptest! {
         }
     }
 }
+
+/// `partial-register-write=response`: a write of the low word of A (0x0000-0x0001, high word first) is
+/// taken, and the high word kept; the reference refuses it with 02.
+#[test]
+fn a_drive_taking_half_a_register_stores_that_half() {
+    let mut reference = Sim::new("mdrive", &[]);
+    assert_eq!(reference.ask("10 00 01 00 01 02 12 34"), "90 02");
+    assert_eq!(reference.ask("03 00 00 00 02"), "03 04 00 0F 42 40");
+    let requirements = Corpus::Embedded.requirements().expect("requirements");
+    let choices = drives::Choices::parse_all(
+        &["partial-register-write=response"],
+        &requirements,
+        "mdrive",
+    )
+    .expect("simulated");
+    let mut s = Sim::new("mdrive", &[]);
+    s.station = drives::Station::new(
+        drives::build_with(profile("mdrive"), FaultSet::none(), choices.clone()),
+        FaultSet::none(),
+        s.unit,
+    )
+    .with_choices(choices);
+    assert_eq!(s.ask("10 00 01 00 01 02 12 34"), "10 00 01 00 01");
+    assert_eq!(
+        s.ask("03 00 00 00 02"),
+        "03 04 00 0F 12 34",
+        "low word taken"
+    );
+    // The value range still holds for the value the half makes: 0x7FFF_4240 is above A's maximum.
+    assert_eq!(s.ask("10 00 00 00 01 02 7F FF"), "90 03");
+}

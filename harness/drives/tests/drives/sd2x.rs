@@ -1157,3 +1157,78 @@ proptest! {
         }
     }
 }
+
+/// A station for the SD2x taking `choice` (FREEDOM=VALUE), broadcasts on.
+fn station_choosing(choice: &str) -> Station {
+    let mut p = profile();
+    p.device.broadcast = true;
+    let requirements = drives::corpus::Corpus::Embedded
+        .requirements()
+        .expect("requirements");
+    let choices =
+        drives::Choices::parse_all(&[choice], &requirements, "sd2x").expect("a simulated choice");
+    Station::new(
+        drives::build_with(p, FaultSet::default(), choices.clone()),
+        FaultSet::default(),
+        UNIT,
+    )
+    .with_choices(choices)
+}
+
+/// The readings of `diagnostic-counter-semantics`, after one known sequence, counted by hand from each
+/// reading's source text (corpus/freedoms/protocol.toml): a normal read, an exception, a frame for another
+/// slave, a broadcast write and a bad CRC, then 0x0B, 0x0E and 0x0F read in that order.
+#[test]
+fn fc08_counter_readings_count_what_their_sources_say() {
+    let counts = |choice: &str| -> [u16; 3] {
+        let mut st = station_choosing(choice);
+        read(&mut st, 0, 2000, 1);
+        send(
+            &mut st,
+            0,
+            Request::ReadHoldingRegisters {
+                address: 2024,
+                quantity: 1,
+            },
+        );
+        send_to(&mut st, 0, 2, telegram_request(0x0006));
+        send_to(&mut st, 0, 0, telegram_request(0x0006));
+        st.rtu_frame(ms(0), &[0x01, 0x03, 0x07, 0xD0, 0x00, 0x01, 0x00, 0x00]);
+        [0x0B, 0x0E, 0x0F].map(|sub| {
+            match send(
+                &mut st,
+                0,
+                Request::Diagnostics {
+                    sub_function: sub,
+                    data: vec![0, 0],
+                },
+            ) {
+                Response::Diagnostics { data, .. } => u16::from_be_bytes([data[0], data[1]]),
+                r => panic!("{r:?}"),
+            }
+        })
+    };
+    // Standard: bus = 4 good-CRC frames + this read; slave = read, exception, broadcast, 0B, this;
+    // no response = the broadcast.
+    assert_eq!(counts("diagnostic-counter-semantics=standard"), [5, 5, 1]);
+    // Application protocol 6.8.1, "detected": the bad CRC too.
+    assert_eq!(
+        counts("diagnostic-counter-semantics=bus-count-includes-bad-crc"),
+        [6, 5, 1]
+    );
+    // Serial line guide 6.1.1, "received": the other slave's frame is a message left unanswered too.
+    assert_eq!(
+        counts("diagnostic-counter-semantics=no-response-includes-other-slaves"),
+        [5, 5, 2]
+    );
+    // SD2x manual line 416, "sent by the system": read, exception, the 0B answer (not this one).
+    assert_eq!(
+        counts("diagnostic-counter-semantics=slave-count-is-responses-sent"),
+        [5, 3, 1]
+    );
+    // Nowhere said whether a counter read counts itself: here it does not.
+    assert_eq!(
+        counts("diagnostic-counter-semantics=excludes-current-request"),
+        [4, 4, 1]
+    );
+}

@@ -44,6 +44,9 @@ pub struct StepContext<'a> {
     pub batch: bool,
     /// The freedoms the reference drive's answer was decided by.
     pub decided: &'a [drives::Decision],
+    /// The FC 08 counter values the other readings of `diagnostic-counter-semantics` give where the
+    /// reference's reading gives another: (sub-function, reading, value).
+    pub counter_alternatives: &'a [(u16, &'static str, u16)],
 }
 
 impl StepContext<'_> {
@@ -208,6 +211,14 @@ pub fn reference_shown(
             };
             shows.then(|| shown(f, item_name(item), first))
         }
+        FreedomKind::Counter => {
+            // The counter a reading is about shows the reference's reading where another gives another value.
+            let sub = counter_read(expected?)?.0;
+            cx.counter_alternatives
+                .iter()
+                .any(|(s, _, _)| *s == sub)
+                .then(|| shown(f, format!("0x{sub:02X}"), first))
+        }
         FreedomKind::FieldValue if f.id == drives::choices::ids::FC42_BYTES_WRITTEN => {
             // Four parameter bytes read the same both ways: that shows no choice.
             let ambiguous = matches!(cx.request, Some(Request::VendorWrite { params, .. }) if params.len() == 4);
@@ -337,7 +348,39 @@ pub fn alternatives(
         FreedomKind::StatusBits => status_bits(f, cx, expected, observed),
         FreedomKind::FieldValue => field_value(f, cx, expected, observed),
         FreedomKind::Reading => reading(f, cx, expected, observed),
-        FreedomKind::WordOrder | FreedomKind::PipelineOrder | FreedomKind::Counter => vec![],
+        FreedomKind::Counter => {
+            // Another reading of what the counter counts: the value it gives, for the same sub-function.
+            let (Some((sub, e)), Some((osub, o))) = (
+                expected.and_then(counter_read),
+                observed.and_then(counter_read),
+            ) else {
+                return vec![];
+            };
+            if sub != osub || e == o {
+                return vec![];
+            }
+            cx.counter_alternatives
+                .iter()
+                .filter(|(s, _, v)| *s == sub && *v == o)
+                .map(|(_, reading, _)| {
+                    alt(
+                        observed.cloned(),
+                        shown_named(f, format!("0x{sub:02X}"), reading),
+                    )
+                })
+                .collect()
+        }
+        FreedomKind::WordOrder | FreedomKind::PipelineOrder => vec![],
+    }
+}
+
+/// An FC 08 answer with a 16-bit value: (sub-function, value).
+fn counter_read(r: &Response) -> Option<(u16, u16)> {
+    match r {
+        Response::Diagnostics { sub_function, data } if data.len() == 2 => {
+            Some((*sub_function, u16::from_be_bytes([data[0], data[1]])))
+        }
+        _ => None,
     }
 }
 

@@ -88,6 +88,12 @@ impl SimTarget {
         self.station.take_decisions()
     }
 
+    /// The counter values other admissible readings of the FC 08 counters would have given, since the last
+    /// call (see [`Station::take_counter_alternatives`]).
+    pub fn take_counter_alternatives(&mut self) -> Vec<(u16, &'static str, u16)> {
+        self.station.take_counter_alternatives()
+    }
+
     /// The station (tests inspect counters and model state).
     pub fn station(&self) -> &Station {
         &self.station

@@ -46,6 +46,21 @@ const NOT_EXERCISED: &[(&str, &str)] = &[
     // The SD2x's writable registers are motion registers and the watchdog: no half of one is written.
     ("sd2x", "partial-register-write=exception-03"),
     ("sd2x", "partial-register-write=exception-04"),
+    ("sd2x", "partial-register-write=response"),
+    // Profiles without FC 11 (Report Server ID) or FC 0B (Get Comm Event Counter): nothing shows the choice.
+    ("mdrive", "run-indicator-status=off"),
+    ("lmd", "run-indicator-status=off"),
+    ("sd2x", "run-indicator-status=off"),
+    ("mdrive", "event-counter-clear-counted=counted"),
+    ("lmd", "event-counter-clear-counted=counted"),
+    ("sd2x", "event-counter-clear-counted=counted"),
+    // On the counter case's sequence (clear, a read, a bad CRC, a frame for another slave, an exception,
+    // the counter reads) the responses sent before the 0x0E read, the clear's own included, are as many as
+    // the slave messages counting that read: both readings give the same number.
+    (
+        "sd2x",
+        "diagnostic-counter-semantics=slave-count-is-responses-sent",
+    ),
 ];
 
 fn label(f: &Freedom, v: &FreedomValue) -> String {

@@ -26,6 +26,7 @@ fn context<'a>(p: &'a drives::profile::Profile, req: &'a Request) -> StepContext
         malformed: false,
         batch: false,
         decided: &[],
+        counter_alternatives: &[],
     }
 }
 

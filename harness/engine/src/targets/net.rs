@@ -38,6 +38,9 @@ fn resolve(host: &str, port: u16) -> Result<SocketAddr, TargetError> {
         })
 }
 
+/// Connection attempts when reopening a connection the harness closed (see `reconnect`).
+const RECONNECT_TRIES: usize = 6;
+
 /// Nominal timing for RTU over TCP: frames are cut by length rules and CRC; silence only ends unknown ones.
 fn rtu_over_tcp_timing() -> RtuTiming {
     RtuTiming::tcp_carrier()
@@ -231,6 +234,26 @@ impl Target for TcpTarget {
         if let Some(s) = self.stream.take() {
             let _ = s.shutdown(std::net::Shutdown::Both);
         }
+        // A drive with one connection slot (the TCP guide leaves the number to the device, 4.4.2.1) may
+        // refuse a connection until it has freed the one just closed: a refused or reset connect is tried
+        // again, at most RECONNECT_TRIES times over about 0.6 s.
+        let mut wait = Duration::from_millis(20);
+        for _ in 1..RECONNECT_TRIES {
+            match self.open() {
+                Err(TargetError::Connect { source, .. })
+                    if matches!(
+                        source.kind(),
+                        ErrorKind::ConnectionRefused
+                            | ErrorKind::ConnectionReset
+                            | ErrorKind::ConnectionAborted
+                    ) =>
+                {
+                    std::thread::sleep(wait);
+                    wait *= 2;
+                }
+                other => return other,
+            }
+        }
         self.open()
     }
 
@@ -285,5 +308,43 @@ impl Target for TcpTarget {
 
     fn server_port(&self) -> u16 {
         self.addr.port()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::net::TcpListener;
+
+    /// A drive that frees its one connection slot a moment after the close (here: a listener that is gone for
+    /// 150 ms, so connects are refused) is reconnected to, not given up on.
+    #[test]
+    fn a_reconnect_refused_for_a_moment_is_tried_again() {
+        let listener = TcpListener::bind("127.0.0.1:0").expect("bind");
+        let addr = listener.local_addr().expect("addr");
+        let mut t = TcpTarget::connect("127.0.0.1", addr.port(), Duration::from_secs(2), false)
+            .expect("connect");
+        let (first, _) = listener.accept().expect("accept");
+        drop(listener);
+        let back = std::thread::spawn(move || {
+            std::thread::sleep(Duration::from_millis(150));
+            let listener = TcpListener::bind(addr).expect("bind the same port again");
+            listener.set_nonblocking(true).expect("nonblocking");
+            // Bounded: one connection within 3 s.
+            let until = Instant::now() + Duration::from_secs(3);
+            while Instant::now() < until {
+                if let Ok((s, _)) = listener.accept() {
+                    return Some(s);
+                }
+                std::thread::sleep(Duration::from_millis(5));
+            }
+            None
+        });
+        t.reconnect().expect("reconnected once the slot is free");
+        assert!(
+            back.join().expect("thread").is_some(),
+            "the new connection was accepted"
+        );
+        drop(first);
     }
 }

@@ -38,7 +38,7 @@ fn resolve(host: &str, port: u16) -> Result<SocketAddr, TargetError> {
         })
 }
 
-/// Connection attempts when reopening a connection the harness closed (see `reconnect`).
+/// Connection attempts while the target refuses (see `open_retrying`).
 const RECONNECT_TRIES: usize = 6;
 
 /// Nominal timing for RTU over TCP: frames are cut by length rules and CRC; silence only ends unknown ones.
@@ -70,7 +70,7 @@ impl TcpTarget {
             closed: false,
             read_timeout: None,
         };
-        t.open()?;
+        t.open_retrying()?;
         Ok(t)
     }
 
@@ -87,6 +87,31 @@ impl TcpTarget {
         self.closed = false;
         self.read_timeout = None;
         Ok(())
+    }
+
+    /// Open, trying again while the connection is refused or reset: a drive with one connection slot (the
+    /// TCP guide leaves the number to the device, 4.4.2.1) may refuse a connection until it has freed the one
+    /// just closed (the harness closes and reopens between cases, and after reading the identification).
+    /// At most RECONNECT_TRIES attempts over about 0.6 s; a port nobody listens on is reported that much later.
+    fn open_retrying(&mut self) -> Result<(), TargetError> {
+        let mut wait = Duration::from_millis(20);
+        for _ in 1..RECONNECT_TRIES {
+            match self.open() {
+                Err(TargetError::Connect { source, .. })
+                    if matches!(
+                        source.kind(),
+                        ErrorKind::ConnectionRefused
+                            | ErrorKind::ConnectionReset
+                            | ErrorKind::ConnectionAborted
+                    ) =>
+                {
+                    std::thread::sleep(wait);
+                    wait *= 2;
+                }
+                other => return other,
+            }
+        }
+        self.open()
     }
 
     fn io(&self, source: std::io::Error) -> TargetError {
@@ -168,7 +193,7 @@ impl Target for TcpTarget {
 
     fn send(&mut self, bytes: &[u8]) -> Result<(), TargetError> {
         if self.closed {
-            self.open()?;
+            self.open_retrying()?;
         }
         let Some(s) = self.stream.as_mut() else {
             return Err(self.io(ErrorKind::NotConnected.into()));
@@ -234,27 +259,7 @@ impl Target for TcpTarget {
         if let Some(s) = self.stream.take() {
             let _ = s.shutdown(std::net::Shutdown::Both);
         }
-        // A drive with one connection slot (the TCP guide leaves the number to the device, 4.4.2.1) may
-        // refuse a connection until it has freed the one just closed: a refused or reset connect is tried
-        // again, at most RECONNECT_TRIES times over about 0.6 s.
-        let mut wait = Duration::from_millis(20);
-        for _ in 1..RECONNECT_TRIES {
-            match self.open() {
-                Err(TargetError::Connect { source, .. })
-                    if matches!(
-                        source.kind(),
-                        ErrorKind::ConnectionRefused
-                            | ErrorKind::ConnectionReset
-                            | ErrorKind::ConnectionAborted
-                    ) =>
-                {
-                    std::thread::sleep(wait);
-                    wait *= 2;
-                }
-                other => return other,
-            }
-        }
-        self.open()
+        self.open_retrying()
     }
 
     fn drain(&mut self) {

@@ -48,6 +48,7 @@ pub enum Fault {
     WriteOnlyReadable,
     MnemonicParamsUnchecked,
     MbapLengthIgnored,
+    AnswerInsideSilence,
 }
 
 impl Fault {
@@ -252,6 +253,11 @@ impl Fault {
             Fault::MbapLengthIgnored,
             "mbap-length-ignored",
             "Modbus/TCP: requests are cut by their function code's length rules, not by the MBAP length: one whose MBAP length promises more bytes than it has is answered at once",
+        ),
+        (
+            Fault::AnswerInsideSilence,
+            "answer-inside-silence",
+            "RTU: the answer starts right after the request's last byte, inside the 3.5-character silence that must separate frames (a slave that cuts frames by length and answers at once)",
         ),
     ];
 

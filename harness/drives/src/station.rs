@@ -533,21 +533,27 @@ impl Station {
     /// Feed bytes received on an RTU line at `now`; returns replies for frames completed by them.
     pub fn serve_rtu(&mut self, now: Duration, port: &mut RtuPort, bytes: &[u8]) -> Vec<Wire> {
         let events = port.framer.push(now, bytes);
-        self.rtu_events(now, events)
+        self.rtu_events(now, events, port.timing().t3_5)
     }
 
     /// Let silence complete or discard what the port holds at `now`.
     pub fn poll_rtu(&mut self, now: Duration, port: &mut RtuPort) -> Vec<Wire> {
         let events = port.framer.poll(now);
-        self.rtu_events(now, events)
+        self.rtu_events(now, events, port.timing().t3_5)
     }
 
-    fn rtu_events(&mut self, now: Duration, events: Vec<FramerEvent>) -> Vec<Wire> {
+    /// Answer the frames the port's framer delimited. An answer goes out no sooner than `t3_5` after the
+    /// request's last byte (serial line guide 2.5.1.1: frames are separated by at least 3.5 character
+    /// times), also when the framer cut the request by its length before that silence.
+    fn rtu_events(&mut self, now: Duration, events: Vec<FramerEvent>, t3_5: Duration) -> Vec<Wire> {
         let mut out = Vec::new();
         for ev in events {
             match ev {
-                FramerEvent::Frame { bytes, .. } => {
-                    if let Some(w) = self.rtu_frame(now, &bytes) {
+                FramerEvent::Frame { bytes, end, .. } => {
+                    if let Some(mut w) = self.rtu_frame(now, &bytes) {
+                        if !self.faults.has(Fault::AnswerInsideSilence) {
+                            w.delay += (end + t3_5).saturating_sub(now);
+                        }
                         out.push(w);
                     }
                 }
@@ -560,7 +566,10 @@ impl Station {
                         let mut fixed = bytes[..bytes.len() - 2].to_vec();
                         let crc = rtu::crc16(&fixed);
                         fixed.extend_from_slice(&crc.to_le_bytes());
-                        if let Some(w) = self.rtu_frame(now, &fixed) {
+                        if let Some(mut w) = self.rtu_frame(now, &fixed) {
+                            if !self.faults.has(Fault::AnswerInsideSilence) {
+                                w.delay += t3_5;
+                            }
                             out.push(w);
                         }
                         continue;

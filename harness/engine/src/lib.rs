@@ -25,6 +25,7 @@ pub mod safety;
 pub mod servers;
 pub mod session;
 pub mod targets;
+pub mod timing;
 
 pub use api::{Device, Results, Session};
 pub use cases::{Case, Compare, Level, Mutation, Outgoing, Step, Tag, Verdict};

@@ -148,6 +148,8 @@ pub struct Runner {
     /// RTU on a real target: a malformed frame went out, so the next one waits for the line's t3.5 first
     /// (see `send_pieces`).
     resync_rtu: bool,
+    /// The silences before the answers (RTU on a line), judged once by the run's timing case.
+    gaps: crate::timing::AnswerGaps,
 }
 
 /// How the silences due on Modbus/TCP to a real target were settled.
@@ -198,6 +200,7 @@ impl Runner {
             unanswered: Vec::new(),
             sentinels: std::collections::VecDeque::new(),
             sentinel_given_up: false,
+            gaps: crate::timing::AnswerGaps::default(),
             silences: Silences::default(),
             reconnect_next: false,
             resync_rtu: false,
@@ -821,6 +824,9 @@ impl Runner {
             first.findings.extend(late);
             first.verdict = worse(first.verdict, Verdict::Informational);
         }
+        if case.has(Tag::RunTiming) {
+            steps.push(self.judge_answer_gaps());
+        }
         let mut verdict = Verdict::Pass;
         for s in &steps {
             verdict = worse(verdict, s.verdict);
@@ -847,6 +853,36 @@ impl Runner {
             result.verdict = v;
         }
         Ok(result)
+    }
+
+    /// The silences before every answer of the run so far (see [`crate::timing`]): FAIL when one surely
+    /// began inside t3.5 (a MUST of the serial line guide, 2.5.1.1); INFORMATIONAL when this target's line
+    /// cannot be measured.
+    fn judge_answer_gaps(&self) -> StepResult {
+        let step = |verdict, note: String, findings| StepResult {
+            note,
+            sent: None,
+            expected: None,
+            observed: Vec::new(),
+            verdict,
+            findings,
+        };
+        if let Err(why) = self.target.answer_gap_measurable() {
+            return step(
+                Verdict::Informational,
+                "the silence before the answers: not measured".into(),
+                vec![format!("not measured: {why}")],
+            );
+        }
+        match self.gaps.judge() {
+            None => step(
+                Verdict::Informational,
+                "the silence before the answers: not measured".into(),
+                vec!["not measured: no answer was received".into()],
+            ),
+            Some((findings, note)) if findings.is_empty() => step(Verdict::Pass, note, findings),
+            Some((findings, note)) => step(Verdict::Fail, note, findings),
+        }
     }
 
     /// A register pair and its mirroring object must hold the same value.
@@ -1178,16 +1214,13 @@ impl Runner {
                     });
                 }
             }
-            // Only an answer that starts too early is judged: user space cannot see the line's gaps
-            // (USB adapters and the scheduler add their own), but it never sees an answer earlier than it was.
-            if let (Some(t), Received::Frame { first_at, .. }) = (self.target.rtu_timing(), &got) {
-                let lead = first_at.saturating_sub(sent_at);
-                if lead < t.t3_5 / 2 {
-                    findings.push(Finding {
-                        severity: Severity::Should,
-                        text: format!("the answer began {} µs after the request, inside the 3.5-character silence ({} µs)", lead.as_micros(), t.t3_5.as_micros()),
-                    });
-                }
+            // The silence before the answer, measured for the run's timing case (see `crate::timing`).
+            if let (Some(t), Received::Frame { first_at, .. }, Some((last, _))) =
+                (self.target.rtu_timing(), &got, pieces.last())
+                && self.target.answer_gap_measurable().is_ok()
+            {
+                self.gaps
+                    .record(&self.case_id, t, sent_at, last.len(), *first_at);
             }
             if let (Some(slot), Received::Frame { bytes, .. }) = (capture, &got)
                 && let Some(c) = capture::captured(framing, &sent.pdu, bytes)

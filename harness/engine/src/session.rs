@@ -471,14 +471,16 @@ pub fn requirements_of(corpus: &Corpus) -> Result<Arc<Requirements>, SessionErro
 }
 
 /// The order a run takes its catalog cases in: as built, or shuffled with `seed`. Either way the cases that
-/// leave the drive changed for good ([`Tag::Irreversible`]) come last, in their own order.
+/// judge what the run measured ([`Tag::RunTiming`]) and then those that leave the drive changed for good
+/// ([`Tag::Irreversible`]) come last, in their own order.
 pub fn run_order(cases: Vec<Case>, shuffle: Option<u64>) -> Vec<Case> {
     let cases = crate::cases::catalog::irreversible_last(cases);
     let Some(seed) = shuffle else {
         return cases;
     };
-    let (mut free, last): (Vec<Case>, Vec<Case>) =
-        cases.into_iter().partition(|c| !c.has(Tag::Irreversible));
+    let (mut free, last): (Vec<Case>, Vec<Case>) = cases
+        .into_iter()
+        .partition(|c| !c.has(Tag::Irreversible) && !c.has(Tag::RunTiming));
     // Fisher-Yates with SplitMix64: the same seed gives the same order on every platform and version.
     let mut state = seed;
     let mut next = move || {

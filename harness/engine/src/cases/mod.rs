@@ -28,6 +28,9 @@ pub enum Tag {
     /// stored program cleared, firmware-upgrade mode): it runs after every other case, in catalog order, also
     /// with `--shuffle`.
     Irreversible,
+    /// The case judges what the whole run measured so far (the silence before every RTU answer, see
+    /// [`crate::timing`]): it runs after the other cases (before the irreversible ones), also with `--shuffle`.
+    RunTiming,
 }
 
 /// How a response is compared with what the reference model answers.

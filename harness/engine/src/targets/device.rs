@@ -324,4 +324,11 @@ impl Target for DeviceTarget {
     fn rtu_timing(&self) -> Option<RtuTiming> {
         (self.framing == Framing::Rtu).then_some(self.timing)
     }
+
+    fn answer_gap_measurable(&self) -> Result<(), String> {
+        Err(
+            "the harness frames an in-process device's answers: their timing is the harness's"
+                .into(),
+        )
+    }
 }

@@ -146,6 +146,15 @@ pub trait Target {
     fn rtu_timing(&self) -> Option<codec::RtuTiming> {
         None
     }
+
+    /// Whether the silence before an answer can be measured on this target (see [`crate::timing`]), and if
+    /// not, why.
+    fn answer_gap_measurable(&self) -> Result<(), String> {
+        Err(
+            "no serial line on this transport (RTU over TCP carries frames without line timing)"
+                .into(),
+        )
+    }
 }
 
 /// Open the target a URL names; `sim:` needs the run's profile and unit.

@@ -147,4 +147,17 @@ impl Target for SerialTarget {
     fn rtu_timing(&self) -> Option<RtuTiming> {
         Some(self.timing)
     }
+
+    fn answer_gap_measurable(&self) -> Result<(), String> {
+        // A pseudo-terminal (socat, a simulator on a pty pair) passes bytes at once, without baud timing.
+        let real = std::fs::canonicalize(&self.path).unwrap_or_else(|_| self.path.clone().into());
+        if real.starts_with("/dev/pts") || real == std::path::Path::new("/dev/ptmx") {
+            Err(format!(
+                "{} is a pseudo-terminal: bytes pass without the line's timing",
+                self.path
+            ))
+        } else {
+            Ok(())
+        }
+    }
 }

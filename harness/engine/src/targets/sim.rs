@@ -113,9 +113,15 @@ impl SimTarget {
         }
         let mut frames = Vec::new();
         let mut closed = false;
+        // An RTU answer waits out the t3.5 silence after the request: that much is not waiting for more.
+        let wait = if self.framing == Framing::Rtu {
+            self.timing.t3_5
+        } else {
+            Duration::ZERO
+        };
         // Bounded: a drive answers at most one frame per request, and a step sends at most a few.
         for _ in 0..64 {
-            match self.recv(Duration::ZERO) {
+            match self.recv(wait) {
                 Ok(Received::Frame { bytes, .. }) => frames.push(bytes),
                 Ok(Received::Closed { .. }) => {
                     closed = true;
@@ -203,10 +209,19 @@ impl Target for SimTarget {
                 Some((at, _)) if *at <= deadline => {
                     let (at, bytes) = self.queued.pop_front().unwrap_or_default();
                     self.now = self.now.max(at);
-                    if self.framing == Framing::Rtu {
+                    if self.framing == Framing::Rtu && !bytes.is_empty() {
+                        // On the line, the first character is in after one character time: the answer's
+                        // start is what the inter-frame silence is measured to. The rest follows without a gap.
+                        let c = self.timing.char_time;
+                        let start = self.now;
+                        // (The rest is stamped one character later, not at its end: the framer would take the
+                        // span for a gap.)
+                        self.reader.push(start + c, &bytes[..1]);
+                        self.reader.push(start + c + c, &bytes[1..]);
                         self.now += self.timing.transmit_time(bytes.len());
+                    } else {
+                        self.reader.push(self.now, &bytes);
                     }
-                    self.reader.push(self.now, &bytes);
                     if self.framing == Framing::Rtu {
                         // Nothing else is on the line: the frame ends with silence.
                         self.now += self.timing.t3_5;
@@ -264,5 +279,13 @@ impl Target for SimTarget {
 
     fn rtu_timing(&self) -> Option<RtuTiming> {
         (self.framing == Framing::Rtu).then_some(self.timing)
+    }
+
+    fn answer_gap_measurable(&self) -> Result<(), String> {
+        if self.framing == Framing::Rtu {
+            Ok(())
+        } else {
+            Err("no serial line on this transport".into())
+        }
     }
 }

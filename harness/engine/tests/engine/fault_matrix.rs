@@ -118,6 +118,17 @@ pub(crate) const WITNESSES: &[(&str, &str, &str)] = &[
         "spec/app-6.5/write-coil-illegal-value",
     ),
     ("crc-unchecked", "sim:sd2x", "rtu/crc/bad-crc-silence"),
+    // The run's timing judgement, on its own reads when it runs alone (issue 15: one finding per run).
+    (
+        "answer-inside-silence",
+        "sim:sd2x",
+        "rtu/timing/inter-frame-silence",
+    ),
+    (
+        "answer-inside-silence",
+        "sim:mdrive?transport=rtu",
+        "rtu/timing/inter-frame-silence",
+    ),
     // Every public function code a profile leaves out is probed (issue 15, item 1: FC 06 on an MDrive).
     (
         "undeclared-function-served",

@@ -236,10 +236,14 @@ pub fn build(p: &Profile, golden: Option<&GoldenFile>, framing: Framing, unit: u
     irreversible_last(cases)
 }
 
-/// The cases with the [`Tag::Irreversible`] ones moved after all others, each group in its own order.
+/// The cases with the [`Tag::RunTiming`] ones (which judge what the run measured) and then the
+/// [`Tag::Irreversible`] ones moved after all others, each group in its own order.
 pub fn irreversible_last(cases: Vec<Case>) -> Vec<Case> {
-    let (mut cases, last): (Vec<Case>, Vec<Case>) =
+    let (cases, last): (Vec<Case>, Vec<Case>) =
         cases.into_iter().partition(|c| !c.has(Tag::Irreversible));
+    let (mut cases, timing): (Vec<Case>, Vec<Case>) =
+        cases.into_iter().partition(|c| !c.has(Tag::RunTiming));
+    cases.extend(timing);
     cases.extend(last);
     cases
 }

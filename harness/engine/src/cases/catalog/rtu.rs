@@ -10,6 +10,7 @@ use codec::codes::diag;
 pub(super) fn cases(cx: &mut Ctx) {
     crc_and_addressing(cx);
     framing(cx);
+    inter_frame_silence(cx);
     // FC 08 sub-functions as the profile lists them: a drive may implement some and not others.
     let listed = |sub: u16| cx.p.diagnostics.iter().any(|d| d.sub_function == sub);
     if cx.supports(FunctionCode::DIAGNOSTICS) {
@@ -29,6 +30,32 @@ fn other_slave(unit: u8) -> u8 {
     } else {
         unit.wrapping_add(1).max(1)
     }
+}
+
+/// Reads answered on the timing case's own account (so that it measures something when run alone).
+const TIMING_READS: usize = 8;
+
+/// The silence before every answer of the run: one judgement per run, after the other cases (see
+/// [`crate::timing`]), on eight reads of its own and every answer before them.
+fn inter_frame_silence(cx: &mut Ctx) {
+    let read = known_good_read(cx.p);
+    let steps = (0..TIMING_READS)
+        .map(|i| {
+            exchange(
+                Outgoing::Pdu(read.clone()),
+                Compare::Structure,
+                format!("read {} of {TIMING_READS}", i + 1),
+            )
+        })
+        .collect();
+    cx.push(
+        "rtu/timing/inter-frame-silence".into(),
+        "every answer of the run begins after the 3.5-character silence",
+        format!("{SER}, section 2.5.1.1 (RTU framing: frames separated by at least 3.5 character times)"),
+        "Message frames are separated by a silent interval of at least 3.5 character times: no answer of the run begins sooner after its request. Judged once for the whole run, from an upper bound of each answer's gap (exact on the simulator, close on a native UART; behind a USB adapter only gross violations show; not measurable on a pseudo-terminal or over RTU over TCP).",
+        vec![Tag::RtuOnly, Tag::RunTiming],
+        steps,
+    );
 }
 
 /// An FC 08 request with sub-function `sub` and one data word.

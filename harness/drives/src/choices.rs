@@ -39,6 +39,17 @@ pub mod ids {
     /// FC 0x42 response field "bytes written": the 4 mnemonic characters, or the parameter bytes.
     pub const FC42_BYTES_WRITTEN: &str = "fc42-bytes-written";
 
+    /// FC 0x41 response byte count: one byte (the examples) or two (the tables).
+    pub const FC41_BYTE_COUNT_WIDTH: &str = "fc41-byte-count-width";
+    /// FC 0x41 response parameter string: the values separated by ", ", or as written ("=0,1,0").
+    pub const FC41_READ_BACK_FORMAT: &str = "fc41-read-back-format";
+    /// A parameterless FC 0x42 command (E, PS, RS, CP, ESC): byte count 0, or no byte count at all.
+    pub const FC42_PARAMETERLESS_BYTE_COUNT: &str = "fc42-parameterless-byte-count";
+    /// The LMD's ESC on the wire: 20 20 20 1B (the reversal rule) or 20 20 1B 20 (as printed).
+    pub const LMD_ESC_WIRE_FORM: &str = "lmd-esc-wire-form";
+    /// The MDrive's E, EX, PS, RS: FC 0x42 (Table 4.1) or FC 0x41 (their sections).
+    pub const MDRIVE_PROGRAM_CONTROL_FUNCTION: &str = "mdrive-program-control-function";
+
     /// Every id above.
     pub const ALL: &[&str] = &[
         VALUE_OUT_OF_RANGE,
@@ -52,6 +63,11 @@ pub mod ids {
         MNEMONIC_BAD_PARAMETER,
         SDO_LENGTH_ERROR,
         FC42_BYTES_WRITTEN,
+        FC41_BYTE_COUNT_WIDTH,
+        FC41_READ_BACK_FORMAT,
+        FC42_PARAMETERLESS_BYTE_COUNT,
+        LMD_ESC_WIRE_FORM,
+        MDRIVE_PROGRAM_CONTROL_FUNCTION,
     ];
 }
 
@@ -319,9 +335,18 @@ pub fn simulated(f: &Freedom, value: &FreedomValue) -> bool {
         FreedomKind::ServedExtra => value_matches(value, "served"),
         // Refusals are simulated; accepting half a register is not.
         _ if f.id == ids::PARTIAL_REGISTER_WRITE => Choices::exception_value(value).is_some(),
+        _ if MODELLED.contains(&f.id.as_str()) => true,
         _ => ids::ALL.contains(&f.id.as_str()),
     }
 }
+
+/// Freedoms whose every value the models take although no answer of theirs is a [`Decision`] of it: the
+/// status word, the watchdog, the readings of the manuals and the vendor fields the models act on.
+const MODELLED: &[&str] = &[
+    "sd2x-status-word-bits",
+    "sd2x-watchdog-error-code",
+    "lmd-discrete-input-addressing",
+];
 
 /// True when a value of the data is the one a user wrote (`4`, `0x04`, `04`, `exception-02`, a name).
 pub fn value_matches(v: &FreedomValue, written: &str) -> bool {

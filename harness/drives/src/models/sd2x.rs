@@ -168,6 +168,10 @@ pub const DEFAULT_WATCHDOG_ERROR_CODE: u16 = 0x8130;
 /// first code of CiA 301's device-specific range (the manual prints no number, line 870).
 pub const OTHER_WATCHDOG_ERROR_CODE: u16 = 0xFF00;
 
+/// How long the fault reaction lasts at least for a drive that chose
+/// `sd2x-watchdog-trip-state=fault-reaction-active` (the reference's ends at standstill).
+pub const FAULT_REACTION_TIME: Duration = Duration::from_millis(250);
+
 /// Freedoms of the SD2x manual the model acts on (`corpus/freedoms/sd2x.toml`).
 pub const STATUS_WORD_BITS: &str = "sd2x-status-word-bits";
 /// See [`STATUS_WORD_BITS`].
@@ -332,6 +336,8 @@ pub struct Sd2x {
     choices: Choices,
     /// Freedoms that decided the answer being given (drained per request).
     decisions: Vec<Decision>,
+    /// Until when a fault reaction lasts at least (`sd2x-watchdog-trip-state=fault-reaction-active`).
+    reaction_until: Duration,
 }
 
 /// Raw bits of `value` at `bytes` bytes (two's complement for negatives).
@@ -383,6 +389,7 @@ impl Sd2x {
             watchdog_deadline: None,
             choices,
             decisions: Vec::new(),
+            reaction_until: Duration::ZERO,
         };
         let unmapped: Vec<((u16, u8), u32)> = model
             .profile
@@ -517,7 +524,9 @@ impl Sd2x {
 
     /// The automatic transitions that wait for standstill: quick stop (option code 2) and fault reaction.
     fn settle(&mut self) {
-        if self.speed_fine != 0 {
+        if self.speed_fine != 0
+            || (self.state == Ds402State::FaultReactionActive && self.now < self.reaction_until)
+        {
             return;
         }
         self.state = match self.state {
@@ -547,6 +556,11 @@ impl Sd2x {
                 .unwrap_or(DEFAULT_WATCHDOG_ERROR_CODE)
         };
         self.state = Ds402State::FaultReactionActive;
+        if self.choices.name(WATCHDOG_TRIP_STATE) == Some("fault-reaction-active") {
+            // A drive whose fault reaction takes its time even from standstill (a brake to apply, the
+            // power stage to switch off): the manual gives no stopping time (line 870).
+            self.reaction_until = self.now.saturating_add(FAULT_REACTION_TIME);
+        }
         self.settle();
     }
 

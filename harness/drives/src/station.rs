@@ -676,6 +676,17 @@ impl Station {
         if b.is_empty() {
             return b;
         }
+        if let Response::VendorRead { params } = resp
+            && self.choices.name(ids::FC41_BYTE_COUNT_WIDTH) == Some("2-byte")
+        {
+            // The tables' layout (000 line 955, 001 line 1127): a 2-byte byte count.
+            b.splice(
+                1..2,
+                u16::try_from(params.len())
+                    .unwrap_or(u16::MAX)
+                    .to_be_bytes(),
+            );
+        }
         if let Response::ReadFileRecord { sub_responses } = resp
             && self.faults.has(Fault::FileRecordLengthWrong)
         {
@@ -812,7 +823,10 @@ impl Station {
                 false,
             ));
         }
-        let req = match Request::decode(pdu) {
+        let req = match self
+            .read_as_chosen(pdu)
+            .map_or_else(|| Request::decode(pdu), Ok)
+        {
             Ok(req) => req,
             Err(_) => {
                 self.malformed();
@@ -945,6 +959,26 @@ impl Station {
             Some("off") => *byte = 0x00,
             Some("on") => *byte = 0xFF,
             _ => {}
+        }
+    }
+
+    /// A request a drive reads otherwise than the codec, by a reading it chose: with
+    /// `fc42-parameterless-byte-count=no-count-byte` an FC 0x42 without a byte count is a parameterless
+    /// command, and the byte count 0 of the 6-byte form is a parameter byte (which no mnemonic takes).
+    fn read_as_chosen(&self, pdu: &[u8]) -> Option<Request> {
+        if self.choices.name(ids::FC42_PARAMETERLESS_BYTE_COUNT) != Some("no-count-byte") {
+            return None;
+        }
+        match pdu {
+            [0x42, m @ ..] if m.len() == 4 => Some(Request::VendorWrite {
+                mnemonic: codec::Mnemonic(m.try_into().ok()?),
+                params: Vec::new(),
+            }),
+            [0x42, m @ .., 0x00] if m.len() == 4 => Some(Request::VendorWrite {
+                mnemonic: codec::Mnemonic(m.try_into().ok()?),
+                params: vec![0x00],
+            }),
+            _ => None,
         }
     }
 

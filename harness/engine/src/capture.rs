@@ -5,10 +5,7 @@
 //! another case left behind and a run leaves the drive as it found it. What is kept is the target's answer,
 //! never the reference's: the reference receives the same restoring bytes and so follows the target's state.
 
-use codec::{
-    CanOpenAccess, Decoded, Direction, FileRecordWrite, Framing, FunctionCode, Mnemonic, Pdu,
-    Request, Response, decode_any,
-};
+use codec::{CanOpenAccess, FileRecordWrite, Framing, FunctionCode, Mnemonic, Request, Response};
 use drives::profile::Profile;
 
 /// What a capture step kept, with where it was read from.
@@ -145,10 +142,8 @@ pub fn placeholder(request: &[u8]) -> Option<Captured> {
 /// What a response to `request` (a PDU) keeps for a later restore; `None` for an exception, silence, or an
 /// answer that reads nothing.
 pub fn captured(framing: Framing, request: &[u8], response: &[u8]) -> Option<Captured> {
-    let d: Decoded = decode_any(response, framing, Direction::Response).ok()?;
-    let Pdu::Response(resp) = d.pdu else {
-        return None;
-    };
+    // FC 0x41 with a 2-byte byte count too (the other reading of `fc41-byte-count-width`).
+    let resp = crate::oracle::decode_response(framing, response)?;
     let req = Request::decode(request).ok();
     match (req, resp) {
         (

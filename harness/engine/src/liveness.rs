@@ -5,7 +5,7 @@
 use std::time::Duration;
 
 use crate::targets::{Received, Target, TargetError};
-use codec::{Direction, Framing, Pdu, decode_any, rtu, tcp};
+use codec::{Framing, rtu, tcp};
 
 /// How long the pre-flight and the liveness probes wait, and how long a run waits for a target that stopped
 /// answering to come back.
@@ -66,10 +66,7 @@ pub fn ask(t: &mut dyn Target, request: &[u8], bound: Duration) -> Result<Heard,
         }
         match t.recv(left)? {
             Received::Frame { bytes, .. } => {
-                if matches!(
-                    decode_any(&bytes, framing, Direction::Response).map(|d| d.pdu),
-                    Ok(Pdu::Response(_))
-                ) {
+                if crate::oracle::decode_response(framing, &bytes).is_some() {
                     return Ok(Heard::Modbus);
                 }
                 foreign.extend_from_slice(&bytes);

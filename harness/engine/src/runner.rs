@@ -127,6 +127,9 @@ pub struct Runner {
     /// open, `profile.device.word_order` becomes the drive's own once [`Runner::learn_word_order`] has seen
     /// it, and whole 32-bit values the cases write are sent in that order.
     case_order: WordOrder,
+    /// How far the drive's discrete inputs lie from the profile's addresses (0, or 0x002D once
+    /// [`Runner::learn_input_addressing`] found an LMD following its manual's example).
+    input_offset: u16,
     /// Modbus/TCP: the transaction ids of the latest requests sent (with the case that sent them, or the
     /// liveness probe, and when), so that a late answer is attributed to its request instead of being
     /// taken for a later step's.
@@ -196,6 +199,7 @@ impl Runner {
             refused: false,
             restore_tid: 0xA000,
             case_order,
+            input_offset: 0,
             recent: std::collections::VecDeque::new(),
             unanswered: Vec::new(),
             sentinels: std::collections::VecDeque::new(),
@@ -313,6 +317,109 @@ impl Runner {
         self.next_tid = tid;
     }
 
+    /// Learn where the drive serves its discrete inputs, where a reading of its manual leaves that open
+    /// (the LMD's, freedom `lmd-discrete-input-addressing`: the request table's 0x0000-0x0003 or the
+    /// example's 0x002D), before the first case: read the first input at the profile's address and, when
+    /// the drive refuses it, at the example's. A drive that serves only the latter follows the example: it
+    /// is recorded as the drive's choice, the reference drive is rebuilt to serve its inputs there too, and
+    /// the cases' FC 02 reads of the inputs are sent there, so that the inputs' checks (values, padding
+    /// bits) still look at the inputs instead of being refused. Reads only, through the restore's
+    /// transaction ids; best effort, like [`Runner::learn_word_order`].
+    pub fn learn_input_addressing(&mut self) {
+        const FREEDOM: &str = "lmd-discrete-input-addressing";
+        const EXAMPLE: &str = "inputs-at-0x002D";
+        const OFFSET: u16 = 0x002D;
+        let requirements = Arc::clone(&self.requirements);
+        let id = self.profile.device.id.clone();
+        let Some(freedom) = requirements.freedom(FREEDOM).filter(|f| f.applies_to(&id)) else {
+            return;
+        };
+        let Some(value) = freedom
+            .values
+            .iter()
+            .find(|v| drives::choices::value_matches(v, EXAMPLE))
+            .cloned()
+        else {
+            return;
+        };
+        let Some(first) = self
+            .profile
+            .discrete_inputs
+            .iter()
+            .map(|b| b.get_ref().address)
+            .min()
+        else {
+            return;
+        };
+        let read = |address: u16| Request::ReadDiscreteInputs {
+            address,
+            quantity: 1,
+        };
+        let sent = [read(first), read(first.wrapping_add(OFFSET))];
+        match crate::restore::Link::transact(self, &sent[0]) {
+            Ok(Some(r)) if r.is_exception() => {}
+            _ => return,
+        }
+        match crate::restore::Link::transact(self, &sent[1]) {
+            Ok(Some(r)) if !r.is_exception() => {}
+            _ => return,
+        }
+        let shown = crate::oracle::freedoms::shown_value(freedom, "", EXAMPLE);
+        let origin = format!(
+            "(input addressing learned before the cases: FC 02 refused at 0x{first:04X}, served at 0x{:04X})",
+            first.wrapping_add(OFFSET)
+        );
+        let _ = self.choices.record(&shown, &origin, &requirements);
+        self.input_offset = OFFSET;
+        let mut choices = drives::Choices::reference();
+        choices.choose(freedom, value);
+        let station = Station::new(
+            drives::build_with(self.profile.clone(), FaultSet::none(), choices),
+            FaultSet::none(),
+            self.cfg.unit,
+        );
+        self.shadow =
+            SimTarget::with_framing(station, self.target.framing(), self.target.rtu_timing())
+                .mirror();
+        // The new reference drive gets the reads the old one got (counters, event log).
+        let tid = self.next_tid;
+        for read in &sent {
+            let Ok(pdu) = read.to_bytes() else { continue };
+            let f = self.frame(&pdu, self.cfg.unit, None);
+            if self.shadow.send(&f.bytes).is_ok() {
+                let _ = self.shadow.settle();
+                let _ = self.shadow.take_decisions();
+            }
+        }
+        self.next_tid = tid;
+    }
+
+    /// An FC 02 read of the profile's discrete inputs moved to where the drive serves them, once
+    /// [`Runner::learn_input_addressing`] found them elsewhere; `None` for every other request.
+    fn in_drive_input_addressing(&self, pdu: &[u8]) -> Option<Vec<u8>> {
+        if self.input_offset == 0 {
+            return None;
+        }
+        let Ok(Request::ReadDiscreteInputs { address, quantity }) = Request::decode(pdu) else {
+            return None;
+        };
+        let inputs = || {
+            self.profile
+                .discrete_inputs
+                .iter()
+                .map(|b| b.get_ref().address)
+        };
+        let (lo, hi) = (inputs().min()?, inputs().max()?);
+        (lo..=hi).contains(&address).then(|| {
+            Request::ReadDiscreteInputs {
+                address: address.wrapping_add(self.input_offset),
+                quantity,
+            }
+            .to_bytes()
+            .unwrap_or_else(|_| pdu.to_vec())
+        })
+    }
+
     /// The word order the oracle reads the drive's 32-bit values in (the profile's, or the drive's own
     /// where a freedom leaves it open and [`Runner::learn_word_order`] saw it).
     pub fn word_order(&self) -> WordOrder {
@@ -323,6 +430,8 @@ impl Runner {
     /// when that is not the order the cases encode values in. Halves of a value and other requests are
     /// sent as they are.
     fn in_drive_order(&self, pdu: &[u8]) -> Vec<u8> {
+        let moved = self.in_drive_input_addressing(pdu);
+        let pdu = moved.as_deref().unwrap_or(pdu);
         if self.profile.device.word_order == self.case_order {
             return pdu.to_vec();
         }

@@ -875,6 +875,14 @@ impl Mdrive {
     /// FC 0x41: read a mnemonic's parameters.
     fn vendor_read(&mut self, mnemonic: &Mnemonic) -> Response {
         let fc = FunctionCode::VENDOR_READ;
+        // The width of the byte count is the station's (it encodes the response).
+        self.decisions.push(ids::FC41_BYTE_COUNT_WIDTH);
+        if let Some(key) = self.program_control(mnemonic) {
+            // A drive following the sections (000 line 873): FC 0x41 runs E, EX, PS, RS; nothing is read.
+            self.decisions.push(ids::MDRIVE_PROGRAM_CONTROL_FUNCTION);
+            let _ = self.run_command(&key, "", false);
+            return Response::VendorRead { params: Vec::new() };
+        }
         let Some(m) = self.vendor_entry(mnemonic) else {
             return self.refuse(
                 fc,
@@ -911,14 +919,52 @@ impl Mdrive {
         {
             *first = v.to_string();
         }
+        self.decisions.push(ids::FC41_READ_BACK_FORMAT);
+        let params = if self.choices.name(ids::FC41_READ_BACK_FORMAT) == Some("as-written") {
+            // "Written or read in normal sequence" (000 line 727): as a setting is written, "=0,1,0".
+            format!("={}", values.join(","))
+        } else {
+            values.join(", ")
+        };
         Response::VendorRead {
-            params: values.join(", ").into_bytes(),
+            params: params.into_bytes(),
         }
     }
 
     /// FC 0x42: write a setting or run a command.
     fn vendor_write(&mut self, mnemonic: &Mnemonic, params: &[u8]) -> Response {
         let fc = FunctionCode::VENDOR_WRITE;
+        let echo = mnemonic;
+        if self.program_control(mnemonic).is_some() {
+            // A drive following the sections runs E, EX, PS, RS by FC 0x41 and refuses them by 0x42, as it
+            // refuses any other FC 0x42 of a mnemonic it reads (the access freedom decides the code).
+            self.decisions.push(ids::MDRIVE_PROGRAM_CONTROL_FUNCTION);
+            return self.refuse(
+                fc,
+                ids::MNEMONIC_ACCESS,
+                ExceptionCode::ILLEGAL_DATA_ADDRESS,
+            );
+        }
+        let escape = Mnemonic::from_name("\u{1b}");
+        let printed_escape = Mnemonic([0x20, 0x20, 0x1B, 0x20]);
+        if self.profile.device.id == "lmd"
+            && (Some(*mnemonic) == escape || *mnemonic == printed_escape)
+        {
+            self.decisions.push(ids::LMD_ESC_WIRE_FORM);
+        }
+        let mnemonic = &match self.choices.name(ids::LMD_ESC_WIRE_FORM) {
+            // A drive that knows ESC as printed (001 lines 1054, 1256) takes 20 20 1B 20 for it, and the
+            // reversal rule's 20 20 20 1B for no mnemonic it knows.
+            Some("20 20 1B 20") if Some(*mnemonic) == escape => {
+                return self.refuse(
+                    fc,
+                    ids::UNKNOWN_MNEMONIC,
+                    ExceptionCode::ILLEGAL_DATA_ADDRESS,
+                );
+            }
+            Some("20 20 1B 20") if *mnemonic == printed_escape => escape.unwrap_or(*mnemonic),
+            _ => *mnemonic,
+        };
         let Some(m) = self.vendor_entry(mnemonic) else {
             return self.refuse(
                 fc,
@@ -927,6 +973,14 @@ impl Mdrive {
             );
         };
         let kind = vendor_kind(&m);
+        if kind
+            == (VendorKind::Command {
+                takes_params: false,
+            })
+        {
+            // With or without a byte count (the station reads the request as the drive does).
+            self.decisions.push(ids::FC42_PARAMETERLESS_BYTE_COUNT);
+        }
         let writable = m.write || (kind == VendorKind::Status && self.bank.read_only_writable());
         if !writable {
             return self.refuse(
@@ -967,16 +1021,28 @@ impl Mdrive {
                 };
                 Response::VendorWrite {
                     written,
-                    mnemonic: *mnemonic,
+                    mnemonic: *echo,
                 }
             }
             // The faulty drive answers as if it had written the parameters it cannot take.
             Err(_) if self.params_unchecked => Response::VendorWrite {
                 written: BYTES_WRITTEN,
-                mnemonic: *mnemonic,
+                mnemonic: *echo,
             },
             Err(code) => self.refuse(fc, ids::MNEMONIC_BAD_PARAMETER, code),
         }
+    }
+
+    /// The command key when `mnemonic` is one of E, EX, PS, RS and the drive runs them by FC 0x41
+    /// (`mdrive-program-control-function=fc41`).
+    fn program_control(&self, mnemonic: &Mnemonic) -> Option<String> {
+        if self.choices.name(ids::MDRIVE_PROGRAM_CONTROL_FUNCTION) != Some("fc41") {
+            return None;
+        }
+        let key = mnemonic.name().to_ascii_uppercase();
+        ["E", "EX", "PS", "RS"]
+            .contains(&key.as_str())
+            .then_some(key)
     }
 
     /// Refuse a vendor request whose exception code the freedom `freedom` decides (`reference` by default).

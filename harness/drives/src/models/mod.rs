@@ -63,8 +63,11 @@ pub fn build_with(profile: Profile, faults: FaultSet, choices: Choices) -> Box<d
     }
 }
 
+/// The LMD's discrete-input addressing (`corpus/freedoms/lmd.toml`).
+const DISCRETE_INPUT_ADDRESSING: &str = "lmd-discrete-input-addressing";
+
 /// The profile as a drive that made `choices` has it: the access it gives the items of the `access`
-/// freedoms, the word order of a `word-order` freedom. (Optional items a product lacks are refused by the
+/// freedoms, the word order of a `word-order` freedom, the discrete inputs' addresses of the LMD's reading. (Optional items a product lacks are refused by the
 /// station, see [`crate::station`]; the other freedoms act inside the models.)
 pub fn shaped(mut profile: Profile, choices: &Choices) -> Profile {
     use crate::profile::{Access, WordOrder};
@@ -93,6 +96,13 @@ pub fn shaped(mut profile: Profile, choices: &Choices) -> Profile {
                     }
                 }
             }
+        }
+    }
+    if choices.name(DISCRETE_INPUT_ADDRESSING) == Some("inputs-at-0x002D") {
+        // The LMD's FC 02 example reads inputs 1-4 from 0x002D (001 line 763), the table from 0x0000.
+        for b in &mut profile.discrete_inputs {
+            let b = b.get_mut();
+            b.address = b.address.wrapping_add(0x002D);
         }
     }
     for (_, value) in choices.defined_of(FreedomKind::WordOrder) {

@@ -123,6 +123,9 @@ pub mod status {
     pub const UNDOCUMENTED: u16 = 0x7000;
     /// The bits that tell the DS402 state apart (CiA 402 state table).
     pub const STATE_MASK: u16 = 0x006F;
+    /// Bit 9: remote (the drive takes its commands over the bus). Set only by a drive that chose
+    /// `sd2x-status-word-bits=0x006F` (the reference never sets it, as the printed 0x7038 has it clear).
+    pub const REMOTE: u16 = 1 << 9;
 }
 
 pub use crate::ds402::control;
@@ -160,6 +163,23 @@ pub const RAMP_PER_SECOND: i64 = 1000;
 /// Error code (register 2005) after a watchdog trip when the profile names none: CiA 301 emergency code 0x8130
 /// "life guard error or heartbeat error", matching the message "Heartbeat/Watchdog" (line 870).
 pub const DEFAULT_WATCHDOG_ERROR_CODE: u16 = 0x8130;
+
+/// Error code after a watchdog trip of a drive that chose `sd2x-watchdog-error-code=any-nonzero`: 0xFF00, the
+/// first code of CiA 301's device-specific range (the manual prints no number, line 870).
+pub const OTHER_WATCHDOG_ERROR_CODE: u16 = 0xFF00;
+
+/// How long the fault reaction lasts at least for a drive that chose
+/// `sd2x-watchdog-trip-state=fault-reaction-active` (the reference's ends at standstill).
+pub const FAULT_REACTION_TIME: Duration = Duration::from_millis(250);
+
+/// Freedoms of the SD2x manual the model acts on (`corpus/freedoms/sd2x.toml`).
+pub const STATUS_WORD_BITS: &str = "sd2x-status-word-bits";
+/// See [`STATUS_WORD_BITS`].
+pub const WATCHDOG_ERROR_CODE: &str = "sd2x-watchdog-error-code";
+/// See [`STATUS_WORD_BITS`].
+pub const WATCHDOG_TRIP_STATE: &str = "sd2x-watchdog-trip-state";
+/// See [`STATUS_WORD_BITS`].
+pub const FC43_RESERVED_BYTE: &str = "sd2x-fc43-reserved-byte";
 
 /// TxPDO values the model holds constant (raw bits by register address). The manual's defaults are all 0.
 pub const SIMULATED: &[(u16, u32)] = &[
@@ -316,6 +336,8 @@ pub struct Sd2x {
     choices: Choices,
     /// Freedoms that decided the answer being given (drained per request).
     decisions: Vec<Decision>,
+    /// Until when a fault reaction lasts at least (`sd2x-watchdog-trip-state=fault-reaction-active`).
+    reaction_until: Duration,
 }
 
 /// Raw bits of `value` at `bytes` bytes (two's complement for negatives).
@@ -367,6 +389,7 @@ impl Sd2x {
             watchdog_deadline: None,
             choices,
             decisions: Vec::new(),
+            reaction_until: Duration::ZERO,
         };
         let unmapped: Vec<((u16, u8), u32)> = model
             .profile
@@ -407,6 +430,10 @@ impl Sd2x {
     }
 
     /// The status word (register 2000), composed as the module documentation describes.
+    ///
+    /// A drive that chose `sd2x-status-word-bits=0x006F` keeps the DS402 state bits (0x006F) and sets the
+    /// bits the manual leaves to another document its own way: bits 4, 10 and 12-14 clear, bit 9 (remote)
+    /// set.
     pub fn status_word(&self) -> u16 {
         let mut s = self.state.state_bits() | status::VOLTAGE_ENABLED | status::UNDOCUMENTED;
         if self.state != Ds402State::QuickStopActive {
@@ -417,7 +444,18 @@ impl Sd2x {
         {
             s |= status::TARGET_REACHED;
         }
+        if self.status_bits_own() {
+            s = (s & status::STATE_MASK) | status::REMOTE;
+        }
         s
+    }
+
+    /// True when the drive sets the status-word bits outside 0x006F its own way (`sd2x-status-word-bits`).
+    fn status_bits_own(&self) -> bool {
+        matches!(
+            self.choices.get(STATUS_WORD_BITS),
+            Some(crate::requirements::FreedomValue::Int(m)) if *m == i64::from(status::STATE_MASK)
+        )
     }
 
     fn has(&self, f: Fault) -> bool {
@@ -486,7 +524,9 @@ impl Sd2x {
 
     /// The automatic transitions that wait for standstill: quick stop (option code 2) and fault reaction.
     fn settle(&mut self) {
-        if self.speed_fine != 0 {
+        if self.speed_fine != 0
+            || (self.state == Ds402State::FaultReactionActive && self.now < self.reaction_until)
+        {
             return;
         }
         self.state = match self.state {
@@ -505,13 +545,22 @@ impl Sd2x {
             // Already faulted: the first fault's code stays.
             return;
         }
-        self.error_code = self
-            .profile
-            .watchdog
-            .as_ref()
-            .and_then(|w| w.fault_error_code)
-            .unwrap_or(DEFAULT_WATCHDOG_ERROR_CODE);
+        self.error_code = if self.choices.name(WATCHDOG_ERROR_CODE) == Some("any-nonzero") {
+            // Another non-zero code: the first of CiA 301's device-specific range.
+            OTHER_WATCHDOG_ERROR_CODE
+        } else {
+            self.profile
+                .watchdog
+                .as_ref()
+                .and_then(|w| w.fault_error_code)
+                .unwrap_or(DEFAULT_WATCHDOG_ERROR_CODE)
+        };
         self.state = Ds402State::FaultReactionActive;
+        if self.choices.name(WATCHDOG_TRIP_STATE) == Some("fault-reaction-active") {
+            // A drive whose fault reaction takes its time even from standstill (a brake to apply, the
+            // power stage to switch off): the manual gives no stopping time (line 870).
+            self.reaction_until = self.now.saturating_add(FAULT_REACTION_TIME);
+        }
         self.settle();
     }
 

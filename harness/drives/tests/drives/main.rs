@@ -2,6 +2,7 @@
 
 extern crate modbus_harness_drives as drives;
 
+mod choices_taken;
 mod clone;
 mod full_fc;
 mod generic;

@@ -229,6 +229,24 @@ pub fn reference_shown(
     }
 }
 
+/// A value other than the reference's that an answer passing as it is shows for a freedom whose field the
+/// comparison leaves free (the FC 0x41 parameter string is compared in structure only). The reference's own
+/// value is left to [`reference_shown`], which does not record it: nearly every read shows it.
+pub fn observed_shown(
+    f: &Freedom,
+    expected: Option<&Response>,
+    observed: Option<&Response>,
+) -> Option<Shown> {
+    match (f.id.as_str(), expected?, observed?) {
+        (
+            drives::choices::ids::FC41_READ_BACK_FORMAT,
+            Response::VendorRead { .. },
+            Response::VendorRead { params },
+        ) if params.first() == Some(&b'=') => Some(shown_named(f, "", "as-written")),
+        _ => None,
+    }
+}
+
 /// The alternative answers a freedom admits for a step whose reference answer is `expected` (`None`:
 /// silence), tailored to what was `observed` (`None`: silence or no frame).
 pub fn alternatives(

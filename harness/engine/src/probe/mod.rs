@@ -14,10 +14,7 @@ pub mod draft;
 use std::time::Duration;
 
 use crate::targets::{Received, Target, TargetError};
-use codec::{
-    DeviceIdResponse, Direction, ExceptionCode, Framing, Mnemonic, Pdu, Request, Response,
-    decode_any, rtu, tcp,
-};
+use codec::{DeviceIdResponse, ExceptionCode, Framing, Mnemonic, Request, Response, rtu, tcp};
 use drives::profile::{Bit, Profile, Table};
 use toml::Spanned;
 
@@ -238,15 +235,7 @@ impl Prober<'_> {
         self.t.drain();
         self.t.send(&frame)?;
         match self.t.recv(self.timeout)? {
-            Received::Frame { bytes, .. } => {
-                Ok(match decode_any(&bytes, framing, Direction::Response) {
-                    Ok(d) => match d.pdu {
-                        Pdu::Response(r) => Some(r),
-                        Pdu::Request(_) => None,
-                    },
-                    Err(_) => None,
-                })
-            }
+            Received::Frame { bytes, .. } => Ok(crate::oracle::decode_response(framing, &bytes)),
             Received::Closed { .. } => {
                 self.t.reconnect()?;
                 Ok(None)

@@ -5,9 +5,9 @@
 //! one the catalog never meets; and every fault of the fault matrix still FAILs its witness case in every
 //! such configuration, so admitting other answers did not blind a check.
 //!
-//! Freedoms the models cannot take yet (transport outcomes, pipelining, counters, vendor field readings,
-//! status-bit masks) are named by `drives::choices::simulated`; the oracle admits their values, but no
-//! simulator shows them, so they are not part of this test.
+//! Freedoms the models cannot take yet (transport outcomes, unit ids, pipelining, counters, the FC 11/0B
+//! fields, the SD2x FC 43 layout without the reserved byte) are named by `drives::choices::simulated`; the
+//! oracle admits their values, but no simulator shows them, so they are not part of this test.
 
 use std::collections::BTreeSet;
 use std::sync::Mutex;

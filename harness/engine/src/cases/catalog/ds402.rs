@@ -180,6 +180,10 @@ fn watchdog(cx: &mut Ctx, pd: &ProcessData, w: &Watchdog) {
             Compare::Exact,
             "200 ms later: the watchdog's error code",
         ),
+        // The drive "stops" (line 870): it may still be in fault reaction active (freedom
+        // sd2x-watchdog-trip-state), where a fault reset does nothing (CiA 402 takes it in fault only). The
+        // manual gives no stopping time; a second lets a drive at standstill finish its reaction.
+        Step::Wait(Duration::from_millis(1000)),
     ]);
     steps.extend(pd.reset());
     let steps = around.wrap(steps);

@@ -1,0 +1,184 @@
+//! The reference models taking the freedoms' other values (`simulate --choose`): each test fails if the model
+//! answers as the reference drive instead.
+
+use std::time::Duration;
+
+use codec::{Mnemonic, Request, Response, tcp};
+use drives::corpus::Corpus;
+use drives::models::sd2x::{Ds402State, Sd2x};
+use drives::{Choices, DriveModel, FaultSet, Station};
+
+use super::support::profile;
+
+fn choices(stem: &str, specs: &[&str]) -> Choices {
+    let requirements = Corpus::Embedded.requirements().expect("requirements");
+    Choices::parse_all(specs, &requirements, stem).expect("choices")
+}
+
+/// A station of the corpus profile `stem` taking `specs`.
+fn station(stem: &str, specs: &[&str]) -> Station {
+    let p = profile(stem);
+    let unit = p.device.default_unit;
+    let c = choices(stem, specs);
+    Station::new(
+        drives::build_with(p, FaultSet::none(), c.clone()),
+        FaultSet::none(),
+        unit,
+    )
+    .with_choices(c)
+}
+
+/// One request PDU (any bytes) over Modbus/TCP; the response PDU.
+fn ask(s: &mut Station, pdu: &[u8]) -> Vec<u8> {
+    let unit = s.profile().device.default_unit;
+    let mut adu = Vec::new();
+    tcp::encode_adu(1, unit, pdu, &mut adu).expect("encodes");
+    let wire = s.tcp_adu(Duration::ZERO, &adu).expect("answers");
+    wire.bytes[tcp::MBAP_LEN..].to_vec()
+}
+
+fn sd2x(specs: &[&str]) -> Sd2x {
+    Sd2x::new(profile("sd2x"), FaultSet::none(), choices("sd2x", specs))
+}
+
+fn read_one(m: &mut Sd2x, ms: u64, address: u16) -> u16 {
+    match m.handle(
+        Duration::from_millis(ms),
+        1,
+        &Request::ReadHoldingRegisters {
+            address,
+            quantity: 1,
+        },
+    ) {
+        Some(Response::ReadHoldingRegisters { values }) => values[0],
+        other => panic!("read {address}: {other:?}"),
+    }
+}
+
+/// Shutdown with a 100 ms watchdog at t = 0, never rewritten.
+fn trip_watchdog(m: &mut Sd2x) {
+    let r = m.handle(
+        Duration::ZERO,
+        1,
+        &Request::WriteMultipleRegisters {
+            address: 3000,
+            values: vec![0x0006, 0, 0, 100],
+        },
+    );
+    assert!(
+        matches!(r, Some(Response::WriteMultipleRegisters { .. })),
+        "{r:?}"
+    );
+}
+
+#[test]
+fn sd2x_status_word_bits_outside_the_ds402_state_bits_are_the_drives_own() {
+    let reference = read_one(&mut sd2x(&[]), 0, 2000);
+    let own = read_one(&mut sd2x(&["sd2x-status-word-bits=0x006F"]), 0, 2000);
+    assert_eq!(reference, 0x7070);
+    assert_eq!(own, 0x0260, "state bits kept, 4 and 12-14 cleared, 9 set");
+    assert_eq!(reference & 0x006F, own & 0x006F);
+}
+
+#[test]
+fn sd2x_watchdog_error_code_any_nonzero() {
+    let mut r = sd2x(&[]);
+    trip_watchdog(&mut r);
+    assert_eq!(read_one(&mut r, 200, 2005), 0x8130);
+    let mut m = sd2x(&["sd2x-watchdog-error-code=any-nonzero"]);
+    trip_watchdog(&mut m);
+    assert_eq!(read_one(&mut m, 200, 2005), 0xFF00);
+}
+
+#[test]
+fn sd2x_watchdog_trip_state_fault_reaction_active_lasts_a_while() {
+    let mut r = sd2x(&[]);
+    trip_watchdog(&mut r);
+    assert_eq!(read_one(&mut r, 200, 2000) & 0x004F, 0x0008, "fault");
+    let mut m = sd2x(&["sd2x-watchdog-trip-state=fault-reaction-active"]);
+    trip_watchdog(&mut m);
+    assert_eq!(
+        read_one(&mut m, 200, 2000) & 0x004F,
+        0x000F,
+        "fault reaction active"
+    );
+    m.advance(Duration::from_millis(400));
+    assert_eq!(m.state(), Ds402State::Fault, "then fault");
+}
+
+fn mnemonic(name: &str) -> Vec<u8> {
+    Mnemonic::from_name(name).expect("mnemonic").0.to_vec()
+}
+
+#[test]
+fn fc41_two_byte_count() {
+    let read_tr = [vec![0x41], mnemonic("TR")].concat();
+    let one = ask(&mut station("mdrive", &[]), &read_tr);
+    let two = ask(
+        &mut station("mdrive", &["fc41-byte-count-width=2-byte"]),
+        &read_tr,
+    );
+    assert_eq!(one[1] as usize, one.len() - 2);
+    assert_eq!(two[..3], [0x41, 0x00, one[1]]);
+    assert_eq!(two[3..], one[2..]);
+}
+
+#[test]
+fn fc41_read_back_as_written() {
+    let read_tr = [vec![0x41], mnemonic("TR")].concat();
+    let reference = ask(&mut station("mdrive", &[]), &read_tr);
+    let own = ask(
+        &mut station("mdrive", &["fc41-read-back-format=as-written"]),
+        &read_tr,
+    );
+    assert_eq!(&reference[2..], b"0, 0, 0");
+    assert_eq!(&own[2..], b"=0,0,0");
+}
+
+#[test]
+fn fc42_parameterless_command_without_count_byte() {
+    let six = [vec![0x42], mnemonic("E"), vec![0x00]].concat();
+    let five = [vec![0x42], mnemonic("E")].concat();
+    assert_eq!(ask(&mut station("mdrive", &[]), &six)[0], 0x42);
+    let mut s = station("mdrive", &["fc42-parameterless-byte-count=no-count-byte"]);
+    assert_eq!(
+        ask(&mut s, &six),
+        [0xC2, 0x03],
+        "the count 0 is a parameter byte E does not take"
+    );
+    assert_eq!(
+        ask(&mut s, &five),
+        [vec![0x42, 0x04], mnemonic("E")].concat()
+    );
+}
+
+#[test]
+fn lmd_esc_as_printed() {
+    let rule = [vec![0x42], mnemonic("\u{1b}"), vec![0x00]].concat();
+    let printed = [0x42, 0x20, 0x20, 0x1B, 0x20, 0x00];
+    assert_eq!(ask(&mut station("lmd", &[]), &rule)[0], 0x42);
+    let mut s = station("lmd", &["lmd-esc-wire-form=20 20 1B 20"]);
+    assert_eq!(ask(&mut s, &rule), [0xC2, 0x02], "an unknown mnemonic");
+    assert_eq!(ask(&mut s, &printed), [0x42, 0x04, 0x20, 0x20, 0x1B, 0x20]);
+}
+
+#[test]
+fn mdrive_program_control_by_fc41() {
+    let write_e = [vec![0x42], mnemonic("E"), vec![0x00]].concat();
+    let read_e = [vec![0x41], mnemonic("E")].concat();
+    assert_eq!(ask(&mut station("mdrive", &[]), &read_e), [0xC1, 0x02]);
+    let mut s = station("mdrive", &["mdrive-program-control-function=fc41"]);
+    assert_eq!(ask(&mut s, &write_e), [0xC2, 0x02]);
+    assert_eq!(ask(&mut s, &read_e), [0x41, 0x00]);
+}
+
+#[test]
+fn lmd_discrete_inputs_at_0x002d() {
+    let at = |a: u16| [0x02, (a >> 8) as u8, a as u8, 0x00, 0x04];
+    let mut r = station("lmd", &[]);
+    assert_eq!(ask(&mut r, &at(0x0000))[..2], [0x02, 0x01]);
+    assert_eq!(ask(&mut r, &at(0x002D)), [0x82, 0x02]);
+    let mut s = station("lmd", &["lmd-discrete-input-addressing=inputs-at-0x002D"]);
+    assert_eq!(ask(&mut s, &at(0x0000)), [0x82, 0x02]);
+    assert_eq!(ask(&mut s, &at(0x002D)), ask(&mut r, &at(0x0000)));
+}

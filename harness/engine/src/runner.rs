@@ -130,6 +130,10 @@ pub struct Runner {
     /// How far the drive's discrete inputs lie from the profile's addresses (0, or 0x002D once
     /// [`Runner::learn_input_addressing`] found an LMD following its manual's example).
     input_offset: u16,
+    /// The reads sent before the cases to learn the drive's choices (word order, input addressing), which a
+    /// rebuilt reference drive is given again, and the choices learned so far.
+    learning_reads: Vec<Request>,
+    learned: drives::Choices,
     /// Modbus/TCP: the transaction ids of the latest requests sent (with the case that sent them, or the
     /// liveness probe, and when), so that a late answer is attributed to its request instead of being
     /// taken for a later step's.
@@ -200,6 +204,8 @@ impl Runner {
             restore_tid: 0xA000,
             case_order,
             input_offset: 0,
+            learning_reads: Vec::new(),
+            learned: drives::Choices::reference(),
             recent: std::collections::VecDeque::new(),
             unanswered: Vec::new(),
             sentinels: std::collections::VecDeque::new(),
@@ -243,18 +249,18 @@ impl Runner {
         let profile_order = self.profile.device.word_order;
         let other = flip(profile_order);
         let mut votes: Vec<(WordOrder, u16, String)> = Vec::new();
-        let mut sent = Vec::new();
         for (address, name) in pairs {
             let read = Request::ReadHoldingRegisters {
                 address,
                 quantity: 2,
             };
-            let answer = match crate::restore::Link::transact(self, &read) {
+            let answer = crate::restore::Link::transact(self, &read);
+            self.learning_reads.push(read);
+            let answer = match answer {
                 Ok(Some(a)) => a,
                 // Silence or an error: the cases will meet it; nothing more is learned here.
                 _ => break,
             };
-            sent.push(read);
             let codec::Response::ReadHoldingRegisters { values } = answer else {
                 continue;
             };
@@ -296,25 +302,7 @@ impl Runner {
             return;
         }
         self.profile.device.word_order = drive_order;
-        let station = Station::new(
-            drives::build(self.profile.clone(), FaultSet::none()),
-            FaultSet::none(),
-            self.cfg.unit,
-        );
-        self.shadow =
-            SimTarget::with_framing(station, self.target.framing(), self.target.rtu_timing())
-                .mirror();
-        // The new reference drive gets the reads the old one got (counters, event log).
-        let tid = self.next_tid;
-        for read in &sent {
-            let Ok(pdu) = read.to_bytes() else { continue };
-            let f = self.frame(&pdu, self.cfg.unit, None);
-            if self.shadow.send(&f.bytes).is_ok() {
-                let _ = self.shadow.settle();
-                let _ = self.shadow.take_decisions();
-            }
-        }
-        self.next_tid = tid;
+        self.rebuild_reference();
     }
 
     /// Learn where the drive serves its discrete inputs, where a reading of its manual leaves that open
@@ -356,11 +344,15 @@ impl Runner {
             quantity: 1,
         };
         let sent = [read(first), read(first.wrapping_add(OFFSET))];
-        match crate::restore::Link::transact(self, &sent[0]) {
+        let first_answer = crate::restore::Link::transact(self, &sent[0]);
+        self.learning_reads.push(sent[0].clone());
+        match first_answer {
             Ok(Some(r)) if r.is_exception() => {}
             _ => return,
         }
-        match crate::restore::Link::transact(self, &sent[1]) {
+        let second_answer = crate::restore::Link::transact(self, &sent[1]);
+        self.learning_reads.push(sent[1].clone());
+        match second_answer {
             Ok(Some(r)) if !r.is_exception() => {}
             _ => return,
         }
@@ -371,19 +363,25 @@ impl Runner {
         );
         let _ = self.choices.record(&shown, &origin, &requirements);
         self.input_offset = OFFSET;
-        let mut choices = drives::Choices::reference();
-        choices.choose(freedom, value);
+        self.learned.choose(freedom, value);
+        self.rebuild_reference();
+    }
+
+    /// A new reference drive for what was learned before the cases (the profile's word order, the choices
+    /// in `learned`), given the reads the old one got then (its counters and event log agree with the
+    /// target's again).
+    fn rebuild_reference(&mut self) {
         let station = Station::new(
-            drives::build_with(self.profile.clone(), FaultSet::none(), choices),
+            drives::build_with(self.profile.clone(), FaultSet::none(), self.learned.clone()),
             FaultSet::none(),
             self.cfg.unit,
-        );
+        )
+        .with_choices(self.learned.clone());
         self.shadow =
             SimTarget::with_framing(station, self.target.framing(), self.target.rtu_timing())
                 .mirror();
-        // The new reference drive gets the reads the old one got (counters, event log).
         let tid = self.next_tid;
-        for read in &sent {
+        for read in self.learning_reads.clone() {
             let Ok(pdu) = read.to_bytes() else { continue };
             let f = self.frame(&pdu, self.cfg.unit, None);
             if self.shadow.send(&f.bytes).is_ok() {

@@ -12,6 +12,7 @@ use std::sync::Arc;
 
 use codec::ExceptionCode;
 
+use crate::profile::{Profile, Transport};
 use crate::requirements::{Freedom, FreedomKind, FreedomValue, Requirements};
 
 /// Freedom ids the models decide at (each is a `[[freedom]]` id in `corpus/freedoms/`; a test checks it).
@@ -38,6 +39,23 @@ pub mod ids {
     pub const SDO_LENGTH_ERROR: &str = "sd2x-sdo-length-error";
     /// FC 0x42 response field "bytes written": the 4 mnemonic characters, or the parameter bytes.
     pub const FC42_BYTES_WRITTEN: &str = "fc42-bytes-written";
+    /// A PDU too short for its function code: exception 03, silence, or (Modbus/TCP) a close.
+    pub const TRUNCATED_PDU: &str = "truncated-pdu";
+    /// Both the quantity and the address (range) wrong: 03 (quantity checked first) or 02 (address first).
+    pub const EXCEPTION_CHECK_ORDER: &str = "exception-check-order";
+    /// Modbus/TCP, a unit id in the freedom's `units` that is not the station's own (nor 0, 0xFF):
+    /// answered or ignored.
+    pub const TCP_UNIT_IDS: &str = "tcp-unit-ids";
+    /// Modbus/TCP, several requests received together: answered in request order or in another order.
+    pub const PIPELINED_RESPONSE_ORDER: &str = "pipelined-response-order";
+    /// Modbus/TCP, a request received while another is served: served, or exception 06 (one transaction).
+    pub const PIPELINED_SERVER_BUSY: &str = "pipelined-server-busy";
+    /// Modbus/TCP, an MBAP length shorter than the function's layout: 03, silence or a close.
+    pub const MBAP_LENGTH_SHORT: &str = "mbap-length-short";
+    /// Modbus/TCP, an MBAP length longer than the function's layout: wait (silence), close, or 03.
+    pub const MBAP_LENGTH_LONG: &str = "mbap-length-long";
+    /// Modbus/TCP, an MBAP length announcing a PDU over 253 bytes: close, silence or 03.
+    pub const PDU_OVER_253: &str = "pdu-over-253";
 
     /// Every id above.
     pub const ALL: &[&str] = &[
@@ -52,6 +70,14 @@ pub mod ids {
         MNEMONIC_BAD_PARAMETER,
         SDO_LENGTH_ERROR,
         FC42_BYTES_WRITTEN,
+        TRUNCATED_PDU,
+        EXCEPTION_CHECK_ORDER,
+        TCP_UNIT_IDS,
+        PIPELINED_RESPONSE_ORDER,
+        PIPELINED_SERVER_BUSY,
+        MBAP_LENGTH_SHORT,
+        MBAP_LENGTH_LONG,
+        PDU_OVER_253,
     ];
 }
 
@@ -149,8 +175,9 @@ impl Choices {
     pub fn parse_one(
         spec: &str,
         requirements: &Requirements,
-        profile: &str,
+        profile: &Profile,
     ) -> Result<(String, FreedomValue), ChoiceError> {
+        let (device, profile) = (profile, profile.device.id.as_str());
         let (id, value) = spec
             .split_once('=')
             .ok_or_else(|| ChoiceError::Syntax(spec.to_string()))?;
@@ -184,7 +211,7 @@ impl Choices {
                 value: value.to_string(),
                 admissible: f.values.iter().map(|v| v.to_string()).collect(),
             })?;
-        if !simulated(f, &chosen) {
+        if !simulated_on(f, &chosen, device) {
             return Err(ChoiceError::NotSimulated {
                 id: id.to_string(),
                 value: chosen.to_string(),
@@ -194,7 +221,7 @@ impl Choices {
                         f.values
                             .iter()
                             .skip(1)
-                            .filter(|v| simulated(f, v))
+                            .filter(|v| simulated_on(f, v, device))
                             .map(|v| format!("{}={v}", f.id))
                             .collect::<Vec<_>>()
                     })
@@ -209,7 +236,7 @@ impl Choices {
     pub fn parse_all<S: AsRef<str>>(
         specs: &[S],
         requirements: &Requirements,
-        profile: &str,
+        profile: &Profile,
     ) -> Result<Self, ChoiceError> {
         let mut choices = Self::reference();
         for spec in specs {
@@ -307,9 +334,12 @@ impl fmt::Display for Choices {
 
 /// True when the reference drive models can take `value` for `f` (`simulate --choose`, `run --choose`): the
 /// items of optional groups and their access, the word order, functions served beyond the profile, reads
-/// inside a 32-bit register, and every freedom the models decide at (see [`ids`]). The reference's own
-/// value always is. Others (the transport outcomes, pipelining, counters, readings of vendor fields, status
-/// bits) the oracle admits but no simulator shows yet.
+/// inside a 32-bit register, and every freedom the models or the station decide at (see [`ids`]: the
+/// exception codes, the answer to a truncated PDU, the exception check order, and the Modbus/TCP transport
+/// outcomes: unit ids, pipelining order and Server Busy, MBAP lengths, PDUs over 253 bytes). The reference's
+/// own value always is. Others (counters, readings of vendor fields, status bits, a half register write
+/// accepted) the oracle admits but no simulator shows yet. See also [`simulated_on`]: a `close` needs a
+/// connection.
 pub fn simulated(f: &Freedom, value: &FreedomValue) -> bool {
     if f.values.first() == Some(value) {
         return true;
@@ -321,6 +351,13 @@ pub fn simulated(f: &Freedom, value: &FreedomValue) -> bool {
         _ if f.id == ids::PARTIAL_REGISTER_WRITE => Choices::exception_value(value).is_some(),
         _ => ids::ALL.contains(&f.id.as_str()),
     }
+}
+
+/// [`simulated`] for a drive of `profile`: a drive that speaks no Modbus/TCP has no connection to close, so
+/// an outcome `close` is not a choice it can make (on an RTU line a station chosen `close` keeps silent).
+pub fn simulated_on(f: &Freedom, value: &FreedomValue, profile: &Profile) -> bool {
+    let tcp = profile.device.transports.contains(&Transport::Tcp);
+    simulated(f, value) && (tcp || !value_matches(value, "close"))
 }
 
 /// True when a value of the data is the one a user wrote (`4`, `0x04`, `04`, `exception-02`, a name).

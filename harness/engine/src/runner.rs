@@ -1105,6 +1105,10 @@ impl Runner {
         let unit = self.cfg.unit;
         let framing = self.target.framing();
         let n = expected.len().max(1);
+        // Modbus/TCP pairs answers with requests by transaction id, in any order (guide 4.2.1.1): which
+        // requests and which of the reference's answers were paired already.
+        let mut paired = vec![false; frames.len()];
+        let mut used = vec![false; expected.len()];
         for i in 0..n {
             let wait = if expected.is_empty() {
                 self.cfg.timing.silence
@@ -1134,8 +1138,25 @@ impl Runner {
             }
             let stop = !matches!(got, Received::Frame { .. } | Received::Garbage { .. });
             record(&got, wire);
+            let (j, out_of_order) = pair(framing, &got, frames, &paired, i);
+            if let Some(p) = paired.get_mut(j) {
+                *p = true;
+            }
+            let e = framing
+                .eq(&Framing::Tcp)
+                .then(|| {
+                    let tid = frames.get(j)?.sent.tid?;
+                    (0..expected.len())
+                        .find(|&k| !used[k] && expected[k].get(..2) == Some(&tid.to_be_bytes()[..]))
+                })
+                .flatten()
+                .or_else(|| (0..expected.len()).find(|&k| !used[k]))
+                .unwrap_or(i);
+            if let Some(u) = used.get_mut(e) {
+                *u = true;
+            }
             let sent = frames
-                .get(i)
+                .get(j)
                 .or(frames.last())
                 .map(|f| f.sent.clone())
                 .unwrap_or(Sent {
@@ -1149,7 +1170,7 @@ impl Runner {
                 unit: sent.unit,
                 run_unit: self.cfg.unit,
                 profile: &self.profile,
-                malformed: frames.get(i).or(frames.last()).is_some_and(|f| f.malformed),
+                malformed: frames.get(j).or(frames.last()).is_some_and(|f| f.malformed),
                 batch: frames.len() > 1,
                 decided: &decisions,
             };
@@ -1159,7 +1180,7 @@ impl Runner {
             let judged = oracle::judge_admitting(
                 framing,
                 &sent,
-                expected.get(i).map(|v| v.as_slice()),
+                expected.get(e).map(|v| v.as_slice()),
                 &got,
                 compare,
                 &self.profile,
@@ -1168,7 +1189,16 @@ impl Runner {
                 &cx,
             );
             findings.extend(judged.findings);
-            for s in &judged.shown {
+            // An answer ahead of an earlier request's shows the drive pairing by transaction id only.
+            let order = requirements
+                .freedoms()
+                .iter()
+                .find(|f| {
+                    f.kind == FreedomKind::PipelineOrder && f.applies_to(&self.profile.device.id)
+                })
+                .filter(|_| out_of_order)
+                .map(|f| oracle::freedoms::shown_value(f, "", "transaction-id"));
+            for s in judged.shown.iter().chain(&order) {
                 if let Some(text) = self.choices.record(s, &self.case_id, &requirements) {
                     findings.push(Finding {
                         severity: Severity::Should,
@@ -1301,6 +1331,27 @@ impl crate::restore::Link for ReferenceLink<'_> {
             }
         }))
     }
+}
+
+/// The request an answer belongs to: on Modbus/TCP the unpaired one with the answer's transaction id (and
+/// whether an earlier request is still unpaired: the answer came out of request order), else the first
+/// unpaired one, else the `i`-th.
+fn pair(
+    framing: Framing,
+    got: &Received,
+    frames: &[Framed],
+    paired: &[bool],
+    i: usize,
+) -> (usize, bool) {
+    let first_unpaired = (0..frames.len()).find(|&k| !paired[k]);
+    if framing == Framing::Tcp
+        && let Received::Frame { bytes, .. } = got
+        && let Some(tid) = bytes.get(..2).map(|b| u16::from_be_bytes([b[0], b[1]]))
+        && let Some(j) = (0..frames.len()).find(|&k| !paired[k] && frames[k].sent.tid == Some(tid))
+    {
+        return (j, first_unpaired.is_some_and(|k| k < j));
+    }
+    (first_unpaired.unwrap_or(i), false)
 }
 
 fn record(r: &Received, wire: &mut Vec<WireEvent>) {

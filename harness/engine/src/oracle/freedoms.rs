@@ -218,6 +218,19 @@ pub fn reference_shown(
     }
 }
 
+/// An outcome freedom's value `kind` (`silence`, `close`, `exception-XX`, `response`) shown by a step the
+/// reference answers another way and whose observation passed as it is (a request to be rejected or ignored,
+/// where any of those settles it): where the freedom is about the step (as for [`alternatives`]) and lists
+/// the value.
+pub fn outcome_shown(f: &Freedom, cx: &StepContext<'_>, kind: &str) -> Option<Shown> {
+    let about = cx.decided(f) || cx.malformed || (cx.batch && f.id.starts_with("pipelined"));
+    let listed = f
+        .values
+        .iter()
+        .any(|v| drives::choices::value_matches(v, kind));
+    (f.kind == FreedomKind::Outcome && about && listed).then(|| shown_named(f, "", kind))
+}
+
 /// The alternative answers a freedom admits for a step whose reference answer is `expected` (`None`:
 /// silence), tailored to what was `observed` (`None`: silence or no frame).
 pub fn alternatives(

@@ -183,9 +183,22 @@ pub fn judge_admitting(
     };
     let exp = expected.and_then(response);
     if !fails(&strict) {
+        // The kind of answer the drive gave where it differs from the reference's and a request it had to
+        // reject or ignore admits either (an outcome freedom): the drive's choice, shown.
+        let observed_kind = outcome_kind(framing, observed);
+        let reference_kind = match (&exp, reference_closed) {
+            (Some(e), _) => Some(response_kind(e)),
+            (None, true) => Some("close".to_string()),
+            (None, false) => Some("silence".to_string()),
+        };
         let shown = applicable
             .iter()
-            .filter_map(|f| freedoms::reference_shown(f, cx, exp.as_ref()))
+            .filter_map(|f| match (&observed_kind, &reference_kind) {
+                (Some(o), Some(r)) if o != r && f.kind == FreedomKind::Outcome => {
+                    freedoms::outcome_shown(f, cx, o)
+                }
+                _ => freedoms::reference_shown(f, cx, exp.as_ref()),
+            })
             .collect();
         return Judged {
             findings: strict,
@@ -274,6 +287,29 @@ pub fn judge_admitting(
     Judged {
         findings: strict,
         shown: vec![],
+    }
+}
+
+/// The kind of answer an observation is, as outcome freedoms name it: `response`, `exception-XX`, `silence`
+/// (nothing, not even a partial frame), `close` (Modbus/TCP); `None` for garbage.
+fn outcome_kind(framing: Framing, observed: &Received) -> Option<String> {
+    match observed {
+        Received::Silence { partial, .. } if partial.is_empty() => Some("silence".into()),
+        Received::Closed { .. } if framing == Framing::Tcp => Some("close".into()),
+        Received::Frame { bytes, .. } => {
+            match decode_any(bytes, framing, Direction::Response).map(|d| d.pdu) {
+                Ok(Pdu::Response(r)) => Some(response_kind(&r)),
+                _ => None,
+            }
+        }
+        _ => None,
+    }
+}
+
+fn response_kind(r: &Response) -> String {
+    match r {
+        Response::Exception { code, .. } => format!("exception-{:02X}", code.0),
+        _ => "response".into(),
     }
 }
 

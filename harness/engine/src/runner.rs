@@ -1173,6 +1173,7 @@ impl Runner {
                 malformed: frames.get(j).or(frames.last()).is_some_and(|f| f.malformed),
                 batch: frames.len() > 1,
                 decided: &decisions,
+                closed: matches!(got, Received::Closed { .. }),
             };
             let requirements = Arc::clone(&self.requirements);
             let applicable =

@@ -44,6 +44,15 @@ pub struct StepContext<'a> {
     pub batch: bool,
     /// The freedoms the reference drive's answer was decided by.
     pub decided: &'a [drives::Decision],
+    /// The target closed the connection instead of answering (Modbus/TCP).
+    pub closed: bool,
+}
+
+impl Alternative {
+    /// True when the alternative is the connection closed (an outcome freedom's `close`).
+    pub fn closes(&self) -> bool {
+        self.answer.is_none() && self.shown.value == "close"
+    }
 }
 
 impl StepContext<'_> {
@@ -52,8 +61,9 @@ impl StepContext<'_> {
     }
 }
 
-/// An alternative answer a freedom admits: the answer (`None`: silence), what the freedom's value is
-/// called, and whether the answer's data values are free (compared in structure only).
+/// An alternative answer a freedom admits: the answer (`None`: silence, or a close where the value shown is
+/// `close`), what the freedom's value is called, and whether the answer's data values are free (compared in
+/// structure only).
 pub struct Alternative {
     pub answer: Option<Response>,
     pub shown: Shown,
@@ -285,7 +295,7 @@ pub fn alternatives(
         FreedomKind::Outcome
             if cx.decided(f) || cx.malformed || (cx.batch && f.id.starts_with("pipelined")) =>
         {
-            outcome(f, cx.request, expected, observed)
+            outcome(f, cx, expected, observed)
         }
         FreedomKind::Outcome => vec![],
         FreedomKind::UnitIds => {
@@ -477,19 +487,28 @@ fn access(
     out
 }
 
-/// The kind of answer is free among the listed ones: response, silence, close, exception-XX.
+/// The kind of answer is free among the listed ones: response, silence, close, exception-XX. A close is
+/// told from silence (the oracle judges the alternative `close` as an answer that closes, see
+/// [`Alternative::closes`]).
 fn outcome(
     f: &Freedom,
-    request: Option<&Request>,
+    cx: &StepContext<'_>,
     expected: Option<&Response>,
     observed: Option<&Response>,
 ) -> Vec<Alternative> {
+    let request = cx.request;
     let has = |name: &str| {
         f.values
             .iter()
             .any(|v| drives::choices::value_matches(v, name))
     };
     match (expected, observed) {
+        (_, None) if cx.closed && has("close") => vec![Alternative {
+            answer: None,
+            shown: shown_named(f, "", "close"),
+            values_free: false,
+            note: None,
+        }],
         (_, None) if has("silence") => vec![Alternative {
             answer: None,
             shown: shown_named(f, "", "silence"),

@@ -267,7 +267,7 @@ pub fn judge_admitting(
                 &observed_as,
                 &compare,
                 profile,
-                reference_closed,
+                reference_closed || alt.closes(),
             );
             if !fails(&again) {
                 let mut findings = again;

@@ -541,9 +541,11 @@ impl Runner {
     /// Silence proven by a sentinel (issue 17): the known-good read is sent right behind the request that
     /// must go unanswered, on the same connection, to the target and to the reference (which counts it as
     /// the target does). Its answer, with nothing for this step's request before it, proves the silence: a
-    /// Modbus/TCP server takes the requests of a connection in order. An answer of this step's request that
-    /// comes first is returned (and judged, as an answer where silence was due); a late answer of an earlier
-    /// request is noted as `skip_late` does. No sentinel answer within the answer timeout (a target that
+    /// Modbus/TCP server takes the requests of a connection in order. (Not one seen answering out of
+    /// request order, `pipelined-response-order=transaction-id`: it gets no more sentinels. A sentinel
+    /// answered with exception 06, Server Busy, proves nothing: the window is listened out.) An answer of
+    /// this step's request that comes first is returned (and judged, as an answer where silence was due);
+    /// a late answer of an earlier request is noted as `skip_late` does. No sentinel answer within the answer timeout (a target that
     /// answers nothing now, or a reference that would not answer the sentinel either): the silence stands
     /// as when the window is listened out, and the sentinel's answer is dropped if it comes later.
     fn prove_silence(
@@ -581,6 +583,7 @@ impl Runner {
             return Ok(got);
         };
         let theirs = (bytes.len() >= 2).then(|| u16::from_be_bytes([bytes[0], bytes[1]]));
+        let sentinel_busy = theirs == Some(tid) && busy_refusal(bytes);
         if frames
             .iter()
             .any(|f| f.sent.tid.is_some() && f.sent.tid == theirs)
@@ -603,6 +606,18 @@ impl Runner {
         };
         if let Some(other) = after.filter(|a| !sentinel_seen(a)) {
             return Ok(other);
+        }
+        // A sentinel refused with exception 06 (Server Busy: `pipelined-server-busy`) says the drive may
+        // still be busy with an earlier request, not done with it: no proof; the window is listened out.
+        if sentinel_busy {
+            self.sentinels.retain(|t| *t != tid);
+            self.silences.listened += 1;
+            let left = self
+                .cfg
+                .timing
+                .silence
+                .saturating_sub(self.target.now().saturating_sub(start));
+            return self.target.recv(left);
         }
         // The sentinel's answer came with nothing for this step before it: the silence is proven.
         self.sentinels.retain(|t| *t != tid);
@@ -1199,6 +1214,11 @@ impl Runner {
                 })
                 .filter(|_| out_of_order)
                 .map(|f| oracle::freedoms::shown_value(f, "", "transaction-id"));
+            if out_of_order {
+                // A drive that pairs answers by transaction id only may answer a sentinel before the
+                // request it follows: a sentinel's answer proves nothing about that request any more.
+                self.sentinel_given_up = true;
+            }
             for s in judged.shown.iter().chain(&order) {
                 if let Some(text) = self.choices.record(s, &self.case_id, &requirements) {
                     findings.push(Finding {
@@ -1334,6 +1354,11 @@ impl crate::restore::Link for ReferenceLink<'_> {
     }
 }
 
+/// True when a Modbus/TCP answer is exception 06, Server Busy.
+fn busy_refusal(adu: &[u8]) -> bool {
+    matches!(adu.get(tcp::MBAP_LEN..), Some([fc, 0x06]) if fc & 0x80 != 0)
+}
+
 /// The request an answer belongs to: on Modbus/TCP the unpaired one with the answer's transaction id (and
 /// whether an earlier request is still unpaired: the answer came out of request order), else the first
 /// unpaired one, else the `i`-th.
@@ -1401,4 +1426,71 @@ fn rank(v: Verdict) -> u8 {
 /// The worse of two verdicts.
 pub fn worse(a: Verdict, b: Verdict) -> Verdict {
     if rank(b) > rank(a) { b } else { a }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn framed(tid: u16) -> Framed {
+        Framed {
+            bytes: Vec::new(),
+            sent: Sent {
+                tid: Some(tid),
+                unit: 1,
+                pdu: vec![0x03, 0x00, 0x00, 0x00, 0x01],
+            },
+            malformed: false,
+        }
+    }
+
+    fn answer(tid: u16, pdu: &[u8]) -> Received {
+        let mut bytes = Vec::new();
+        tcp::encode_adu(tid, 1, pdu, &mut bytes).expect("encodes");
+        Received::frame(bytes)
+    }
+
+    /// Pipelined answers are paired with their requests by transaction id, and one ahead of an earlier
+    /// request's is out of request order; on RTU, by position.
+    #[test]
+    fn answers_pair_by_transaction_id() {
+        let frames = [framed(10), framed(11)];
+        let late_first = answer(11, &[0x03, 0x02, 0x00, 0x00]);
+        assert_eq!(
+            pair(Framing::Tcp, &late_first, &frames, &[false, false], 0),
+            (1, true)
+        );
+        let early = answer(10, &[0x03, 0x02, 0x00, 0x00]);
+        assert_eq!(
+            pair(Framing::Tcp, &early, &frames, &[false, true], 1),
+            (0, false)
+        );
+        assert_eq!(
+            pair(Framing::Tcp, &early, &frames, &[false, false], 0),
+            (0, false)
+        );
+        // A transaction id of no request (or paired already): the first unpaired request.
+        let stray = answer(99, &[0x03, 0x02, 0x00, 0x00]);
+        assert_eq!(
+            pair(Framing::Tcp, &stray, &frames, &[true, false], 1),
+            (1, false)
+        );
+        assert_eq!(
+            pair(Framing::Rtu, &late_first, &frames, &[false, false], 0),
+            (0, false)
+        );
+    }
+
+    #[test]
+    fn server_busy_is_recognised() {
+        let bytes = |tid, pdu: &[u8]| {
+            let mut b = Vec::new();
+            tcp::encode_adu(tid, 1, pdu, &mut b).expect("encodes");
+            b
+        };
+        assert!(busy_refusal(&bytes(1, &[0x83, 0x06])));
+        assert!(!busy_refusal(&bytes(1, &[0x83, 0x03])));
+        assert!(!busy_refusal(&bytes(1, &[0x03, 0x06])));
+        assert!(!busy_refusal(&bytes(1, &[0x03, 0x02, 0x00, 0x06])));
+    }
 }

@@ -218,6 +218,9 @@ pub struct Station {
     forced: Option<ExceptionCode>,
     /// The ADU just answered asks for the connection to be closed (`truncated-pdu=close`).
     close_requested: bool,
+    /// The ADU being answered is short by its MBAP length's freedom (`mbap-length-short`), not by
+    /// `truncated-pdu`'s.
+    length_decided: bool,
 }
 
 impl Station {
@@ -239,6 +242,7 @@ impl Station {
             latched_taken: BTreeSet::new(),
             forced: None,
             close_requested: false,
+            length_decided: false,
         }
     }
 
@@ -498,8 +502,13 @@ impl Station {
                     reply
                 }
                 Some(Disagreement::Refuse) => {
-                    self.malformed();
-                    self.refuse(now, &conn.buf[..len], ExceptionCode::ILLEGAL_DATA_VALUE)
+                    // The reference's answer: the PDU the MBAP length gives is taken and refused as any
+                    // request too short for its function (03; 01 for a function it lacks), the length's
+                    // freedom deciding, not `truncated-pdu`.
+                    self.length_decided = true;
+                    let reply = self.tcp_adu(now, &conn.buf[..len]);
+                    self.length_decided = false;
+                    reply
                 }
                 Some(Disagreement::Ignore) => {
                     self.malformed();
@@ -918,7 +927,7 @@ impl Station {
                 if self.dead {
                     return None;
                 }
-                if matches!(e.kind, DecodeErrorKind::Truncated { .. }) {
+                if matches!(e.kind, DecodeErrorKind::Truncated { .. }) && !self.length_decided {
                     // Too short for its function code: 03 (the reference), or no answer, or on Modbus/TCP
                     // the connection closed (an RTU line has none to close: no answer there).
                     self.decisions.push(ids::TRUNCATED_PDU);

@@ -173,6 +173,15 @@ fn mbap_length_short_refused_ignored_or_closed() {
     assert_eq!(serve(&mut silent, &bytes), (vec![], false));
     let mut closing = station("mdrive", &["mbap-length-short=close"]);
     assert_eq!(serve(&mut closing, &bytes), (vec![], true));
+    // The MBAP length's freedom decides there, not the truncated PDU's.
+    let mut truncated_silent = station("mdrive", &["truncated-pdu=silence"]);
+    assert_eq!(
+        serve(&mut truncated_silent, &bytes),
+        (vec![(1, "83 03".into())], false)
+    );
+    let decided = truncated_silent.take_decisions();
+    assert!(decided.contains(&ids::MBAP_LENGTH_SHORT));
+    assert!(!decided.contains(&ids::TRUNCATED_PDU));
 }
 
 #[test]

@@ -6,6 +6,11 @@
 //! sub-functions, the FC 0B event counter, the FC 0C event log, listen only mode) and applies the wire-level
 //! faults to what goes out.
 //!
+//! Where the specs leave the wire side a choice (a freedom of `corpus/freedoms/`), the station takes the
+//! drive's [`Choices`] and records the freedom as a [`Decision`]: the Modbus/TCP unit ids it ignores, the
+//! order and Server Busy of pipelined answers, MBAP lengths that disagree with the PDU, PDUs over 253 bytes
+//! (see [`Station::serve_tcp`]), the answer to a truncated PDU and the exception check order.
+//!
 //! On Modbus/TCP, FC 08 answers every sub-function the profile lists except those that act on a serial port
 //! itself (01 restart, 03 ASCII delimiter, 04 listen only, 12 character overruns, 14 clear overrun: exception
 //! 01, see [`DiagCounter::serial_line_only`]); the bus counters (0B, 0C, 0E, 0F) only count RTU traffic, the
@@ -161,9 +166,11 @@ fn layout_len_only(buf: &[u8]) -> Option<usize> {
 /// What a TCP connection produced.
 #[derive(Clone, Debug, Default, PartialEq, Eq)]
 pub struct TcpOutput {
-    /// Replies in request order.
+    /// Replies in request order (last first for a drive chosen `pipelined-response-order=transaction-id`).
     pub replies: Vec<Wire>,
-    /// The stream cannot be resynchronised (an MBAP length below 2 or above 254): close the connection.
+    /// Close the connection after the replies: the stream cannot be resynchronised (an MBAP length below 2,
+    /// or above 254 where the drive takes `pdu-over-253=close`, the reference's choice), or the drive chose to
+    /// close (`truncated-pdu`, `mbap-length-short`, `mbap-length-long`).
     pub close: bool,
 }
 
@@ -402,8 +409,9 @@ impl Station {
     ///
     /// Where the stream leaves the server a choice, the station takes its [`Choices`]: an MBAP length that
     /// announces a PDU over 253 bytes (`pdu-over-253`: close, or skip the ADU silently or with 03), an MBAP
-    /// length that disagrees with the function's own layout (`mbap-length-short`, `mbap-length-long`, see
-    /// [`Station::mbap_disagrees`]), several ADUs received together (`pipelined-server-busy`: the ones after
+    /// length that disagrees with the function's own layout once the layout's bytes are in
+    /// (`mbap-length-short`: shorter, the missing bytes right behind; `mbap-length-long`: longer, the PDU
+    /// complete by its layout), several ADUs received together (`pipelined-server-busy`: the ones after
     /// the first get exception 06; `pipelined-response-order`: answered last first).
     pub fn serve_tcp(&mut self, now: Duration, conn: &mut TcpConn, bytes: &[u8]) -> TcpOutput {
         let skip = conn.skip.min(bytes.len());

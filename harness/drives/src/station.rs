@@ -590,7 +590,7 @@ impl Station {
     }
 
     /// True when a Modbus/TCP request to `unit` is answered: the station's unit and the profile's unit ids,
-    /// except a unit the `tcp-unit-ids` freedom lists when the drive chose to ignore it (0 and 0xFF are always
+    /// except a unit in the `tcp-unit-ids` freedom's range when the drive chose to ignore it (0 and 0xFF are always
     /// answered where the profile answers them).
     fn tcp_unit_answered(&mut self, unit: u8) -> bool {
         let accepted = unit == self.unit || {
@@ -607,7 +607,7 @@ impl Station {
         else {
             return true;
         };
-        if !f.units.contains(&unit) {
+        if !f.covers_unit(unit) {
             return true;
         }
         self.decisions.push(ids::TCP_UNIT_IDS);

@@ -78,6 +78,12 @@ fn tcp_unit_ids_silence_ignores_the_listed_units_but_not_its_own_nor_0_and_ff() 
     assert_eq!(serve(&mut reference, &adu(1, other, READ)).0.len(), 1);
     assert_eq!(serve(&mut chosen, &adu(1, other, READ)), (vec![], false));
     assert!(chosen.take_decisions().contains(&ids::TCP_UNIT_IDS));
+    // Every unit id of the freedom's range (`units = [1, 247]`), not only its ends.
+    let inside = if own == 100 { 101 } else { 100 };
+    assert_eq!(serve(&mut reference, &adu(1, inside, READ)).0.len(), 1);
+    assert_eq!(serve(&mut chosen, &adu(1, inside, READ)), (vec![], false));
+    // Outside it (and not 0 or 0xFF), a unit id the profile answers is still answered.
+    assert_eq!(serve(&mut chosen, &adu(1, 250, READ)).0.len(), 1);
     for u in [own, 0, 0xFF] {
         assert_eq!(
             serve(&mut chosen, &adu(2, u, READ)).0.len(),

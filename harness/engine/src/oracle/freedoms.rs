@@ -112,7 +112,7 @@ fn touches(f: &Freedom, cx: &StepContext<'_>) -> bool {
         FreedomKind::StatusBits | FreedomKind::FieldValue => f
             .register
             .is_some_and(|r| registers_read(req).is_some_and(|(a, q)| covers(a, q, r))),
-        FreedomKind::UnitIds => cx.unit != cx.run_unit && f.units.contains(&cx.unit),
+        FreedomKind::UnitIds => cx.unit != cx.run_unit && f.covers_unit(cx.unit),
         FreedomKind::WordOrder => true,
         _ => false,
     }
@@ -300,7 +300,7 @@ pub fn alternatives(
         FreedomKind::Outcome => vec![],
         FreedomKind::UnitIds => {
             // The run's own unit must answer: the freedom is about the others.
-            if cx.unit == cx.run_unit || !f.units.contains(&cx.unit) {
+            if cx.unit == cx.run_unit || !f.covers_unit(cx.unit) {
                 return vec![];
             }
             let mut out = Vec::new();

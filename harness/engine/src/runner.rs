@@ -140,6 +140,8 @@ pub struct Runner {
     /// A sentinel the reference answered went unanswered by the target (a target that drops what follows a
     /// bad frame, say): no more sentinels on this target, the window is listened out.
     sentinel_given_up: bool,
+    /// The step's request to another unit id was ignored by the drive as the `unit-ids` freedom allows.
+    unit_ignored: bool,
     /// How the silences due on Modbus/TCP to a real target were settled, for the run's log.
     silences: Silences,
     /// The step being run is followed by a new connection (`Step::Reconnect`): its connection may be
@@ -198,6 +200,7 @@ impl Runner {
             unanswered: Vec::new(),
             sentinels: std::collections::VecDeque::new(),
             sentinel_given_up: false,
+            unit_ignored: false,
             silences: Silences::default(),
             reconnect_next: false,
             resync_rtu: false,
@@ -931,8 +934,33 @@ impl Runner {
             return Ok(refusal);
         }
         self.sync_shadow();
+        // A request to another unit id, which a drive may ignore (`tcp-unit-ids`): the reference as it was
+        // before, to undo what it did with the request where the drive admissibly ignored it.
+        let before = frames
+            .iter()
+            .any(|f| f.sent.unit != self.cfg.unit)
+            .then(|| self.shadow.clone());
+        self.unit_ignored = false;
+        let sentinels = self.silences.sentinel;
         let sent = self.send_pieces(&frames, &pieces, wire)?;
-        self.receive_and_judge(&frames, &pieces, sent, compare, capture, note, wire)
+        let result =
+            self.receive_and_judge(&frames, &pieces, sent, compare, capture, note, wire)?;
+        if let (Some(before), true) = (before, std::mem::take(&mut self.unit_ignored)) {
+            // The drive ignored it: so does the reference from now on (a write not taken, no counts).
+            self.shadow = before;
+            self.sync_shadow();
+            if self.silences.sentinel > sentinels {
+                // The sentinel read that proved the silence reached both drives: the reference gets it again.
+                let pdu = crate::cases::catalog::known_good_read(&self.profile);
+                let case_tid = std::mem::replace(&mut self.next_tid, self.restore_tid);
+                let f = self.frame(&pdu, self.cfg.unit, None);
+                self.restore_tid = std::mem::replace(&mut self.next_tid, case_tid);
+                self.shadow.send(&f.bytes)?;
+                let _ = self.shadow.settle();
+                let _ = self.shadow.take_decisions();
+            }
+        }
+        Ok(result)
     }
 
     /// The safety assertion, immediately before sending: every frame is rated by the classifier on the bytes
@@ -1218,6 +1246,14 @@ impl Runner {
                 // A drive that pairs answers by transaction id only may answer a sentinel before the
                 // request it follows: a sentinel's answer proves nothing about that request any more.
                 self.sentinel_given_up = true;
+            }
+            if judged.shown.iter().any(|s| {
+                s.value == "silence"
+                    && requirements
+                        .freedom(&s.freedom)
+                        .is_some_and(|f| f.kind == FreedomKind::UnitIds)
+            }) {
+                self.unit_ignored = true;
             }
             for s in judged.shown.iter().chain(&order) {
                 if let Some(text) = self.choices.record(s, &self.case_id, &requirements) {

@@ -168,6 +168,12 @@ pub fn judge_admitting(
     applicable: &[&Freedom],
     cx: &StepContext<'_>,
 ) -> Judged {
+    // Where the reference stays silent and an outcome freedom about the step lists `close`, a close is as
+    // good as the reference's own (not "closed where the reference stays silent").
+    let close_admitted = matches!(observed, Received::Closed { .. })
+        && applicable
+            .iter()
+            .any(|f| freedoms::outcome_shown(f, cx, "close").is_some());
     let strict = judge(
         framing,
         sent,
@@ -175,7 +181,7 @@ pub fn judge_admitting(
         observed,
         compare,
         profile,
-        reference_closed,
+        reference_closed || close_admitted,
     );
     let response = |b: &[u8]| match decode_any(b, framing, Direction::Response).map(|d| d.pdu) {
         Ok(Pdu::Response(r)) => Some(r),

@@ -247,3 +247,73 @@ fn a_choice_the_simulator_cannot_take_is_refused() {
         );
     }
 }
+
+/// Generated cases meet the transport freedoms where the catalog does not: requests to any unit id (writes
+/// among them, whose effect a drive ignoring the unit never shows), MBAP lengths far off, truncated PDUs of
+/// every function. Drives taking those values pass them (no FAIL, no NON-STRICT) and show their choice.
+/// Before, `tcp-unit-ids=silence` FAILed the requests to units other than 1 and 247 and the read-back after
+/// an ignored write to another unit, `mbap-length-long=exception-03` FAILed (an exception where the
+/// reference waits) and `mbap-length-long=close` was NON-STRICT.
+#[test]
+fn generated_cases_admit_the_transport_choices() {
+    const CHOICES: &[&str] = &[
+        "tcp-unit-ids=silence",
+        "pipelined-response-order=transaction-id",
+        "pipelined-server-busy=exception-06",
+        "truncated-pdu=silence",
+        "truncated-pdu=close",
+        "mbap-length-short=silence",
+        "mbap-length-short=close",
+        "mbap-length-long=close",
+        "mbap-length-long=exception-03",
+        "pdu-over-253=silence",
+        "pdu-over-253=exception-03",
+        "exception-check-order=2",
+    ];
+    // Where the catalog cannot show the choice (requests to units other than 1 and 247, writes among them,
+    // MBAP lengths more than one off), these runs must.
+    const SHOWN: &[(&str, &str)] = &[
+        ("sim:generic", "tcp-unit-ids=silence"),
+        ("sim:mdrive", "tcp-unit-ids=silence"),
+        ("sim:generic", "mbap-length-long=exception-03"),
+        ("sim:mdrive", "mbap-length-long=close"),
+        ("sim:generic", "truncated-pdu=close"),
+    ];
+    let jobs: Vec<(&str, &str)> = ["sim:generic", "sim:mdrive"]
+        .iter()
+        .flat_map(|t| CHOICES.iter().map(move |c| (*t, *c)))
+        .collect();
+    let problems: Vec<String> = on_two_threads(jobs, |(target, choice)| {
+        let mut o = options(target, &[choice.to_string()]);
+        o.generated = 300;
+        o.seed = Some(5);
+        o.keep_verdicts = true;
+        let out = run_quietly(&o).unwrap_or_else(|e| panic!("{target} --choose {choice}: {e}"));
+        let (id, value) = choice.split_once('=').expect("choice");
+        let mut problems = Vec::new();
+        let bad: Vec<&String> = out
+            .verdicts
+            .iter()
+            .filter(|(_, v)| matches!(v, Verdict::Fail | Verdict::NonStrict))
+            .map(|(c, _)| c)
+            .collect();
+        if !bad.is_empty() {
+            problems.push(format!(
+                "{target} --choose {choice} --generated 300 --seed 5: FAIL or NON-STRICT {bad:?}"
+            ));
+        }
+        let shown = out.summary.choices.iter().any(|c| {
+            c.freedom == id && (c.value == value || c.changed.iter().any(|(v, _)| v == value))
+        });
+        if !shown && SHOWN.contains(&(target, choice)) {
+            problems.push(format!(
+                "{target} --choose {choice}: the choice was not shown"
+            ));
+        }
+        problems
+    })
+    .into_iter()
+    .flatten()
+    .collect();
+    assert!(problems.is_empty(), "{problems:#?}");
+}

@@ -12,6 +12,7 @@ use std::sync::Arc;
 
 use codec::ExceptionCode;
 
+use crate::profile::{Profile, Transport};
 use crate::requirements::{Freedom, FreedomKind, FreedomValue, Requirements};
 
 /// Freedom ids the models decide at (each is a `[[freedom]]` id in `corpus/freedoms/`; a test checks it).
@@ -55,6 +56,23 @@ pub mod ids {
     pub const LMD_ESC_WIRE_FORM: &str = "lmd-esc-wire-form";
     /// The MDrive's E, EX, PS, RS: FC 0x42 (Table 4.1) or FC 0x41 (their sections).
     pub const MDRIVE_PROGRAM_CONTROL_FUNCTION: &str = "mdrive-program-control-function";
+    /// A PDU too short for its function code: exception 03, silence, or (Modbus/TCP) a close.
+    pub const TRUNCATED_PDU: &str = "truncated-pdu";
+    /// Both the quantity and the address (range) wrong: 03 (quantity checked first) or 02 (address first).
+    pub const EXCEPTION_CHECK_ORDER: &str = "exception-check-order";
+    /// Modbus/TCP, a unit id in the freedom's `units` that is not the station's own (nor 0, 0xFF):
+    /// answered or ignored.
+    pub const TCP_UNIT_IDS: &str = "tcp-unit-ids";
+    /// Modbus/TCP, several requests received together: answered in request order or in another order.
+    pub const PIPELINED_RESPONSE_ORDER: &str = "pipelined-response-order";
+    /// Modbus/TCP, a request received while another is served: served, or exception 06 (one transaction).
+    pub const PIPELINED_SERVER_BUSY: &str = "pipelined-server-busy";
+    /// Modbus/TCP, an MBAP length shorter than the function's layout: 03, silence or a close.
+    pub const MBAP_LENGTH_SHORT: &str = "mbap-length-short";
+    /// Modbus/TCP, an MBAP length longer than the function's layout: wait (silence), close, or 03.
+    pub const MBAP_LENGTH_LONG: &str = "mbap-length-long";
+    /// Modbus/TCP, an MBAP length announcing a PDU over 253 bytes: close, silence or 03.
+    pub const PDU_OVER_253: &str = "pdu-over-253";
 
     /// Every id above.
     pub const ALL: &[&str] = &[
@@ -77,6 +95,14 @@ pub mod ids {
         FC42_PARAMETERLESS_BYTE_COUNT,
         LMD_ESC_WIRE_FORM,
         MDRIVE_PROGRAM_CONTROL_FUNCTION,
+        TRUNCATED_PDU,
+        EXCEPTION_CHECK_ORDER,
+        TCP_UNIT_IDS,
+        PIPELINED_RESPONSE_ORDER,
+        PIPELINED_SERVER_BUSY,
+        MBAP_LENGTH_SHORT,
+        MBAP_LENGTH_LONG,
+        PDU_OVER_253,
     ];
 }
 
@@ -174,8 +200,9 @@ impl Choices {
     pub fn parse_one(
         spec: &str,
         requirements: &Requirements,
-        profile: &str,
+        profile: &Profile,
     ) -> Result<(String, FreedomValue), ChoiceError> {
+        let (device, profile) = (profile, profile.device.id.as_str());
         let (id, value) = spec
             .split_once('=')
             .ok_or_else(|| ChoiceError::Syntax(spec.to_string()))?;
@@ -209,7 +236,7 @@ impl Choices {
                 value: value.to_string(),
                 admissible: f.values.iter().map(|v| v.to_string()).collect(),
             })?;
-        if !simulated(f, &chosen) {
+        if !simulated_on(f, &chosen, device) {
             return Err(ChoiceError::NotSimulated {
                 id: id.to_string(),
                 value: chosen.to_string(),
@@ -219,7 +246,7 @@ impl Choices {
                         f.values
                             .iter()
                             .skip(1)
-                            .filter(|v| simulated(f, v))
+                            .filter(|v| simulated_on(f, v, device))
                             .map(|v| format!("{}={v}", f.id))
                             .collect::<Vec<_>>()
                     })
@@ -234,7 +261,7 @@ impl Choices {
     pub fn parse_all<S: AsRef<str>>(
         specs: &[S],
         requirements: &Requirements,
-        profile: &str,
+        profile: &Profile,
     ) -> Result<Self, ChoiceError> {
         let mut choices = Self::reference();
         for spec in specs {
@@ -332,18 +359,18 @@ impl fmt::Display for Choices {
 
 /// True when the reference drive models can take `value` for `f` (`simulate --choose`, `run --choose`): the
 /// items of optional groups and their access, the word order, functions served beyond the profile, reads
-/// inside or half of a 32-bit register, every freedom the models decide at (see [`ids`]: the exception codes,
-/// the SDO length error, the FC 0x41/0x42 fields and readings of the MDrive/LMD manuals, the FC 08 counters,
-/// the FC 11 run indicator, the FC 0B count of a clear) and those in `MODELLED`
-/// (the SD2x status-word bits and watchdog, the LMD's discrete-input addressing). The reference's own
-/// value always is.
+/// inside or half of a 32-bit register, and every freedom the models or the station decide at (see [`ids`]:
+/// the exception codes, the SDO length error, the answer to a truncated PDU, the exception check order, the
+/// Modbus/TCP transport outcomes (unit ids, pipelining order and Server Busy, MBAP lengths, PDUs over 253
+/// bytes), the FC 0x41/0x42 fields and readings of the MDrive/LMD manuals, the FC 08 counters, the FC 11 run
+/// indicator, the FC 0B count of a clear) and those in `MODELLED` (the SD2x status-word bits and watchdog,
+/// the LMD's discrete-input addressing). The reference's own value always is. See also [`simulated_on`]: a
+/// `close` needs a connection.
 ///
-/// Not simulated, although the oracle admits them: the transport outcomes (`truncated-pdu`,
-/// `mbap-length-*`, `pdu-over-253`, `pipelined-server-busy`), the unit ids, the pipelining order, and
-/// `sd2x-fc43-reserved-byte=without-reserved-byte`: a drive following the manual's example reads the
-/// catalog's FC 43 requests one byte off and refuses every one of them (the oracle admits that), which
-/// leaves the object witnesses of the fault matrix blind until the runner learns that reading and sends
-/// the short form (as it learns the LMD's word order); not done yet.
+/// Not simulated, although the oracle admits it: `sd2x-fc43-reserved-byte=without-reserved-byte`: a drive
+/// following the manual's example reads the catalog's FC 43 requests one byte off and refuses every one of
+/// them (the oracle admits that), which leaves the object witnesses of the fault matrix blind until the
+/// runner learns that reading and sends the short form (as it learns the LMD's word order); not done yet.
 pub fn simulated(f: &Freedom, value: &FreedomValue) -> bool {
     if f.values.first() == Some(value) {
         return true;
@@ -364,6 +391,13 @@ const MODELLED: &[&str] = &[
     "sd2x-watchdog-trip-state",
     "lmd-discrete-input-addressing",
 ];
+
+/// [`simulated`] for a drive of `profile`: a drive that speaks no Modbus/TCP has no connection to close, so
+/// an outcome `close` is not a choice it can make (on an RTU line a station chosen `close` keeps silent).
+pub fn simulated_on(f: &Freedom, value: &FreedomValue, profile: &Profile) -> bool {
+    let tcp = profile.device.transports.contains(&Transport::Tcp);
+    simulated(f, value) && (tcp || !value_matches(value, "close"))
+}
 
 /// True when a value of the data is the one a user wrote (`4`, `0x04`, `04`, `exception-02`, a name).
 pub fn value_matches(v: &FreedomValue, written: &str) -> bool {

@@ -296,7 +296,7 @@ pub struct Freedom {
     pub items: Vec<Item>,
     /// Golden frame ids whose `alternative` carries another reading.
     pub golden: Vec<String>,
-    /// `unit-ids`: the unit ids concerned.
+    /// `unit-ids`: the unit ids concerned, an inclusive range `[first, last]` (see [`Freedom::covers_unit`]).
     pub units: Vec<u8>,
     /// `served-extra`: the function codes concerned.
     pub functions: Vec<u8>,
@@ -310,6 +310,14 @@ pub struct Freedom {
 }
 
 impl Freedom {
+    /// `unit-ids`: true when `unit` is in the freedom's range of unit ids (`units = [first, last]`).
+    pub fn covers_unit(&self, unit: u8) -> bool {
+        match self.units.as_slice() {
+            [first, last] => (*first..=*last).contains(&unit),
+            _ => false,
+        }
+    }
+
     /// True when the freedom applies to runs against `profile`.
     pub fn applies_to(&self, profile: &str) -> bool {
         self.profiles.iter().any(|p| p == "all" || p == profile)
@@ -725,7 +733,10 @@ impl Requirements {
         };
         match f.kind {
             FreedomKind::Optional | FreedomKind::Access => needs(!items.is_empty(), "`items`")?,
-            FreedomKind::UnitIds => needs(!f.units.is_empty(), "`units`")?,
+            FreedomKind::UnitIds => needs(
+                matches!(f.units.as_slice(), [first, last] if first <= last),
+                "`units` = [first, last], an inclusive range",
+            )?,
             FreedomKind::ServedExtra => needs(!f.functions.is_empty(), "`functions`")?,
             FreedomKind::FieldValue => needs(f.field.is_some(), "`field`")?,
             _ => {}

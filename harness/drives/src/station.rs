@@ -6,6 +6,11 @@
 //! sub-functions, the FC 0B event counter, the FC 0C event log, listen only mode) and applies the wire-level
 //! faults to what goes out.
 //!
+//! Where the specs leave the wire side a choice (a freedom of `corpus/freedoms/`), the station takes the
+//! drive's [`Choices`] and records the freedom as a [`Decision`]: the Modbus/TCP unit ids it ignores, the
+//! order and Server Busy of pipelined answers, MBAP lengths that disagree with the PDU, PDUs over 253 bytes
+//! (see [`Station::serve_tcp`]), the answer to a truncated PDU and the exception check order.
+//!
 //! On Modbus/TCP, FC 08 answers every sub-function the profile lists except those that act on a serial port
 //! itself (01 restart, 03 ASCII delimiter, 04 listen only, 12 character overruns, 14 clear overrun: exception
 //! 01, see [`DiagCounter::serial_line_only`]); the bus counters (0B, 0C, 0E, 0F) only count RTU traffic, the
@@ -22,7 +27,7 @@ use crate::requirements::FreedomKind;
 use crate::tell::{self, WriteRecord, WriteSink, Written};
 use codec::codes::{diag, event};
 use codec::framer::{DiscardReason, FramerEvent, RtuFramer, RtuTiming};
-use codec::{Direction, ExceptionCode, FunctionCode, Request, Response, rtu, tcp};
+use codec::{DecodeErrorKind, Direction, ExceptionCode, FunctionCode, Request, Response, rtu, tcp};
 
 /// Bytes to send, `delay` after the request was complete.
 #[derive(Clone, Debug, PartialEq, Eq)]
@@ -195,14 +200,47 @@ impl DiagOutcome {
 #[derive(Clone, Debug, Default)]
 pub struct TcpConn {
     buf: Vec<u8>,
+    /// Bytes still to come of an ADU refused before it was complete (`mbap-length-long=exception-03`):
+    /// dropped as they arrive.
+    skip: usize,
+}
+
+/// What a drive does with an ADU whose MBAP length disagrees with its function's layout.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Disagreement {
+    /// Exception 03.
+    Refuse,
+    /// No answer (or, for a longer MBAP length, wait for the bytes it announces).
+    Ignore,
+    /// Close the connection.
+    Close,
+}
+
+/// The length of the Modbus/TCP ADU at the start of `buf` by its function code's request layout (the RTU
+/// rules: unit id and PDU are an RTU frame without its CRC), when the bytes received tell it.
+fn layout_len(buf: &[u8]) -> Option<usize> {
+    match codec::framer::expected_len(Direction::Request, buf.get(6..)?, &[]) {
+        codec::framer::FrameLen::Known(n, _) => Some(6 + n - 2),
+        _ => None,
+    }
+}
+
+/// [`layout_len`] where the layout gives one length only.
+fn layout_len_only(buf: &[u8]) -> Option<usize> {
+    match codec::framer::expected_len(Direction::Request, buf.get(6..)?, &[]) {
+        codec::framer::FrameLen::Known(n, 0) => Some(6 + n - 2),
+        _ => None,
+    }
 }
 
 /// What a TCP connection produced.
 #[derive(Clone, Debug, Default, PartialEq, Eq)]
 pub struct TcpOutput {
-    /// Replies in request order.
+    /// Replies in request order (last first for a drive chosen `pipelined-response-order=transaction-id`).
     pub replies: Vec<Wire>,
-    /// The stream cannot be resynchronised (an MBAP length below 2 or above 254): close the connection.
+    /// Close the connection after the replies: the stream cannot be resynchronised (an MBAP length below 2,
+    /// or above 254 where the drive takes `pdu-over-253=close`, the reference's choice), or the drive chose to
+    /// close (`truncated-pdu`, `mbap-length-short`, `mbap-length-long`).
     pub close: bool,
 }
 
@@ -256,6 +294,13 @@ pub struct Station {
     /// written once already.
     latched: BTreeSet<u16>,
     latched_taken: BTreeSet<u16>,
+    /// The exception the ADU being answered gets whatever its PDU holds (see [`Station::refuse`]).
+    forced: Option<ExceptionCode>,
+    /// The ADU just answered asks for the connection to be closed (`truncated-pdu=close`).
+    close_requested: bool,
+    /// The ADU being answered is short by its MBAP length's freedom (`mbap-length-short`), not by
+    /// `truncated-pdu`'s.
+    length_decided: bool,
 }
 
 impl Station {
@@ -276,6 +321,9 @@ impl Station {
             sink: None,
             latched: BTreeSet::new(),
             latched_taken: BTreeSet::new(),
+            forced: None,
+            close_requested: false,
+            length_decided: false,
         }
     }
 
@@ -440,12 +488,44 @@ impl Station {
     }
 
     /// Feed bytes received on a Modbus/TCP connection at `now`; returns the replies.
+    ///
+    /// Where the stream leaves the server a choice, the station takes its [`Choices`]: an MBAP length that
+    /// announces a PDU over 253 bytes (`pdu-over-253`: close, or skip the ADU silently or with 03), an MBAP
+    /// length that disagrees with the function's own layout once the layout's bytes are in
+    /// (`mbap-length-short`: shorter, the missing bytes right behind; `mbap-length-long`: longer, the PDU
+    /// complete by its layout), several ADUs received together (`pipelined-server-busy`: the ones after
+    /// the first get exception 06; `pipelined-response-order`: answered last first).
     pub fn serve_tcp(&mut self, now: Duration, conn: &mut TcpConn, bytes: &[u8]) -> TcpOutput {
-        conn.buf.extend_from_slice(bytes);
+        let skip = conn.skip.min(bytes.len());
+        conn.skip -= skip;
+        conn.buf.extend_from_slice(&bytes[skip..]);
         let mut out = TcpOutput::default();
         let mut answered = 0;
+        let mut taken = 0;
         while let Some(len) = tcp::adu_len(&conn.buf) {
             let declared = len - 6;
+            if declared > 254 && !self.faults.has(Fault::MbapLengthIgnored) {
+                // Past the 253-byte PDU limit: how a server refuses it is its choice.
+                self.decisions.push(ids::PDU_OVER_253);
+                let choice = self.choices.name(ids::PDU_OVER_253).map(str::to_owned);
+                if let Some(choice @ ("silence" | "exception-03")) = choice.as_deref() {
+                    // Skipped as a whole (the MBAP length says where the next ADU begins), unanswered
+                    // or refused.
+                    if conn.buf.len() < len {
+                        break;
+                    }
+                    self.malformed();
+                    let reply = if choice == "exception-03" {
+                        self.refuse(now, &conn.buf[..len], ExceptionCode::ILLEGAL_DATA_VALUE)
+                    } else {
+                        None
+                    };
+                    conn.buf.drain(..len);
+                    out.replies.extend(reply);
+                    taken += 1;
+                    continue;
+                }
+            }
             if !(2..=254).contains(&declared) {
                 self.malformed();
                 conn.buf.clear();
@@ -458,23 +538,81 @@ impl Station {
                 let cut = self
                     .faults
                     .has(Fault::MbapLengthIgnored)
-                    .then(|| {
-                        match codec::framer::expected_len(Direction::Request, &conn.buf[6..], &[]) {
-                            codec::framer::FrameLen::Known(n, _) => Some(6 + n - 2),
-                            _ => None,
-                        }
-                    })
+                    .then(|| layout_len(&conn.buf))
                     .flatten()
                     .filter(|&cut| cut > tcp::MBAP_LEN && cut <= conn.buf.len());
-                let Some(cut) = cut else { break };
-                let reply = self.tcp_adu(now, &conn.buf[..cut]);
-                conn.buf.drain(..cut);
-                out.replies.extend(reply);
-                continue;
+                if let Some(cut) = cut {
+                    let reply = self.tcp_adu(now, &conn.buf[..cut]);
+                    conn.buf.drain(..cut);
+                    out.replies.extend(reply);
+                    if std::mem::take(&mut self.close_requested) {
+                        conn.buf.clear();
+                        out.close = true;
+                        break;
+                    }
+                    continue;
+                }
+                match self.mbap_disagrees(&conn.buf, len) {
+                    Some(Disagreement::Close) => {
+                        self.malformed();
+                        conn.buf.clear();
+                        out.close = true;
+                    }
+                    Some(Disagreement::Refuse) => {
+                        // Refused now; the bytes the MBAP length still announces are skipped as they come.
+                        self.malformed();
+                        let reply = self.refuse(now, &conn.buf, ExceptionCode::ILLEGAL_DATA_VALUE);
+                        out.replies.extend(reply);
+                        conn.skip = len - conn.buf.len();
+                        conn.buf.clear();
+                    }
+                    Some(Disagreement::Ignore) | None => {}
+                }
+                break;
+            }
+            let disagreement = self.mbap_disagrees(&conn.buf, len);
+            if taken > 0 {
+                self.decisions.push(ids::PIPELINED_SERVER_BUSY);
             }
             // Answered in place, then dropped from the buffer: no copy of the ADU.
-            let reply = self.tcp_adu(now, &conn.buf[..len]);
+            let reply = match disagreement {
+                // Exception 06 for the ADUs after the first of one receive: a server with one transaction.
+                None if taken > 0
+                    && self.choices.name(ids::PIPELINED_SERVER_BUSY) == Some("exception-06") =>
+                {
+                    self.refuse(now, &conn.buf[..len], ExceptionCode::SERVER_DEVICE_BUSY)
+                }
+                None => {
+                    let reply = self.tcp_adu(now, &conn.buf[..len]);
+                    if std::mem::take(&mut self.close_requested) {
+                        conn.buf.clear();
+                        out.close = true;
+                        break;
+                    }
+                    reply
+                }
+                Some(Disagreement::Refuse) => {
+                    // The reference's answer: the PDU the MBAP length gives is taken and refused as any
+                    // request too short for its function (03; 01 for a function it lacks), the length's
+                    // freedom deciding, not `truncated-pdu`.
+                    self.length_decided = true;
+                    let reply = self.tcp_adu(now, &conn.buf[..len]);
+                    self.length_decided = false;
+                    reply
+                }
+                Some(Disagreement::Ignore) => {
+                    self.malformed();
+                    None
+                }
+                Some(Disagreement::Close) => {
+                    self.malformed();
+                    conn.buf.clear();
+                    out.close = true;
+                    break;
+                }
+            };
             conn.buf.drain(..len);
+            taken += 1;
             if let Some(w) = reply {
                 if answered == 0 || !self.faults.has(Fault::PipelineDrop) {
                     out.replies.push(w);
@@ -482,7 +620,80 @@ impl Station {
                 answered += 1;
             }
         }
+        if out.replies.len() > 1 {
+            // The guide pairs pipelined answers by transaction id only: a drive may send them in any order.
+            self.decisions.push(ids::PIPELINED_RESPONSE_ORDER);
+            if self.choices.name(ids::PIPELINED_RESPONSE_ORDER) == Some("transaction-id") {
+                out.replies.reverse();
+            }
+        }
         out
+    }
+
+    /// Where the MBAP length `len` of the ADU at the start of `buf` disagrees with the length the function
+    /// code's own request layout gives, and the bytes that layout needs are all there: what the drive does
+    /// (`None`: it takes the MBAP length, as the reference does, or they agree).
+    ///
+    /// - MBAP length shorter, with the layout's missing bytes right behind it (`mbap-length-short`):
+    ///   the reference refuses the short PDU with 03 and takes the rest as the next ADU; a drive may ignore
+    ///   it or close the connection. (A short PDU with nothing behind it is a truncated PDU, decided in
+    ///   [`Station::answer`] by `truncated-pdu`: the stream does not tell them apart otherwise.)
+    /// - MBAP length longer, the PDU complete by its layout (`mbap-length-long`): the reference waits for the
+    ///   bytes announced (silence); a drive may close the connection or refuse it with 03 at once (then
+    ///   skipping the bytes still announced).
+    fn mbap_disagrees(&mut self, buf: &[u8], len: usize) -> Option<Disagreement> {
+        let by_layout = layout_len_only(buf)?;
+        let (freedom, reference) = if by_layout > len && buf.len() >= by_layout {
+            (ids::MBAP_LENGTH_SHORT, Disagreement::Refuse)
+        } else if by_layout < len && buf.len() >= by_layout && buf.len() < len {
+            (ids::MBAP_LENGTH_LONG, Disagreement::Ignore)
+        } else {
+            return None;
+        };
+        self.decisions.push(freedom);
+        let chosen = match self.choices.name(freedom) {
+            Some("silence") => Disagreement::Ignore,
+            Some("close") => Disagreement::Close,
+            Some("exception-03") => Disagreement::Refuse,
+            _ => reference,
+        };
+        // The reference waits for an MBAP length's bytes: nothing to do yet.
+        (chosen != Disagreement::Ignore || freedom != ids::MBAP_LENGTH_LONG).then_some(chosen)
+    }
+
+    /// [`Station::tcp_adu`] answering the ADU at the start of `adu` (its MBAP header and function code at
+    /// least) with exception `code`, whatever its PDU holds, with the bookkeeping of any answer (events,
+    /// exception and busy counts).
+    fn refuse(&mut self, now: Duration, adu: &[u8], code: ExceptionCode) -> Option<Wire> {
+        self.forced = Some(code);
+        let reply = self.tcp_adu(now, adu);
+        self.forced = None;
+        reply
+    }
+
+    /// True when a Modbus/TCP request to `unit` is answered: the station's unit and the profile's unit ids,
+    /// except a unit in the `tcp-unit-ids` freedom's range when the drive chose to ignore it (0 and 0xFF are always
+    /// answered where the profile answers them).
+    fn tcp_unit_answered(&mut self, unit: u8) -> bool {
+        let accepted = unit == self.unit || {
+            let [lo, hi] = self.profile().device.unit_ids;
+            (lo..=hi).contains(&unit)
+        };
+        if !accepted || unit == self.unit || matches!(unit, 0 | 0xFF) {
+            return accepted;
+        }
+        let Some((f, value)) = self
+            .choices
+            .defined()
+            .find(|(f, _)| f.id == ids::TCP_UNIT_IDS)
+        else {
+            return true;
+        };
+        if !f.covers_unit(unit) {
+            return true;
+        }
+        self.decisions.push(ids::TCP_UNIT_IDS);
+        !crate::choices::value_matches(value, "silence")
     }
 
     /// Answer one complete Modbus/TCP ADU (`None`: no response is sent).
@@ -496,10 +707,7 @@ impl Station {
         if self.dead {
             return None;
         }
-        let accepted = header.unit_id == self.unit || {
-            let [lo, hi] = self.profile().device.unit_ids;
-            (lo..=hi).contains(&header.unit_id)
-        };
+        let accepted = self.tcp_unit_answered(header.unit_id);
         if !accepted && !self.faults.has(Fault::AnswerOtherUnit) {
             return None;
         }
@@ -756,7 +964,10 @@ impl Station {
             0
         };
         self.log_event(event::RECEIVE | bcast);
-        let (resp, completed) = self.process(now, unit, fc, pdu, via)?;
+        let (resp, completed) = match self.forced {
+            Some(code) => (Some(Response::exception(fc, code)), false),
+            None => self.process(now, unit, fc, pdu, via)?,
+        };
         let exception = resp.as_ref().and_then(|r| match r {
             Response::Exception { code, .. } => Some(*code),
             Response::CanOpenError { .. } => Some(ExceptionCode::EXTENDED),
@@ -828,10 +1039,23 @@ impl Station {
             .map_or_else(|| Request::decode(pdu), Ok)
         {
             Ok(req) => req,
-            Err(_) => {
+            Err(e) => {
                 self.malformed();
                 if self.dead {
                     return None;
+                }
+                if matches!(e.kind, DecodeErrorKind::Truncated { .. }) && !self.length_decided {
+                    // Too short for its function code: 03 (the reference), or no answer, or on Modbus/TCP
+                    // the connection closed (an RTU line has none to close: no answer there).
+                    self.decisions.push(ids::TRUNCATED_PDU);
+                    match self.choices.name(ids::TRUNCATED_PDU) {
+                        Some("silence") => return Some((None, false)),
+                        Some("close") => {
+                            self.close_requested = via == Via::Tcp;
+                            return Some((None, false));
+                        }
+                        _ => {}
+                    }
                 }
                 return Some((
                     Some(Response::exception(fc, ExceptionCode::ILLEGAL_DATA_VALUE)),
@@ -841,6 +1065,7 @@ impl Station {
         };
         let resp = if let Some(e) = self.spec_checks(&req) {
             self.decisions.extend(e.freedom);
+            let e = self.check_order(now, unit, &req, e);
             Some(Response::exception(fc, e.code))
         } else if let Some(code) = self.lacks(&req) {
             Some(Response::exception(fc, code))
@@ -1118,6 +1343,86 @@ impl Station {
                 })
             }
             _ => self.coil_value_check(req),
+        }
+    }
+
+    /// A quantity refused (03) by [`Station::spec_checks`] for a read (FC 01-04) or a multiple write (FC 0F,
+    /// 10) whose starting address or last address is not valid either: the state diagrams of section 6
+    /// check the quantity first (03, the reference), the transaction diagram of 4.5 the address first (02);
+    /// `exception-check-order` decides. The address is probed on a copy of the model with a one-item read
+    /// of the table at each end of the range (for a write too: an item the model refuses to read, as a
+    /// write-only one, then counts as an invalid address).
+    fn check_order(
+        &mut self,
+        now: Duration,
+        unit: u8,
+        req: &Request,
+        rejection: Rejection,
+    ) -> Rejection {
+        // A quantity within the specification's range but above the device's own limit is the freedom
+        // `quantity-over-device-limit`'s (its condition has the range run past the map too): only a
+        // quantity outside the specification's range is this one's.
+        if rejection != Rejection::fixed(ExceptionCode::ILLEGAL_DATA_VALUE) {
+            return rejection;
+        }
+        let one = |address: u16| -> Request {
+            match req {
+                Request::ReadCoils { .. } | Request::WriteMultipleCoils { .. } => {
+                    Request::ReadCoils {
+                        address,
+                        quantity: 1,
+                    }
+                }
+                Request::ReadDiscreteInputs { .. } => Request::ReadDiscreteInputs {
+                    address,
+                    quantity: 1,
+                },
+                Request::ReadHoldingRegisters { .. } | Request::WriteMultipleRegisters { .. } => {
+                    Request::ReadHoldingRegisters {
+                        address,
+                        quantity: 1,
+                    }
+                }
+                _ => Request::ReadInputRegisters {
+                    address,
+                    quantity: 1,
+                },
+            }
+        };
+        let (address, quantity) = match req {
+            Request::ReadCoils { address, quantity }
+            | Request::ReadDiscreteInputs { address, quantity }
+            | Request::ReadHoldingRegisters { address, quantity }
+            | Request::ReadInputRegisters { address, quantity }
+            | Request::WriteMultipleCoils {
+                address, quantity, ..
+            } => (*address, *quantity),
+            Request::WriteMultipleRegisters { address, values } => {
+                (*address, u16::try_from(values.len()).unwrap_or(u16::MAX))
+            }
+            _ => return rejection,
+        };
+        let last = u32::from(address) + u32::from(quantity.max(1)) - 1;
+        let mut scratch = self.model.box_clone();
+        let mut invalid = |a: u16| {
+            scratch.handle(now, unit, &one(a)).is_some_and(|r| {
+                matches!(r, Response::Exception { code, .. } if code == ExceptionCode::ILLEGAL_DATA_ADDRESS)
+            })
+        };
+        let address_wrong = invalid(address) || u16::try_from(last).map_or(true, &mut invalid);
+        if !address_wrong {
+            return rejection;
+        }
+        self.decisions.push(ids::EXCEPTION_CHECK_ORDER);
+        match self.choices.code(
+            ids::EXCEPTION_CHECK_ORDER,
+            ExceptionCode::ILLEGAL_DATA_VALUE,
+        ) {
+            ExceptionCode::ILLEGAL_DATA_ADDRESS => Rejection::by(
+                ids::EXCEPTION_CHECK_ORDER,
+                ExceptionCode::ILLEGAL_DATA_ADDRESS,
+            ),
+            _ => rejection,
         }
     }
 

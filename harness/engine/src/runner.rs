@@ -147,6 +147,8 @@ pub struct Runner {
     /// A sentinel the reference answered went unanswered by the target (a target that drops what follows a
     /// bad frame, say): no more sentinels on this target, the window is listened out.
     sentinel_given_up: bool,
+    /// The step's request to another unit id was ignored by the drive as the `unit-ids` freedom allows.
+    unit_ignored: bool,
     /// How the silences due on Modbus/TCP to a real target were settled, for the run's log.
     silences: Silences,
     /// The step being run is followed by a new connection (`Step::Reconnect`): its connection may be
@@ -211,6 +213,7 @@ impl Runner {
             sentinels: std::collections::VecDeque::new(),
             sentinel_given_up: false,
             gaps: crate::timing::AnswerGaps::default(),
+            unit_ignored: false,
             silences: Silences::default(),
             reconnect_next: false,
             resync_rtu: false,
@@ -651,9 +654,11 @@ impl Runner {
     /// Silence proven by a sentinel (issue 17): the known-good read is sent right behind the request that
     /// must go unanswered, on the same connection, to the target and to the reference (which counts it as
     /// the target does). Its answer, with nothing for this step's request before it, proves the silence: a
-    /// Modbus/TCP server takes the requests of a connection in order. An answer of this step's request that
-    /// comes first is returned (and judged, as an answer where silence was due); a late answer of an earlier
-    /// request is noted as `skip_late` does. No sentinel answer within the answer timeout (a target that
+    /// Modbus/TCP server takes the requests of a connection in order. (Not one seen answering out of
+    /// request order, `pipelined-response-order=transaction-id`: it gets no more sentinels. A sentinel
+    /// answered with exception 06, Server Busy, proves nothing: the window is listened out.) An answer of
+    /// this step's request that comes first is returned (and judged, as an answer where silence was due);
+    /// a late answer of an earlier request is noted as `skip_late` does. No sentinel answer within the answer timeout (a target that
     /// answers nothing now, or a reference that would not answer the sentinel either): the silence stands
     /// as when the window is listened out, and the sentinel's answer is dropped if it comes later.
     fn prove_silence(
@@ -691,6 +696,7 @@ impl Runner {
             return Ok(got);
         };
         let theirs = (bytes.len() >= 2).then(|| u16::from_be_bytes([bytes[0], bytes[1]]));
+        let sentinel_busy = theirs == Some(tid) && busy_refusal(bytes);
         if frames
             .iter()
             .any(|f| f.sent.tid.is_some() && f.sent.tid == theirs)
@@ -713,6 +719,18 @@ impl Runner {
         };
         if let Some(other) = after.filter(|a| !sentinel_seen(a)) {
             return Ok(other);
+        }
+        // A sentinel refused with exception 06 (Server Busy: `pipelined-server-busy`) says the drive may
+        // still be busy with an earlier request, not done with it: no proof; the window is listened out.
+        if sentinel_busy {
+            self.sentinels.retain(|t| *t != tid);
+            self.silences.listened += 1;
+            let left = self
+                .cfg
+                .timing
+                .silence
+                .saturating_sub(self.target.now().saturating_sub(start));
+            return self.target.recv(left);
         }
         // The sentinel's answer came with nothing for this step before it: the silence is proven.
         self.sentinels.retain(|t| *t != tid);
@@ -1059,8 +1077,33 @@ impl Runner {
             return Ok(refusal);
         }
         self.sync_shadow();
+        // A request to another unit id, which a drive may ignore (`tcp-unit-ids`): the reference as it was
+        // before, to undo what it did with the request where the drive admissibly ignored it.
+        let before = frames
+            .iter()
+            .any(|f| f.sent.unit != self.cfg.unit)
+            .then(|| self.shadow.clone());
+        self.unit_ignored = false;
+        let sentinels = self.silences.sentinel;
         let sent = self.send_pieces(&frames, &pieces, wire)?;
-        self.receive_and_judge(&frames, &pieces, sent, compare, capture, note, wire)
+        let result =
+            self.receive_and_judge(&frames, &pieces, sent, compare, capture, note, wire)?;
+        if let (Some(before), true) = (before, std::mem::take(&mut self.unit_ignored)) {
+            // The drive ignored it: so does the reference from now on (a write not taken, no counts).
+            self.shadow = before;
+            self.sync_shadow();
+            if self.silences.sentinel > sentinels {
+                // The sentinel read that proved the silence reached both drives: the reference gets it again.
+                let pdu = crate::cases::catalog::known_good_read(&self.profile);
+                let case_tid = std::mem::replace(&mut self.next_tid, self.restore_tid);
+                let f = self.frame(&pdu, self.cfg.unit, None);
+                self.restore_tid = std::mem::replace(&mut self.next_tid, case_tid);
+                self.shadow.send(&f.bytes)?;
+                let _ = self.shadow.settle();
+                let _ = self.shadow.take_decisions();
+            }
+        }
+        Ok(result)
     }
 
     /// The safety assertion, immediately before sending: every frame is rated by the classifier on the bytes
@@ -1249,6 +1292,10 @@ impl Runner {
         let unit = self.cfg.unit;
         let framing = self.target.framing();
         let n = expected.len().max(1);
+        // Modbus/TCP pairs answers with requests by transaction id, in any order (guide 4.2.1.1): which
+        // requests and which of the reference's answers were paired already.
+        let mut paired = vec![false; frames.len()];
+        let mut used = vec![false; expected.len()];
         for i in 0..n {
             let wait = if expected.is_empty() {
                 self.cfg.timing.silence
@@ -1278,8 +1325,25 @@ impl Runner {
             }
             let stop = !matches!(got, Received::Frame { .. } | Received::Garbage { .. });
             record(&got, wire);
+            let (j, out_of_order) = pair(framing, &got, frames, &paired, i);
+            if let Some(p) = paired.get_mut(j) {
+                *p = true;
+            }
+            let e = framing
+                .eq(&Framing::Tcp)
+                .then(|| {
+                    let tid = frames.get(j)?.sent.tid?;
+                    (0..expected.len())
+                        .find(|&k| !used[k] && expected[k].get(..2) == Some(&tid.to_be_bytes()[..]))
+                })
+                .flatten()
+                .or_else(|| (0..expected.len()).find(|&k| !used[k]))
+                .unwrap_or(i);
+            if let Some(u) = used.get_mut(e) {
+                *u = true;
+            }
             let sent = frames
-                .get(i)
+                .get(j)
                 .or(frames.last())
                 .map(|f| f.sent.clone())
                 .unwrap_or(Sent {
@@ -1293,10 +1357,11 @@ impl Runner {
                 unit: sent.unit,
                 run_unit: self.cfg.unit,
                 profile: &self.profile,
-                malformed: frames.get(i).or(frames.last()).is_some_and(|f| f.malformed),
+                malformed: frames.get(j).or(frames.last()).is_some_and(|f| f.malformed),
                 batch: frames.len() > 1,
                 decided: &decisions,
                 counter_alternatives: &counter_alternatives,
+                closed: matches!(got, Received::Closed { .. }),
             };
             let requirements = Arc::clone(&self.requirements);
             let applicable =
@@ -1304,7 +1369,7 @@ impl Runner {
             let judged = oracle::judge_admitting(
                 framing,
                 &sent,
-                expected.get(i).map(|v| v.as_slice()),
+                expected.get(e).map(|v| v.as_slice()),
                 &got,
                 compare,
                 &self.profile,
@@ -1313,7 +1378,29 @@ impl Runner {
                 &cx,
             );
             findings.extend(judged.findings);
-            for s in &judged.shown {
+            // An answer ahead of an earlier request's shows the drive pairing by transaction id only.
+            let order = requirements
+                .freedoms()
+                .iter()
+                .find(|f| {
+                    f.kind == FreedomKind::PipelineOrder && f.applies_to(&self.profile.device.id)
+                })
+                .filter(|_| out_of_order)
+                .map(|f| oracle::freedoms::shown_value(f, "", "transaction-id"));
+            if out_of_order {
+                // A drive that pairs answers by transaction id only may answer a sentinel before the
+                // request it follows: a sentinel's answer proves nothing about that request any more.
+                self.sentinel_given_up = true;
+            }
+            if judged.shown.iter().any(|s| {
+                s.value == "silence"
+                    && requirements
+                        .freedom(&s.freedom)
+                        .is_some_and(|f| f.kind == FreedomKind::UnitIds)
+            }) {
+                self.unit_ignored = true;
+            }
+            for s in judged.shown.iter().chain(&order) {
                 if let Some(text) = self.choices.record(s, &self.case_id, &requirements) {
                     findings.push(Finding {
                         severity: Severity::Should,
@@ -1445,6 +1532,32 @@ impl crate::restore::Link for ReferenceLink<'_> {
     }
 }
 
+/// True when a Modbus/TCP answer is exception 06, Server Busy.
+fn busy_refusal(adu: &[u8]) -> bool {
+    matches!(adu.get(tcp::MBAP_LEN..), Some([fc, 0x06]) if fc & 0x80 != 0)
+}
+
+/// The request an answer belongs to: on Modbus/TCP the unpaired one with the answer's transaction id (and
+/// whether an earlier request is still unpaired: the answer came out of request order), else the first
+/// unpaired one, else the `i`-th.
+fn pair(
+    framing: Framing,
+    got: &Received,
+    frames: &[Framed],
+    paired: &[bool],
+    i: usize,
+) -> (usize, bool) {
+    let first_unpaired = (0..frames.len()).find(|&k| !paired[k]);
+    if framing == Framing::Tcp
+        && let Received::Frame { bytes, .. } = got
+        && let Some(tid) = bytes.get(..2).map(|b| u16::from_be_bytes([b[0], b[1]]))
+        && let Some(j) = (0..frames.len()).find(|&k| !paired[k] && frames[k].sent.tid == Some(tid))
+    {
+        return (j, first_unpaired.is_some_and(|k| k < j));
+    }
+    (first_unpaired.unwrap_or(i), false)
+}
+
 fn record(r: &Received, wire: &mut Vec<WireEvent>) {
     let (bytes, at) = match r {
         Received::Frame {
@@ -1491,4 +1604,71 @@ fn rank(v: Verdict) -> u8 {
 /// The worse of two verdicts.
 pub fn worse(a: Verdict, b: Verdict) -> Verdict {
     if rank(b) > rank(a) { b } else { a }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn framed(tid: u16) -> Framed {
+        Framed {
+            bytes: Vec::new(),
+            sent: Sent {
+                tid: Some(tid),
+                unit: 1,
+                pdu: vec![0x03, 0x00, 0x00, 0x00, 0x01],
+            },
+            malformed: false,
+        }
+    }
+
+    fn answer(tid: u16, pdu: &[u8]) -> Received {
+        let mut bytes = Vec::new();
+        tcp::encode_adu(tid, 1, pdu, &mut bytes).expect("encodes");
+        Received::frame(bytes)
+    }
+
+    /// Pipelined answers are paired with their requests by transaction id, and one ahead of an earlier
+    /// request's is out of request order; on RTU, by position.
+    #[test]
+    fn answers_pair_by_transaction_id() {
+        let frames = [framed(10), framed(11)];
+        let late_first = answer(11, &[0x03, 0x02, 0x00, 0x00]);
+        assert_eq!(
+            pair(Framing::Tcp, &late_first, &frames, &[false, false], 0),
+            (1, true)
+        );
+        let early = answer(10, &[0x03, 0x02, 0x00, 0x00]);
+        assert_eq!(
+            pair(Framing::Tcp, &early, &frames, &[false, true], 1),
+            (0, false)
+        );
+        assert_eq!(
+            pair(Framing::Tcp, &early, &frames, &[false, false], 0),
+            (0, false)
+        );
+        // A transaction id of no request (or paired already): the first unpaired request.
+        let stray = answer(99, &[0x03, 0x02, 0x00, 0x00]);
+        assert_eq!(
+            pair(Framing::Tcp, &stray, &frames, &[true, false], 1),
+            (1, false)
+        );
+        assert_eq!(
+            pair(Framing::Rtu, &late_first, &frames, &[false, false], 0),
+            (0, false)
+        );
+    }
+
+    #[test]
+    fn server_busy_is_recognised() {
+        let bytes = |tid, pdu: &[u8]| {
+            let mut b = Vec::new();
+            tcp::encode_adu(tid, 1, pdu, &mut b).expect("encodes");
+            b
+        };
+        assert!(busy_refusal(&bytes(1, &[0x83, 0x06])));
+        assert!(!busy_refusal(&bytes(1, &[0x83, 0x03])));
+        assert!(!busy_refusal(&bytes(1, &[0x03, 0x06])));
+        assert!(!busy_refusal(&bytes(1, &[0x03, 0x02, 0x00, 0x06])));
+    }
 }

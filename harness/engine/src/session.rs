@@ -448,7 +448,7 @@ pub fn choices_of(
     Ok(drives::Choices::parse_all(
         &opts.choose,
         requirements,
-        &profile.device.id,
+        profile,
     )?)
 }
 

@@ -333,7 +333,7 @@ fn prepare(args: &SimulateArgs) -> Result<(Station, ServerConfig, String), Strin
         drives::Choices::reference()
     } else {
         let requirements = corpus.requirements().map_err(|e| e.to_string())?;
-        drives::Choices::parse_all(&args.choose, &requirements, &profile.device.id)
+        drives::Choices::parse_all(&args.choose, &requirements, &profile)
             .map_err(|e| e.to_string())?
     };
     let summary = format!(

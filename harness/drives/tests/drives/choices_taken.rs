@@ -12,7 +12,7 @@ use super::support::profile;
 
 fn choices(stem: &str, specs: &[&str]) -> Choices {
     let requirements = Corpus::Embedded.requirements().expect("requirements");
-    Choices::parse_all(specs, &requirements, stem).expect("choices")
+    Choices::parse_all(specs, &requirements, &profile(stem)).expect("choices")
 }
 
 /// A station of the corpus profile `stem` taking `specs`.

@@ -365,8 +365,8 @@ fn sim_choosing(specs: &[&str]) -> Sim {
     let requirements = drives::corpus::Corpus::Embedded
         .requirements()
         .expect("requirements");
-    let choices =
-        drives::Choices::parse_all(specs, &requirements, "generic").expect("simulated choices");
+    let choices = drives::Choices::parse_all(specs, &requirements, &profile("generic"))
+        .expect("simulated choices");
     let p = profile("generic");
     let mut sim = Sim::with(p.clone(), &[]);
     sim.station = Station::new(

@@ -15,6 +15,7 @@ mod requirements;
 mod safety_flags;
 mod sd2x;
 mod support;
+mod transport_freedoms;
 
 /// Every table of tests/data/exchanges.toml is run by the test of its name.
 #[test]

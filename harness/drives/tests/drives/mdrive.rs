@@ -842,7 +842,7 @@ fn a_drive_taking_half_a_register_stores_that_half() {
     let choices = drives::Choices::parse_all(
         &["partial-register-write=response"],
         &requirements,
-        "mdrive",
+        &profile("mdrive"),
     )
     .expect("simulated");
     let mut s = Sim::new("mdrive", &[]);

@@ -299,6 +299,26 @@ fn a_well_formed_set_parses() {
     );
 }
 
+/// `units` is a range: `tcp-unit-ids` concerns every unit id from 1 to 247, not only those two.
+#[test]
+fn unit_ids_are_a_range() {
+    let r = embedded();
+    let f = r.freedom("tcp-unit-ids").expect("tcp-unit-ids");
+    assert!(f.covers_unit(1) && f.covers_unit(2) && f.covers_unit(247));
+    assert!(!f.covers_unit(0) && !f.covers_unit(248) && !f.covers_unit(255));
+    let parsed = parse(
+        DOC,
+        &FREEDOMS.replace("exception-code", "unit-ids").replace(
+            "values = [3, 4]",
+            "values = [\"answer\", \"silence\"]\nunits = [5, 9]",
+        ),
+        CITES,
+    )
+    .expect("parses");
+    let g = parsed.freedom("f").expect("f");
+    assert!(g.covers_unit(7) && !g.covers_unit(4) && !g.covers_unit(10));
+}
+
 #[test]
 fn malformed_files_are_rejected_with_file_line_and_reason() {
     let cases: &[(&str, &str, &str, &str)] = &[
@@ -367,6 +387,15 @@ fn malformed_files_are_rejected_with_file_line_and_reason() {
             ),
             CITES,
             "f.toml:7: freedom `f`: no golden frame `p/1/y/request`",
+        ),
+        (
+            DOC,
+            &FREEDOMS.replace("exception-code", "unit-ids").replace(
+                "values = [3, 4]",
+                "values = [\"answer\", \"silence\"]\nunits = [247, 1]",
+            ),
+            CITES,
+            "freedom `f` (unit-ids): needs `units` = [first, last], an inclusive range",
         ),
         (
             DOC,

@@ -1165,8 +1165,8 @@ fn station_choosing(choice: &str) -> Station {
     let requirements = drives::corpus::Corpus::Embedded
         .requirements()
         .expect("requirements");
-    let choices =
-        drives::Choices::parse_all(&[choice], &requirements, "sd2x").expect("a simulated choice");
+    let choices = drives::Choices::parse_all(&[choice], &requirements, &profile())
+        .expect("a simulated choice");
     Station::new(
         drives::build_with(p, FaultSet::default(), choices.clone()),
         FaultSet::default(),

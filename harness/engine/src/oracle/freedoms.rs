@@ -47,6 +47,15 @@ pub struct StepContext<'a> {
     /// The FC 08 counter values the other readings of `diagnostic-counter-semantics` give where the
     /// reference's reading gives another: (sub-function, reading, value).
     pub counter_alternatives: &'a [(u16, &'static str, u16)],
+    /// The target closed the connection instead of answering (Modbus/TCP).
+    pub closed: bool,
+}
+
+impl Alternative {
+    /// True when the alternative is the connection closed (an outcome freedom's `close`).
+    pub fn closes(&self) -> bool {
+        self.answer.is_none() && self.shown.value == "close"
+    }
 }
 
 impl StepContext<'_> {
@@ -55,8 +64,9 @@ impl StepContext<'_> {
     }
 }
 
-/// An alternative answer a freedom admits: the answer (`None`: silence), what the freedom's value is
-/// called, and whether the answer's data values are free (compared in structure only).
+/// An alternative answer a freedom admits: the answer (`None`: silence, or a close where the value shown is
+/// `close`), what the freedom's value is called, and whether the answer's data values are free (compared in
+/// structure only).
 pub struct Alternative {
     pub answer: Option<Response>,
     pub shown: Shown,
@@ -105,7 +115,7 @@ fn touches(f: &Freedom, cx: &StepContext<'_>) -> bool {
         FreedomKind::StatusBits | FreedomKind::FieldValue => f
             .register
             .is_some_and(|r| registers_read(req).is_some_and(|(a, q)| covers(a, q, r))),
-        FreedomKind::UnitIds => cx.unit != cx.run_unit && f.units.contains(&cx.unit),
+        FreedomKind::UnitIds => cx.unit != cx.run_unit && f.covers_unit(cx.unit),
         FreedomKind::WordOrder => true,
         _ => false,
     }
@@ -247,6 +257,19 @@ pub fn observed_shown(
     }
 }
 
+/// An outcome freedom's value `kind` (`silence`, `close`, `exception-XX`, `response`) shown by a step the
+/// reference answers another way and whose observation passed as it is (a request to be rejected or ignored,
+/// where any of those settles it): where the freedom is about the step (as for [`alternatives`]) and lists
+/// the value.
+pub fn outcome_shown(f: &Freedom, cx: &StepContext<'_>, kind: &str) -> Option<Shown> {
+    let about = cx.decided(f) || cx.malformed || (cx.batch && f.id.starts_with("pipelined"));
+    let listed = f
+        .values
+        .iter()
+        .any(|v| drives::choices::value_matches(v, kind));
+    (f.kind == FreedomKind::Outcome && about && listed).then(|| shown_named(f, "", kind))
+}
+
 /// The alternative answers a freedom admits for a step whose reference answer is `expected` (`None`:
 /// silence), tailored to what was `observed` (`None`: silence or no frame).
 pub fn alternatives(
@@ -301,12 +324,12 @@ pub fn alternatives(
         FreedomKind::Outcome
             if cx.decided(f) || cx.malformed || (cx.batch && f.id.starts_with("pipelined")) =>
         {
-            outcome(f, cx.request, expected, observed)
+            outcome(f, cx, expected, observed)
         }
         FreedomKind::Outcome => vec![],
         FreedomKind::UnitIds => {
             // The run's own unit must answer: the freedom is about the others.
-            if cx.unit == cx.run_unit || !f.units.contains(&cx.unit) {
+            if cx.unit == cx.run_unit || !f.covers_unit(cx.unit) {
                 return vec![];
             }
             let mut out = Vec::new();
@@ -525,19 +548,44 @@ fn access(
     out
 }
 
-/// The kind of answer is free among the listed ones: response, silence, close, exception-XX.
+/// The kind of answer is free among the listed ones: response, silence, close, exception-XX. A close is
+/// told from silence (the oracle judges the alternative `close` as an answer that closes, see
+/// [`Alternative::closes`]).
 fn outcome(
     f: &Freedom,
-    request: Option<&Request>,
+    cx: &StepContext<'_>,
     expected: Option<&Response>,
     observed: Option<&Response>,
 ) -> Vec<Alternative> {
+    let request = cx.request;
     let has = |name: &str| {
         f.values
             .iter()
             .any(|v| drives::choices::value_matches(v, name))
     };
     match (expected, observed) {
+        // The reference stays silent (an MBAP length still waiting for bytes, say): a listed exception to
+        // the request's function is as good.
+        (None, Some(o)) => match (exception_of(o), request) {
+            (Some((ofn, code)), Some(req))
+                if ofn.without_exception_bit() == req.function()
+                    && has(&format!("exception-{:02X}", code.0)) =>
+            {
+                vec![Alternative {
+                    answer: Some(Response::exception(req.function(), code)),
+                    shown: shown_named(f, "", &format!("exception-{:02X}", code.0)),
+                    values_free: false,
+                    note: None,
+                }]
+            }
+            _ => vec![],
+        },
+        (_, None) if cx.closed && has("close") => vec![Alternative {
+            answer: None,
+            shown: shown_named(f, "", "close"),
+            values_free: false,
+            note: None,
+        }],
         (_, None) if has("silence") => vec![Alternative {
             answer: None,
             shown: shown_named(f, "", "silence"),

@@ -168,6 +168,12 @@ pub fn judge_admitting(
     applicable: &[&Freedom],
     cx: &StepContext<'_>,
 ) -> Judged {
+    // Where the reference stays silent and an outcome freedom about the step lists `close`, a close is as
+    // good as the reference's own (not "closed where the reference stays silent").
+    let close_admitted = matches!(observed, Received::Closed { .. })
+        && applicable
+            .iter()
+            .any(|f| freedoms::outcome_shown(f, cx, "close").is_some());
     let strict = judge(
         framing,
         sent,
@@ -175,7 +181,7 @@ pub fn judge_admitting(
         observed,
         compare,
         profile,
-        reference_closed,
+        reference_closed || close_admitted,
     );
     let response = |b: &[u8]| match decode_any(b, framing, Direction::Response).map(|d| d.pdu) {
         Ok(Pdu::Response(r)) => Some(r),
@@ -187,11 +193,22 @@ pub fn judge_admitting(
             Received::Frame { bytes, .. } => response(bytes),
             _ => None,
         };
+        // The kind of answer the drive gave where it differs from the reference's and a request it had to
+        // reject or ignore admits either (an outcome freedom): the drive's choice, shown.
+        let observed_kind = outcome_kind(framing, observed);
+        let reference_kind = match (&exp, reference_closed) {
+            (Some(e), _) => Some(response_kind(e)),
+            (None, true) => Some("close".to_string()),
+            (None, false) => Some("silence".to_string()),
+        };
         let shown = applicable
             .iter()
-            .filter_map(|f| {
-                freedoms::observed_shown(f, exp.as_ref(), obs.as_ref())
-                    .or_else(|| freedoms::reference_shown(f, cx, exp.as_ref()))
+            .filter_map(|f| match (&observed_kind, &reference_kind) {
+                (Some(o), Some(r)) if o != r && f.kind == FreedomKind::Outcome => {
+                    freedoms::outcome_shown(f, cx, o)
+                }
+                _ => freedoms::observed_shown(f, exp.as_ref(), obs.as_ref())
+                    .or_else(|| freedoms::reference_shown(f, cx, exp.as_ref())),
             })
             .collect();
         return Judged {
@@ -287,7 +304,7 @@ pub fn judge_admitting(
                 &observed_as,
                 &compare,
                 profile,
-                reference_closed,
+                reference_closed || alt.closes(),
             );
             if !fails(&again) {
                 let mut findings = again;
@@ -307,6 +324,29 @@ pub fn judge_admitting(
     Judged {
         findings: strict,
         shown: vec![],
+    }
+}
+
+/// The kind of answer an observation is, as outcome freedoms name it: `response`, `exception-XX`, `silence`
+/// (nothing, not even a partial frame), `close` (Modbus/TCP); `None` for garbage.
+fn outcome_kind(framing: Framing, observed: &Received) -> Option<String> {
+    match observed {
+        Received::Silence { partial, .. } if partial.is_empty() => Some("silence".into()),
+        Received::Closed { .. } if framing == Framing::Tcp => Some("close".into()),
+        Received::Frame { bytes, .. } => {
+            match decode_any(bytes, framing, Direction::Response).map(|d| d.pdu) {
+                Ok(Pdu::Response(r)) => Some(response_kind(&r)),
+                _ => None,
+            }
+        }
+        _ => None,
+    }
+}
+
+fn response_kind(r: &Response) -> String {
+    match r {
+        Response::Exception { code, .. } => format!("exception-{:02X}", code.0),
+        _ => "response".into(),
     }
 }
 

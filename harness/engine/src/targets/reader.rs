@@ -9,7 +9,7 @@ use codec::framer::{FramerEvent, RtuFramer};
 use codec::{Direction, RtuTiming, tcp};
 
 /// A receive-side frame cutter.
-#[derive(Debug)]
+#[derive(Clone, Debug)]
 pub enum FrameReader {
     /// Modbus/TCP: the MBAP length field delimits.
     Mbap {

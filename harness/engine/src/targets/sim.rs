@@ -13,7 +13,9 @@ use drives::{RtuPort, Station, TcpConn};
 /// Virtual line time per exchange on TCP (a loopback round trip, so timestamps move).
 const TCP_LATENCY: Duration = Duration::from_micros(30);
 
-/// A reference drive in process.
+/// A reference drive in process. A clone is an independent copy in the same state (the runner keeps one to
+/// undo a request the drive was free to ignore).
+#[derive(Clone)]
 pub struct SimTarget {
     station: Station,
     framing: Framing,

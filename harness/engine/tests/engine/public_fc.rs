@@ -27,6 +27,7 @@ fn context<'a>(p: &'a drives::profile::Profile, req: &'a Request) -> StepContext
         batch: false,
         decided: &[],
         counter_alternatives: &[],
+        closed: false,
     }
 }
 
@@ -116,4 +117,63 @@ fn event_counter_may_count_the_clear_but_nothing_more() {
     assert_eq!(one_more[0].shown.value, "counted");
     assert!(alternatives(f, &cx, Some(&count(1)), Some(&count(3))).is_empty());
     assert!(alternatives(f, &cx, Some(&count(1)), Some(&count(0))).is_empty());
+}
+
+/// `truncated-pdu`: where the reference refuses a truncated PDU with 03 and the drive closes the connection
+/// (Modbus/TCP), the close is the freedom's `close`, admitted without a finding; a close where the freedom
+/// does not apply still fails. (Before, a close was taken for `silence` with a SHOULD finding, and a close
+/// where no freedom applies is a MUST.)
+#[test]
+fn a_close_is_the_outcome_close_not_silence() {
+    use engine::cases::Compare;
+    use engine::oracle::{Judged, Sent, judge_admitting};
+    use engine::targets::Received;
+    use std::time::Duration;
+
+    let (reqs, p) = corpus();
+    let f = reqs
+        .freedom("truncated-pdu")
+        .expect("freedom in the corpus");
+    let sent = Sent {
+        tid: Some(7),
+        unit: 1,
+        pdu: vec![0x05, 0x00],
+    };
+    let mut reference = Vec::new();
+    codec::tcp::encode_adu(7, 1, &[0x85, 0x03], &mut reference).expect("encodes");
+    let closed = Received::Closed {
+        partial: vec![],
+        at: Duration::ZERO,
+    };
+    let judge =
+        |applicable: &[&drives::requirements::Freedom], decided: &[drives::Decision]| -> Judged {
+            let cx = StepContext {
+                request: None,
+                unit: 1,
+                run_unit: 1,
+                profile: &p,
+                malformed: true,
+                batch: false,
+                decided,
+                counter_alternatives: &[],
+                closed: true,
+            };
+            judge_admitting(
+                Framing::Tcp,
+                &sent,
+                Some(&reference),
+                &closed,
+                &Compare::Exact,
+                &p,
+                false,
+                applicable,
+                &cx,
+            )
+        };
+    let admitted = judge(&[f], &[drives::choices::ids::TRUNCATED_PDU]);
+    assert!(admitted.findings.is_empty(), "{:?}", admitted.findings);
+    assert_eq!(admitted.shown.len(), 1);
+    assert_eq!(admitted.shown[0].value, "close");
+    let not_admitted = judge(&[], &[]);
+    assert!(!not_admitted.findings.is_empty());
 }

@@ -70,7 +70,7 @@ fn segments(cx: &mut Ctx) {
             format!("tcp/pipeline/{k}-requests-one-segment"),
             format!("{k} requests in one TCP segment"),
             format!("{TCPG}, section 4.2.1.1 (several transactions may be active on one connection)"),
-            "Requests that arrive together in one segment are all answered, in order, each with its own transaction id.",
+            "Requests that arrive together in one segment are all answered, each with its own transaction id, in any order (they are paired by transaction id); a server with a single transaction may answer the ones behind the first with exception 06, Server Busy.",
             vec![Tag::TcpOnly],
             vec![exchange(Outgoing::Batch(vec![read.clone(); k]), Compare::Structure, format!("{k} requests"))],
         );

@@ -1,0 +1,264 @@
+//! The station takes the freedoms of the wire side as chosen (`--choose`): the Modbus/TCP unit ids it
+//! ignores, the order and the Server Busy of pipelined answers, MBAP lengths that disagree with the PDU, PDUs
+//! over 253 bytes, truncated PDUs and the exception check order. Each test compares the chosen drive with the
+//! reference drive on the same bytes, and checks the freedom is recorded as the decision.
+
+use std::time::Duration;
+
+use codec::{hex_spaced, rtu, tcp};
+use drives::choices::{ChoiceError, ids};
+use drives::corpus::Corpus;
+use drives::station::TcpOutput;
+use drives::{Choices, FaultSet, Station, TcpConn};
+
+use super::support::profile;
+
+/// A station of the corpus profile `stem` taking `choose` (`FREEDOM=VALUE`).
+fn station(stem: &str, choose: &[&str]) -> Station {
+    let p = profile(stem);
+    let requirements = Corpus::Embedded.requirements().expect("requirements");
+    let choices = Choices::parse_all(choose, &requirements, &p).expect("choices");
+    let unit = p.device.default_unit;
+    Station::new(
+        drives::build_with(p, FaultSet::none(), choices.clone()),
+        FaultSet::none(),
+        unit,
+    )
+    .with_choices(choices)
+}
+
+/// A Modbus/TCP ADU.
+fn adu(tid: u16, unit: u8, pdu: &[u8]) -> Vec<u8> {
+    let mut out = Vec::new();
+    tcp::encode_adu(tid, unit, pdu, &mut out).expect("encodes");
+    out
+}
+
+/// An ADU whose MBAP length is off by `delta`.
+fn adu_length(tid: u16, unit: u8, pdu: &[u8], delta: i16) -> Vec<u8> {
+    let mut out = adu(tid, unit, pdu);
+    let len = u16::from_be_bytes([out[4], out[5]]).wrapping_add_signed(delta);
+    out[4..6].copy_from_slice(&len.to_be_bytes());
+    out
+}
+
+/// Feed `bytes` on `conn`: the replies (transaction id, PDU as hex) and whether the connection was closed.
+fn feed(s: &mut Station, conn: &mut TcpConn, bytes: &[u8]) -> (Vec<(u16, String)>, bool) {
+    let TcpOutput { replies, close } = s.serve_tcp(Duration::ZERO, conn, bytes);
+    let replies = replies
+        .iter()
+        .map(|w| {
+            (
+                u16::from_be_bytes([w.bytes[0], w.bytes[1]]),
+                hex_spaced(&w.bytes[tcp::MBAP_LEN..]),
+            )
+        })
+        .collect();
+    (replies, close)
+}
+
+/// Feed `bytes` on a new connection.
+fn serve(s: &mut Station, bytes: &[u8]) -> (Vec<(u16, String)>, bool) {
+    feed(s, &mut TcpConn::default(), bytes)
+}
+
+/// A read of the MDrive's holding registers 0x008B-0x008C (VM, a 32-bit register).
+const READ: &[u8] = &[0x03, 0x00, 0x8B, 0x00, 0x02];
+
+fn unit(stem: &str) -> u8 {
+    profile(stem).device.default_unit
+}
+
+#[test]
+fn tcp_unit_ids_silence_ignores_the_listed_units_but_not_its_own_nor_0_and_ff() {
+    let own = unit("mdrive");
+    let mut reference = station("mdrive", &[]);
+    let mut chosen = station("mdrive", &["tcp-unit-ids=silence"]);
+    let other = if own == 247 { 1 } else { 247 };
+    assert_eq!(serve(&mut reference, &adu(1, other, READ)).0.len(), 1);
+    assert_eq!(serve(&mut chosen, &adu(1, other, READ)), (vec![], false));
+    assert!(chosen.take_decisions().contains(&ids::TCP_UNIT_IDS));
+    // Every unit id of the freedom's range (`units = [1, 247]`), not only its ends.
+    let inside = if own == 100 { 101 } else { 100 };
+    assert_eq!(serve(&mut reference, &adu(1, inside, READ)).0.len(), 1);
+    assert_eq!(serve(&mut chosen, &adu(1, inside, READ)), (vec![], false));
+    // Outside it (and not 0 or 0xFF), a unit id the profile answers is still answered.
+    assert_eq!(serve(&mut chosen, &adu(1, 250, READ)).0.len(), 1);
+    for u in [own, 0, 0xFF] {
+        assert_eq!(
+            serve(&mut chosen, &adu(2, u, READ)).0.len(),
+            1,
+            "unit {u} answered"
+        );
+    }
+}
+
+#[test]
+fn pipelined_response_order_transaction_id_answers_last_first() {
+    let u = unit("mdrive");
+    let two = [adu(1, u, READ), adu(2, u, READ)].concat();
+    let mut reference = station("mdrive", &[]);
+    let mut chosen = station("mdrive", &["pipelined-response-order=transaction-id"]);
+    let tids = |r: (Vec<(u16, String)>, bool)| r.0.iter().map(|(t, _)| *t).collect::<Vec<_>>();
+    assert_eq!(tids(serve(&mut reference, &two)), [1, 2]);
+    assert_eq!(tids(serve(&mut chosen, &two)), [2, 1]);
+    assert!(
+        chosen
+            .take_decisions()
+            .contains(&ids::PIPELINED_RESPONSE_ORDER)
+    );
+}
+
+#[test]
+fn pipelined_server_busy_exception_06_for_the_requests_behind_the_first() {
+    let u = unit("mdrive");
+    let three = [adu(1, u, READ), adu(2, u, READ), adu(3, u, READ)].concat();
+    let mut reference = station("mdrive", &[]);
+    let mut chosen = station("mdrive", &["pipelined-server-busy=exception-06"]);
+    let (r, _) = serve(&mut reference, &three);
+    let (c, _) = serve(&mut chosen, &three);
+    assert!(r.iter().all(|(_, pdu)| pdu.starts_with("03 04")), "{r:?}");
+    assert_eq!(c[0], r[0]);
+    assert_eq!(c[1..], [(2, "83 06".to_string()), (3, "83 06".to_string())]);
+    assert_eq!(chosen.counters().busy, 2);
+    assert!(
+        chosen
+            .take_decisions()
+            .contains(&ids::PIPELINED_SERVER_BUSY)
+    );
+    // One request at a time is served.
+    assert_eq!(serve(&mut chosen, &adu(4, u, READ)).0[0].1, r[0].1);
+}
+
+#[test]
+fn truncated_pdu_silence_or_close_on_tcp_and_silence_on_rtu() {
+    let u = unit("mdrive");
+    let short = adu(1, u, &[0x03, 0x00, 0x01]);
+    let mut reference = station("mdrive", &[]);
+    assert_eq!(
+        serve(&mut reference, &short),
+        (vec![(1, "83 03".into())], false)
+    );
+    assert!(reference.take_decisions().contains(&ids::TRUNCATED_PDU));
+    let mut silent = station("mdrive", &["truncated-pdu=silence"]);
+    assert_eq!(serve(&mut silent, &short), (vec![], false));
+    assert!(silent.take_decisions().contains(&ids::TRUNCATED_PDU));
+    let mut closing = station("mdrive", &["truncated-pdu=close"]);
+    assert_eq!(serve(&mut closing, &short), (vec![], true));
+    // An RTU line has no connection: the drive chosen `close` keeps silent there.
+    let mut frame = Vec::new();
+    rtu::encode_adu(u, &[0x03, 0x00, 0x01], &mut frame).expect("encodes");
+    assert!(reference.rtu_frame(Duration::ZERO, &frame).is_some());
+    assert!(closing.rtu_frame(Duration::ZERO, &frame).is_none());
+    assert!(silent.rtu_frame(Duration::ZERO, &frame).is_none());
+}
+
+#[test]
+fn truncated_pdu_close_is_refused_for_a_drive_without_modbus_tcp() {
+    let requirements = Corpus::Embedded.requirements().expect("requirements");
+    let sd2x = profile("sd2x");
+    assert!(matches!(
+        Choices::parse_all(&["truncated-pdu=close"], &requirements, &sd2x),
+        Err(ChoiceError::NotSimulated { .. })
+    ));
+    assert!(Choices::parse_all(&["truncated-pdu=silence"], &requirements, &sd2x).is_ok());
+}
+
+#[test]
+fn mbap_length_short_refused_ignored_or_closed() {
+    let u = unit("mdrive");
+    // The MBAP length one short, the PDU's last byte right behind it.
+    let bytes = adu_length(1, u, READ, -1);
+    let mut reference = station("mdrive", &[]);
+    assert_eq!(
+        serve(&mut reference, &bytes),
+        (vec![(1, "83 03".into())], false)
+    );
+    assert!(reference.take_decisions().contains(&ids::MBAP_LENGTH_SHORT));
+    let mut silent = station("mdrive", &["mbap-length-short=silence"]);
+    assert_eq!(serve(&mut silent, &bytes), (vec![], false));
+    let mut closing = station("mdrive", &["mbap-length-short=close"]);
+    assert_eq!(serve(&mut closing, &bytes), (vec![], true));
+    // The MBAP length's freedom decides there, not the truncated PDU's.
+    let mut truncated_silent = station("mdrive", &["truncated-pdu=silence"]);
+    assert_eq!(
+        serve(&mut truncated_silent, &bytes),
+        (vec![(1, "83 03".into())], false)
+    );
+    let decided = truncated_silent.take_decisions();
+    assert!(decided.contains(&ids::MBAP_LENGTH_SHORT));
+    assert!(!decided.contains(&ids::TRUNCATED_PDU));
+}
+
+#[test]
+fn mbap_length_long_waits_closes_or_refuses_and_skips_the_bytes_announced() {
+    let u = unit("mdrive");
+    let bytes = adu_length(1, u, READ, 1);
+    let next = adu(2, u, READ);
+    let mut reference = station("mdrive", &[]);
+    assert_eq!(serve(&mut reference, &bytes), (vec![], false));
+    assert!(reference.take_decisions().contains(&ids::MBAP_LENGTH_LONG));
+    let mut closing = station("mdrive", &["mbap-length-long=close"]);
+    assert_eq!(serve(&mut closing, &bytes), (vec![], true));
+    let mut refusing = station("mdrive", &["mbap-length-long=exception-03"]);
+    let mut conn = TcpConn::default();
+    assert_eq!(
+        feed(&mut refusing, &mut conn, &bytes),
+        (vec![(1, "83 03".into())], false)
+    );
+    // The byte the MBAP length still announced is skipped; the next request is served.
+    let (replies, _) = feed(&mut refusing, &mut conn, &[&[0xAA][..], &next].concat());
+    assert_eq!(replies.len(), 1);
+    assert_eq!(replies[0].0, 2);
+    assert!(replies[0].1.starts_with("03 04"), "{replies:?}");
+}
+
+#[test]
+fn pdu_over_253_closed_skipped_or_refused() {
+    let u = unit("mdrive");
+    // MBAP length 255: a 254-byte PDU, framed by hand.
+    let mut big = vec![0x00, 0x01, 0x00, 0x00, 0x00, 0xFF, u];
+    big.extend(std::iter::repeat_n(0x03, 254));
+    let next = adu(2, u, READ);
+    let mut reference = station("mdrive", &[]);
+    assert_eq!(serve(&mut reference, &big), (vec![], true));
+    assert!(reference.take_decisions().contains(&ids::PDU_OVER_253));
+    let mut silent = station("mdrive", &["pdu-over-253=silence"]);
+    let (replies, close) = serve(&mut silent, &[big.clone(), next.clone()].concat());
+    assert!(!close);
+    assert_eq!(replies.iter().map(|r| r.0).collect::<Vec<_>>(), [2]);
+    let mut refusing = station("mdrive", &["pdu-over-253=exception-03"]);
+    let (replies, close) = serve(&mut refusing, &[big, next].concat());
+    assert!(!close);
+    assert_eq!(replies[0], (1, "83 03".to_string()));
+    assert_eq!(replies[1].0, 2);
+}
+
+#[test]
+fn exception_check_order_2_checks_the_address_before_the_quantity() {
+    let u = unit("mdrive");
+    // FC 01 at address 0 (no MDrive output there) with quantity 0: both wrong.
+    let both = adu(1, u, &[0x01, 0x00, 0x00, 0x00, 0x00]);
+    // Quantity 0 at an output (0x004B): only the quantity wrong.
+    let quantity = adu(2, u, &[0x01, 0x00, 0x4B, 0x00, 0x00]);
+    let mut reference = station("mdrive", &[]);
+    let mut chosen = station("mdrive", &["exception-check-order=2"]);
+    assert_eq!(serve(&mut reference, &both).0, [(1, "81 03".to_string())]);
+    assert!(
+        reference
+            .take_decisions()
+            .contains(&ids::EXCEPTION_CHECK_ORDER)
+    );
+    assert_eq!(serve(&mut chosen, &both).0, [(1, "81 02".to_string())]);
+    assert!(
+        chosen
+            .take_decisions()
+            .contains(&ids::EXCEPTION_CHECK_ORDER)
+    );
+    assert_eq!(serve(&mut chosen, &quantity).0, [(2, "81 03".to_string())]);
+    assert!(
+        !chosen
+            .take_decisions()
+            .contains(&ids::EXCEPTION_CHECK_ORDER)
+    );
+}

@@ -1354,6 +1354,7 @@ impl Runner {
             let request = Request::decode(&sent.pdu).ok();
             let cx = StepContext {
                 request: request.as_ref(),
+                pdu: &sent.pdu,
                 unit: sent.unit,
                 run_unit: self.cfg.unit,
                 profile: &self.profile,
@@ -1376,7 +1377,9 @@ impl Runner {
                 reference_closed,
                 &applicable,
                 &cx,
-            );
+            )
+            // Where several freedoms explain the answer, the one that agrees with the drive's earlier choices.
+            .agreeing(|s| self.choices.agrees(s));
             findings.extend(judged.findings);
             // An answer ahead of an earlier request's shows the drive pairing by transaction id only.
             let order = requirements

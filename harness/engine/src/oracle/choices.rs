@@ -103,6 +103,13 @@ impl ChoiceLog {
         }
     }
 
+    /// True when `shown` is what the drive chose before for that freedom (and item), or the first it shows.
+    pub fn agrees(&self, shown: &Shown) -> bool {
+        self.entries
+            .get(&(shown.freedom.clone(), shown.about.clone()))
+            .is_none_or(|c| c.value == shown.value)
+    }
+
     /// Every choice, by freedom and item.
     pub fn choices(&self) -> impl Iterator<Item = &Choice> {
         self.entries.values()

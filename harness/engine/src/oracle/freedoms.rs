@@ -32,6 +32,8 @@ pub struct Shown {
 pub struct StepContext<'a> {
     /// The request as sent (decoded, when it decodes).
     pub request: Option<&'a Request>,
+    /// The request's PDU as sent (what a drive reading the manual another way may decode otherwise).
+    pub pdu: &'a [u8],
     /// The unit id / slave address the request went to.
     pub unit: u8,
     /// The unit id / slave address the run talks to: requests to it must be answered.
@@ -104,6 +106,20 @@ pub fn applicable<'a>(
 
 /// True when the request touches what a freedom is about (item-, register- and unit-bound freedoms).
 fn touches(f: &Freedom, cx: &StepContext<'_>) -> bool {
+    // The readings of the vendor functions, wherever such a request goes (generated and fuzz cases cite
+    // nothing); the others where a case cites them (the LMD input addressing is learned before the cases).
+    if f.kind == FreedomKind::Reading {
+        return matches!(
+            f.id.as_str(),
+            "fc42-parameterless-byte-count"
+                | "lmd-esc-wire-form"
+                | "mdrive-program-control-function"
+        ) && reading_concerns(f, cx.request, cx.pdu);
+    }
+    // A unit id is about the frame, whatever its PDU (a malformed one to another unit goes unanswered too).
+    if f.kind == FreedomKind::UnitIds {
+        return cx.unit != cx.run_unit && f.covers_unit(cx.unit);
+    }
     let Some(req) = cx.request else {
         return false;
     };
@@ -115,7 +131,6 @@ fn touches(f: &Freedom, cx: &StepContext<'_>) -> bool {
         FreedomKind::StatusBits | FreedomKind::FieldValue => f
             .register
             .is_some_and(|r| registers_read(req).is_some_and(|(a, q)| covers(a, q, r))),
-        FreedomKind::UnitIds => cx.unit != cx.run_unit && f.covers_unit(cx.unit),
         FreedomKind::WordOrder => true,
         _ => false,
     }
@@ -369,11 +384,27 @@ pub fn alternatives(
                 return vec![];
             };
             let fc = efn.without_exception_bit();
-            if code != ExceptionCode::ILLEGAL_FUNCTION
-                || !f.functions.contains(&fc.0)
-                || o.is_exception()
-                || o.function() != fc
+            if code != ExceptionCode::ILLEGAL_FUNCTION || !f.functions.contains(&fc.0) {
+                return vec![];
+            }
+            // A drive serving the function refuses a malformed request for it as any served function's:
+            // 03, the implied length incorrect (App 7).
+            if cx.malformed
+                && exception_of(o).is_some_and(|(ofn, c)| {
+                    ofn.without_exception_bit() == fc && c == ExceptionCode::ILLEGAL_DATA_VALUE
+                })
             {
+                return vec![Alternative {
+                    answer: Some(o.clone()),
+                    shown: shown_named(f, format!("FC 0x{:02X}", fc.0), "served"),
+                    values_free: false,
+                    note: Some(format!(
+                        "FC 0x{:02X} is served although the profile does not list it (admissible: {}); this malformed request for it is refused with 03",
+                        fc.0, f.id
+                    )),
+                }];
+            }
+            if o.is_exception() || o.function() != fc {
                 return vec![];
             }
             vec![Alternative {
@@ -878,38 +909,18 @@ fn reading(
     expected: Option<&Response>,
     observed: Option<&Response>,
 ) -> Vec<Alternative> {
-    let (Some(req), Some(o)) = (cx.request, observed) else {
+    let (Some(o), Some(&fc)) = (observed, cx.pdu.first()) else {
         return vec![];
     };
-    if expected == observed {
+    if expected == observed || !reading_concerns(f, cx.request, cx.pdu) {
         return vec![];
     }
     let other = f.values.get(1).map(|v| v.to_string()).unwrap_or_default();
-    let concerned = match f.id.as_str() {
-        "sd2x-fc43-reserved-byte" => matches!(req, Request::CanOpen(_)),
-        "fc42-parameterless-byte-count" => {
-            matches!(req, Request::VendorWrite { params, .. } if params.is_empty())
-        }
-        "lmd-esc-wire-form" => {
-            matches!(req, Request::VendorWrite { mnemonic, .. } if mnemonic.name() == "\u{1b}")
-        }
-        "lmd-discrete-input-addressing" => matches!(req, Request::ReadDiscreteInputs { .. }),
-        "mdrive-program-control-function" => matches!(
-            req,
-            Request::VendorWrite { mnemonic, .. }
-                if ["E", "EX", "PS", "RS", "\u{1b}"].contains(&mnemonic.name().as_str())
-        ),
-        "fc41-byte-count-width" => false,
-        _ => true,
-    };
-    if !concerned {
-        return vec![];
-    }
     let refused = match o {
         Response::Exception { function, code } => {
-            function.without_exception_bit() == req.function() && (1..=4).contains(&code.0)
+            function.without_exception_bit().0 == fc && (1..=4).contains(&code.0)
         }
-        Response::CanOpenError { .. } => matches!(req, Request::CanOpen(_)),
+        Response::CanOpenError { .. } => matches!(cx.request, Some(Request::CanOpen(_))),
         _ => false,
     };
     if !refused {
@@ -925,6 +936,33 @@ fn reading(
             f.id
         )),
     }]
+}
+
+/// True when a request (decoded, or its PDU where the codec refuses it) is what a reading of the manual is
+/// about: the one a drive may read otherwise.
+fn reading_concerns(f: &Freedom, req: Option<&Request>, pdu: &[u8]) -> bool {
+    match (f.id.as_str(), req) {
+        ("sd2x-fc43-reserved-byte", Some(r)) => matches!(r, Request::CanOpen(_)),
+        // The codec's parameterless command (byte count 0), or the 5-byte form without a count that a drive
+        // following the other reading takes for one (the codec refuses it).
+        ("fc42-parameterless-byte-count", r) => {
+            matches!(r, Some(Request::VendorWrite { params, .. }) if params.is_empty())
+                || (r.is_none() && pdu.len() == 5 && pdu[0] == FunctionCode::VENDOR_WRITE.0)
+        }
+        ("lmd-esc-wire-form", Some(r)) => {
+            matches!(r, Request::VendorWrite { mnemonic, .. } if mnemonic.name() == "\u{1b}")
+        }
+        ("lmd-discrete-input-addressing", Some(r)) => {
+            matches!(r, Request::ReadDiscreteInputs { .. })
+        }
+        ("mdrive-program-control-function", Some(r)) => matches!(
+            r,
+            Request::VendorWrite { mnemonic, .. }
+                if ["E", "EX", "PS", "RS", "\u{1b}"].contains(&mnemonic.name().as_str())
+        ),
+        ("fc41-byte-count-width", _) => false,
+        (_, r) => r.is_some(),
+    }
 }
 
 /// FC 0x41 responses with a 2-byte byte count (the other reading of `fc41-byte-count-width`), as the

@@ -145,6 +145,25 @@ pub struct Judged {
     pub findings: Vec<Finding>,
     /// The values the target showed for freedoms at this observation.
     pub shown: Vec<Shown>,
+    /// Where several freedoms' alternatives admit the observation, the others after the first, in order:
+    /// the caller may take the one that agrees with what the drive chose before (see
+    /// [`Judged::agreeing`]).
+    pub others: Vec<Judged>,
+}
+
+impl Judged {
+    /// The first explanation of the observation (this one, then `others`) whose shown values all agree with
+    /// `agrees`; this one when none does.
+    pub fn agreeing(mut self, agrees: impl Fn(&Shown) -> bool) -> Judged {
+        let others = std::mem::take(&mut self.others);
+        if self.shown.iter().all(&agrees) {
+            return self;
+        }
+        others
+            .into_iter()
+            .find(|j| j.shown.iter().all(&agrees))
+            .unwrap_or(self)
+    }
 }
 
 /// True when findings make a step fail (or be unimplemented): what a freedom may excuse.
@@ -214,6 +233,7 @@ pub fn judge_admitting(
         return Judged {
             findings: strict,
             shown,
+            others: Vec::new(),
         };
     }
     // A frame only another reading of a manual decodes (FC 0x41 with a 2-byte byte count): judged as the
@@ -246,6 +266,8 @@ pub fn judge_admitting(
         Received::Frame { bytes, .. } => response(bytes).or_else(|| other_reading(framing, bytes)),
         _ => None,
     };
+    // Every alternative that admits the observation, in the order of the freedoms.
+    let mut passing: Vec<Judged> = Vec::new();
     for f in applicable {
         if f.kind == FreedomKind::WordOrder {
             let other = match profile.device.word_order {
@@ -267,10 +289,11 @@ pub fn judge_admitting(
                     WordOrder::HighFirst => "high-first",
                     WordOrder::LowFirst => "low-first",
                 };
-                return Judged {
+                passing.push(Judged {
                     findings: again,
                     shown: vec![freedoms::shown_value(f, "", name)],
-                };
+                    others: Vec::new(),
+                });
             }
             continue;
         }
@@ -314,17 +337,24 @@ pub fn judge_admitting(
                         text: n,
                     });
                 }
-                return Judged {
+                passing.push(Judged {
                     findings,
                     shown: vec![alt.shown],
-                };
+                    others: Vec::new(),
+                });
             }
         }
     }
-    Judged {
-        findings: strict,
-        shown: vec![],
+    if passing.is_empty() {
+        return Judged {
+            findings: strict,
+            shown: vec![],
+            others: Vec::new(),
+        };
     }
+    let mut first = passing.remove(0);
+    first.others = passing;
+    first
 }
 
 /// The kind of answer an observation is, as outcome freedoms name it: `response`, `exception-XX`, `silence`

@@ -333,3 +333,54 @@ fn generated_cases_admit_the_transport_choices() {
     .collect();
     assert!(problems.is_empty(), "{problems:#?}");
 }
+
+/// Generated cases meet the vendor readings, functions served beyond the profile and unit ids with requests
+/// no catalog case sends (found by runs against drives with random combinations of choices): a malformed
+/// request for a function the drive serves beyond its profile is refused with 03 (App 7), not 01; a 5-byte
+/// FC 0x42 is a parameterless command to a drive that expects no byte count, and its unknown mnemonic gets
+/// that drive's code; a drive running E/EX/PS/RS by FC 0x41 refuses them by FC 0x42 in generated requests
+/// too; a malformed request to another unit id is ignored as a well-formed one is. Each of these FAILed.
+#[test]
+fn generated_cases_admit_the_vendor_readings_and_extra_functions() {
+    let jobs: Vec<(&str, u64, u64, &[&str])> = vec![
+        ("sim:sd2x", 1101, 300, &["served-extra-function=served"]),
+        ("sim:lmd", 1100, 300, &["served-extra-function=served"]),
+        (
+            "sim:mdrive",
+            1101,
+            300,
+            &[
+                "fc42-parameterless-byte-count=no-count-byte",
+                "unknown-mnemonic-exception=4",
+            ],
+        ),
+        (
+            "sim:mdrive",
+            1102,
+            300,
+            &["mdrive-program-control-function=fc41"],
+        ),
+        ("sim:lmd", 2300, 400, &["tcp-unit-ids=silence"]),
+    ];
+    let problems: Vec<String> = on_two_threads(jobs, |(target, seed, n, choose)| {
+        let choose: Vec<String> = choose.iter().map(|c| c.to_string()).collect();
+        let mut o = options(target, &choose);
+        o.generated = n;
+        o.seed = Some(seed);
+        o.keep_verdicts = true;
+        let out = run_quietly(&o).unwrap_or_else(|e| panic!("{target} --choose {choose:?}: {e}"));
+        let bad: Vec<&String> = out
+            .verdicts
+            .iter()
+            .filter(|(_, v)| matches!(v, Verdict::Fail | Verdict::NonStrict))
+            .map(|(c, _)| c)
+            .collect();
+        (!bad.is_empty()).then(|| {
+            format!("{target} --choose {choose:?} --generated {n} --seed {seed}: FAIL or NON-STRICT {bad:?}")
+        })
+    })
+    .into_iter()
+    .flatten()
+    .collect();
+    assert!(problems.is_empty(), "{problems:#?}");
+}

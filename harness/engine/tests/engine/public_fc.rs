@@ -20,6 +20,7 @@ fn corpus() -> (drives::requirements::Requirements, drives::profile::Profile) {
 fn context<'a>(p: &'a drives::profile::Profile, req: &'a Request) -> StepContext<'a> {
     StepContext {
         request: Some(req),
+        pdu: &[],
         unit: 1,
         run_unit: 1,
         profile: p,
@@ -149,6 +150,7 @@ fn a_close_is_the_outcome_close_not_silence() {
         |applicable: &[&drives::requirements::Freedom], decided: &[drives::Decision]| -> Judged {
             let cx = StepContext {
                 request: None,
+                pdu: &[],
                 unit: 1,
                 run_unit: 1,
                 profile: &p,

@@ -104,13 +104,13 @@ impl<'p> DriveRun<'p> {
             Op::TcpStream(bytes) => {
                 let out = self.station.serve_tcp(self.now, &mut self.conn, bytes);
                 for w in &out.replies {
-                    check_reply(Framing::Tcp, w, None);
+                    check_reply(Framing::Tcp, w, None, Duration::ZERO);
                 }
             }
             Op::RtuStream { gap, bytes } => {
                 self.now += self.timing.t3_5 * u32::from(*gap) / 16;
                 for w in self.station.serve_rtu(self.now, &mut self.port, bytes) {
-                    check_reply(Framing::Rtu, &w, None);
+                    check_reply(Framing::Rtu, &w, None, self.timing.t3_5);
                 }
             }
             Op::Wait(ms) => self.wait(Duration::from_millis((*ms).into())),
@@ -120,7 +120,7 @@ impl<'p> DriveRun<'p> {
     fn wait(&mut self, d: Duration) {
         self.now += d;
         for w in self.station.poll_rtu(self.now, &mut self.port) {
-            check_reply(Framing::Rtu, &w, None);
+            check_reply(Framing::Rtu, &w, None, self.timing.t3_5);
         }
     }
 
@@ -146,7 +146,12 @@ impl<'p> DriveRun<'p> {
                 out.replies.len()
             );
             for w in &out.replies {
-                responses.push(check_reply(Framing::Tcp, w, Some((unit, fc))));
+                responses.push(check_reply(
+                    Framing::Tcp,
+                    w,
+                    Some((unit, fc)),
+                    Duration::ZERO,
+                ));
             }
         }
         if let Some(frame) = frame_request(Framing::Rtu, unit, pdu) {
@@ -156,7 +161,12 @@ impl<'p> DriveRun<'p> {
                     unit, device.default_unit,
                     "RTU reply to address {unit}, not the drive's"
                 );
-                responses.push(check_reply(Framing::Rtu, &w, Some((unit, fc))));
+                responses.push(check_reply(
+                    Framing::Rtu,
+                    &w,
+                    Some((unit, fc)),
+                    Duration::ZERO,
+                ));
             }
         }
         // Reads have no side effects: the same read at the same instant gets the same answer on both transports.

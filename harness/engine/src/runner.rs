@@ -157,8 +157,10 @@ pub struct Runner {
     /// RTU on a real target: a malformed frame went out, so the next one waits for the line's t3.5 first
     /// (see `send_pieces`).
     resync_rtu: bool,
-    /// The silences before the answers (RTU on a line), judged once by the run's timing case.
+    /// The silences before the answers (RTU on a line), judged once by the run's timing case, and whether
+    /// the target's line can be measured at all (asked once: a serial target looks at its device path).
     gaps: crate::timing::AnswerGaps,
+    gaps_measurable: Result<(), String>,
 }
 
 /// How the silences due on Modbus/TCP to a real target were settled.
@@ -188,6 +190,7 @@ impl Runner {
         expectations: Expectations,
     ) -> Self {
         let case_order = profile.device.word_order;
+        let gaps_measurable = target.answer_gap_measurable();
         Self {
             target,
             shadow,
@@ -213,6 +216,7 @@ impl Runner {
             sentinels: std::collections::VecDeque::new(),
             sentinel_given_up: false,
             gaps: crate::timing::AnswerGaps::default(),
+            gaps_measurable,
             unit_ignored: false,
             silences: Silences::default(),
             reconnect_next: false,
@@ -992,7 +996,7 @@ impl Runner {
             verdict,
             findings,
         };
-        if let Err(why) = self.target.answer_gap_measurable() {
+        if let Err(why) = &self.gaps_measurable {
             return step(
                 Verdict::Informational,
                 "the silence before the answers: not measured".into(),
@@ -1414,7 +1418,7 @@ impl Runner {
             // The silence before the answer, measured for the run's timing case (see `crate::timing`).
             if let (Some(t), Received::Frame { first_at, .. }, Some((last, _))) =
                 (self.target.rtu_timing(), &got, pieces.last())
-                && self.target.answer_gap_measurable().is_ok()
+                && self.gaps_measurable.is_ok()
             {
                 self.gaps
                     .record(&self.case_id, t, sent_at, last.len(), *first_at);

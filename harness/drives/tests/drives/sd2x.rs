@@ -950,6 +950,23 @@ fn bad_crc_is_silent_and_counted() {
     );
 }
 
+/// The frames the counter tests count: a normal read, an exception, a frame for slave 2, a broadcast write
+/// and a bad CRC.
+fn counted_sequence(st: &mut Station) {
+    read(st, 0, 2000, 1);
+    send(
+        st,
+        0,
+        Request::ReadHoldingRegisters {
+            address: 2024,
+            quantity: 1,
+        },
+    );
+    send_to(st, 0, 2, telegram_request(0x0006));
+    send_to(st, 0, 0, telegram_request(0x0006));
+    st.rtu_frame(ms(0), &[0x01, 0x03, 0x07, 0xD0, 0x00, 0x01, 0x00, 0x00]);
+}
+
 #[test]
 fn fc08_counters_move_as_specified() {
     let mut p = profile();
@@ -969,18 +986,7 @@ fn fc08_counters_move_as_specified() {
         }
     };
     // 1: a normal read; 2: an exception; 3: another slave's frame; 4: a broadcast write; then a bad CRC.
-    read(&mut st, 0, 2000, 1);
-    send(
-        &mut st,
-        0,
-        Request::ReadHoldingRegisters {
-            address: 2024,
-            quantity: 1,
-        },
-    );
-    send_to(&mut st, 0, 2, telegram_request(0x0006));
-    send_to(&mut st, 0, 0, telegram_request(0x0006));
-    st.rtu_frame(ms(0), &[0x01, 0x03, 0x07, 0xD0, 0x00, 0x01, 0x00, 0x00]);
+    counted_sequence(&mut st);
     // Each FC 08 request counts itself as a bus and slave message before it answers.
     assert_eq!(diag(&mut st, 0x0B), 5, "bus messages: 4 + this one");
     assert_eq!(diag(&mut st, 0x0C), 1, "CRC errors");
@@ -1182,18 +1188,7 @@ fn station_choosing(choice: &str) -> Station {
 fn fc08_counter_readings_count_what_their_sources_say() {
     let counts = |choice: &str| -> [u16; 3] {
         let mut st = station_choosing(choice);
-        read(&mut st, 0, 2000, 1);
-        send(
-            &mut st,
-            0,
-            Request::ReadHoldingRegisters {
-                address: 2024,
-                quantity: 1,
-            },
-        );
-        send_to(&mut st, 0, 2, telegram_request(0x0006));
-        send_to(&mut st, 0, 0, telegram_request(0x0006));
-        st.rtu_frame(ms(0), &[0x01, 0x03, 0x07, 0xD0, 0x00, 0x01, 0x00, 0x00]);
+        counted_sequence(&mut st);
         [0x0B, 0x0E, 0x0F].map(|sub| {
             match send(
                 &mut st,

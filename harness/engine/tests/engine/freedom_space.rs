@@ -300,19 +300,9 @@ fn generated_cases_admit_the_transport_choices() {
         .flat_map(|t| CHOICES.iter().map(move |c| (*t, *c)))
         .collect();
     let problems: Vec<String> = on_two_threads(jobs, |(target, choice)| {
-        let mut o = options(target, &[choice.to_string()]);
-        o.generated = 300;
-        o.seed = Some(5);
-        o.keep_verdicts = true;
-        let out = run_quietly(&o).unwrap_or_else(|e| panic!("{target} --choose {choice}: {e}"));
+        let (out, bad) = generated(target, &[choice.to_string()], 300, 5);
         let (id, value) = choice.split_once('=').expect("choice");
         let mut problems = Vec::new();
-        let bad: Vec<&String> = out
-            .verdicts
-            .iter()
-            .filter(|(_, v)| matches!(v, Verdict::Fail | Verdict::NonStrict))
-            .map(|(c, _)| c)
-            .collect();
         if !bad.is_empty() {
             problems.push(format!(
                 "{target} --choose {choice} --generated 300 --seed 5: FAIL or NON-STRICT {bad:?}"
@@ -364,17 +354,7 @@ fn generated_cases_admit_the_vendor_readings_and_extra_functions() {
     ];
     let problems: Vec<String> = on_two_threads(jobs, |(target, seed, n, choose)| {
         let choose: Vec<String> = choose.iter().map(|c| c.to_string()).collect();
-        let mut o = options(target, &choose);
-        o.generated = n;
-        o.seed = Some(seed);
-        o.keep_verdicts = true;
-        let out = run_quietly(&o).unwrap_or_else(|e| panic!("{target} --choose {choose:?}: {e}"));
-        let bad: Vec<&String> = out
-            .verdicts
-            .iter()
-            .filter(|(_, v)| matches!(v, Verdict::Fail | Verdict::NonStrict))
-            .map(|(c, _)| c)
-            .collect();
+        let (_, bad) = generated(target, &choose, n, seed);
         (!bad.is_empty()).then(|| {
             format!("{target} --choose {choose:?} --generated {n} --seed {seed}: FAIL or NON-STRICT {bad:?}")
         })
@@ -383,4 +363,21 @@ fn generated_cases_admit_the_vendor_readings_and_extra_functions() {
     .flatten()
     .collect();
     assert!(problems.is_empty(), "{problems:#?}");
+}
+
+/// `n` generated cases of `seed` against `target` taking `choose`: the run, and the cases it FAILed or rated
+/// NON-STRICT.
+fn generated(target: &str, choose: &[String], n: u64, seed: u64) -> (RunOutcome, Vec<String>) {
+    let mut o = options(target, choose);
+    o.generated = n;
+    o.seed = Some(seed);
+    o.keep_verdicts = true;
+    let out = run_quietly(&o).unwrap_or_else(|e| panic!("{target} --choose {choose:?}: {e}"));
+    let bad = out
+        .verdicts
+        .iter()
+        .filter(|(_, v)| matches!(v, Verdict::Fail | Verdict::NonStrict))
+        .map(|(c, _)| c.clone())
+        .collect();
+    (out, bad)
 }

@@ -395,6 +395,12 @@ impl Station {
         self
     }
 
+    /// Take `choices` from now on, the model too, keeping the state (see [`DriveModel::adopt`]).
+    pub fn adopt(&mut self, choices: Choices) {
+        self.model.adopt(&choices);
+        self.choices = choices;
+    }
+
     /// The freedoms that decided the answers given since the last call, the model's included: where an
     /// oracle must accept any admissible value, not only this drive's.
     pub fn take_decisions(&mut self) -> Vec<Decision> {
@@ -1080,6 +1086,13 @@ impl Station {
             if self.splits_pair(&req) && !self.decisions.contains(&ids::PARTIAL_REGISTER_READ) {
                 self.decisions.push(ids::PARTIAL_REGISTER_READ);
             }
+            // And so is the answer to a write of part of one: taken (the drive's choice may be `response`)
+            // or refused (the model says so by its rejection).
+            if self.splits_written_pair(&req)
+                && !self.decisions.contains(&ids::PARTIAL_REGISTER_WRITE)
+            {
+                self.decisions.push(ids::PARTIAL_REGISTER_WRITE);
+            }
             match req {
                 Request::Diagnostics { .. } => {
                     let d = self.diagnostics(&req, via);
@@ -1279,6 +1292,32 @@ impl Station {
             } => (false, *read_address, *read_quantity),
             _ => return false,
         };
+        self.inside_pair(input, address, quantity)
+    }
+
+    /// Whether a write covers one half of a 32-bit holding register only (see [`Station::splits_pair`]).
+    fn splits_written_pair(&self, req: &Request) -> bool {
+        let (address, quantity) = match req {
+            Request::WriteSingleRegister { address, .. } => (*address, 1),
+            Request::WriteMultipleRegisters { address, values } => {
+                (*address, u16::try_from(values.len()).unwrap_or(u16::MAX))
+            }
+            Request::ReadWriteMultipleRegisters {
+                write_address,
+                values,
+                ..
+            } => (
+                *write_address,
+                u16::try_from(values.len()).unwrap_or(u16::MAX),
+            ),
+            _ => return false,
+        };
+        self.inside_pair(false, address, quantity)
+    }
+
+    /// Whether the range `address`, `quantity` of the input (or holding) registers starts or ends inside a
+    /// 32-bit register.
+    fn inside_pair(&self, input: bool, address: u16, quantity: u16) -> bool {
         let profile = self.model.profile();
         let inside = |a: u32| {
             u16::try_from(a).ok().is_some_and(|a| {

@@ -7,6 +7,7 @@ use crate::capture::{self, Captured};
 use crate::cases::{Case, Compare, Mutation, Outgoing, Step, Tag, Verdict};
 use crate::expect::Expectations;
 use crate::observe::{CaseResult, Dir, StepResult, WireEvent};
+use crate::oracle::freedoms::Shown;
 use crate::oracle::{self, ChoiceLog, Finding, Sent, Severity, StepContext};
 use crate::targets::sim::SimTarget;
 use crate::targets::{Received, Target, TargetError};
@@ -149,6 +150,12 @@ pub struct Runner {
     sentinel_given_up: bool,
     /// The step's request to another unit id was ignored by the drive as the `unit-ids` freedom allows.
     unit_ignored: bool,
+    /// Choices the drive showed in the step that the reference drive does not take yet and follows from
+    /// now on (see [`follows`]).
+    follow: Vec<(
+        drives::requirements::Freedom,
+        drives::requirements::FreedomValue,
+    )>,
     /// How the silences due on Modbus/TCP to a real target were settled, for the run's log.
     silences: Silences,
     /// The step being run is followed by a new connection (`Step::Reconnect`): its connection may be
@@ -172,6 +179,22 @@ pub struct Silences {
     pub close: u64,
     /// Listened out for the whole window.
     pub listened: u64,
+}
+
+/// Whether the reference drive follows the drive under test where it shows a value of `f` other than the
+/// reference's: the outcome freedoms that decide at run time whether a request takes effect (answered, or
+/// refused or ignored: a half of a 32-bit register written, a request refused as busy in a pipeline).
+/// Otherwise the reference keeps a state the drive admissibly does not have (the drive took a half write of
+/// SL and moves, the reference refused it and stands), and later cases FAIL for it. Not the optional groups
+/// nor the functions served beyond the profile: a drive may lack some items of a group and have others, and
+/// the reference could not answer as a drive having one that it took for lacking (the state it keeps for
+/// items the drive refuses is never seen). The freedoms that shape the model (access, word order,
+/// addressing) are learned before the cases instead.
+fn follows(f: &drives::requirements::Freedom) -> bool {
+    f.kind == FreedomKind::Outcome
+        && f.values
+            .iter()
+            .any(|v| drives::choices::value_matches(v, "response"))
 }
 
 /// Requests remembered for attributing late answers.
@@ -218,6 +241,7 @@ impl Runner {
             gaps: crate::timing::AnswerGaps::default(),
             gaps_measurable,
             unit_ignored: false,
+            follow: Vec::new(),
             silences: Silences::default(),
             reconnect_next: false,
             resync_rtu: false,
@@ -1081,31 +1105,60 @@ impl Runner {
             return Ok(refusal);
         }
         self.sync_shadow();
-        // A request to another unit id, which a drive may ignore (`tcp-unit-ids`): the reference as it was
-        // before, to undo what it did with the request where the drive admissibly ignored it.
+        // The reference as it was before the step, to do it again the drive's way where the drive admissibly
+        // did otherwise: a request to another unit id, which a drive may ignore (`tcp-unit-ids`), and any
+        // request but a plain read, which a choice the drive shows may make it take or refuse (see
+        // [`follows`]). Reads of the data tables change no state a choice decides.
         let before = frames
             .iter()
-            .any(|f| f.sent.unit != self.cfg.unit)
+            .any(|f| {
+                f.sent.unit != self.cfg.unit
+                    || frames.len() > 1
+                    || !matches!(f.sent.pdu.first(), Some(0x01..=0x04))
+            })
             .then(|| self.shadow.clone());
         self.unit_ignored = false;
+        self.follow.clear();
         let sentinels = self.silences.sentinel;
         let sent = self.send_pieces(&frames, &pieces, wire)?;
         let result =
             self.receive_and_judge(&frames, &pieces, sent, compare, capture, note, wire)?;
-        if let (Some(before), true) = (before, std::mem::take(&mut self.unit_ignored)) {
-            // The drive ignored it: so does the reference from now on (a write not taken, no counts).
-            self.shadow = before;
-            self.sync_shadow();
-            if self.silences.sentinel > sentinels {
-                // The sentinel read that proved the silence reached both drives: the reference gets it again.
-                let pdu = crate::cases::catalog::known_good_read(&self.profile);
-                let case_tid = std::mem::replace(&mut self.next_tid, self.restore_tid);
-                let f = self.frame(&pdu, self.cfg.unit, None);
-                self.restore_tid = std::mem::replace(&mut self.next_tid, case_tid);
-                self.shadow.send(&f.bytes)?;
-                let _ = self.shadow.settle();
-                let _ = self.shadow.take_decisions();
+        let follow = std::mem::take(&mut self.follow);
+        for (f, v) in &follow {
+            self.learned.choose(f, v.clone());
+        }
+        let ignored = std::mem::take(&mut self.unit_ignored);
+        if !follow.is_empty() {
+            self.shadow.adopt(self.learned.clone());
+        }
+        let Some(mut before) = before.filter(|_| ignored || !follow.is_empty()) else {
+            return Ok(result);
+        };
+        // Do the step again on the reference as it was before it: not at all where the drive ignored it (a
+        // write not taken, no counts), else taking the choices the drive showed (a half register taken).
+        before.adopt(self.learned.clone());
+        self.shadow = before;
+        if !ignored {
+            for (bytes, gap) in &pieces {
+                self.shadow.send(bytes)?;
+                if !gap.is_zero() {
+                    self.shadow.idle(*gap);
+                }
             }
+            let _ = self.shadow.settle();
+            let _ = self.shadow.take_decisions();
+            let _ = self.shadow.take_counter_alternatives();
+        }
+        self.sync_shadow();
+        if self.silences.sentinel > sentinels {
+            // The sentinel read that proved the silence reached both drives: the reference gets it again.
+            let pdu = crate::cases::catalog::known_good_read(&self.profile);
+            let case_tid = std::mem::replace(&mut self.next_tid, self.restore_tid);
+            let f = self.frame(&pdu, self.cfg.unit, None);
+            self.restore_tid = std::mem::replace(&mut self.next_tid, case_tid);
+            self.shadow.send(&f.bytes)?;
+            let _ = self.shadow.settle();
+            let _ = self.shadow.take_decisions();
         }
         Ok(result)
     }
@@ -1384,6 +1437,28 @@ impl Runner {
             )
             // Where several freedoms explain the answer, the one that agrees with the drive's earlier choices.
             .agreeing(|s| self.choices.agrees(s));
+            // A freedom the reference follows the drive in (see [`follows`]) decided an answer the drive gave
+            // alike: the drive keeps its choice there, shown as the choice it is.
+            let passed = frames.len() == 1
+                && !judged
+                    .findings
+                    .iter()
+                    .any(|f| matches!(f.severity, Severity::Must | Severity::Unimplemented));
+            let kind = oracle::outcome_kind(framing, &got);
+            let kept: Vec<Shown> = decisions
+                .iter()
+                .filter(|_| passed)
+                .filter_map(|id| requirements.freedom(id))
+                .filter(|f| follows(f) && !judged.shown.iter().any(|s| s.freedom == f.id))
+                .filter_map(|f| {
+                    let v = self.learned.get(&f.id)?;
+                    (f.values.first() != Some(v)
+                        && kind
+                            .as_deref()
+                            .is_some_and(|k| drives::choices::value_matches(v, k)))
+                    .then(|| oracle::freedoms::shown_value(f, "", &v.to_string()))
+                })
+                .collect();
             findings.extend(judged.findings);
             // An answer ahead of an earlier request's shows the drive pairing by transaction id only.
             let order = requirements
@@ -1407,12 +1482,21 @@ impl Runner {
             }) {
                 self.unit_ignored = true;
             }
-            for s in judged.shown.iter().chain(&order) {
+            for s in judged.shown.iter().chain(&order).chain(&kept) {
                 if let Some(text) = self.choices.record(s, &self.case_id, &requirements) {
                     findings.push(Finding {
                         severity: Severity::Should,
                         text,
                     });
+                }
+                if let Some(f) = requirements.freedom(&s.freedom).filter(|f| follows(f))
+                    && let Some(v) = f
+                        .values
+                        .iter()
+                        .find(|v| drives::choices::value_matches(v, &s.value))
+                    && self.learned.get(&f.id).or(f.values.first()) != Some(v)
+                {
+                    self.follow.push((f.clone(), v.clone()));
                 }
             }
             // The silence before the answer, measured for the run's timing case (see `crate::timing`).

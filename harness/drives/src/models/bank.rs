@@ -206,6 +206,11 @@ impl RegisterBank {
     }
 
     /// The freedoms that decided answers since the last call.
+    /// Take `choices` from now on (see [`super::DriveModel::adopt`]).
+    pub fn adopt(&mut self, choices: &Choices) {
+        self.choices = choices.clone();
+    }
+
     pub fn take_decisions(&mut self) -> Vec<crate::choices::Decision> {
         std::mem::take(&mut self.decisions)
     }

@@ -338,6 +338,10 @@ impl DriveModel for Generic {
         Box::new(self.clone())
     }
 
+    fn adopt(&mut self, choices: &Choices) {
+        self.bank.adopt(choices);
+    }
+
     /// A plain server has no state that evolves on its own.
     fn advance(&mut self, _now: Duration) {}
 

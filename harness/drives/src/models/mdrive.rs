@@ -1217,6 +1217,11 @@ impl DriveModel for Mdrive {
         Box::new(self.clone())
     }
 
+    fn adopt(&mut self, choices: &Choices) {
+        self.choices = choices.clone();
+        self.bank.adopt(choices);
+    }
+
     fn advance(&mut self, now: Duration) {
         self.now = self.now.max(now);
         if let Some(m) = &self.motion {

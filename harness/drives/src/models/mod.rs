@@ -39,6 +39,13 @@ pub trait DriveModel: Send {
     fn take_decisions(&mut self) -> Vec<Decision> {
         Vec::new()
     }
+
+    /// Take `choices` from now on where they act at run time (a refusal or an answer where a freedom
+    /// leaves the choice), keeping the state. An oracle's reference drive follows what the drive under
+    /// test showed it chose, so that the two keep the same state (a half of a 32-bit register the drive
+    /// took is taken by the reference too). Choices that shape the model (access, word order, addressing)
+    /// are fixed when it is built and stay as they are.
+    fn adopt(&mut self, _choices: &Choices) {}
 }
 
 impl Clone for Box<dyn DriveModel> {

@@ -944,6 +944,10 @@ impl DriveModel for Sd2x {
         Box::new(self.clone())
     }
 
+    fn adopt(&mut self, choices: &Choices) {
+        self.choices = choices.clone();
+    }
+
     fn advance(&mut self, now: Duration) {
         if now <= self.now {
             return;

@@ -596,14 +596,20 @@ fn outcome(
     };
     match (expected, observed) {
         // The reference stays silent (an MBAP length still waiting for bytes, say): a listed exception to
-        // the request's function is as good.
-        (None, Some(o)) => match (exception_of(o), request) {
-            (Some((ofn, code)), Some(req))
-                if ofn.without_exception_bit() == req.function()
+        // the request's function is as good. The function is the PDU's first byte: a request malformed on
+        // purpose (or of a function the profile lacks) may not decode.
+        (None, Some(o)) => match (
+            exception_of(o),
+            request
+                .map(Request::function)
+                .or_else(|| cx.pdu.first().map(|&b| FunctionCode(b))),
+        ) {
+            (Some((ofn, code)), Some(fc))
+                if ofn.without_exception_bit() == fc
                     && has(&format!("exception-{:02X}", code.0)) =>
             {
                 vec![Alternative {
-                    answer: Some(Response::exception(req.function(), code)),
+                    answer: Some(Response::exception(fc, code)),
                     shown: shown_named(f, "", &format!("exception-{:02X}", code.0)),
                     values_free: false,
                     note: None,

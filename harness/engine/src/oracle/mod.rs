@@ -359,7 +359,9 @@ pub fn judge_admitting(
 
 /// The kind of answer an observation is, as outcome freedoms name it: `response`, `exception-XX`, `silence`
 /// (nothing, not even a partial frame), `close` (Modbus/TCP); `None` for garbage.
-fn outcome_kind(framing: Framing, observed: &Received) -> Option<String> {
+/// The kind of answer observed, as outcome freedoms name their values: `silence`, `close`, `response`,
+/// `exception-XX` (`None`: garbage, or a silence with bytes in it).
+pub fn outcome_kind(framing: Framing, observed: &Received) -> Option<String> {
     match observed {
         Received::Silence { partial, .. } if partial.is_empty() => Some("silence".into()),
         Received::Closed { .. } if framing == Framing::Tcp => Some("close".into()),

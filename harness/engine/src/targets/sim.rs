@@ -85,6 +85,11 @@ impl SimTarget {
         self
     }
 
+    /// Take `choices` from now on, keeping the state (see [`Station::adopt`]).
+    pub fn adopt(&mut self, choices: drives::Choices) {
+        self.station.adopt(choices);
+    }
+
     /// The freedoms that decided the drive's answers since the last call.
     pub fn take_decisions(&mut self) -> Vec<drives::Decision> {
         self.station.take_decisions()

@@ -329,7 +329,9 @@ fn generated_cases_admit_the_transport_choices() {
 /// request for a function the drive serves beyond its profile is refused with 03 (App 7), not 01; a 5-byte
 /// FC 0x42 is a parameterless command to a drive that expects no byte count, and its unknown mnemonic gets
 /// that drive's code; a drive running E/EX/PS/RS by FC 0x41 refuses them by FC 0x42 in generated requests
-/// too; a malformed request to another unit id is ignored as a well-formed one is. Each of these FAILed.
+/// too; a malformed request to another unit id is ignored as a well-formed one is; an MBAP length too long
+/// for a function the profile lacks (FC 0x15 with an empty record, which does not decode) is refused with 03
+/// where the reference waits for the bytes announced. Each of these FAILed.
 #[test]
 fn generated_cases_admit_the_vendor_readings_and_extra_functions() {
     let jobs: Vec<(&str, u64, u64, &[&str])> = vec![
@@ -351,6 +353,7 @@ fn generated_cases_admit_the_vendor_readings_and_extra_functions() {
             &["mdrive-program-control-function=fc41"],
         ),
         ("sim:lmd", 2300, 400, &["tcp-unit-ids=silence"]),
+        ("sim:mdrive", 9903, 100, &["mbap-length-long=exception-03"]),
     ];
     let problems: Vec<String> = on_two_threads(jobs, |(target, seed, n, choose)| {
         let choose: Vec<String> = choose.iter().map(|c| c.to_string()).collect();
@@ -358,6 +361,45 @@ fn generated_cases_admit_the_vendor_readings_and_extra_functions() {
         (!bad.is_empty()).then(|| {
             format!("{target} --choose {choose:?} --generated {n} --seed {seed}: FAIL or NON-STRICT {bad:?}")
         })
+    })
+    .into_iter()
+    .flatten()
+    .collect();
+    assert!(problems.is_empty(), "{problems:#?}");
+}
+
+/// A drive that takes a half of a 32-bit register (`partial-register-write=response`) changes state where
+/// the reference, refusing halves, does not: it took a half write of SL and slews, and refused the next MR
+/// with 04 (busy) where the standing reference took it. That FAILed `gen/3102/82/write-reg`. The reference
+/// now follows the outcome the drive showed (the runner's `follows`): it does the step again the drive's
+/// way, and keeps to that choice from then on; the drive's choice is still recorded, case by case.
+#[test]
+fn the_reference_follows_a_drive_that_takes_half_registers() {
+    let jobs: Vec<(&str, u64, u64)> = vec![
+        ("sim:mdrive", 3102, 400),
+        ("sim:lmd", 3102, 400),
+        ("sim:mdrive?transport=rtu", 3102, 400),
+    ];
+    let problems: Vec<String> = on_two_threads(jobs, |(target, seed, n)| {
+        let choose = vec!["partial-register-write=response".to_string()];
+        let (out, bad) = generated(target, &choose, n, seed);
+        let shown = out
+            .summary
+            .choices
+            .iter()
+            .find(|c| c.freedom == "partial-register-write")
+            .map(|c| (c.value.clone(), c.count));
+        if !bad.is_empty() {
+            return Some(format!(
+                "{target} --generated {n} --seed {seed}: FAIL or NON-STRICT {bad:?}"
+            ));
+        }
+        match shown {
+            Some((v, count)) if v == "response" && count > 1 => None,
+            other => Some(format!(
+                "{target}: the choice recorded is {other:?}, not response case after case"
+            )),
+        }
     })
     .into_iter()
     .flatten()

@@ -63,6 +63,8 @@ def main():
     ap.add_argument("--runs", type=int, default=3, help="random configurations per target")
     ap.add_argument("--generated", type=int, default=400)
     ap.add_argument("--binary", default="target/release/modbus-harness")
+    ap.add_argument("--nonstrict", action="store_true",
+                    help="print the choices a run saw changed (NON-STRICT), with the run's choices")
     a = ap.parse_args()
     rng = random.Random(a.seed)
     spaces = {}
@@ -86,11 +88,15 @@ def main():
             lines = out.splitlines()
             failed = [f"{l} | {lines[i + 1].strip() if i + 1 < len(lines) else ''}"
                       for i, l in enumerate(lines) if l.startswith("FAIL ")]
+            nonstrict = [l.strip() for l in lines if " then " in l and l.startswith("  ")]
             fails += len(failed)
             print(f"{target} seed {seed}: {result}")
             for f in failed:
                 print(f"    {f}")
-            if failed:
+            if a.nonstrict:
+                for n in nonstrict:
+                    print(f"    NON-STRICT: {n}")
+            if failed or (a.nonstrict and nonstrict):
                 print("    choices: " + " ".join(f"--choose '{c}'" for c in choose))
     print(f"FAIL in all: {fails}")
 

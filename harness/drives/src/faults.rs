@@ -49,6 +49,7 @@ pub enum Fault {
     MnemonicParamsUnchecked,
     MbapLengthIgnored,
     AnswerInsideSilence,
+    RangeCodeInconsistent,
 }
 
 impl Fault {
@@ -258,6 +259,11 @@ impl Fault {
             Fault::AnswerInsideSilence,
             "answer-inside-silence",
             "RTU: the answer starts right after the request's last byte, inside the 3.5-character silence that must separate frames (a slave that cuts frames by length and answers at once)",
+        ),
+        (
+            Fault::RangeCodeInconsistent,
+            "range-code-inconsistent",
+            "out-of-range register values are refused with 03 at even addresses and 04 at odd ones: each code is admissible (value-out-of-range), the two together are not one choice",
         ),
     ];
 

@@ -1437,6 +1437,10 @@ impl Runner {
             )
             // Where several freedoms explain the answer, the one that agrees with the drive's earlier choices.
             .agreeing(|s| self.choices.agrees(s));
+            let kind = oracle::outcome_kind(framing, &got);
+            let mut judged = judged;
+            judged.shown =
+                oracle::freedoms::unambiguous(judged.shown, &applicable, &cx, kind.as_deref());
             // A freedom the reference follows the drive in (see [`follows`]) decided an answer the drive gave
             // alike: the drive keeps its choice there, shown as the choice it is.
             let passed = frames.len() == 1
@@ -1444,7 +1448,6 @@ impl Runner {
                     .findings
                     .iter()
                     .any(|f| matches!(f.severity, Severity::Must | Severity::Unimplemented));
-            let kind = oracle::outcome_kind(framing, &got);
             let kept: Vec<Shown> = decisions
                 .iter()
                 .filter(|_| passed)

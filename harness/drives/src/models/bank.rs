@@ -98,6 +98,8 @@ pub struct RegisterBank {
     reserved_readable: bool,
     read_only_writable: bool,
     range_unchecked: bool,
+    /// `Fault::RangeCodeInconsistent`: the range error's code by the register's address, 03 or 04.
+    range_code_inconsistent: bool,
     /// The exception codes chosen where the freedoms leave a choice.
     choices: Choices,
     /// Freedoms that decided the answer being given (drained per request).
@@ -193,6 +195,7 @@ impl RegisterBank {
             reserved_readable: faults.has(Fault::ReservedReadable),
             read_only_writable: faults.has(Fault::ReadOnlyWritable),
             range_unchecked: faults.has(Fault::RangeUnchecked),
+            range_code_inconsistent: faults.has(Fault::RangeCodeInconsistent),
             choices: choices.clone(),
             decisions: Vec::new(),
             exception_status: profile
@@ -366,6 +369,14 @@ impl RegisterBank {
             let value = self.value_of_words(slot.reg, &reg_words);
             let (lo, hi) = slot.reg.range();
             if (value < lo || value > hi) && !self.range_unchecked {
+                if self.range_code_inconsistent {
+                    let code = if slot.reg.address % 2 == 0 {
+                        ExceptionCode::ILLEGAL_DATA_VALUE
+                    } else {
+                        ExceptionCode::SERVER_DEVICE_FAILURE
+                    };
+                    return Err(Rejection::by(ids::VALUE_OUT_OF_RANGE, code));
+                }
                 return Err(self
                     .choices
                     .reject(ids::VALUE_OUT_OF_RANGE, ExceptionCode::ILLEGAL_DATA_VALUE));

@@ -195,6 +195,7 @@ pub fn reference_shown(
     f: &Freedom,
     cx: &StepContext<'_>,
     expected: Option<&Response>,
+    observed: Option<&Response>,
 ) -> Option<Shown> {
     let first = f.values.first()?;
     match f.kind {
@@ -229,20 +230,38 @@ pub fn reference_shown(
             let writes =
                 registers_written(req).is_some() || matches!(req, Request::VendorWrite { .. });
             let reads = registers_read(req).is_some() || matches!(req, Request::VendorRead { .. });
-            let shows = match first.to_string().as_str() {
-                "ro" => writes,
-                "wo" => reads,
-                _ => writes || reads,
+            // A write tells only where a value of the freedom refuses writes (`ro`), a read only where one
+            // refuses reads (`wo`): a write HM takes shows nothing between `rw` and `wo`.
+            let has = |name: &str| {
+                f.values
+                    .iter()
+                    .any(|v| drives::choices::value_matches(v, name))
             };
+            let shows = (writes && has("ro")) || (reads && has("wo"));
             shows.then(|| shown(f, item_name(item), first))
         }
         FreedomKind::Counter => {
-            // The counter a reading is about shows the reference's reading where another gives another value.
-            let sub = counter_read(expected?)?.0;
-            cx.counter_alternatives
+            // The counter a reading is about shows the reference's reading where another gives another value,
+            // and the drive's value is the reference's (a comparison of the structure only lets any value
+            // through: the reading the value shows is then the one that gives it, if only one does).
+            let (sub, e) = counter_read(expected?)?;
+            let o = observed.and_then(counter_read).map_or(e, |(_, o)| o);
+            let about = format!("0x{sub:02X}");
+            if o == e {
+                return cx
+                    .counter_alternatives
+                    .iter()
+                    .any(|(s, _, v)| *s == sub && *v != e)
+                    .then(|| shown(f, about, first));
+            }
+            let mut giving = cx
+                .counter_alternatives
                 .iter()
-                .any(|(s, _, _)| *s == sub)
-                .then(|| shown(f, format!("0x{sub:02X}"), first))
+                .filter(|(s, _, v)| *s == sub && *v == o);
+            match (giving.next(), giving.next()) {
+                (Some((_, reading, _)), None) => Some(shown_named(f, about, reading)),
+                _ => None,
+            }
         }
         FreedomKind::FieldValue if f.id == drives::choices::ids::FC42_BYTES_WRITTEN => {
             // Four parameter bytes read the same both ways: that shows no choice.
@@ -270,6 +289,91 @@ pub fn observed_shown(
         ) if params.first() == Some(&b'=') => Some(shown_named(f, "", "as-written")),
         _ => None,
     }
+}
+
+/// The values shown that the observation `kind` (see [`crate::oracle::outcome_kind`]) really shows. A
+/// refusal shows a freedom's value only where nothing else could be its reason: where the request touches
+/// an item a product may lack (an optional group listing the exception), an item whose access the manual
+/// leaves open, a register it covers in part, a value out of range and so on, two or more of these
+/// reasons at once make the exception no evidence of any one of them (the drive answering 02 for I6,
+/// which is read-only and which an MDrive Hybrid lacks, says nothing of its code for read-only writes).
+/// The access freedom and the code for writes to read-only items are one reason. Nor does a request sent
+/// malformed, in a batch or to another unit id show the access or the presence of an item.
+pub fn unambiguous(
+    shown: Vec<Shown>,
+    applicable: &[&Freedom],
+    cx: &StepContext<'_>,
+    kind: Option<&str>,
+) -> Vec<Shown> {
+    let item_bound = |id: &str| {
+        applicable
+            .iter()
+            .find(|f| f.id == id)
+            .is_some_and(|f| matches!(f.kind, FreedomKind::Optional | FreedomKind::Access))
+    };
+    let shown: Vec<Shown> = if cx.malformed || cx.batch || cx.unit != cx.run_unit {
+        shown
+            .into_iter()
+            .filter(|s| !item_bound(&s.freedom))
+            .collect()
+    } else {
+        shown
+    };
+    let Some(code) = kind.and_then(|k| k.strip_prefix("exception-")) else {
+        return shown;
+    };
+    let exception = format!("exception-{code}");
+    // The reasons a refusal of this request could have (the access freedoms and the read-only code are
+    // one), and the freedoms that name them.
+    let mut reasons: Vec<&str> = Vec::new();
+    let mut named: Vec<&str> = Vec::new();
+    for f in applicable {
+        let listed = f
+            .values
+            .iter()
+            .any(|v| drives::choices::value_matches(v, &exception));
+        let reason = match f.kind {
+            FreedomKind::Optional if listed && touches(f, cx) => f.id.as_str(),
+            FreedomKind::Access if touches(f, cx) => {
+                // A drive taking the item as writable refuses a write by its value instead (03 or 04,
+                // `value-out-of-range`): a second reason for the same exception.
+                let writable = f.values.iter().any(|v| {
+                    drives::choices::value_matches(v, "rw")
+                        || drives::choices::value_matches(v, "wo")
+                });
+                let writes = cx.request.is_some_and(|r| {
+                    registers_written(r).is_some() || matches!(r, Request::VendorWrite { .. })
+                });
+                if writable && writes && matches!(code, "03" | "04") && !reasons.contains(&"value")
+                {
+                    reasons.push("value");
+                }
+                "access"
+            }
+            FreedomKind::ExceptionCode
+                if f.id == drives::choices::ids::WRITE_READ_ONLY && cx.decided(f) =>
+            {
+                "access"
+            }
+            FreedomKind::ExceptionCode | FreedomKind::Outcome | FreedomKind::SdoError
+                if cx.decided(f) =>
+            {
+                f.id.as_str()
+            }
+            _ => continue,
+        };
+        if !reasons.contains(&reason) {
+            reasons.push(reason);
+        }
+        named.push(f.id.as_str());
+    }
+    if reasons.len() < 2 {
+        return shown;
+    }
+    shown
+        .into_iter()
+        .filter(|s| !named.contains(&s.freedom.as_str()))
+        .collect()
 }
 
 /// An outcome freedom's value `kind` (`silence`, `close`, `exception-XX`, `response`) shown by a step the

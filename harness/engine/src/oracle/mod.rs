@@ -227,7 +227,7 @@ pub fn judge_admitting(
                     freedoms::outcome_shown(f, cx, o)
                 }
                 _ => freedoms::observed_shown(f, exp.as_ref(), obs.as_ref())
-                    .or_else(|| freedoms::reference_shown(f, cx, exp.as_ref())),
+                    .or_else(|| freedoms::reference_shown(f, cx, exp.as_ref(), obs.as_ref())),
             })
             .collect();
         return Judged {

@@ -311,6 +311,61 @@ pub(crate) const WITNESSES: &[(&str, &str, &str)] = &[
     ),
 ];
 
+/// Faults that break no single answer but the consistency of a drive's choices (issue 12: once a drive has
+/// shown its choice for a freedom it keeps it): (fault, target, the cases that show it). Each answer is
+/// admissible, so no case FAILs; the cases after the drive changed its choice are NON-STRICT, with a finding
+/// naming the case where it chose otherwise. The healthy drive passes the same cases.
+pub(crate) const CHOICE_WITNESSES: &[(&str, &str, &str)] = &[
+    (
+        "range-code-inconsistent",
+        "sim:mdrive",
+        "profile/mdrive/write-out-of-range/*",
+    ),
+    (
+        "range-code-inconsistent",
+        "sim:lmd",
+        "profile/lmd/write-out-of-range/*",
+    ),
+];
+
+#[test]
+fn a_drive_changing_its_choice_is_found_and_the_healthy_drive_keeps_it() {
+    let mut problems = Vec::new();
+    for (fault, target, cases) in CHOICE_WITNESSES {
+        let f: Fault = fault.parse().expect("known fault");
+        for faults in [FaultSet::none(), FaultSet::of(&[f])] {
+            let mut o = Options::new(TargetUrl::parse(target).expect("url"));
+            o.include = vec![cases.to_string()];
+            o.faults = faults.clone();
+            o.keep_verdicts = true;
+            let out = run_quietly(&o).unwrap_or_else(|e| panic!("{target} {cases}: {e}"));
+            let count = |v: Verdict| out.verdicts.iter().filter(|(_, x)| *x == v).count();
+            let changed = out
+                .summary
+                .choices
+                .iter()
+                .filter(|c| !c.changed.is_empty())
+                .count();
+            let healthy = faults == FaultSet::none();
+            if count(Verdict::Fail) > 0 {
+                problems.push(format!("{target} {cases} (fault: {}): FAIL", !healthy));
+            }
+            if healthy && (count(Verdict::NonStrict) > 0 || changed > 0) {
+                problems.push(format!(
+                    "{target} {cases}: the healthy drive changed a choice"
+                ));
+            }
+            if !healthy && (count(Verdict::NonStrict) < 2 || changed == 0) {
+                problems.push(format!(
+                    "{target} {cases} with --fault {fault}: {} NON-STRICT, {changed} choice(s) changed; expected the change found",
+                    count(Verdict::NonStrict)
+                ));
+            }
+        }
+    }
+    assert!(problems.is_empty(), "{problems:#?}");
+}
+
 fn verdict_of(target: &str, case: &str, faults: FaultSet) -> Verdict {
     let mut o = Options::new(TargetUrl::parse(target).expect("url"));
     o.include = vec![case.to_string()];
@@ -348,7 +403,10 @@ fn every_fault_fails_its_witness_case_and_the_healthy_drive_passes_it() {
 fn every_fault_has_a_witness() {
     for (f, name, _) in Fault::ALL {
         assert!(
-            WITNESSES.iter().any(|(n, _, _)| n == name),
+            WITNESSES
+                .iter()
+                .chain(CHOICE_WITNESSES)
+                .any(|(n, _, _)| n == name),
             "fault {f:?} ({name}) has no witness case: add one that FAILs with it"
         );
     }

@@ -20,8 +20,13 @@ const SEEDS: [u64; 3] = [1, 0x5EED, 0xDEAD_BEEF_CAFE];
 
 /// Faults whose effect depends on the order by nature, not on what a case left behind: the drive stops
 /// answering for good after the first malformed frame; every answer comes after the timeout and is read by a
-/// later exchange.
-const ORDER_BOUND: [Fault; 2] = [Fault::StopAfterMalformed, Fault::LateResponse];
+/// later exchange; a drive changing its choice is found in the cases after the first that showed the other
+/// value, whichever runs first.
+const ORDER_BOUND: [Fault; 3] = [
+    Fault::StopAfterMalformed,
+    Fault::LateResponse,
+    Fault::RangeCodeInconsistent,
+];
 
 /// Case id -> verdict, and the ids in run order.
 fn run(

@@ -96,7 +96,7 @@ def main():
             if a.nonstrict:
                 for n in nonstrict:
                     print(f"    NON-STRICT: {n}")
-            if failed or (a.nonstrict and nonstrict):
+            if failed or (a.nonstrict and (nonstrict or "NON-STRICT" in result)):
                 print("    choices: " + " ".join(f"--choose '{c}'" for c in choose))
     print(f"FAIL in all: {fails}")
 

@@ -226,6 +226,25 @@ impl Item {
         }
         false
     }
+
+    /// True when every register `req` reads or writes is one of this item's (an item that is no register,
+    /// a mnemonic or an object, is all a request about it touches): a refusal of the request then has no
+    /// other address to be about.
+    pub fn covers_all_of(&self, req: &Request, profile: &crate::profile::Profile) -> bool {
+        let Some(r) = self.register else {
+            return true;
+        };
+        let width = profile
+            .register_at(r, false)
+            .or_else(|| profile.register_at(r, true))
+            .filter(|reg| reg.address == r)
+            .map_or(1, |reg| reg.width);
+        let inside = |(a, q): (u16, u16)| {
+            let (a, q, r) = (u32::from(a), u32::from(q), u32::from(r));
+            a >= r && a + q <= r + u32::from(width)
+        };
+        registers_read(req).is_none_or(inside) && registers_written(req).is_none_or(inside)
+    }
 }
 
 /// The (address, quantity) a request reads, for register reads.

@@ -286,7 +286,8 @@ pub struct Station {
     /// Freedoms that decided answers since the last [`Station::take_decisions`].
     decisions: Vec<Decision>,
     /// The FC 08 counter values the other readings of `diagnostic-counter-semantics` would have reported
-    /// since the last [`Station::take_counter_alternatives`]: (sub-function, reading, value).
+    /// since the last [`Station::take_counter_alternatives`]: (sub-function, reading, value), for every
+    /// reading about the counter but the station's own, whether or not it gives the same value.
     counter_alternatives: Vec<(u16, &'static str, u16)>,
     /// Where each accepted write is reported (`simulate --journal`).
     sink: Option<WriteSink>,
@@ -1558,18 +1559,23 @@ impl Station {
                 let standard = counter_semantics::value(counter_semantics::STANDARD, sub, &c)
                     .unwrap_or_default();
                 let others = counter_semantics::alternatives(sub, &c);
-                let mine = self
+                let reading = self
                     .choices
                     .name(ids::DIAGNOSTIC_COUNTER_SEMANTICS)
-                    .and_then(|s| counter_semantics::value(s, sub, &c))
-                    .unwrap_or(standard);
+                    .filter(|s| counter_semantics::value(s, sub, &c).is_some())
+                    .unwrap_or(counter_semantics::STANDARD);
+                let mine = counter_semantics::value(reading, sub, &c).unwrap_or(standard);
                 if !others.is_empty() {
+                    // Every other reading about this counter, those giving this drive's value too: a value
+                    // two readings give shows neither.
                     self.decisions.push(ids::DIAGNOSTIC_COUNTER_SEMANTICS);
                     self.counter_alternatives.extend(
-                        std::iter::once((counter_semantics::STANDARD, standard))
-                            .chain(others)
-                            .filter(|(_, v)| *v != mine)
-                            .map(|(s, v)| (sub, s, v)),
+                        std::iter::once(counter_semantics::STANDARD)
+                            .chain(counter_semantics::OTHERS.iter().copied())
+                            .filter(|s| *s != reading)
+                            .filter_map(|s| {
+                                counter_semantics::value(s, sub, &c).map(|v| (sub, s, v))
+                            }),
                     );
                 }
                 mine

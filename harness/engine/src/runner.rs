@@ -100,6 +100,17 @@ struct Framed {
     malformed: bool,
 }
 
+impl Framed {
+    /// A Modbus/TCP ADU whose MBAP length announces more bytes than it carries (an RTU frame has no
+    /// length field: always false).
+    fn short_of_length(&self) -> bool {
+        self.sent.tid.is_some()
+            && self.bytes.len() >= tcp::MBAP_LEN
+            && usize::from(u16::from_be_bytes([self.bytes[4], self.bytes[5]]))
+                > self.bytes.len() - 6
+    }
+}
+
 /// Drives cases against a target with the reference drive in lockstep.
 pub struct Runner {
     target: Box<dyn Target>,
@@ -168,6 +179,30 @@ pub struct Runner {
     /// the target's line can be measured at all (asked once: a serial target looks at its device path).
     gaps: crate::timing::AnswerGaps,
     gaps_measurable: Result<(), String>,
+    /// The profile leaves open whether a read of half a 32-bit register is served (`partial-register-read`):
+    /// a plain read may then take the drive's own way, and the reference follows it (see [`follows`]).
+    reads_decided: bool,
+    /// For a step that sends several requests in one write: the freedoms that decided each one's answer,
+    /// found by sending them one by one to a copy of the reference (see [`decisions_one_by_one`]).
+    frame_decisions: Vec<Vec<drives::Decision>>,
+}
+
+/// The freedoms that decide the answer to each of `frames` when `reference` gets them one at a time, in
+/// order: what a batch's answers are each about (the reference's decisions for the whole batch do not say
+/// which request they were for, and a half-register write first must not make the write beside it look
+/// like a half write too).
+fn decisions_one_by_one(mut reference: SimTarget, frames: &[Framed]) -> Vec<Vec<drives::Decision>> {
+    frames
+        .iter()
+        .map(|f| {
+            if reference.send(&f.bytes).is_err() {
+                return Vec::new();
+            }
+            let _ = reference.settle();
+            let _ = reference.take_counter_alternatives();
+            reference.take_decisions()
+        })
+        .collect()
 }
 
 /// How the silences due on Modbus/TCP to a real target were settled.
@@ -182,19 +217,18 @@ pub struct Silences {
 }
 
 /// Whether the reference drive follows the drive under test where it shows a value of `f` other than the
-/// reference's: the outcome freedoms that decide at run time whether a request takes effect (answered, or
-/// refused or ignored: a half of a 32-bit register written, a request refused as busy in a pipeline).
-/// Otherwise the reference keeps a state the drive admissibly does not have (the drive took a half write of
-/// SL and moves, the reference refused it and stands), and later cases FAIL for it. Not the optional groups
-/// nor the functions served beyond the profile: a drive may lack some items of a group and have others, and
-/// the reference could not answer as a drive having one that it took for lacking (the state it keeps for
-/// items the drive refuses is never seen). The freedoms that shape the model (access, word order,
-/// addressing) are learned before the cases instead.
+/// reference's: the outcome freedoms, which decide at run time whether and how a request is answered, and
+/// so whether it takes effect (a half of a 32-bit register written, a request refused as busy in a
+/// pipeline) and what the drive counts (an FC 08 no-response count grows where a truncated PDU goes
+/// unanswered). Otherwise the reference keeps a state the drive admissibly does not have (the drive took a
+/// half write of SL and moves, the reference refused it and stands), and later cases FAIL for it or take
+/// its counts for another reading of a counter. A `close` is not followed (the connection is gone either
+/// way). Not the optional groups nor the functions served beyond the profile: a drive may lack some items
+/// of a group and have others, and the reference could not answer as a drive having one that it took for
+/// lacking (the state it keeps for items the drive refuses is never seen). The freedoms that shape the
+/// model (access, word order, addressing) are learned before the cases instead.
 fn follows(f: &drives::requirements::Freedom) -> bool {
     f.kind == FreedomKind::Outcome
-        && f.values
-            .iter()
-            .any(|v| drives::choices::value_matches(v, "response"))
 }
 
 /// Requests remembered for attributing late answers.
@@ -240,6 +274,8 @@ impl Runner {
             sentinel_given_up: false,
             gaps: crate::timing::AnswerGaps::default(),
             gaps_measurable,
+            reads_decided: false,
+            frame_decisions: Vec::new(),
             unit_ignored: false,
             follow: Vec::new(),
             silences: Silences::default(),
@@ -496,6 +532,9 @@ impl Runner {
 
     /// Judge with the freedoms of `requirements`: an answer another admissible choice gives passes.
     pub fn with_requirements(mut self, requirements: Arc<Requirements>) -> Self {
+        self.reads_decided = requirements
+            .freedom(drives::choices::ids::PARTIAL_REGISTER_READ)
+            .is_some_and(|f| f.applies_to(&self.profile.device.id));
         self.requirements = requirements;
         self
     }
@@ -1107,18 +1146,26 @@ impl Runner {
         self.sync_shadow();
         // The reference as it was before the step, to do it again the drive's way where the drive admissibly
         // did otherwise: a request to another unit id, which a drive may ignore (`tcp-unit-ids`), and any
-        // request but a plain read, which a choice the drive shows may make it take or refuse (see
-        // [`follows`]). Reads of the data tables change no state a choice decides.
+        // request but a plain read, which a choice the drive shows may make it take, refuse or ignore (see
+        // [`follows`]). A plain read of the data tables changes no state a choice decides, but for the counts
+        // of a drive that may serve or refuse a read of half a register (`partial-register-read`).
+        let reads_decided = self.reads_decided;
         let before = frames
             .iter()
             .any(|f| {
                 f.sent.unit != self.cfg.unit
                     || frames.len() > 1
+                    || f.malformed
+                    || reads_decided
                     || !matches!(f.sent.pdu.first(), Some(0x01..=0x04))
             })
             .then(|| self.shadow.clone());
         self.unit_ignored = false;
         self.follow.clear();
+        self.frame_decisions = match &before {
+            Some(b) if frames.len() > 1 => decisions_one_by_one(b.clone(), &frames),
+            _ => Vec::new(),
+        };
         let sentinels = self.silences.sentinel;
         let sent = self.send_pieces(&frames, &pieces, wire)?;
         let result =
@@ -1409,6 +1456,15 @@ impl Runner {
                     pdu: vec![],
                 });
             let request = Request::decode(&sent.pdu).ok();
+            // In a batch, the freedoms that decided this frame's answer (and those about the batch).
+            let decided: Vec<drives::Decision> = match self.frame_decisions.get(j) {
+                Some(own) => own
+                    .iter()
+                    .chain(decisions.iter().filter(|d| d.starts_with("pipelined")))
+                    .copied()
+                    .collect(),
+                None => decisions.clone(),
+            };
             let cx = StepContext {
                 request: request.as_ref(),
                 pdu: &sent.pdu,
@@ -1417,9 +1473,13 @@ impl Runner {
                 profile: &self.profile,
                 malformed: frames.get(j).or(frames.last()).is_some_and(|f| f.malformed),
                 batch: frames.len() > 1,
-                decided: &decisions,
+                decided: &decided,
                 counter_alternatives: &counter_alternatives,
                 closed: matches!(got, Received::Closed { .. }),
+                short_of_length: frames
+                    .get(j)
+                    .or(frames.last())
+                    .is_some_and(|f| f.short_of_length()),
             };
             let requirements = Arc::clone(&self.requirements);
             let applicable =
@@ -1439,8 +1499,13 @@ impl Runner {
             .agreeing(|s| self.choices.agrees(s));
             let kind = oracle::outcome_kind(framing, &got);
             let mut judged = judged;
-            judged.shown =
-                oracle::freedoms::unambiguous(judged.shown, &applicable, &cx, kind.as_deref());
+            judged.shown = oracle::freedoms::unambiguous(
+                judged.shown,
+                &applicable,
+                &cx,
+                kind.as_deref(),
+                requirements.freedom(drives::choices::ids::VALUE_OUT_OF_RANGE),
+            );
             // A freedom the reference follows the drive in (see [`follows`]) decided an answer the drive gave
             // alike: the drive keeps its choice there, shown as the choice it is.
             let passed = frames.len() == 1
@@ -1493,10 +1558,10 @@ impl Runner {
                     });
                 }
                 if let Some(f) = requirements.freedom(&s.freedom).filter(|f| follows(f))
-                    && let Some(v) = f
-                        .values
-                        .iter()
-                        .find(|v| drives::choices::value_matches(v, &s.value))
+                    && let Some(v) = f.values.iter().find(|v| {
+                        drives::choices::value_matches(v, &s.value)
+                            && !drives::choices::value_matches(v, "close")
+                    })
                     && self.learned.get(&f.id).or(f.values.first()) != Some(v)
                 {
                     self.follow.push((f.clone(), v.clone()));

@@ -46,11 +46,15 @@ pub struct StepContext<'a> {
     pub batch: bool,
     /// The freedoms the reference drive's answer was decided by.
     pub decided: &'a [drives::Decision],
-    /// The FC 08 counter values the other readings of `diagnostic-counter-semantics` give where the
-    /// reference's reading gives another: (sub-function, reading, value).
+    /// The FC 08 counter values the other readings of `diagnostic-counter-semantics` give, for a counter
+    /// where some reading gives another value than the reference's: (sub-function, reading, value), the
+    /// readings that give the reference's value too included.
     pub counter_alternatives: &'a [(u16, &'static str, u16)],
     /// The target closed the connection instead of answering (Modbus/TCP).
     pub closed: bool,
+    /// The MBAP length announced more bytes than were sent (Modbus/TCP): a drive that waits for them is
+    /// silent whatever it would do once they are in.
+    pub short_of_length: bool,
 }
 
 impl Alternative {
@@ -238,7 +242,11 @@ pub fn reference_shown(
                     .any(|v| drives::choices::value_matches(v, name))
             };
             let shows = (writes && has("ro")) || (reads && has("wo"));
-            shows.then(|| shown(f, item_name(item), first))
+            // A refusal of a request that covers other addresses too may be theirs (a reserved register
+            // beside a write-only one answers 02 whatever the drive takes the write-only one for).
+            let alone = !expected.is_some_and(Response::is_exception)
+                || item.covers_all_of(req, cx.profile);
+            (shows && alone).then(|| shown(f, item_name(item), first))
         }
         FreedomKind::Counter => {
             // The counter a reading is about shows the reference's reading where another gives another value,
@@ -248,11 +256,11 @@ pub fn reference_shown(
             let o = observed.and_then(counter_read).map_or(e, |(_, o)| o);
             let about = format!("0x{sub:02X}");
             if o == e {
-                return cx
-                    .counter_alternatives
-                    .iter()
-                    .any(|(s, _, v)| *s == sub && *v != e)
-                    .then(|| shown(f, about, first));
+                // Shown where another reading gives another value and none gives this one.
+                let about_sub = || cx.counter_alternatives.iter().filter(|(s, _, _)| *s == sub);
+                return (about_sub().any(|(_, _, v)| *v != e)
+                    && !about_sub().any(|(_, _, v)| *v == e))
+                .then(|| shown(f, about, first));
             }
             let mut giving = cx
                 .counter_alternatives
@@ -298,12 +306,15 @@ pub fn observed_shown(
 /// reasons at once make the exception no evidence of any one of them (the drive answering 02 for I6,
 /// which is read-only and which an MDrive Hybrid lacks, says nothing of its code for read-only writes).
 /// The access freedom and the code for writes to read-only items are one reason. Nor does a request sent
-/// malformed, in a batch or to another unit id show the access or the presence of an item.
+/// malformed, in a batch or to another unit id show the access or the presence of an item; nor silence
+/// before an ADU's announced bytes are all in a way of skipping it. `value_codes` is
+/// the freedom listing the codes a value out of range may be refused with (`value-out-of-range`).
 pub fn unambiguous(
     shown: Vec<Shown>,
     applicable: &[&Freedom],
     cx: &StepContext<'_>,
     kind: Option<&str>,
+    value_codes: Option<&Freedom>,
 ) -> Vec<Shown> {
     let item_bound = |id: &str| {
         applicable
@@ -315,6 +326,16 @@ pub fn unambiguous(
         shown
             .into_iter()
             .filter(|s| !item_bound(&s.freedom))
+            .collect()
+    } else {
+        shown
+    };
+    // A drive skips an ADU over 253 bytes (silently or with 03) once its bytes are in: before that, it is
+    // silent whichever it chose.
+    let shown: Vec<Shown> = if cx.short_of_length && kind == Some("silence") {
+        shown
+            .into_iter()
+            .filter(|s| s.freedom != drives::choices::ids::PDU_OVER_253)
             .collect()
     } else {
         shown
@@ -335,8 +356,8 @@ pub fn unambiguous(
         let reason = match f.kind {
             FreedomKind::Optional if listed && touches(f, cx) => f.id.as_str(),
             FreedomKind::Access if touches(f, cx) => {
-                // A drive taking the item as writable refuses a write by its value instead (03 or 04,
-                // `value-out-of-range`): a second reason for the same exception.
+                // A drive taking the item as writable refuses a write by its value instead (with a code
+                // `value-out-of-range` lists): a second reason for the same exception.
                 let writable = f.values.iter().any(|v| {
                     drives::choices::value_matches(v, "rw")
                         || drives::choices::value_matches(v, "wo")
@@ -344,8 +365,10 @@ pub fn unambiguous(
                 let writes = cx.request.is_some_and(|r| {
                     registers_written(r).is_some() || matches!(r, Request::VendorWrite { .. })
                 });
-                if writable && writes && matches!(code, "03" | "04") && !reasons.contains(&"value")
-                {
+                let value_code = u8::from_str_radix(code, 16).is_ok_and(|c| {
+                    value_codes.is_some_and(|v| int_values(v).any(|x| x == i64::from(c)))
+                });
+                if writable && writes && value_code && !reasons.contains(&"value") {
                     reasons.push("value");
                 }
                 "access"
@@ -698,29 +721,29 @@ fn outcome(
             .iter()
             .any(|v| drives::choices::value_matches(v, name))
     };
+    // A listed exception to the function `fc` the request asked for, where the drive answered one.
+    let exception = |o: &Response, fc: FunctionCode| match exception_of(o) {
+        Some((ofn, code))
+            if ofn.without_exception_bit() == fc && has(&format!("exception-{:02X}", code.0)) =>
+        {
+            vec![Alternative {
+                answer: Some(Response::exception(fc, code)),
+                shown: shown_named(f, "", &format!("exception-{:02X}", code.0)),
+                values_free: false,
+                note: None,
+            }]
+        }
+        _ => vec![],
+    };
     match (expected, observed) {
         // The reference stays silent (an MBAP length still waiting for bytes, say): a listed exception to
         // the request's function is as good. The function is the PDU's first byte: a request malformed on
         // purpose (or of a function the profile lacks) may not decode.
-        (None, Some(o)) => match (
-            exception_of(o),
-            request
-                .map(Request::function)
-                .or_else(|| cx.pdu.first().map(|&b| FunctionCode(b))),
-        ) {
-            (Some((ofn, code)), Some(fc))
-                if ofn.without_exception_bit() == fc
-                    && has(&format!("exception-{:02X}", code.0)) =>
-            {
-                vec![Alternative {
-                    answer: Some(Response::exception(fc, code)),
-                    shown: shown_named(f, "", &format!("exception-{:02X}", code.0)),
-                    values_free: false,
-                    note: None,
-                }]
-            }
-            _ => vec![],
-        },
+        (None, Some(o)) => request
+            .map(Request::function)
+            .or_else(|| cx.pdu.first().map(|&b| FunctionCode(b)))
+            .map(|fc| exception(o, fc))
+            .unwrap_or_default(),
         (_, None) if cx.closed && has("close") => vec![Alternative {
             answer: None,
             shown: shown_named(f, "", "close"),
@@ -735,27 +758,17 @@ fn outcome(
         }],
         (Some(e), Some(o)) => {
             let fc = e.function().without_exception_bit();
-            match exception_of(o) {
-                Some((ofn, code))
-                    if ofn.without_exception_bit() == fc
-                        && has(&format!("exception-{:02X}", code.0)) =>
-                {
-                    vec![Alternative {
-                        answer: Some(Response::exception(fc, code)),
-                        shown: shown_named(f, "", &format!("exception-{:02X}", code.0)),
-                        values_free: false,
-                        note: None,
-                    }]
-                }
-                None if has("response") && o.function() == fc && e.is_exception() => {
-                    vec![Alternative {
-                        answer: Some(served_as_asked(request).unwrap_or_else(|| o.clone())),
-                        shown: shown_named(f, "", "response"),
-                        values_free: true,
-                        note: None,
-                    }]
-                }
-                _ => vec![],
+            if exception_of(o).is_some() {
+                exception(o, fc)
+            } else if has("response") && o.function() == fc && e.is_exception() {
+                vec![Alternative {
+                    answer: Some(served_as_asked(request).unwrap_or_else(|| o.clone())),
+                    shown: shown_named(f, "", "response"),
+                    values_free: true,
+                    note: None,
+                }]
+            } else {
+                vec![]
             }
         }
         _ => vec![],

@@ -29,6 +29,7 @@ fn context<'a>(p: &'a drives::profile::Profile, req: &'a Request) -> StepContext
         decided: &[],
         counter_alternatives: &[],
         closed: false,
+        short_of_length: false,
     }
 }
 
@@ -159,6 +160,7 @@ fn a_close_is_the_outcome_close_not_silence() {
                 decided,
                 counter_alternatives: &[],
                 closed: true,
+                short_of_length: false,
             };
             judge_admitting(
                 Framing::Tcp,

@@ -319,8 +319,24 @@ fn probe_address(p: &Profile, fc: u8) -> u16 {
         0x01 => bit(p.coils.iter().map(|b| b.get_ref()), false),
         0x02 => bit(p.discrete_inputs.iter().map(|b| b.get_ref()), false),
         0x0F => bit(p.coils.iter().map(|b| b.get_ref()), true),
-        0x03 => first_reg(p, Table::Holding),
-        0x04 => first_reg(p, Table::Input),
+        // A one-register read of half of a 32-bit register is a choice of the drive's
+        // (`partial-register-read`): a register of its own.
+        0x03 | 0x04 => {
+            let table = if fc == 0x03 {
+                Table::Holding
+            } else {
+                Table::Input
+            };
+            p.registers
+                .iter()
+                .map(|r| r.get_ref())
+                .find(|r| {
+                    r.width == 1
+                        && r.access.readable()
+                        && (r.table == table || r.table == Table::Both)
+                })
+                .map_or_else(|| first_reg(p, table), |r| r.address)
+        }
         _ => p
             .registers
             .iter()

@@ -50,6 +50,8 @@ pub enum Fault {
     MbapLengthIgnored,
     AnswerInsideSilence,
     RangeCodeInconsistent,
+    QuantityLowByte,
+    QuantityOverSpecDropped,
 }
 
 impl Fault {
@@ -264,6 +266,16 @@ impl Fault {
             Fault::RangeCodeInconsistent,
             "range-code-inconsistent",
             "out-of-range register values are refused with 03 at even addresses and 04 at odd ones: each code is admissible (value-out-of-range), the two together are not one choice",
+        ),
+        (
+            Fault::QuantityLowByte,
+            "quantity-low-byte",
+            "the quantity fields of FC 01-04, 0F, 10 and 17 are read by their low byte only, as the MDrive and LMD manuals' request tables print the quantity 1 byte wide: quantity 0x0101 is served as 1 item instead of refused with 03",
+        ),
+        (
+            Fault::QuantityOverSpecDropped,
+            "quantity-over-spec-dropped",
+            "a request whose quantity field is above the specification's maximum (125 registers, 123 for FC 10, 2000 bits, 1968 coils, FC 17's 125 / 121) goes unanswered, as a stack that drops what would not fit its buffer; the device's own, lower limit is still answered with 03",
         ),
     ];
 

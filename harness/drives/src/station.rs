@@ -1041,6 +1041,16 @@ impl Station {
                 false,
             ));
         }
+        if self.faults.has(Fault::QuantityOverSpecDropped) && quantity_over_spec(pdu) {
+            return Some((None, false));
+        }
+        let low_byte;
+        let pdu = if self.faults.has(Fault::QuantityLowByte) {
+            low_byte = quantity_low_byte(pdu);
+            &low_byte[..]
+        } else {
+            pdu
+        };
         let req = match self
             .read_as_chosen(pdu)
             .map_or_else(|| Request::decode(pdu), Ok)
@@ -1602,6 +1612,44 @@ fn diag_data_ok(d: DiagCounter, data: &[u8]) -> bool {
         DiagCounter::AsciiDelimiter => matches!(data, [_, 0x00]),
         _ => data == [0x00, 0x00],
     }
+}
+
+/// `Fault::QuantityOverSpecDropped`: whether a quantity field of the PDU, as sent, is above the
+/// specification's maximum for its function (FC 01-04, 0F, 10; FC 17's quantities to read and to write).
+fn quantity_over_spec(pdu: &[u8]) -> bool {
+    let field = |at: usize| {
+        pdu.get(at..at + 2)
+            .map(|b| u16::from_be_bytes([b[0], b[1]]))
+    };
+    let Some(&fc) = pdu.first() else {
+        return false;
+    };
+    let over = |at: usize, max: Option<u16>| field(at).zip(max).is_some_and(|(q, max)| q > max);
+    match fc {
+        0x01..=0x04 | 0x0F | 0x10 => over(3, FunctionCode(fc).max_quantity()),
+        0x17 => {
+            over(3, FunctionCode(fc).max_quantity())
+                || over(7, Some(FunctionCode::MAX_READ_WRITE_WRITE_QUANTITY))
+        }
+        _ => false,
+    }
+}
+
+/// `Fault::QuantityLowByte`: the PDU as firmware that reads each quantity field by its low byte sees it, the
+/// high byte taken as 0 (FC 01-04, 0F, 10 at offset 3; FC 17's quantities to read and to write at 3 and 7).
+fn quantity_low_byte(pdu: &[u8]) -> Vec<u8> {
+    let mut v = pdu.to_vec();
+    let high_bytes: &[usize] = match pdu.first() {
+        Some(0x01..=0x04 | 0x0F | 0x10) => &[3],
+        Some(0x17) => &[3, 7],
+        _ => &[],
+    };
+    for &at in high_bytes {
+        if let Some(b) = v.get_mut(at) {
+            *b = 0;
+        }
+    }
+    v
 }
 
 /// `Fault::BitPaddingOnes`: the bits of an FC 01/02 answer past the quantity asked for set to 1 (spec 6.1,

@@ -773,6 +773,31 @@ fn fault_quantity_unchecked() {
     );
 }
 
+#[test]
+fn fault_quantity_low_byte() {
+    // Quantity 0x0101 registers and 0x0801 coils: above every limit, the low byte (1) within the MDrive's.
+    let (ok, bad) = both(
+        &profile("mdrive"),
+        Fault::QuantityLowByte,
+        &["03 00 A5 01 01", "01 00 4B 08 01", "03 00 A5 00 05"],
+    );
+    assert_eq!(ok, ["83 03", "81 03", "83 03"]);
+    assert_eq!(bad[2], "83 03", "a quantity below 256 is read whole");
+    assert!(bad[0].starts_with("03 02 "), "{bad:?}");
+    assert!(bad[1].starts_with("01 01 "), "{bad:?}");
+}
+
+#[test]
+fn fault_quantity_over_spec_dropped() {
+    let mut st = Sim::with(profile("mdrive"), &[Fault::QuantityOverSpecDropped]);
+    // The device's own limit is still answered; the specification's is not.
+    assert_eq!(st.ask("03 00 A5 00 05"), "83 03");
+    let mut adu = Vec::new();
+    codec::tcp::encode_adu(9, 1, &parse_hex("03 00 A5 00 7E").expect("hex"), &mut adu)
+        .expect("encodes");
+    assert!(st.station.tcp_adu(Duration::ZERO, &adu).is_none());
+}
+
 // ---------------------------------------------------------------------------------------------------------------
 // No request makes the station panic, and every answer decodes strictly.
 // ---------------------------------------------------------------------------------------------------------------

@@ -1022,6 +1022,8 @@ const MODEL_FAULTS: &[Fault] = &[
     Fault::WordOrder,
     Fault::WatchdogDisabled,
     Fault::QuantityUnchecked,
+    Fault::QuantityLowByte,
+    Fault::QuantityOverSpecDropped,
     Fault::AnswerOtherUnit,
     Fault::BroadcastAnswered,
 ];

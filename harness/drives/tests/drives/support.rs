@@ -142,6 +142,8 @@ pub const MODEL_FAULTS: &[Fault] = &[
     Fault::RangeUnchecked,
     Fault::QuantityUnchecked,
     Fault::IllegalCoilValueAccepted,
+    Fault::QuantityLowByte,
+    Fault::QuantityOverSpecDropped,
 ];
 
 /// The answers of a healthy drive and of one with `fault` (both fresh, for profile `p`) to `pdus` in order.

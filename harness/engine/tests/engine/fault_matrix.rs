@@ -309,6 +309,65 @@ pub(crate) const WITNESSES: &[(&str, &str, &str)] = &[
         "sim:generic?transport=rtu",
         "spec/app-6.10/get-comm-event-log/after-restart",
     ),
+    // The quantity field read by its low byte (issue 15, item 1: the MDrive and LMD tables print it 1 byte
+    // wide): a quantity above every limit whose low byte is within the device's.
+    (
+        "quantity-low-byte",
+        "sim:mdrive",
+        "spec/app-6/quantity/fc-0x03/high-byte-set",
+    ),
+    (
+        "quantity-low-byte",
+        "sim:mdrive?transport=rtu",
+        "spec/app-6/quantity/fc-0x01/high-byte-set",
+    ),
+    (
+        "quantity-low-byte",
+        "sim:lmd",
+        "spec/app-6/quantity/fc-0x10/high-byte-set",
+    ),
+    (
+        "quantity-low-byte",
+        "sim:sd2x",
+        "spec/app-6/quantity/fc-0x17/high-byte-set",
+    ),
+    (
+        "quantity-low-byte",
+        "sim:generic",
+        "spec/app-6/quantity/fc-0x0F/high-byte-set",
+    ),
+    // The specification's quantity limits where the device's own are lower (issue 15, item 1): only the
+    // cases one above the specification's maxima reach the stack's check.
+    (
+        "quantity-over-spec-dropped",
+        "sim:mdrive",
+        "spec/app-6/quantity/fc-0x03/spec-max-plus-1",
+    ),
+    (
+        "quantity-over-spec-dropped",
+        "sim:lmd",
+        "spec/app-6/quantity/fc-0x02/spec-max-plus-1",
+    ),
+    (
+        "quantity-over-spec-dropped",
+        "sim:lmd?transport=rtu",
+        "spec/app-6/quantity/fc-0x10/spec-max-plus-1",
+    ),
+    (
+        "quantity-over-spec-dropped",
+        "sim:sd2x",
+        "spec/app-6/quantity/fc-0x04/spec-max-plus-1",
+    ),
+    (
+        "quantity-over-spec-dropped",
+        "sim:sd2x",
+        "spec/app-6/quantity/fc-0x17/write-spec-max-plus-1",
+    ),
+    (
+        "quantity-over-spec-dropped",
+        "sim:generic",
+        "spec/app-6/quantity/fc-0x17/write-spec-max-plus-1",
+    ),
 ];
 
 /// Faults that break no single answer but the consistency of a drive's choices (issue 12: once a drive has

@@ -65,11 +65,6 @@ const NOT_EXERCISED: &[(&str, &str)] = &[
         "sd2x",
         "diagnostic-counter-semantics=slave-count-is-responses-sent",
     ),
-    // A quantity outside the specification's range is sent only at valid addresses on these profiles
-    // (their quantity cases over a range past the map are above the device's limit only: that is
-    // `quantity-over-device-limit`'s condition, not this one's).
-    ("lmd", "exception-check-order=2"),
-    ("sd2x", "exception-check-order=2"),
 ];
 
 fn label(f: &Freedom, v: &FreedomValue) -> String {

@@ -1,7 +1,7 @@
 //! Generic cases from the Modbus application protocol: what every server must do with requests it
 //! cannot serve (exception codes 01, 02, 03), whatever its profile.
 
-use super::around::Around;
+use super::around::{Around, around_write};
 use super::mcode::IoPoints;
 use super::{APP, Ctx, exchange, pdu};
 use crate::cases::{Compare, Outgoing, Step, Tag};
@@ -13,6 +13,7 @@ use drives::profile::{Profile, Table};
 pub(super) fn cases(cx: &mut Ctx) {
     unsupported_functions(cx);
     quantities_out_of_range(cx);
+    quantities_above_spec(cx);
     addresses_beyond_map(cx);
     byte_count_mismatches(cx);
     truncated_pdus(cx);
@@ -83,60 +84,24 @@ fn unsupported_functions(cx: &mut Ctx) {
     }
 }
 
+/// The quantity-carrying functions, in the order their cases run.
+const QUANTITY_FUNCTIONS: [u8; 7] = [0x01, 0x02, 0x03, 0x04, 0x0F, 0x10, 0x17];
+
 /// Quantity 0 and max + 1 for every quantity-carrying function the profile supports: exception 03.
 fn quantities_out_of_range(cx: &mut Ctx) {
     let p = cx.p;
-    for fc in [0x01u8, 0x02, 0x03, 0x04, 0x0F, 0x10, 0x17] {
+    for fc in QUANTITY_FUNCTIONS {
         if !cx.supports(fc) {
             continue;
         }
         let max = cx.max_quantity(fc);
         for (label, q) in [("zero", 0u16), ("max-plus-1", max.saturating_add(1))] {
-            let req = match fc {
-                0x01 => Request::ReadCoils {
-                    address: 0,
-                    quantity: q,
-                },
-                0x02 => Request::ReadDiscreteInputs {
-                    address: 0,
-                    quantity: q,
-                },
-                0x03 => Request::ReadHoldingRegisters {
-                    address: first_reg(p, Table::Holding),
-                    quantity: q,
-                },
-                0x04 => Request::ReadInputRegisters {
-                    address: first_reg(p, Table::Input),
-                    quantity: q,
-                },
-                0x0F => Request::WriteMultipleCoils {
-                    address: 0,
-                    quantity: q,
-                    data: vec![0; (q as usize).div_ceil(8)],
-                },
-                0x10 => Request::WriteMultipleRegisters {
-                    address: first_reg(p, Table::Holding),
-                    values: vec![0; q as usize],
-                },
-                _ => Request::ReadWriteMultipleRegisters {
-                    read_address: first_reg(p, Table::Holding),
-                    read_quantity: q,
-                    write_address: first_reg(p, Table::Holding),
-                    values: vec![0],
-                },
+            let address = match fc {
+                0x01 | 0x02 | 0x0F => 0,
+                0x04 => first_reg(p, Table::Input),
+                _ => first_reg(p, Table::Holding),
             };
-            // A quantity whose data would not fit a PDU is sent with the quantity field alone changed.
-            let bytes = match req.to_bytes() {
-                Ok(b) => b,
-                Err(_) => {
-                    let mut b = pdu(&Request::WriteMultipleRegisters {
-                        address: first_reg(p, Table::Holding),
-                        values: vec![0],
-                    });
-                    b[3..5].copy_from_slice(&q.to_be_bytes());
-                    b
-                }
-            };
+            let (bytes, _) = quantity_request(fc, q, false, address);
             let writes = matches!(fc, 0x0F | 0x10 | 0x17);
             // What a drive that wrongly served the request would write is kept and put back.
             let mut a = Around::new();
@@ -160,6 +125,224 @@ fn quantities_out_of_range(cx: &mut Ctx) {
                 steps,
             );
         }
+    }
+}
+
+/// The specification's own quantity limits, which a device limit below them hides from the max + 1 cases
+/// (issue 15): one above the specification's maximum where the profile's limit is below it (126 registers,
+/// 124 for FC 16, 2001 bits, 1969 coils for FC 15), FC 23's write quantity 122 (one above 121), and a
+/// quantity whose high byte is set while its low byte is within every limit (0x0101 registers, 0x0801 bits),
+/// which firmware reading the quantity as one byte (as the MDrive and LMD manuals print the field) would
+/// serve. All are above the specification's range: exception 03 by the state diagrams (02 where the range
+/// runs past the map too, the freedom `exception-check-order`).
+fn quantities_above_spec(cx: &mut Ctx) {
+    let p = cx.p;
+    for fc in QUANTITY_FUNCTIONS {
+        if !cx.supports(fc) {
+            continue;
+        }
+        let code = FunctionCode(fc);
+        let spec = code.max_quantity().unwrap_or(125);
+        let device = cx.max_quantity(fc);
+        let high_byte = if matches!(fc, 0x01 | 0x02 | 0x0F) {
+            0x0801
+        } else {
+            0x0101
+        };
+        let mut probes: Vec<(&str, u16, bool)> = Vec::new();
+        if device < spec {
+            probes.push(("spec-max-plus-1", spec + 1, false));
+        }
+        if fc == 0x17 {
+            probes.push((
+                "write-spec-max-plus-1",
+                FunctionCode::MAX_READ_WRITE_WRITE_QUANTITY + 1,
+                true,
+            ));
+        }
+        probes.push(("high-byte-set", high_byte, false));
+        let address = probe_address(p, fc);
+        for (label, q, write_quantity) in probes {
+            let (bytes, carried) = quantity_request(fc, q, write_quantity, address);
+            // What a drive that wrongly served the request could write (the data it carries, as it would
+            // read them) is kept and put back, with what such a write needs around it.
+            let mut a = Around::new();
+            let mut tags = if matches!(fc, 0x0F | 0x10 | 0x17) {
+                vec![Tag::Write]
+            } else {
+                vec![]
+            };
+            match &carried {
+                Request::ReadWriteMultipleRegisters {
+                    write_address,
+                    values,
+                    ..
+                } => a.keep_registers(cx, *write_address, values.len() as u16),
+                r => around_write(cx, r, &mut a, &mut tags),
+            }
+            let steps = a.wrap(vec![exchange(
+                Outgoing::Pdu(bytes),
+                Compare::Exact,
+                format!("quantity {q} (0x{q:04X})"),
+            )]);
+            let field = if write_quantity {
+                "quantity to write"
+            } else if fc == 0x17 {
+                "quantity to read"
+            } else {
+                "quantity"
+            };
+            let spec_max = if write_quantity {
+                FunctionCode::MAX_READ_WRITE_WRITE_QUANTITY
+            } else {
+                spec
+            };
+            let (title, requirement) = if label == "high-byte-set" {
+                (
+                    format!(
+                        "FC 0x{fc:02X} with {field} 0x{q:04X} ({q}): high byte set, low byte {} within the limit",
+                        q & 0xFF
+                    ),
+                    format!(
+                        "The {field} is a 2-byte field: 0x{q:04X} ({q}, above the specification's {spec_max}) is answered with exception 03 (Illegal Data Value), not served as its low byte ({}).",
+                        q & 0xFF
+                    ),
+                )
+            } else {
+                (
+                    format!(
+                        "FC 0x{fc:02X} with {field} {q}, one above the specification's {spec_max} (device limit {})",
+                        if write_quantity {
+                            p.function(code)
+                                .and_then(|f| f.max_write_quantity)
+                                .unwrap_or(spec_max)
+                        } else {
+                            device
+                        }
+                    ),
+                    format!(
+                        "A {field} above the specification's maximum ({spec_max}) is answered with exception 03 (Illegal Data Value), whatever the device's own limit."
+                    ),
+                )
+            };
+            cx.push(
+                format!("spec/app-6/quantity/fc-0x{fc:02X}/{label}"),
+                title,
+                format!(
+                    "{APP}, section {} (state diagram: quantity out of range)",
+                    section(fc)
+                ),
+                requirement,
+                tags,
+                steps,
+            );
+        }
+    }
+}
+
+/// The bytes of an `fc` request with quantity `q` (for FC 23 the quantity to read, or with `write_quantity`
+/// the quantity to write) at `address` (both of FC 23's), and the request its data carry (what a drive that
+/// took the quantity from its data would serve). A quantity whose data would not fit a PDU is sent with one
+/// item of data and the quantity field alone changed.
+fn quantity_request(fc: u8, q: u16, write_quantity: bool, address: u16) -> (Vec<u8>, Request) {
+    let build = |q: u16| match fc {
+        0x01 => Request::ReadCoils {
+            address,
+            quantity: q,
+        },
+        0x02 => Request::ReadDiscreteInputs {
+            address,
+            quantity: q,
+        },
+        0x03 => Request::ReadHoldingRegisters {
+            address,
+            quantity: q,
+        },
+        0x04 => Request::ReadInputRegisters {
+            address,
+            quantity: q,
+        },
+        0x0F => Request::WriteMultipleCoils {
+            address,
+            quantity: q,
+            data: vec![0; (q as usize).div_ceil(8)],
+        },
+        0x10 => Request::WriteMultipleRegisters {
+            address,
+            values: vec![0; q as usize],
+        },
+        _ if write_quantity => Request::ReadWriteMultipleRegisters {
+            read_address: address,
+            read_quantity: 1,
+            write_address: address,
+            values: vec![0; q as usize],
+        },
+        _ => Request::ReadWriteMultipleRegisters {
+            read_address: address,
+            read_quantity: q,
+            write_address: address,
+            values: vec![0],
+        },
+    };
+    let req = build(q);
+    match req.to_bytes() {
+        Ok(b) => (b, req),
+        Err(_) => {
+            let one = build(1);
+            let mut b = pdu(&one);
+            // FC 23's quantity to write follows its read address, quantity and write address.
+            let at = if write_quantity { 7 } else { 3 };
+            b[at..at + 2].copy_from_slice(&q.to_be_bytes());
+            (b, one)
+        }
+    }
+}
+
+/// Where the cases above the specification's limits start: at an item a one-item request of `fc` serves
+/// (and, for a write, with 0 a value it takes and no motion), so that a drive reading less than the whole
+/// quantity field serves it instead of refusing it for its address; the quantity cases' own start where the
+/// profile has none.
+fn probe_address(p: &Profile, fc: u8) -> u16 {
+    fn bit<'a>(bits: impl Iterator<Item = &'a drives::profile::Bit>, write: bool) -> u16 {
+        bits.filter(|b| {
+            if write {
+                b.access == drives::profile::Access::Rw && !b.motion && !b.destructive
+            } else {
+                b.access.readable()
+            }
+        })
+        .map(|b| b.address)
+        .next()
+        .unwrap_or(0)
+    }
+    match fc {
+        0x01 => bit(p.coils.iter().map(|b| b.get_ref()), false),
+        0x02 => bit(p.discrete_inputs.iter().map(|b| b.get_ref()), false),
+        0x0F => bit(p.coils.iter().map(|b| b.get_ref()), true),
+        // A one-register read of half of a 32-bit register is a choice of the drive's
+        // (`partial-register-read`): a register of its own.
+        0x03 | 0x04 => {
+            let table = if fc == 0x03 {
+                Table::Holding
+            } else {
+                Table::Input
+            };
+            p.registers
+                .iter()
+                .map(|r| r.get_ref())
+                .find(|r| {
+                    r.width == 1
+                        && r.access.readable()
+                        && (r.table == table || r.table == Table::Both)
+                })
+                .map_or_else(|| first_reg(p, table), |r| r.address)
+        }
+        _ => p
+            .registers
+            .iter()
+            .map(|r| r.get_ref())
+            .find(|r| r.access.readable() && settable(r, 0, 0))
+            .map_or_else(|| first_reg(p, Table::Holding), |r| r.address),
     }
 }
 

@@ -203,13 +203,8 @@ impl Item {
             if !read.is_some_and(near) && !written.is_some_and(near) {
                 return false;
             }
-            let width = profile
-                .register_at(r, false)
-                .or_else(|| profile.register_at(r, true))
-                .filter(|reg| reg.address == r)
-                .map_or(1, |reg| reg.width);
-            let hit =
-                |(a, q): (u16, u16)| (0..u16::from(width)).any(|i| covers(a, q, r.wrapping_add(i)));
+            let width = register_width(profile, r);
+            let hit = |(a, q): (u16, u16)| (0..width).any(|i| covers(a, q, r.wrapping_add(i)));
             return read.is_some_and(hit) || written.is_some_and(hit);
         }
         if let Some(m) = &item.mnemonic {
@@ -234,17 +229,22 @@ impl Item {
         let Some(r) = self.register else {
             return true;
         };
-        let width = profile
-            .register_at(r, false)
-            .or_else(|| profile.register_at(r, true))
-            .filter(|reg| reg.address == r)
-            .map_or(1, |reg| reg.width);
+        let width = register_width(profile, r);
         let inside = |(a, q): (u16, u16)| {
             let (a, q, r) = (u32::from(a), u32::from(q), u32::from(r));
             a >= r && a + q <= r + u32::from(width)
         };
         registers_read(req).is_none_or(inside) && registers_written(req).is_none_or(inside)
     }
+}
+
+/// The width in registers of the register the profile has at `r` (1 where it has none starting there).
+fn register_width(profile: &crate::profile::Profile, r: u16) -> u16 {
+    profile
+        .register_at(r, false)
+        .or_else(|| profile.register_at(r, true))
+        .filter(|reg| reg.address == r)
+        .map_or(1, |reg| u16::from(reg.width))
 }
 
 /// The (address, quantity) a request reads, for register reads.

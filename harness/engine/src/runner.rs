@@ -1402,7 +1402,15 @@ impl Runner {
         let mut used = vec![false; expected.len()];
         for i in 0..n {
             let wait = if expected.is_empty() {
-                self.cfg.timing.silence
+                // An RTU request cut short on purpose leaves a drive that frames by length (libmodbus)
+                // waiting for its missing bytes until its own byte timeout: the next request must not go
+                // out before that, or both are lost. Listened as long as for an answer.
+                if framing != Framing::Tcp && !self.cfg.is_sim && frames.iter().any(|f| f.malformed)
+                {
+                    self.cfg.timing.silence.max(self.cfg.timing.timeout)
+                } else {
+                    self.cfg.timing.silence
+                }
             } else {
                 self.cfg.timing.timeout
             };

@@ -1512,7 +1512,7 @@ impl Runner {
                 &applicable,
                 &cx,
                 kind.as_deref(),
-                requirements.freedom(drives::choices::ids::VALUE_OUT_OF_RANGE),
+                &requirements,
             );
             // A freedom the reference follows the drive in (see [`follows`]) decided an answer the drive gave
             // alike: the drive keeps its choice there, shown as the choice it is.

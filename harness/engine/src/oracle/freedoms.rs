@@ -307,15 +307,17 @@ pub fn observed_shown(
 /// which is read-only and which an MDrive Hybrid lacks, says nothing of its code for read-only writes).
 /// The access freedom and the code for writes to read-only items are one reason. Nor does a request sent
 /// malformed, in a batch or to another unit id show the access or the presence of an item; nor silence
-/// before an ADU's announced bytes are all in a way of skipping it. `value_codes` is
-/// the freedom listing the codes a value out of range may be refused with (`value-out-of-range`).
+/// before an ADU's announced bytes are all in a way of skipping it. Whether an address is valid, where the
+/// order of the checks decides the code (`exception-check-order`), is a reason of its own where the
+/// register at either end of the range is one a product may lack or not give that access to.
 pub fn unambiguous(
     shown: Vec<Shown>,
     applicable: &[&Freedom],
     cx: &StepContext<'_>,
     kind: Option<&str>,
-    value_codes: Option<&Freedom>,
+    requirements: &Requirements,
 ) -> Vec<Shown> {
+    let value_codes = requirements.freedom(drives::choices::ids::VALUE_OUT_OF_RANGE);
     let item_bound = |id: &str| {
         applicable
             .iter()
@@ -390,6 +392,12 @@ pub fn unambiguous(
         }
         named.push(f.id.as_str());
     }
+    if named.contains(&drives::choices::ids::EXCEPTION_CHECK_ORDER)
+        && !reasons.contains(&"access")
+        && range_ends_open(requirements, cx)
+    {
+        reasons.push("access");
+    }
     if reasons.len() < 2 {
         return shown;
     }
@@ -397,6 +405,30 @@ pub fn unambiguous(
         .into_iter()
         .filter(|s| !named.contains(&s.freedom.as_str()))
         .collect()
+}
+
+/// True when a register at either end of the request's range (the addresses the reference tries for the
+/// order of the checks: the first, and the last of at least one) is an item of an optional group or of an
+/// access the manual leaves open: whether the address is valid there is a choice of the drive's.
+fn range_ends_open(requirements: &Requirements, cx: &StepContext<'_>) -> bool {
+    let Some((a, q)) = cx
+        .request
+        .and_then(|r| registers_read(r).or_else(|| registers_written(r)))
+    else {
+        return false;
+    };
+    let last = a.saturating_add(q.max(1) - 1);
+    let ends = [a, last].map(|address| Request::ReadHoldingRegisters {
+        address,
+        quantity: 1,
+    });
+    requirements.freedoms().iter().any(|f| {
+        matches!(f.kind, FreedomKind::Optional | FreedomKind::Access)
+            && f.applies_to(&cx.profile.device.id)
+            && f.items
+                .iter()
+                .any(|i| ends.iter().any(|r| item_touched(i, r, cx.profile)))
+    })
 }
 
 /// An outcome freedom's value `kind` (`silence`, `close`, `exception-XX`, `response`) shown by a step the

@@ -416,6 +416,10 @@ fn the_reference_follows_a_drive_that_takes_half_registers() {
 ///   drive takes) was judged with the freedoms that decided the whole batch, so the I3 write taken was
 ///   recorded as the drive taking half writes (`partial-register-write=response`). Each request of a batch
 ///   is now judged with the freedoms that decide it alone.
+/// - `exception-check-order=2` with `lmd-inferred-write-only=rw`: an FC 03 of quantity 0 at S is refused 03;
+///   the reference, taking S write-only, took its address for invalid and the 03 for the order of the
+///   checks, while this drive, taking S readable, has no address error there. Whether an address at an end
+///   of the range is valid is now a reason of its own where it holds an optional or access-free item.
 /// - a counter value that two readings give (slave messages = responses sent, when every request was
 ///   answered) was recorded as the reference's reading.
 ///
@@ -428,6 +432,11 @@ fn choices_are_recorded_from_unambiguous_evidence_only() {
         ("sim:lmd", 5302, &["lmd-inferred-write-only=rw"]),
         ("sim:sd2x", 700, &["truncated-pdu=silence"]),
         ("sim:lmd", 702, &["lmd-inferred-read-only=rw"]),
+        (
+            "sim:lmd",
+            9904,
+            &["exception-check-order=2", "lmd-inferred-write-only=rw"],
+        ),
         (
             "sim:sd2x",
             5300,

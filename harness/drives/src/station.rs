@@ -1308,22 +1308,8 @@ impl Station {
 
     /// Whether a write covers one half of a 32-bit holding register only (see [`Station::splits_pair`]).
     fn splits_written_pair(&self, req: &Request) -> bool {
-        let (address, quantity) = match req {
-            Request::WriteSingleRegister { address, .. } => (*address, 1),
-            Request::WriteMultipleRegisters { address, values } => {
-                (*address, u16::try_from(values.len()).unwrap_or(u16::MAX))
-            }
-            Request::ReadWriteMultipleRegisters {
-                write_address,
-                values,
-                ..
-            } => (
-                *write_address,
-                u16::try_from(values.len()).unwrap_or(u16::MAX),
-            ),
-            _ => return false,
-        };
-        self.inside_pair(false, address, quantity)
+        crate::requirements::registers_written(req)
+            .is_some_and(|(address, quantity)| self.inside_pair(false, address, quantity))
     }
 
     /// Whether the range `address`, `quantity` of the input (or holding) registers starts or ends inside a

@@ -25,7 +25,10 @@ pub use framer::{
     CharFormat, FrameLen, FramerEvent, LengthRule, Parity, RtuFramer, RtuTiming, VendorRule,
 };
 pub use lenient::{Decoded, Framing, Lenient, decode_any};
-pub use mei::{CanOpenAccess, DeviceIdObject, DeviceIdResponse};
+pub use mei::{
+    CanOpenAccess, DeviceIdObject, DeviceIdResponse, canopen_with_reserved,
+    canopen_without_reserved,
+};
 pub use pdu::{Direction, MAX_PDU_LEN, Pdu, Request, Response};
 pub use vendor::Mnemonic;
 

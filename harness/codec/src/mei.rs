@@ -67,6 +67,40 @@ impl CanOpenAccess {
     }
 }
 
+/// The form of an FC 0x2B / MEI 0x0D telegram (request or response, SDO errors aside) that the SD2x manual's
+/// only example prints: the section 3.6 layout without its Reserved byte (control code, node id, index, ...).
+/// The project's codec reads the layout; a drive may follow the example instead (freedom
+/// `sd2x-fc43-reserved-byte`). These two functions convert one PDU between the forms; every other PDU is
+/// left alone (`None`).
+///
+/// The layout's PDU (`2B 0D control 00 node ...`) without its Reserved byte, when that byte is 0x00.
+pub fn canopen_without_reserved(pdu: &[u8]) -> Option<Vec<u8>> {
+    match pdu {
+        [0x2B, crate::codes::mei::CANOPEN, _, 0x00, ..] => {
+            let mut short = Vec::with_capacity(pdu.len() - 1);
+            short.extend_from_slice(&pdu[..3]);
+            short.extend_from_slice(&pdu[4..]);
+            Some(short)
+        }
+        _ => None,
+    }
+}
+
+/// The example form's PDU (`2B 0D control node ...`) with the layout's Reserved byte (0x00) put back after
+/// the control code.
+pub fn canopen_with_reserved(pdu: &[u8]) -> Option<Vec<u8>> {
+    match pdu {
+        [0x2B, crate::codes::mei::CANOPEN, _, ..] => {
+            let mut long = Vec::with_capacity(pdu.len() + 1);
+            long.extend_from_slice(&pdu[..3]);
+            long.push(0x00);
+            long.extend_from_slice(&pdu[3..]);
+            Some(long)
+        }
+        _ => None,
+    }
+}
+
 /// One device identification object (FC 0x2B / MEI 0x0E).
 #[derive(Clone, Debug, PartialEq, Eq)]
 #[cfg_attr(feature = "arbitrary", derive(arbitrary::Arbitrary))]
@@ -93,4 +127,39 @@ pub mod read_code {
     pub const REGULAR: u8 = 0x02;
     pub const EXTENDED: u8 = 0x03;
     pub const INDIVIDUAL: u8 = 0x04;
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The SD2x manual's example request (line 1297, printed without the Reserved byte; its CRC 0x2BC1 is
+    /// right for that form) and the corpus's corrected request are the same telegram in the two forms.
+    #[test]
+    fn the_two_forms_of_the_manuals_example_convert_into_each_other() {
+        let printed = crate::parse_hex("2B 0D 00 01 00 29 00 00 00 00 02").unwrap();
+        let layout = crate::parse_hex("2B 0D 00 00 01 00 29 00 00 00 00 02").unwrap();
+        assert_eq!(
+            canopen_with_reserved(&printed).as_deref(),
+            Some(&layout[..])
+        );
+        assert_eq!(
+            canopen_without_reserved(&layout).as_deref(),
+            Some(&printed[..])
+        );
+        assert!(crate::Request::decode(&layout).is_ok());
+        assert!(crate::Request::decode(&printed).is_err());
+    }
+
+    #[test]
+    fn other_pdus_and_a_set_reserved_byte_are_left_alone() {
+        assert_eq!(
+            canopen_without_reserved(&[0x2B, 0x0D, 0x00, 0x01, 0x01]),
+            None
+        );
+        assert_eq!(canopen_without_reserved(&[0x2B, 0x0E, 0x01, 0x00]), None);
+        assert_eq!(canopen_with_reserved(&[0x03, 0x00, 0x00, 0x00, 0x01]), None);
+        assert_eq!(canopen_with_reserved(&[0x2B, 0x0D]), None);
+        assert_eq!(canopen_with_reserved(&[0xAB, 0xFF, 0x00, 0x06]), None);
+    }
 }

@@ -363,14 +363,10 @@ impl fmt::Display for Choices {
 /// the exception codes, the SDO length error, the answer to a truncated PDU, the exception check order, the
 /// Modbus/TCP transport outcomes (unit ids, pipelining order and Server Busy, MBAP lengths, PDUs over 253
 /// bytes), the FC 0x41/0x42 fields and readings of the MDrive/LMD manuals, the FC 08 counters, the FC 11 run
-/// indicator, the FC 0B count of a clear) and those in `MODELLED` (the SD2x status-word bits and watchdog,
-/// the LMD's discrete-input addressing). The reference's own value always is. See also [`simulated_on`]: a
+/// indicator, the FC 0B count of a clear) and those in `MODELLED` (the SD2x status-word bits, watchdog and
+/// FC 43 form, the LMD's discrete-input addressing). The reference's own value always is. See also [`simulated_on`]: a
 /// `close` needs a connection.
 ///
-/// Not simulated, although the oracle admits it: `sd2x-fc43-reserved-byte=without-reserved-byte`: a drive
-/// following the manual's example reads the catalog's FC 43 requests one byte off and refuses every one of
-/// them (the oracle admits that), which leaves the object witnesses of the fault matrix blind until the
-/// runner learns that reading and sends the short form (as it learns the LMD's word order); not done yet.
 pub fn simulated(f: &Freedom, value: &FreedomValue) -> bool {
     if f.values.first() == Some(value) {
         return true;
@@ -389,6 +385,7 @@ const MODELLED: &[&str] = &[
     "sd2x-status-word-bits",
     "sd2x-watchdog-error-code",
     "sd2x-watchdog-trip-state",
+    crate::models::sd2x::FC43_RESERVED_BYTE,
     "lmd-discrete-input-addressing",
 ];
 

@@ -891,6 +891,12 @@ impl Station {
         if b.is_empty() {
             return b;
         }
+        if let Response::CanOpen(_) = resp
+            && self.fc43_without_reserved()
+            && let Some(short) = codec::canopen_without_reserved(&b)
+        {
+            b = short;
+        }
         if let Response::VendorRead { params } = resp
             && self.choices.name(ids::FC41_BYTE_COUNT_WIDTH) == Some("2-byte")
         {
@@ -1053,7 +1059,7 @@ impl Station {
         };
         let req = match self
             .read_as_chosen(pdu)
-            .map_or_else(|| Request::decode(pdu), Ok)
+            .unwrap_or_else(|| Request::decode(pdu))
         {
             Ok(req) => req,
             Err(e) => {
@@ -1214,21 +1220,32 @@ impl Station {
     /// A request a drive reads otherwise than the codec, by a reading it chose: with
     /// `fc42-parameterless-byte-count=no-count-byte` an FC 0x42 without a byte count is a parameterless
     /// command, and the byte count 0 of the 6-byte form is a parameter byte (which no mnemonic takes).
-    fn read_as_chosen(&self, pdu: &[u8]) -> Option<Request> {
+    fn read_as_chosen(&self, pdu: &[u8]) -> Option<Result<Request, codec::DecodeError>> {
+        if self.fc43_without_reserved() {
+            // The SD2x example's form (no Reserved byte): every FC 43 / MEI 0x0D request is read that way, so a
+            // request in the layout's form is read one byte off, as such a drive would.
+            return codec::canopen_with_reserved(pdu).map(|long| Request::decode(&long));
+        }
         if self.choices.name(ids::FC42_PARAMETERLESS_BYTE_COUNT) != Some("no-count-byte") {
             return None;
         }
         match pdu {
-            [0x42, m @ ..] if m.len() == 4 => Some(Request::VendorWrite {
+            [0x42, m @ ..] if m.len() == 4 => Some(Ok(Request::VendorWrite {
                 mnemonic: codec::Mnemonic(m.try_into().ok()?),
                 params: Vec::new(),
-            }),
-            [0x42, m @ .., 0x00] if m.len() == 4 => Some(Request::VendorWrite {
+            })),
+            [0x42, m @ .., 0x00] if m.len() == 4 => Some(Ok(Request::VendorWrite {
                 mnemonic: codec::Mnemonic(m.try_into().ok()?),
                 params: vec![0x00],
-            }),
+            })),
             _ => None,
         }
+    }
+
+    /// True for a drive that follows the SD2x example's FC 43 form, without the Reserved byte (freedom
+    /// `sd2x-fc43-reserved-byte`, SD2x manual lines 1302-1304 against the layout's line 545).
+    fn fc43_without_reserved(&self) -> bool {
+        self.choices.name(crate::models::sd2x::FC43_RESERVED_BYTE) == Some("without-reserved-byte")
     }
 
     /// The exception a product that lacks an item the request touches answers with (the `optional`

@@ -324,6 +324,7 @@ impl SessionBuilder {
         )
         .with_requirements(session::requirements_of(&opts.corpus)?);
         runner.learn_word_order();
+        runner.learn_fc43_form();
         runner.learn_input_addressing();
         let mut cases = Vec::with_capacity(planned.len());
         for (case, skip) in planned {

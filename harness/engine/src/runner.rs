@@ -142,9 +142,13 @@ pub struct Runner {
     /// How far the drive's discrete inputs lie from the profile's addresses (0, or 0x002D once
     /// [`Runner::learn_input_addressing`] found an LMD following its manual's example).
     input_offset: u16,
-    /// The reads sent before the cases to learn the drive's choices (word order, input addressing), which a
-    /// rebuilt reference drive is given again, and the choices learned so far.
-    learning_reads: Vec<Request>,
+    /// The drive follows the SD2x example's FC 43 / MEI 0x0D form, without the layout's Reserved byte, as
+    /// [`Runner::learn_fc43_form`] found: the cases' requests go out in that form and the answers are read
+    /// back into the layout's before they are judged.
+    fc43_without_reserved: bool,
+    /// The request PDUs sent before the cases to learn the drive's choices (word order, input addressing,
+    /// FC 43 form), as sent, which a rebuilt reference drive is given again, and the choices learned so far.
+    learning_reads: Vec<Vec<u8>>,
     learned: drives::Choices,
     /// Modbus/TCP: the transaction ids of the latest requests sent (with the case that sent them, or the
     /// liveness probe, and when), so that a late answer is attributed to its request instead of being
@@ -266,6 +270,7 @@ impl Runner {
             restore_tid: 0xA000,
             case_order,
             input_offset: 0,
+            fc43_without_reserved: false,
             learning_reads: Vec::new(),
             learned: drives::Choices::reference(),
             recent: std::collections::VecDeque::new(),
@@ -322,7 +327,7 @@ impl Runner {
                 quantity: 2,
             };
             let answer = crate::restore::Link::transact(self, &read);
-            self.learning_reads.push(read);
+            self.learning_reads.extend(read.to_bytes().ok());
             let answer = match answer {
                 Ok(Some(a)) => a,
                 // Silence or an error: the cases will meet it; nothing more is learned here.
@@ -412,13 +417,13 @@ impl Runner {
         };
         let sent = [read(first), read(first.wrapping_add(OFFSET))];
         let first_answer = crate::restore::Link::transact(self, &sent[0]);
-        self.learning_reads.push(sent[0].clone());
+        self.learning_reads.extend(sent[0].to_bytes().ok());
         match first_answer {
             Ok(Some(r)) if r.is_exception() => {}
             _ => return,
         }
         let second_answer = crate::restore::Link::transact(self, &sent[1]);
-        self.learning_reads.push(sent[1].clone());
+        self.learning_reads.extend(sent[1].to_bytes().ok());
         match second_answer {
             Ok(Some(r)) if !r.is_exception() => {}
             _ => return,
@@ -448,15 +453,153 @@ impl Runner {
             SimTarget::with_framing(station, self.target.framing(), self.target.rtu_timing())
                 .mirror();
         let tid = self.next_tid;
-        for read in self.learning_reads.clone() {
-            let Ok(pdu) = read.to_bytes() else { continue };
+        // As they were sent: in the form they had then, whatever was learned since.
+        let fc43 = std::mem::take(&mut self.fc43_without_reserved);
+        for pdu in self.learning_reads.clone() {
             let f = self.frame(&pdu, self.cfg.unit, None);
             if self.shadow.send(&f.bytes).is_ok() {
                 let _ = self.shadow.settle();
                 let _ = self.shadow.take_decisions();
             }
         }
+        self.fc43_without_reserved = fc43;
         self.next_tid = tid;
+    }
+
+    /// Learn the form of the drive's FC 43 / MEI 0x0D telegrams, where a reading of its manual leaves it open
+    /// (the SD2x's, freedom `sd2x-fc43-reserved-byte`: the section 3.6 layout has a Reserved byte after the
+    /// control code, line 545 and 561; the only example, lines 1302-1304 and 1324-1326, has none), before
+    /// the first case: read the first readable object in the layout's form and, when the drive does not
+    /// answer it with the object, in the example's. A drive that answers only the latter (with an answer
+    /// that is well-formed in that form) follows the example: that is recorded as the drive's choice, the
+    /// reference drive is rebuilt to take that form too, the cases' FC 43 requests go out in it and the
+    /// answers are read back into the layout's before they are judged, so that the object checks (values,
+    /// SDO errors, the views of a register pair) look at the objects instead of at refusals. A drive that
+    /// answers the layout's form is recorded as keeping to it. Reads only, through the restore's
+    /// transaction ids; best effort, like [`Runner::learn_word_order`].
+    pub fn learn_fc43_form(&mut self) {
+        const FREEDOM: &str = drives::models::sd2x::FC43_RESERVED_BYTE;
+        const EXAMPLE: &str = "without-reserved-byte";
+        const LAYOUT: &str = "with-reserved-byte";
+        let requirements = Arc::clone(&self.requirements);
+        let id = self.profile.device.id.clone();
+        let Some(freedom) = requirements.freedom(FREEDOM).filter(|f| f.applies_to(&id)) else {
+            return;
+        };
+        let Some(o) = self
+            .profile
+            .objects
+            .iter()
+            .map(|o| o.get_ref())
+            .find(|o| o.access.readable())
+        else {
+            return;
+        };
+        let (index, subindex) = (o.index, o.subindex);
+        let Ok(layout) = Request::CanOpen(codec::CanOpenAccess::read(
+            self.cfg.unit,
+            index,
+            subindex,
+            o.ty.size() as u16,
+        ))
+        .to_bytes() else {
+            return;
+        };
+        let is_object = |pdu: &[u8]| {
+            matches!(codec::Response::decode(pdu), Ok(codec::Response::CanOpen(a))
+                if !a.is_write() && a.index == index && a.subindex == subindex)
+        };
+        let answer = self.transact_pdu(&layout);
+        self.learning_reads.push(layout.clone());
+        let origin = |form: &str| {
+            format!(
+                "(FC 43 form learned before the cases: object {index}.{subindex} read in the {form} form)"
+            )
+        };
+        match answer {
+            Ok(Some(r)) if is_object(&r) => {
+                let shown = crate::oracle::freedoms::shown_value(freedom, "", LAYOUT);
+                let _ = self
+                    .choices
+                    .record(&shown, &origin("layout's"), &requirements);
+                return;
+            }
+            Ok(Some(_)) => {}
+            // Silence or an error: the cases will meet it; nothing more is learned here.
+            _ => return,
+        }
+        let Some(example) = codec::canopen_without_reserved(&layout) else {
+            return;
+        };
+        let answer = self.transact_pdu(&example);
+        self.learning_reads.push(example);
+        let Ok(Some(r)) = answer else { return };
+        if !codec::canopen_with_reserved(&r).is_some_and(|long| is_object(&long)) {
+            return;
+        }
+        let Some(value) = freedom
+            .values
+            .iter()
+            .find(|v| drives::choices::value_matches(v, EXAMPLE))
+            .cloned()
+        else {
+            return;
+        };
+        let shown = crate::oracle::freedoms::shown_value(freedom, "", EXAMPLE);
+        let _ = self
+            .choices
+            .record(&shown, &origin("example's"), &requirements);
+        self.fc43_without_reserved = true;
+        self.learned.choose(freedom, value);
+        self.rebuild_reference();
+    }
+
+    /// An answer frame of the target or the reference drive in the form the cases are judged in: a
+    /// well-formed FC 43 / MEI 0x0D answer of a drive that follows the SD2x example's form (see
+    /// [`Runner::learn_fc43_form`]) with the layout's Reserved byte put back (framing rebuilt). `None` for
+    /// every other frame, which is judged as it came (a malformed answer stays malformed).
+    fn in_case_form(&self, frame: &[u8]) -> Option<Vec<u8>> {
+        if !self.fc43_without_reserved {
+            return None;
+        }
+        let mut out = Vec::with_capacity(frame.len() + 1);
+        match self.target.framing() {
+            Framing::Tcp => {
+                let adu = tcp::decode_adu(frame).ok()?;
+                let long = canopen_answer_with_reserved(adu.pdu)?;
+                tcp::encode_adu(
+                    adu.header.transaction_id,
+                    adu.header.unit_id,
+                    &long,
+                    &mut out,
+                )
+                .ok()?;
+            }
+            _ => {
+                let adu = rtu::decode_adu(frame).ok()?;
+                let long = canopen_answer_with_reserved(adu.pdu)?;
+                rtu::encode_adu(adu.address, &long, &mut out).ok()?;
+            }
+        }
+        Some(out)
+    }
+
+    /// [`Runner::in_case_form`] for what the target or the reference gave.
+    fn received_in_case_form(&self, got: &Received) -> Option<Received> {
+        match got {
+            Received::Frame {
+                bytes,
+                first_at,
+                last_at,
+                max_gap,
+            } => Some(Received::Frame {
+                bytes: self.in_case_form(bytes)?,
+                first_at: *first_at,
+                last_at: *last_at,
+                max_gap: *max_gap,
+            }),
+            _ => None,
+        }
     }
 
     /// An FC 02 read of the profile's discrete inputs moved to where the drive serves them, once
@@ -865,6 +1008,15 @@ impl Runner {
         // PDU-level mutations alter the PDU, which is then framed correctly (header and CRC match it).
         let altered = mutation.and_then(|m| m.apply_to_pdu(pdu));
         let pdu = altered.as_deref().unwrap_or(pdu);
+        // A drive following the SD2x example's FC 43 form gets the cases' well-formed FC 43 requests in it
+        // (the PDU the cases meant stays `sent.pdu`, the one judged); a malformed one goes as it is.
+        let example = (self.fc43_without_reserved
+            && altered.is_none()
+            && matches!(Request::decode(pdu), Ok(Request::CanOpen(_))))
+        .then(|| codec::canopen_without_reserved(pdu))
+        .flatten();
+        let case_pdu = pdu;
+        let pdu = example.as_deref().unwrap_or(pdu);
         let framing = self.target.framing();
         let tid = (framing == Framing::Tcp).then(|| {
             let t = self.next_tid;
@@ -873,8 +1025,9 @@ impl Runner {
         });
         let mut bytes = Vec::with_capacity(pdu.len() + 7);
         // Anything the strict codec refuses as a request was sent malformed on purpose.
-        let mut malformed =
-            pdu.len() > codec::MAX_PDU_LEN || altered.is_some() || Request::decode(pdu).is_err();
+        let mut malformed = case_pdu.len() > codec::MAX_PDU_LEN
+            || altered.is_some()
+            || Request::decode(case_pdu).is_err();
         match framing {
             Framing::Tcp => {
                 if tcp::encode_adu(tid.unwrap_or(0), unit, pdu, &mut bytes).is_err() {
@@ -918,7 +1071,7 @@ impl Runner {
             sent: Sent {
                 tid,
                 unit,
-                pdu: pdu.to_vec(),
+                pdu: case_pdu.to_vec(),
             },
             malformed,
         }
@@ -1104,7 +1257,21 @@ impl Runner {
                     )]
                 }
             }
-            _ => vec!["one of the two reads gave no value to compare".into()],
+            // Refused or unanswered: the read's own step judges that (a refusal a freedom admits, such as an
+            // FC 43 read by a drive of the other reading of its manual, passes there); nothing to compare.
+            _ => {
+                return StepResult {
+                    note: note.to_string(),
+                    sent: None,
+                    expected: None,
+                    observed: vec![],
+                    verdict: Verdict::Informational,
+                    findings: vec![
+                        "not compared: one of the two reads gave no value (its own step judges why)"
+                            .into(),
+                    ],
+                };
+            }
         };
         let verdict = if findings.is_empty() {
             Verdict::Pass
@@ -1389,6 +1556,14 @@ impl Runner {
     ) -> Result<StepResult, TargetError> {
         // The reference answers: every frame it sends before it falls silent, and which freedoms decided them.
         let (expected, reference_closed) = self.shadow.settle();
+        // Judged in the cases' form (reported as they came).
+        let expected_judged: Option<Vec<Vec<u8>>> = self.fc43_without_reserved.then(|| {
+            expected
+                .iter()
+                .map(|e| self.in_case_form(e).unwrap_or_else(|| e.clone()))
+                .collect()
+        });
+        let judged_expected = expected_judged.as_deref().unwrap_or(&expected);
         let decisions = self.shadow.take_decisions();
         let counter_alternatives = self.shadow.take_counter_alternatives();
         let mut observed = Vec::new();
@@ -1437,6 +1612,9 @@ impl Runner {
             }
             let stop = !matches!(got, Received::Frame { .. } | Received::Garbage { .. });
             record(&got, wire);
+            // Judged in the cases' form (recorded and reported as it came).
+            let got_judged = self.received_in_case_form(&got);
+            let seen = got_judged.as_ref().unwrap_or(&got);
             let (j, out_of_order) = pair(framing, &got, frames, &paired, i);
             if let Some(p) = paired.get_mut(j) {
                 *p = true;
@@ -1495,8 +1673,8 @@ impl Runner {
             let judged = oracle::judge_admitting(
                 framing,
                 &sent,
-                expected.get(e).map(|v| v.as_slice()),
-                &got,
+                judged_expected.get(e).map(|v| v.as_slice()),
+                seen,
                 compare,
                 &self.profile,
                 reference_closed,
@@ -1505,7 +1683,7 @@ impl Runner {
             )
             // Where several freedoms explain the answer, the one that agrees with the drive's earlier choices.
             .agreeing(|s| self.choices.agrees(s));
-            let kind = oracle::outcome_kind(framing, &got);
+            let kind = oracle::outcome_kind(framing, seen);
             let mut judged = judged;
             judged.shown = oracle::freedoms::unambiguous(
                 judged.shown,
@@ -1583,7 +1761,7 @@ impl Runner {
                 self.gaps
                     .record(&self.case_id, t, sent_at, last.len(), *first_at);
             }
-            if let (Some(slot), Received::Frame { bytes, .. }) = (capture, &got)
+            if let (Some(slot), Received::Frame { bytes, .. }) = (capture, seen)
                 && let Some(c) = capture::captured(framing, &sent.pdu, bytes)
                 && let Some(s) = self.slots.get_mut(slot)
             {
@@ -1617,8 +1795,20 @@ impl crate::restore::Link for Runner {
         let Ok(pdu) = req.to_bytes() else {
             return Ok(None);
         };
+        Ok(self
+            .transact_pdu(&pdu)?
+            .and_then(|r| codec::Response::decode(&r).ok()))
+    }
+}
+
+impl Runner {
+    /// Send `pdu` (in the cases' form) to the target and the reference drive with the restore's transaction
+    /// ids, and take the target's answer to it: its PDU, in the cases' form. `None`: no answer of its own
+    /// (silence, another unit, function code or transaction id, a frame that does not decode).
+    fn transact_pdu(&mut self, pdu: &[u8]) -> Result<Option<Vec<u8>>, TargetError> {
+        let fc = pdu.first().copied().unwrap_or(0);
         let case_tid = std::mem::replace(&mut self.next_tid, self.restore_tid);
-        let f = self.frame(&pdu, self.cfg.unit, None);
+        let f = self.frame(pdu, self.cfg.unit, None);
         self.restore_tid = std::mem::replace(&mut self.next_tid, case_tid);
         // A late answer of an earlier request must never be taken for this one's (a wrong snapshot value
         // would be "restored" into the drive): stale bytes are dropped, and on Modbus/TCP the transaction id
@@ -1635,24 +1825,22 @@ impl crate::restore::Link for Runner {
             let Received::Frame { bytes, .. } = got else {
                 return Ok(None);
             };
-            let Ok(d) =
-                codec::decode_any(&bytes, self.target.framing(), codec::Direction::Response)
-            else {
-                return Ok(None);
+            let bytes = self.in_case_form(&bytes).unwrap_or(bytes);
+            let (tid, unit, answer) = match self.target.framing() {
+                Framing::Tcp => match tcp::decode_adu(&bytes) {
+                    Ok(a) => (Some(a.header.transaction_id), a.header.unit_id, a.pdu),
+                    Err(_) => return Ok(None),
+                },
+                _ => match rtu::decode_adu(&bytes) {
+                    Ok(a) => (None, a.address, a.pdu),
+                    Err(_) => return Ok(None),
+                },
             };
-            let same_tid = f.sent.tid.is_none() || d.transaction_id == f.sent.tid;
-            let same_unit = d.unit.is_none_or(|u| u == f.sent.unit);
-            let ours = match &d.pdu {
-                codec::Pdu::Response(r) => r.function().0 & 0x7F == req.function().0,
-                _ => false,
-            };
-            if !same_tid {
+            if f.sent.tid.is_some() && tid != f.sent.tid {
                 continue;
             }
-            return Ok(match d.pdu {
-                codec::Pdu::Response(r) if same_unit && ours => Some(r),
-                _ => None,
-            });
+            let ours = answer.first().is_some_and(|b| b & 0x7F == fc & 0x7F);
+            return Ok((unit == f.sent.unit && ours).then(|| answer.to_vec()));
         }
         Ok(None)
     }
@@ -1688,6 +1876,7 @@ impl crate::restore::Link for ReferenceLink<'_> {
         let _ = r.shadow.take_decisions();
         let framing = r.shadow.framing();
         Ok(answers.iter().find_map(|bytes| {
+            let bytes = &r.in_case_form(bytes).unwrap_or_else(|| bytes.clone());
             match codec::decode_any(bytes, framing, codec::Direction::Response) {
                 Ok(codec::Decoded {
                     pdu: codec::Pdu::Response(resp),
@@ -1771,6 +1960,17 @@ fn rank(v: Verdict) -> u8 {
 /// The worse of two verdicts.
 pub fn worse(a: Verdict, b: Verdict) -> Verdict {
     if rank(b) > rank(a) { b } else { a }
+}
+
+/// An FC 43 / MEI 0x0D answer PDU in the SD2x example's form (no Reserved byte) in the layout's form, when it
+/// is a well-formed answer in it.
+fn canopen_answer_with_reserved(pdu: &[u8]) -> Option<Vec<u8>> {
+    let long = codec::canopen_with_reserved(pdu)?;
+    matches!(
+        codec::Response::decode(&long),
+        Ok(codec::Response::CanOpen(_))
+    )
+    .then_some(long)
 }
 
 #[cfg(test)]

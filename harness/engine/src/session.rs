@@ -591,6 +591,7 @@ pub(crate) fn open_runner(
     .with_requirements(requirements);
     // Where a freedom leaves the word order open, the cases are judged in the drive's own.
     runner.learn_word_order();
+    runner.learn_fc43_form();
     runner.learn_input_addressing();
     Ok(runner)
 }

@@ -186,3 +186,93 @@ fn a_shared_device_can_be_inspected_after_the_run() {
         "{exceptions} exception(s) for {results}"
     );
 }
+
+/// An SD2x that follows its manual's only FC 43 example (lines 1302-1304: no Reserved byte after the
+/// control code) instead of the section 3.6 layout (line 545, 561), written here as a translation around the
+/// layout-form reference drive, independently of the simulator's own `--choose`: a request is read in the
+/// example's form (a Reserved byte is put back before the drive sees it, so a request in the layout's form
+/// is read one byte off), and the answer loses its Reserved byte.
+struct ExampleFormFc43(StationDevice);
+
+impl Device for ExampleFormFc43 {
+    fn handle(&mut self, unit: u8, pdu: &[u8]) -> Option<Vec<u8>> {
+        let request = match pdu {
+            [0x2B, 0x0D, control, rest @ ..] => [&[0x2B, 0x0D, *control, 0x00][..], rest].concat(),
+            _ => pdu.to_vec(),
+        };
+        let answer = self.0.handle(unit, &request)?;
+        Some(match answer.as_slice() {
+            [0x2B, 0x0D, control, 0x00, rest @ ..] => [&[0x2B, 0x0D, *control][..], rest].concat(),
+            _ => answer,
+        })
+    }
+
+    fn rtu_discarded(&mut self, bytes: &[u8]) {
+        self.0.rtu_discarded(bytes);
+    }
+
+    fn advance(&mut self, now: Duration) {
+        self.0.advance(now);
+    }
+}
+
+/// Such a drive conforms (freedom `sd2x-fc43-reserved-byte`): the harness learns its form before the cases,
+/// sends every FC 43 request of the cases in it, and checks the objects it reads, instead of taking every
+/// FC 43 case for a refusal the reading admits: the objects' values are compared, and a drive whose object
+/// and register views disagree (fault `word-order`) still FAILs.
+#[test]
+fn an_sd2x_following_the_fc43_example_is_learned_and_its_objects_are_checked() {
+    let session = |faults: &[Fault]| {
+        Session::builder()
+            .profile("sd2x")
+            .device(ExampleFormFc43(StationDevice::new("sd2x", faults, true)))
+            .rtu()
+            .cases("profile/sd2x/object/*")
+            .run()
+    };
+    let healthy = session(&[]);
+    healthy.assert_passes();
+    let reads: Vec<_> = healthy
+        .cases()
+        .iter()
+        .filter(|c| {
+            c.id.ends_with("/read")
+                && !c.id.contains("/missing/")
+                && !c.id.contains("/wrong-length/")
+        })
+        .collect();
+    assert!(reads.len() >= 10, "{healthy}");
+    for case in reads {
+        // On the wire: the request without the Reserved byte (slave, 2B 0D, control 00, then the node id),
+        // and the object in the answer, in the same form (not an exception, not an SDO error).
+        let tx: Vec<&[u8]> = case
+            .wire
+            .iter()
+            .filter(|w| w.dir == engine::observe::Dir::Tx)
+            .map(|w| w.bytes.as_slice())
+            .collect();
+        let rx: Vec<&[u8]> = case
+            .wire
+            .iter()
+            .filter(|w| w.dir == engine::observe::Dir::Rx)
+            .map(|w| w.bytes.as_slice())
+            .collect();
+        assert!(
+            matches!(tx.as_slice(), [[_, 0x2B, 0x0D, 0x00, node, ..]] if *node != 0),
+            "{}: sent {tx:02X?}",
+            case.id
+        );
+        assert!(
+            matches!(rx.as_slice(), [[_, 0x2B, 0x0D, 0x00, node, ..]] if *node != 0),
+            "{}: got {rx:02X?}",
+            case.id
+        );
+        assert_eq!(case.verdict, Verdict::Pass, "{}", case.id);
+    }
+    let faulty = session(&[Fault::WordOrder]);
+    assert_eq!(
+        faulty.verdict("profile/sd2x/object/2-hardware-id/agrees-with-register"),
+        Some(Verdict::Fail),
+        "{faulty}"
+    );
+}

@@ -368,6 +368,43 @@ pub(crate) const WITNESSES: &[(&str, &str, &str)] = &[
         "sim:generic",
         "spec/app-6/quantity/fc-0x17/write-spec-max-plus-1",
     ),
+    // The same faults over the generic profile's other transport (issue 15: every transport the profile
+    // has; see `every_fault_is_witnessed_on_every_transport_of_its_profile`).
+    (
+        "wrong-exception-code",
+        "sim:generic?transport=rtu",
+        "spec/app-7/unsupported-function/fc-0x09",
+    ),
+    (
+        "exception-without-fc",
+        "sim:generic?transport=rtu",
+        "spec/app-7/unsupported-function/fc-0x09",
+    ),
+    (
+        "quantity-unchecked",
+        "sim:generic?transport=rtu",
+        "spec/app-6/quantity/fc-0x03/zero",
+    ),
+    (
+        "unit-not-echoed",
+        "sim:generic?transport=rtu",
+        "spec/app-7/unsupported-function/fc-0x09",
+    ),
+    (
+        "illegal-coil-value-accepted",
+        "sim:generic?transport=rtu",
+        "spec/app-6.5/write-coil-illegal-value",
+    ),
+    (
+        "quantity-low-byte",
+        "sim:generic?transport=rtu",
+        "spec/app-6/quantity/fc-0x0F/high-byte-set",
+    ),
+    (
+        "quantity-over-spec-dropped",
+        "sim:generic?transport=rtu",
+        "spec/app-6/quantity/fc-0x17/write-spec-max-plus-1",
+    ),
 ];
 
 /// Faults that break no single answer but the consistency of a drive's choices (issue 12: once a drive has
@@ -469,4 +506,101 @@ fn every_fault_has_a_witness() {
             "fault {f:?} ({name}) has no witness case: add one that FAILs with it"
         );
     }
+}
+
+/// Faults that exist on one transport only, with the reason: they need no witness on the others.
+const ONE_TRANSPORT: &[(&str, &str, &str)] = &[
+    (
+        "answer-inside-silence",
+        "tcp",
+        "the 3.5-character silence before an answer is a rule of RTU framing (serial line spec 2.5.1.1); \
+         Modbus/TCP frames by the MBAP length",
+    ),
+    (
+        "broadcast-answered",
+        "tcp",
+        "a broadcast is the serial line's address 0 (serial line spec 2.1); on Modbus/TCP unit id 0 \
+         addresses the device itself (TCP guide 4.4.1.2)",
+    ),
+    (
+        "listen-only-ignored",
+        "tcp",
+        "leaving listen only mode takes 08/01, a restart of the serial line port (spec 6.8.1): the case \
+         needs RTU framing",
+    ),
+    (
+        "event-log-oldest-first",
+        "tcp",
+        "the log is put in a known state with 08/01, a restart of the serial line port (spec 6.8.1): the \
+         case needs RTU framing",
+    ),
+];
+
+/// Issue 15's acceptance: each fault FAILs a witness over every transport of each profile it is witnessed
+/// on (the profiles' `transports`), unless it exists on one transport only (`ONE_TRANSPORT`, with the
+/// reason). `every_fault_fails_its_witness_case_and_the_healthy_drive_passes_it` runs them.
+#[test]
+fn every_fault_is_witnessed_on_every_transport_of_its_profile() {
+    use std::collections::BTreeSet;
+    let corpus = drives::corpus::Corpus::Embedded;
+    let transport_of = |target: &str| {
+        let (profile, query) = target
+            .trim_start_matches("sim:")
+            .split_once('?')
+            .unwrap_or((target.trim_start_matches("sim:"), ""));
+        let p = corpus.profile(profile).expect("profile");
+        // `sim:P` speaks Modbus/TCP where the profile has it, else RTU.
+        let tcp_default = p
+            .device
+            .transports
+            .contains(&drives::profile::Transport::Tcp);
+        let t = if query.contains("transport=rtu")
+            || (!tcp_default && !query.contains("transport=tcp"))
+        {
+            "rtu"
+        } else {
+            "tcp"
+        };
+        (profile.to_string(), t)
+    };
+    let witnessed: BTreeSet<(&str, String, &str)> = WITNESSES
+        .iter()
+        .map(|(f, t, _)| {
+            let (p, tr) = transport_of(t);
+            (*f, p, tr)
+        })
+        .collect();
+    let mut missing = Vec::new();
+    for (fault, profile, _) in &witnessed {
+        let p = corpus.profile(profile).expect("profile");
+        for t in &p.device.transports {
+            let t = match t {
+                drives::profile::Transport::Tcp => "tcp",
+                drives::profile::Transport::Rtu | drives::profile::Transport::RtuOverTcp => "rtu",
+            };
+            let one = ONE_TRANSPORT
+                .iter()
+                .any(|(f, other, _)| f == fault && *other == t);
+            if !one && !witnessed.contains(&(*fault, profile.clone(), t)) {
+                missing.push(format!("{fault} on {profile} over {t}"));
+            }
+        }
+    }
+    // An entry of ONE_TRANSPORT whose fault has a witness over that transport after all is stale.
+    for (fault, t, _) in ONE_TRANSPORT {
+        if witnessed.iter().any(|(f, _, tr)| f == fault && tr == t) {
+            missing.push(format!(
+                "{fault} is witnessed over {t}: remove it from ONE_TRANSPORT"
+            ));
+        }
+        assert!(
+            WITNESSES.iter().any(|(f, _, _)| f == fault),
+            "ONE_TRANSPORT names {fault}, which has no witness"
+        );
+    }
+    assert!(
+        missing.is_empty(),
+        "faults without a witness over a transport of their profile (add a row to WITNESSES, or to \
+         ONE_TRANSPORT with the reason): {missing:#?}"
+    );
 }

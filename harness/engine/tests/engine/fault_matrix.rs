@@ -381,6 +381,20 @@ pub(crate) const WITNESSES: &[(&str, &str, &str)] = &[
         "sim:generic",
         "spec/app-6/quantity/fc-0x17/write-spec-max-plus-1",
     ),
+    // FC 23's quantity to write one above the device's own limit (SD2x: 48, manual line 488). A drive that
+    // does not check it but checks the range answers 02, which `quantity-over-device-limit` admits (the 49
+    // registers run past the SD2x's 4 writable ones wherever they start): only an answer that is neither 03
+    // nor 02 (served, silence, another code) can be found, as this silent drop.
+    (
+        "write-quantity-over-limit-dropped",
+        "sim:sd2x",
+        "spec/app-6/quantity/fc-0x17/write-max-plus-1",
+    ),
+    (
+        "write-quantity-over-limit-dropped",
+        "sim:sd2x?transport=tcp",
+        "spec/app-6/quantity/fc-0x17/write-max-plus-1",
+    ),
 ];
 
 /// Faults that break no single answer but the consistency of a drive's choices (issue 12: once a drive has

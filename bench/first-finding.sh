@@ -26,9 +26,10 @@
 #   --expect TEXT    count only a `finding:` line containing TEXT (e.g. the case kind `comm-event-log`), and
 #                    run the campaigns with --keep-going so that another finding does not end them first
 #
-# The profile is the one whose behaviour the fault concerns: sd2x for watchdog-disabled, mdrive for the
-# MDrive/LMD mnemonic faults, word order, 32-bit halves and undeclared functions, generic (which declares the
-# whole public function code set) for the rest. RTU-only faults (those of framing and of the serial line's
+# The profile is the one whose behaviour the fault concerns: sd2x for watchdog-disabled and
+# write-quantity-over-limit-dropped (the only FC 17 write limit below 121), mdrive for the MDrive/LMD
+# mnemonic faults, word order, 32-bit halves and undeclared functions, generic (which declares the whole
+# public function code set) for the rest. RTU-only faults (those of framing and of the serial line's
 # state: the event log after a restart, listen only mode) are run over RTU over TCP
 # (`simulate --rtu-over-tcp`, `fuzz --target rtu+tcp://`). Reproducers go to a temporary directory. Once three
 # seeds of a fault found nothing the median is "not found" and its other seeds are not run.
@@ -114,7 +115,8 @@ MDRIVE = {"write-only-readable", "mnemonic-params-unchecked", "half-register-wid
 def profile_of(fault):
     if forced:
         return forced
-    if fault == "watchdog-disabled":
+    # write-quantity-over-limit-dropped: only a profile whose FC 17 write limit is below the spec's (the SD2x).
+    if fault in ("watchdog-disabled", "write-quantity-over-limit-dropped"):
         return "sd2x"
     return "mdrive" if fault in MDRIVE else "generic"
 

@@ -52,6 +52,7 @@ pub enum Fault {
     RangeCodeInconsistent,
     QuantityLowByte,
     QuantityOverSpecDropped,
+    WriteQuantityOverLimitDropped,
 }
 
 impl Fault {
@@ -276,6 +277,11 @@ impl Fault {
             Fault::QuantityOverSpecDropped,
             "quantity-over-spec-dropped",
             "a request whose quantity field is above the specification's maximum (125 registers, 123 for FC 10, 2000 bits, 1968 coils, FC 17's 125 / 121) goes unanswered, as a stack that drops what would not fit its buffer; the device's own, lower limit is still answered with 03",
+        ),
+        (
+            Fault::WriteQuantityOverLimitDropped,
+            "write-quantity-over-limit-dropped",
+            "FC 17: a quantity to write above the device's own limit but within the specification's 121 (49 on the SD2x, whose manual allows 1 to 48) goes unanswered, as a stack whose receive buffer holds only the longest request the device accepts drops the longer frame; the quantity to read is still checked",
         ),
     ];
 

@@ -1050,6 +1050,11 @@ impl Station {
         if self.faults.has(Fault::QuantityOverSpecDropped) && quantity_over_spec(pdu) {
             return Some((None, false));
         }
+        if self.faults.has(Fault::WriteQuantityOverLimitDropped)
+            && self.write_quantity_over_limit(pdu)
+        {
+            return Some((None, false));
+        }
         let low_byte;
         let pdu = if self.faults.has(Fault::QuantityLowByte) {
             low_byte = quantity_low_byte(pdu);
@@ -1344,6 +1349,25 @@ impl Station {
         quantity > 0 && (inside(u32::from(address)) || inside(end))
     }
 
+    /// `Fault::WriteQuantityOverLimitDropped`: whether the PDU, as sent, is an FC 17 whose quantity to write
+    /// is above the profile's own limit and within the specification's 121.
+    fn write_quantity_over_limit(&self, pdu: &[u8]) -> bool {
+        let fc = FunctionCode::READ_WRITE_MULTIPLE_REGISTERS;
+        let spec = FunctionCode::MAX_READ_WRITE_WRITE_QUANTITY;
+        let Some(limit) = self
+            .profile()
+            .function(fc)
+            .and_then(|f| f.max_write_quantity)
+        else {
+            return false;
+        };
+        pdu.first() == Some(&fc.0)
+            && pdu
+                .get(7..9)
+                .map(|b| u16::from_be_bytes([b[0], b[1]]))
+                .is_some_and(|m| m > limit && m <= spec)
+    }
+
     /// Quantity limits and FC 05 values, per the application protocol spec's state diagrams.
     fn spec_checks(&self, req: &Request) -> Option<Rejection> {
         if self.faults.has(Fault::QuantityUnchecked) {
@@ -1390,9 +1414,21 @@ impl Station {
                     .function(fc)
                     .and_then(|f| f.max_write_quantity)
                     .unwrap_or(FunctionCode::MAX_READ_WRITE_WRITE_QUANTITY);
+                // The quantity to write as the others: 03 outside the specification's 1..=121, and above
+                // the device's own limit only, the code is `quantity-over-device-limit`'s.
+                let spec_w = FunctionCode::MAX_READ_WRITE_WRITE_QUANTITY;
                 check(*read_quantity, fc, fc.max_quantity()).or_else(|| {
-                    (values.is_empty() || values.len() > usize::from(wmax))
-                        .then(|| Rejection::fixed(ExceptionCode::ILLEGAL_DATA_VALUE))
+                    let m = values.len();
+                    if m == 0 || m > usize::from(spec_w.max(wmax)) {
+                        Some(Rejection::fixed(ExceptionCode::ILLEGAL_DATA_VALUE))
+                    } else if m > usize::from(wmax) {
+                        Some(self.choices.reject(
+                            ids::QUANTITY_OVER_DEVICE_LIMIT,
+                            ExceptionCode::ILLEGAL_DATA_VALUE,
+                        ))
+                    } else {
+                        None
+                    }
                 })
             }
             _ => self.coil_value_check(req),

@@ -26,6 +26,9 @@ pub enum Captured {
         record_number: u16,
         values: Vec<u16>,
     },
+    /// The event bytes of an FC 0C answer (6.10), byte 0 first: nothing to write back, kept for
+    /// `Step::EventLogShifted`.
+    EventLog { events: Vec<u8> },
 }
 
 impl Captured {
@@ -45,9 +48,17 @@ impl Captured {
         }
     }
 
+    /// The event bytes, when an FC 0C answer was kept.
+    pub fn events(&self) -> Option<&[u8]> {
+        match self {
+            Captured::EventLog { events } => Some(events),
+            _ => None,
+        }
+    }
+
     /// The request that writes this back: registers and coils at `at` (where they were read when `None`),
     /// a setting as an FC 0x42 write of the same mnemonic, an object as an FC 43 write of the same object.
-    /// `None` when there is nothing to write (no coil states).
+    /// `None` when there is nothing to write (no coil states, an event log).
     pub fn restore(&self, at: Option<u16>, p: &Profile) -> Option<Request> {
         Some(match self {
             Captured::Registers { address, values } => {
@@ -105,6 +116,7 @@ impl Captured {
                     values: values.clone(),
                 }],
             },
+            Captured::EventLog { .. } => return None,
         })
     }
 }
@@ -180,6 +192,9 @@ pub fn captured(framing: Framing, request: &[u8], response: &[u8]) -> Option<Cap
                 record_number: r.record_number,
                 values: d.values.clone(),
             })
+        }
+        (Some(Request::GetCommEventLog), Response::GetCommEventLog { events, .. }) => {
+            Some(Captured::EventLog { events })
         }
         _ => None,
     }

@@ -1154,6 +1154,12 @@ impl Runner {
                     object,
                     note,
                 } => steps.push(self.agree(*registers, *object, note)),
+                Step::EventLogShifted {
+                    before,
+                    after,
+                    max_new,
+                    note,
+                } => steps.push(self.event_log_shifted(*before, *after, *max_new, note)),
                 Step::Exchange {
                     send,
                     compare,
@@ -1227,6 +1233,60 @@ impl Runner {
             ),
             Some((findings, note)) if findings.is_empty() => step(Verdict::Pass, note, findings),
             Some((findings, note)) => step(Verdict::Fail, note, findings),
+        }
+    }
+
+    /// The FC 0C log read second must be the one read first with at most `max_new` events entered in front
+    /// (see [`Step::EventLogShifted`]).
+    fn event_log_shifted(
+        &self,
+        before: usize,
+        after: usize,
+        max_new: usize,
+        note: &str,
+    ) -> StepResult {
+        let kept = |slot: usize| {
+            self.slots
+                .get(slot)
+                .and_then(Option::as_ref)
+                .and_then(Captured::events)
+        };
+        let findings = match (kept(before), kept(after)) {
+            (Some(first), Some(second)) => match oracle::event_log_shift(first, second, max_new) {
+                Some(_) => vec![],
+                None => vec![format!(
+                    "the event log read after the requests ({}) is not the log read before them ({}) with at most {max_new} new event(s) in front: byte 0 must be the most recent event and each new event must push the older ones back by one (6.10)",
+                    codec::hex_spaced(second),
+                    codec::hex_spaced(first),
+                )],
+            },
+            // The read's own step is judged already (exception 01 from a drive without FC 0C:
+            // UNIMPLEMENTED); nothing to compare here.
+            _ => {
+                return StepResult {
+                    note: format!(
+                        "{note}: not compared, one of the two FC 0C reads gave no event log (see its step)"
+                    ),
+                    sent: None,
+                    expected: None,
+                    observed: vec![],
+                    verdict: Verdict::Skipped,
+                    findings: vec![],
+                };
+            }
+        };
+        let verdict = if findings.is_empty() {
+            Verdict::Pass
+        } else {
+            Verdict::Fail
+        };
+        StepResult {
+            note: note.to_string(),
+            sent: None,
+            expected: None,
+            observed: vec![],
+            verdict,
+            findings,
         }
     }
 

@@ -1010,6 +1010,39 @@ fn fc08_counters_move_as_specified() {
     assert_eq!(diag(&mut st, 0x0B), 0);
 }
 
+#[test]
+fn fault_write_quantity_over_limit_dropped() {
+    let rw = |m: usize| Request::ReadWriteMultipleRegisters {
+        read_address: 3000,
+        read_quantity: 1,
+        write_address: 3000,
+        values: vec![0; m],
+    };
+    // Healthy: 49 registers to write (one above the manual's 48) are refused with 03.
+    let mut st = station();
+    assert!(matches!(
+        send(&mut st, 0, rw(49)),
+        Response::Exception { code, .. } if code.0 == 3
+    ));
+    // The fault drops it; the device's own range and the quantity to read are still answered.
+    let mut st = station_with(profile(), &[Fault::WriteQuantityOverLimitDropped]);
+    assert_eq!(send_to(&mut st, 0, UNIT, rw(49)), None);
+    assert!(matches!(
+        send(&mut st, 100, rw(1)),
+        Response::ReadWriteMultipleRegisters { .. }
+    ));
+    let over_read = Request::ReadWriteMultipleRegisters {
+        read_address: 3000,
+        read_quantity: 49,
+        write_address: 3000,
+        values: vec![0],
+    };
+    assert!(matches!(
+        send(&mut st, 200, over_read),
+        Response::Exception { code, .. } if code.0 == 3
+    ));
+}
+
 // ---------------------------------------------------------------------------------------------------------------
 // No panics, strict replies
 // ---------------------------------------------------------------------------------------------------------------
@@ -1024,6 +1057,7 @@ const MODEL_FAULTS: &[Fault] = &[
     Fault::QuantityUnchecked,
     Fault::QuantityLowByte,
     Fault::QuantityOverSpecDropped,
+    Fault::WriteQuantityOverLimitDropped,
     Fault::AnswerOtherUnit,
     Fault::BroadcastAnswered,
 ];

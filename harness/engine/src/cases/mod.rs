@@ -146,6 +146,17 @@ pub enum Step {
         object: usize,
         note: String,
     },
+    /// The FC 0C event log captured in slot `after` is the one captured in slot `before` with at most
+    /// `max_new` events entered in front of it (spec 6.10: byte 0 is the most recent event, each new byte
+    /// flushes the oldest): `after[n..] == before[..after.len() - n]` for some `n <= max_new`, the log no
+    /// shorter than before and no longer than 64 bytes or `before.len() + n`. Which events and how many were
+    /// entered (none at all, where the device logs no Modbus/TCP traffic) is the device's.
+    EventLogShifted {
+        before: usize,
+        after: usize,
+        max_new: usize,
+        note: String,
+    },
 }
 
 /// A conformance case.
@@ -262,6 +273,7 @@ impl Case {
                 Step::Agree {
                     registers, object, ..
                 } => Some(registers.max(object) + 1),
+                Step::EventLogShifted { before, after, .. } => Some(before.max(after) + 1),
                 _ => None,
             })
             .max()

@@ -20,6 +20,7 @@
 //! # batch = ["03 00 00 00 01", "03 00 01 00 01"]
 //! # capture = 0 / restore_address = 0 + restore_slot = 0 / restore_slot = 0 alone (where it was read)
 //! # kind = "wait" + wait_us = 1000 | kind = "reconnect" | kind = "agree" + registers + object
+//! # kind = "event_log_shifted" + before + after + max_new
 //!
 //! [origin]                      # where the reproducer came from (informational)
 //! case = "gen/42/17/write-reg"
@@ -48,6 +49,7 @@ pub enum StepKind {
     Wait,
     Reconnect,
     Agree,
+    EventLogShifted,
 }
 
 fn is_exchange(k: &StepKind) -> bool {
@@ -82,6 +84,12 @@ pub struct StepFile {
     pub registers: Option<usize>,
     #[serde(skip_serializing_if = "Option::is_none")]
     pub object: Option<usize>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub before: Option<usize>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub after: Option<usize>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub max_new: Option<usize>,
     #[serde(skip_serializing_if = "Option::is_none")]
     pub mutation: Option<Mutation>,
 }
@@ -168,6 +176,18 @@ fn step_file(step: &Step) -> StepFile {
             f.object = Some(*object);
             f.note = Some(note.clone());
         }
+        Step::EventLogShifted {
+            before,
+            after,
+            max_new,
+            note,
+        } => {
+            f.kind = StepKind::EventLogShifted;
+            f.before = Some(*before);
+            f.after = Some(*after);
+            f.max_new = Some(*max_new);
+            f.note = Some(note.clone());
+        }
     }
     f
 }
@@ -209,6 +229,16 @@ fn step_of(i: usize, f: &StepFile) -> Result<Step, RegressionError> {
         StepKind::Agree => Step::Agree {
             registers: f.registers.ok_or_else(|| at("agree needs registers"))?,
             object: f.object.ok_or_else(|| at("agree needs object"))?,
+            note: f.note.clone().unwrap_or_default(),
+        },
+        StepKind::EventLogShifted => Step::EventLogShifted {
+            before: f
+                .before
+                .ok_or_else(|| at("event_log_shifted needs before"))?,
+            after: f.after.ok_or_else(|| at("event_log_shifted needs after"))?,
+            max_new: f
+                .max_new
+                .ok_or_else(|| at("event_log_shifted needs max_new"))?,
             note: f.note.clone().unwrap_or_default(),
         },
         StepKind::Exchange => {
@@ -460,6 +490,12 @@ mod tests {
                     registers: 0,
                     object: 1,
                     note: "agree".into(),
+                },
+                Step::EventLogShifted {
+                    before: 0,
+                    after: 1,
+                    max_new: 6,
+                    note: "shifted".into(),
                 },
             ],
             requirements: Vec::new(),

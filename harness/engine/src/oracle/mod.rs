@@ -848,3 +848,51 @@ pub fn verdict(findings: &[Finding], level: Level) -> Verdict {
         (Some(_), _) => Verdict::NonStrict,
     }
 }
+
+/// How many events a device entered in front of its FC 0C event log between two reads, `before` and
+/// `after` (each byte 0 first), when `after` is `before` with at most `max_new` new events in front and its
+/// oldest ones flushed (spec 6.10: "Byte 0 is the most recent event. Each new byte flushes the oldest byte
+/// from the field."): the smallest `n <= max_new` with `after[n..] == before[..after.len() - n]`, the log no
+/// shorter than before (nothing but a restart clears it) and no longer than 64 bytes or `before.len() + n`
+/// (a device may keep fewer than 64). `None` when no such `n` exists: the events are not in that order.
+pub fn event_log_shift(before: &[u8], after: &[u8], max_new: usize) -> Option<usize> {
+    let cap = codec::codes::event::LOG_CAPACITY;
+    (0..=max_new.min(after.len())).find(|&n| {
+        after.len() >= before.len()
+            && after.len() <= cap.min(before.len() + n)
+            && after[n..] == before[..after.len() - n]
+    })
+}
+
+#[cfg(test)]
+mod event_log_tests {
+    use super::event_log_shift;
+
+    #[test]
+    fn new_events_in_front_pass_and_a_reversed_log_does_not() {
+        let before = [0x80, 0x40, 0x80, 0x40, 0x80];
+        // Nothing logged (a device that logs no Modbus/TCP traffic), two, six events in front.
+        assert_eq!(event_log_shift(&before, &before, 6), Some(0));
+        let two = [0x80, 0x41, 0x80, 0x40, 0x80, 0x40, 0x80];
+        assert_eq!(event_log_shift(&before, &two, 6), Some(2));
+        // More new events than the requests can have made.
+        assert_eq!(event_log_shift(&before, &two, 1), None);
+        // A full log flushes the oldest bytes, also for a device that keeps fewer than 64.
+        let full: Vec<u8> = (0..64).collect();
+        let mut next = vec![0xC0, 0xC1];
+        next.extend_from_slice(&full[..62]);
+        assert_eq!(event_log_shift(&full, &next, 6), Some(2));
+        assert_eq!(event_log_shift(&full[..32], &next[..32], 6), Some(2));
+        // The log sent oldest first: the new events at the end.
+        let mut b = vec![0x80, 0x40, 0x80, 0x41, 0x80];
+        let mut a = vec![
+            0x80, 0x41, 0x80, 0x40, 0x80, 0x40, 0x80, 0x40, 0x80, 0x41, 0x80,
+        ];
+        assert!(event_log_shift(&b, &a, 6).is_some());
+        b.reverse();
+        a.reverse();
+        assert_eq!(event_log_shift(&b, &a, 6), None);
+        // A log that lost events without a restart.
+        assert_eq!(event_log_shift(&before, &before[..3], 6), None);
+    }
+}

@@ -76,6 +76,7 @@ pub(super) fn cases(cx: &mut Ctx) {
     read_exception_status(cx);
     diagnostics(cx);
     comm_event_counter_and_log(cx);
+    event_log_order(cx);
     report_server_id_case(cx);
     file_records(cx);
     mask_write(cx);
@@ -428,7 +429,8 @@ pub fn comm_event(p: &Profile, unit: u8, fc: u8, prelude: Prelude) -> Option<Exe
 /// FC 0B (6.9) and FC 0C (6.10). On a serial line the port is restarted first (08/01 with FF 00 clears the
 /// counters, the event counter and the log, spec 6.8.1), so that the counts and the events that follow are
 /// fixed by the spec: one successful read, two exception responses (not counted as completions), then FC
-/// 0B, then FC 0C (its events the most recent first). Over Modbus/TCP the format only.
+/// 0B, then FC 0C (its events the most recent first). Over Modbus/TCP the format only (the order of the
+/// log's events on every transport: [`event_log_order`]).
 fn comm_event_counter_and_log(cx: &mut Ctx) {
     for (fc, section, name) in [
         (0x0Bu8, "6.9", "get-comm-event-counter"),
@@ -477,6 +479,75 @@ fn comm_event_counter_and_log(cx: &mut Ctx) {
             );
         }
     }
+}
+
+/// The most events two FC 0C reads with `between` requests between them can find entered (spec 6.10): a
+/// receive event when each message arrives, a send event when its processing ends; no other event comes from
+/// a read (04 and 00 come from 08/04 and 08/01). The first read's send event, the requests' two each, the
+/// second read's receive event (whether a device logs it before it answers is its own).
+pub fn event_log_max_new(between: usize) -> usize {
+    1 + 2 * between + 1
+}
+
+/// FC 0C (6.10) without a known start state: the log read, a successful read and an exception response,
+/// the log read again: the second log is the first with the new events in front and the oldest flushed
+/// ([`crate::cases::Step::EventLogShifted`]). The read before the first log gives a short log an event
+/// order that reads differently backwards. Which events and how many a device logs is not required: FC 0C is
+/// a serial line function in the spec's table, and a device that serves it on Modbus/TCP as well may log no
+/// Modbus/TCP traffic at all (an unchanged log passes); where it logs, the order is 6.10's. Any transport.
+fn event_log_order(cx: &mut Ctx) {
+    if !cx.supports(FunctionCode::GET_COMM_EVENT_LOG) {
+        return;
+    }
+    let read = super::known_good_read(cx.p);
+    let bad = exception_request(cx);
+    let between = [
+        exchange(
+            Outgoing::Pdu(read.clone()),
+            Compare::Structure,
+            "a successful read",
+        ),
+        exchange(
+            Outgoing::Pdu(bad),
+            Compare::Structure,
+            "an exception response",
+        ),
+    ];
+    let max_new = event_log_max_new(between.len());
+    let mut steps = vec![
+        exchange(
+            Outgoing::Pdu(read),
+            Compare::Structure,
+            "a successful read: events before the first log",
+        ),
+        capture(
+            Outgoing::Pdu(vec![0x0C]),
+            Compare::Structure,
+            0,
+            "FC 0C: the log before",
+        ),
+    ];
+    steps.extend(between);
+    steps.push(capture(
+        Outgoing::Pdu(vec![0x0C]),
+        Compare::Structure,
+        1,
+        "FC 0C: the log after",
+    ));
+    steps.push(Step::EventLogShifted {
+        before: 0,
+        after: 1,
+        max_new,
+        note: format!("the log after is the log before with at most {max_new} new events in front"),
+    });
+    cx.push(
+        "spec/app-6.10/get-comm-event-log/new-events-in-front".to_string(),
+        "FC 0C twice around two requests: new events in front, the oldest flushed",
+        format!("{APP}, section 6.10"),
+        "Byte 0 is the most recent event. Each new byte flushes the oldest byte from the field: a log read again after more requests is the first log with the new events (a receive and a send event per message at most) in front.",
+        vec![],
+        steps,
+    );
 }
 
 /// FC 11 (6.13): exactly where the profile declares the server id and additional data, else in format; the

@@ -125,6 +125,32 @@ fn quantities_out_of_range(cx: &mut Ctx) {
                 steps,
             );
         }
+        // FC 23's quantity to write has a limit of its own (121 in the specification): one above the
+        // device's, where the profile declares one below the specification's (above it,
+        // `write-spec-max-plus-1` is the same request).
+        let wmax = p.function(fc).and_then(|f| f.max_write_quantity);
+        if let Some(wmax) =
+            wmax.filter(|&w| fc == 0x17 && w < FunctionCode::MAX_READ_WRITE_WRITE_QUANTITY)
+        {
+            let q = wmax + 1;
+            let address = first_reg(p, Table::Holding);
+            let (bytes, _) = quantity_request(fc, q, true, address);
+            let mut a = Around::new();
+            a.keep_registers(cx, address, q);
+            let steps = a.wrap(vec![exchange(
+                Outgoing::Pdu(bytes),
+                Compare::Exact,
+                format!("quantity to write {q}"),
+            )]);
+            cx.push(
+                format!("spec/app-6/quantity/fc-0x{fc:02X}/write-max-plus-1"),
+                format!("FC 0x{fc:02X} with quantity to write {q} (limit {wmax})"),
+                format!("{APP}, section {} (state diagram: quantity out of range)", section(fc)),
+                format!("A quantity to write above the limit ({wmax} for this device) is answered with exception 03 (Illegal Data Value)."),
+                vec![Tag::Write],
+                steps,
+            );
+        }
     }
 }
 

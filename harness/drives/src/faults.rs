@@ -53,6 +53,7 @@ pub enum Fault {
     QuantityLowByte,
     QuantityOverSpecDropped,
     WriteQuantityOverLimitDropped,
+    VendorWriteNotApplied,
 }
 
 impl Fault {
@@ -282,6 +283,11 @@ impl Fault {
             Fault::WriteQuantityOverLimitDropped,
             "write-quantity-over-limit-dropped",
             "FC 17: a quantity to write above the device's own limit but within the specification's 121 (49 on the SD2x, whose manual allows 1 to 48) goes unanswered, as a stack whose receive buffer holds only the longest request the device accepts drops the longer frame; the quantity to read is still checked",
+        ),
+        (
+            Fault::VendorWriteNotApplied,
+            "vendor-write-not-applied",
+            "MDrive/LMD: an FC 0x42 write of a setting is acknowledged (echoed) but not stored: FC 0x41 still reads the old values",
         ),
     ];
 

@@ -572,6 +572,8 @@ pub struct Mdrive {
     write_only_readable: bool,
     /// `Fault::MnemonicParamsUnchecked`: FC 0x42 parameters the mnemonic does not take are "written".
     params_unchecked: bool,
+    /// `Fault::VendorWriteNotApplied`: an FC 0x42 write of a setting is acknowledged but not stored.
+    write_not_applied: bool,
 }
 
 impl Mdrive {
@@ -638,6 +640,7 @@ impl Mdrive {
             decisions: Vec::new(),
             write_only_readable: faults.has(Fault::WriteOnlyReadable),
             params_unchecked: faults.has(Fault::MnemonicParamsUnchecked),
+            write_not_applied: faults.has(Fault::VendorWriteNotApplied),
         };
         model.refresh();
         model
@@ -1001,6 +1004,13 @@ impl Mdrive {
         let key = m.name.to_ascii_uppercase();
         let result = match kind {
             VendorKind::Command { takes_params } => self.run_command(&key, text, takes_params),
+            // The faulty drive checks the parameters as a setting's but does not store them.
+            VendorKind::Setting { count } if self.write_not_applied => {
+                let kept = self.clone();
+                let checked = self.write_setting(&m, &key, text, count);
+                *self = kept;
+                checked
+            }
             VendorKind::Setting { count } => self.write_setting(&m, &key, text, count),
             VendorKind::Status => {
                 // Only under `read-only-writable`: the "measurement" takes whatever was written.

@@ -941,7 +941,7 @@ fn field_value(
             Response::VendorRead { params: op },
             _,
         ) => {
-            if parameter_values(ep) == parameter_values(op) {
+            if same_values(&parameter_values(ep), &parameter_values(op)) {
                 one(o.clone(), "as-written")
             } else {
                 vec![]
@@ -1047,6 +1047,15 @@ fn field_value(
 }
 
 /// The values of an FC 0x41 parameter string, however separated ("=0,0,0", "0, 0, 0").
+/// The same parameter values: equal strings, or numbers of the same value ("1.500" and "1.5": the manual
+/// prints settings with a fixed number of decimals, a drive may not).
+fn same_values(a: &[String], b: &[String]) -> bool {
+    a.len() == b.len()
+        && a.iter().zip(b).all(|(x, y)| {
+            x == y || matches!((x.parse::<f64>(), y.parse::<f64>()), (Ok(u), Ok(v)) if u == v)
+        })
+}
+
 fn parameter_values(p: &[u8]) -> Vec<String> {
     let s = String::from_utf8_lossy(p);
     s.trim()

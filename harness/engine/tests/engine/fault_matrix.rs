@@ -432,6 +432,17 @@ pub(crate) const WITNESSES: &[(&str, &str, &str)] = &[
         "sim:sd2x?transport=tcp",
         "spec/app-6/quantity/fc-0x17/write-max-plus-1",
     ),
+    // An FC 0x42 setting acknowledged but not stored: the write case reads it back (issue 15).
+    (
+        "vendor-write-not-applied",
+        "sim:mdrive",
+        "profile/mdrive/mnemonic/tr/write",
+    ),
+    (
+        "vendor-write-not-applied",
+        "sim:lmd",
+        "profile/lmd/mnemonic/mu/write",
+    ),
 ];
 
 /// Faults that break no single answer but the consistency of a drive's choices (issue 12: once a drive has

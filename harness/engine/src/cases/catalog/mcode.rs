@@ -219,6 +219,14 @@ pub(super) fn free_partner(cx: &Ctx, a: &mut Around, r: &Register) {
     }
 }
 
+/// True for the MCode program commands and the irreversible ones (see [`program_command`]).
+pub(super) fn is_program_command(name: &str) -> bool {
+    matches!(
+        name.trim().to_ascii_uppercase().as_str(),
+        "E" | "EX" | "PS" | "RS" | "CP" | "UG"
+    )
+}
+
 /// The MCode program commands (000 section 4.3, 001 sections 4.4.5, 4.4.10, 4.4.11, 4.4.13): a case that
 /// pauses or resumes a program first starts one (EX with the profile's example label), every case that
 /// starts one ends it (E) after, and each starts from no program running (E), so that no case depends on a

@@ -398,19 +398,39 @@ fn mnemonics(cx: &mut Ctx) {
             let mut a = Around::new();
             a.keep_setting(cx, &m.name);
             mcode::program_command(cx, &mut a, &mut tags, &m.name);
-            let steps = a.wrap(vec![exchange(
+            let mut steps = vec![exchange(
                 Outgoing::Pdu(pdu(&Request::VendorWrite {
                     mnemonic: w,
                     params: ex.as_bytes().to_vec(),
                 })),
                 Compare::Exact,
                 "write",
-            )]);
+            )];
+            // A setting (R/W in the manual's table) reads back what was written: the values, compared with
+            // the reference's after the same write (their formatting is the freedom
+            // `fc41-read-back-format`; numbers compare as numbers). Not the program commands, which FC 0x41
+            // may run (`mdrive-program-control-function`).
+            let setting = m.read
+                && cx.supports(FunctionCode::VENDOR_READ)
+                && ex.trim_start().starts_with('=')
+                && !mcode::is_program_command(&m.name);
+            if setting {
+                steps.push(exchange(
+                    Outgoing::Pdu(pdu(&Request::VendorRead { mnemonic: w })),
+                    Compare::Exact,
+                    "read back",
+                ));
+            }
+            let steps = a.wrap(steps);
             cx.push(
                 format!("profile/{pid}/mnemonic/{}/write", slug(&m.name)),
                 format!("FC 0x42 write of {}{}", m.name, ex),
                 format!("{}: vendor FC 0x42, mnemonic {}", p.device.name, m.name),
-                "A writable mnemonic accepts the manual's example parameters and echoes the mnemonic.",
+                if setting {
+                    "A writable mnemonic accepts the manual's example parameters and echoes the mnemonic; the setting then reads back (FC 0x41) with the values written."
+                } else {
+                    "A writable mnemonic accepts the manual's example parameters and echoes the mnemonic."
+                },
                 tags,
                 steps,
             );

@@ -54,6 +54,7 @@ pub enum Fault {
     QuantityOverSpecDropped,
     WriteQuantityOverLimitDropped,
     VendorWriteNotApplied,
+    ConformityLevelWrong,
 }
 
 impl Fault {
@@ -288,6 +289,11 @@ impl Fault {
             Fault::VendorWriteNotApplied,
             "vendor-write-not-applied",
             "MDrive/LMD: an FC 0x42 write of a setting is acknowledged (echoed) but not stored: FC 0x41 still reads the old values",
+        ),
+        (
+            Fault::ConformityLevelWrong,
+            "conformity-level-wrong",
+            "FC 43/14: every device identification answer declares conformity level 01 (basic, stream access only) whatever objects and access the drive serves",
         ),
     ];
 

@@ -891,6 +891,13 @@ impl Station {
         if b.is_empty() {
             return b;
         }
+        if let Response::ReadDeviceId(_) = resp
+            && self.faults.has(Fault::ConformityLevelWrong)
+            && let Some(conformity) = b.get_mut(3)
+        {
+            // 2B 0E code conformity ...
+            *conformity = 0x01;
+        }
         if let Response::CanOpen(_) = resp
             && self.fc43_without_reserved()
             && let Some(short) = codec::canopen_without_reserved(&b)

@@ -613,6 +613,7 @@ fn compare_frames(
             structure(e, o, &mut out);
             if out.is_empty() {
                 padding_zero(&sent.pdu, o, &mut out);
+                identification_consistent(&sent.pdu, o, &mut out);
             }
         }
         Compare::InRange => {
@@ -778,6 +779,52 @@ fn padding_zero(req: &[u8], o: &Response, out: &mut Vec<Finding>) {
     }
 }
 
+/// FC 43 / MEI 0x0E: the conformity level a device declares agrees with what it answers (spec 6.21: the
+/// level is 01 basic, 02 regular, 03 extended, stream access only, or 81-83 with individual access too;
+/// objects 00-02 are basic, 03-7F regular, 80-FF extended; a device asked for more than its level answers
+/// in accordance with its level). An object above the declared level, or an individual access (code 04)
+/// answered by a device that declares stream access only, contradicts it.
+fn identification_consistent(req: &[u8], o: &Response, out: &mut Vec<Finding>) {
+    let Response::ReadDeviceId(d) = o else {
+        return;
+    };
+    let level = d.conformity & 0x7F;
+    if !(1..=3).contains(&level) || d.conformity & 0x80 != d.conformity & 0xF0 {
+        out.push(must(format!(
+            "identification: conformity level 0x{:02X} is none of 01-03, 81-83 (6.21)",
+            d.conformity
+        )));
+        return;
+    }
+    let category = |id: u8| -> usize {
+        match id {
+            0x00..=0x02 => 1,
+            0x03..=0x7F => 2,
+            _ => 3,
+        }
+    };
+    let level = usize::from(level);
+    if let Some(obj) = d.objects.iter().find(|obj| category(obj.id) > level) {
+        out.push(must(format!(
+            "identification: object 0x{:02X} is {} but the device declares conformity level 0x{:02X} ({}) (6.21)",
+            obj.id,
+            ["basic", "regular", "extended"][category(obj.id) - 1],
+            d.conformity,
+            ["basic", "regular", "extended"][level - 1],
+        )));
+    }
+    let individual = matches!(
+        Request::decode(req),
+        Ok(Request::ReadDeviceId { read_code: 4, .. })
+    );
+    if individual && d.conformity & 0x80 == 0 {
+        out.push(must(format!(
+            "identification: an individual access (code 04) is answered, but conformity level 0x{:02X} declares stream access only (6.21)",
+            d.conformity
+        )));
+    }
+}
+
 /// Register values lie within the profile's ranges, read in the device's word order.
 fn in_range(req: &[u8], o: &Response, p: &Profile, order: WordOrder, out: &mut Vec<Finding>) {
     let (address, input) = match Request::decode(req) {
@@ -894,5 +941,56 @@ mod event_log_tests {
         assert_eq!(event_log_shift(&b, &a, 6), None);
         // A log that lost events without a restart.
         assert_eq!(event_log_shift(&before, &before[..3], 6), None);
+    }
+}
+
+#[cfg(test)]
+mod identification_tests {
+    use super::identification_consistent;
+    use codec::{DeviceIdObject, DeviceIdResponse, Request, Response};
+
+    fn answer(conformity: u8, ids: &[u8]) -> Response {
+        Response::ReadDeviceId(DeviceIdResponse {
+            read_code: 2,
+            conformity,
+            more_follows: 0,
+            next_object_id: 0,
+            objects: ids
+                .iter()
+                .map(|&id| DeviceIdObject {
+                    id,
+                    value: b"x".to_vec(),
+                })
+                .collect(),
+        })
+    }
+
+    fn findings(read_code: u8, o: &Response) -> usize {
+        let req = Request::ReadDeviceId {
+            read_code,
+            object_id: 0,
+        }
+        .to_bytes()
+        .unwrap();
+        let mut out = Vec::new();
+        identification_consistent(&req, o, &mut out);
+        out.len()
+    }
+
+    #[test]
+    fn the_declared_level_must_cover_the_objects_and_the_access() {
+        // Consistent: regular objects at level 02 or 82; a basic-only device answering code 02 with its
+        // basic objects (6.21: "in accordance with its actual conformity level").
+        assert_eq!(findings(2, &answer(0x82, &[0, 1, 2, 3, 6])), 0);
+        assert_eq!(findings(2, &answer(0x02, &[0, 1, 2, 3])), 0);
+        assert_eq!(findings(2, &answer(0x01, &[0, 1, 2])), 0);
+        assert_eq!(findings(3, &answer(0x83, &[0x80])), 0);
+        assert_eq!(findings(4, &answer(0x81, &[1])), 0);
+        // Objects above the level, individual access at a stream-only level, a level the spec lacks.
+        assert_eq!(findings(2, &answer(0x01, &[0, 1, 2, 3])), 1);
+        assert_eq!(findings(3, &answer(0x82, &[0x80])), 1);
+        assert_eq!(findings(4, &answer(0x02, &[1])), 1);
+        assert_eq!(findings(2, &answer(0x04, &[0])), 1);
+        assert_eq!(findings(2, &answer(0x42, &[0])), 1);
     }
 }

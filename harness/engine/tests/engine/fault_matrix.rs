@@ -443,6 +443,27 @@ pub(crate) const WITNESSES: &[(&str, &str, &str)] = &[
         "sim:lmd",
         "profile/lmd/mnemonic/mu/write",
     ),
+    // The identification conformity level that does not match the objects and access served (issue 15).
+    (
+        "conformity-level-wrong",
+        "sim:mdrive",
+        "profile/mdrive/identification/regular",
+    ),
+    (
+        "conformity-level-wrong",
+        "sim:lmd",
+        "profile/lmd/identification/regular",
+    ),
+    (
+        "conformity-level-wrong",
+        "sim:generic",
+        "profile/generic/identification/regular",
+    ),
+    (
+        "conformity-level-wrong",
+        "sim:generic?transport=rtu",
+        "profile/generic/identification/regular",
+    ),
 ];
 
 /// Faults that break no single answer but the consistency of a drive's choices (issue 12: once a drive has

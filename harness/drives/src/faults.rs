@@ -53,6 +53,9 @@ pub enum Fault {
     QuantityLowByte,
     QuantityOverSpecDropped,
     WriteQuantityOverLimitDropped,
+    Ds402EnableFromSwitchOnDisabled,
+    SpeedWithoutEnable,
+    WatchdogFromFirstWrite,
 }
 
 impl Fault {
@@ -282,6 +285,21 @@ impl Fault {
             Fault::WriteQuantityOverLimitDropped,
             "write-quantity-over-limit-dropped",
             "FC 17: a quantity to write above the device's own limit but within the specification's 121 (49 on the SD2x, whose manual allows 1 to 48) goes unanswered, as a stack whose receive buffer holds only the longest request the device accepts drops the longer frame; the quantity to read is still checked",
+        ),
+        (
+            Fault::Ds402EnableFromSwitchOnDisabled,
+            "ds402-enable-from-switch-on-disabled",
+            "SD2x: enable operation (control word 0x000F) is taken straight from switch on disabled to operation enabled, skipping the shutdown the DS402 state machine requires first",
+        ),
+        (
+            Fault::SpeedWithoutEnable,
+            "speed-without-enable",
+            "SD2x: the actual speed ramps to the target speed also in switch on disabled, ready to switch on and switched on (the motor turns while operation is not enabled)",
+        ),
+        (
+            Fault::WatchdogFromFirstWrite,
+            "watchdog-from-first-write",
+            "SD2x: rewriting the RxPDO watchdog does not restart it: it times out counted from the write that armed it, so a drive refreshed in time still trips",
         ),
     ];
 

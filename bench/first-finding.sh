@@ -26,7 +26,7 @@
 #   --expect TEXT    count only a `finding:` line containing TEXT (e.g. the case kind `comm-event-log`), and
 #                    run the campaigns with --keep-going so that another finding does not end them first
 #
-# The profile is the one whose behaviour the fault concerns: sd2x for watchdog-disabled and
+# The profile is the one whose behaviour the fault concerns: sd2x for the DS402/watchdog faults and
 # write-quantity-over-limit-dropped (the only FC 17 write limit below 121), mdrive for the MDrive/LMD
 # mnemonic faults, word order, 32-bit halves and undeclared functions, generic (which declares the whole
 # public function code set) for the rest. RTU-only faults (those of framing and of the serial line's
@@ -116,7 +116,9 @@ def profile_of(fault):
     if forced:
         return forced
     # write-quantity-over-limit-dropped: only a profile whose FC 17 write limit is below the spec's (the SD2x).
-    if fault in ("watchdog-disabled", "write-quantity-over-limit-dropped"):
+    if fault in ("watchdog-disabled", "write-quantity-over-limit-dropped",
+                 "ds402-enable-from-switch-on-disabled", "speed-without-enable",
+                 "watchdog-from-first-write"):
         return "sd2x"
     return "mdrive" if fault in MDRIVE else "generic"
 

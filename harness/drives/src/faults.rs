@@ -55,6 +55,9 @@ pub enum Fault {
     WriteQuantityOverLimitDropped,
     VendorWriteNotApplied,
     ConformityLevelWrong,
+    Ds402EnableFromSwitchOnDisabled,
+    SpeedWithoutEnable,
+    WatchdogFromFirstWrite,
 }
 
 impl Fault {
@@ -294,6 +297,21 @@ impl Fault {
             Fault::ConformityLevelWrong,
             "conformity-level-wrong",
             "FC 43/14: every device identification answer declares conformity level 01 (basic, stream access only) whatever objects and access the drive serves",
+        ),
+        (
+            Fault::Ds402EnableFromSwitchOnDisabled,
+            "ds402-enable-from-switch-on-disabled",
+            "SD2x: enable operation (control word 0x000F) is taken straight from switch on disabled to operation enabled, skipping the shutdown the DS402 state machine requires first",
+        ),
+        (
+            Fault::SpeedWithoutEnable,
+            "speed-without-enable",
+            "SD2x: the actual speed ramps to the target speed also in switch on disabled, ready to switch on and switched on (the motor turns while operation is not enabled)",
+        ),
+        (
+            Fault::WatchdogFromFirstWrite,
+            "watchdog-from-first-write",
+            "SD2x: rewriting the RxPDO watchdog does not restart it: it times out counted from the write that armed it, so a drive refreshed in time still trips",
         ),
     ];
 

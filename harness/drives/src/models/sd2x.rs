@@ -472,7 +472,17 @@ impl Sd2x {
 
     /// The speed the motor ramps towards: the target speed in operation enabled without halt, else 0.
     fn ramp_target(&self) -> i16 {
-        if self.state == Ds402State::OperationEnabled && self.control_word() & control::HALT == 0 {
+        // The fault: the setpoint is followed in every state where the power stage should be off (the
+        // stopping states still ramp to 0, so that they complete).
+        let follows = self.state == Ds402State::OperationEnabled
+            || (self.has(Fault::SpeedWithoutEnable)
+                && matches!(
+                    self.state,
+                    Ds402State::SwitchOnDisabled
+                        | Ds402State::ReadyToSwitchOn
+                        | Ds402State::SwitchedOn
+                ));
+        if follows && self.control_word() & control::HALT == 0 {
             self.stored(reg::TARGET_SPEED) as u16 as i16
         } else {
             0
@@ -569,6 +579,9 @@ impl Sd2x {
         let unit_ms = self.profile.watchdog.as_ref().map_or(1, |w| w.unit_ms);
         self.watchdog_deadline = if value == 0 {
             None
+        } else if self.has(Fault::WatchdogFromFirstWrite) && self.watchdog_deadline.is_some() {
+            // The fault: a rewrite while armed leaves the deadline of the write that armed it.
+            self.watchdog_deadline
         } else {
             let ms = u64::from(value).saturating_mul(u64::from(unit_ms));
             // An overflowing deadline is one that never comes.
@@ -595,6 +608,12 @@ impl Sd2x {
         let cmd = Command::decode(new);
         self.state = match (self.state, cmd) {
             (SwitchOnDisabled, Command::Shutdown) => ReadyToSwitchOn,
+            // The fault: CiA 402 has no transition from switch on disabled but shutdown (transition 2).
+            (SwitchOnDisabled, Command::EnableOperation)
+                if self.has(crate::faults::Fault::Ds402EnableFromSwitchOnDisabled) =>
+            {
+                OperationEnabled
+            }
             (ReadyToSwitchOn, Command::SwitchOn) => SwitchedOn,
             // "Switch on + enable operation" from ready to switch on: transitions 3 and 4 at once, which
             // example 6.1 relies on (shutdown, then 0x000F, then the motor runs: lines 1224-1267).

@@ -692,6 +692,37 @@ fn watchdog_disabled_fault_never_trips() {
 }
 
 #[test]
+fn ds402_enable_from_switch_on_disabled_fault_skips_shutdown() {
+    // Healthy: 0x000F in switch on disabled is no transition (CiA 402 leaves it by shutdown only).
+    let mut st = station();
+    telegram(&mut st, 0, 0x000F, 0, 0);
+    assert_eq!(status(&mut st, 1) & 0x006F, 0x0060);
+    let mut st = station_with(profile(), &[Fault::Ds402EnableFromSwitchOnDisabled]);
+    telegram(&mut st, 0, 0x000F, 0, 0);
+    assert_eq!(status(&mut st, 1) & 0x006F, 0x0027);
+}
+
+#[test]
+fn speed_without_enable_fault_turns_the_motor_before_enable() {
+    for faults in [&[][..], &[Fault::SpeedWithoutEnable][..]] {
+        let mut st = station_with(profile(), faults);
+        telegram(&mut st, 0, 0x0006, 1000, 0);
+        let expected = if faults.is_empty() { 0 } else { 1000 };
+        assert_eq!(speed(&mut st, 2000), expected, "faults {faults:?}");
+    }
+}
+
+#[test]
+fn watchdog_from_first_write_fault_trips_although_rewritten() {
+    let mut st = station_with(profile(), &[Fault::WatchdogFromFirstWrite]);
+    for t in (0..=800).step_by(200) {
+        telegram(&mut st, t, 0x0006, 0, 500);
+    }
+    assert_eq!(read1(&mut st, 801, 2005), 0x8130);
+    assert_eq!(status(&mut st, 801) & 0x0008, 0x0008);
+}
+
+#[test]
 fn watchdog_error_code_comes_from_the_profile_when_given() {
     let mut p = profile();
     if let Some(w) = p.watchdog.as_mut() {

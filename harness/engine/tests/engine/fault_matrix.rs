@@ -107,6 +107,23 @@ pub(crate) const WITNESSES: &[(&str, &str, &str)] = &[
         "sim:sd2x",
         "profile/sd2x/ds402/watchdog",
     ),
+    // The DS402 bug kinds of issue 15: an illegal transition taken, motion while not enabled, a watchdog
+    // that trips although refreshed in time.
+    (
+        "ds402-enable-from-switch-on-disabled",
+        "sim:sd2x",
+        "profile/sd2x/ds402/enable-from-switch-on-disabled",
+    ),
+    (
+        "speed-without-enable",
+        "sim:sd2x",
+        "profile/sd2x/ds402/speed-zero-when-not-enabled",
+    ),
+    (
+        "watchdog-from-first-write",
+        "sim:sd2x",
+        "profile/sd2x/ds402/watchdog-refreshed",
+    ),
     (
         "unit-not-echoed",
         "sim:generic",

@@ -58,6 +58,7 @@ pub enum Fault {
     Ds402EnableFromSwitchOnDisabled,
     SpeedWithoutEnable,
     WatchdogFromFirstWrite,
+    ListedFunctionRefused,
 }
 
 impl Fault {
@@ -312,6 +313,11 @@ impl Fault {
             Fault::WatchdogFromFirstWrite,
             "watchdog-from-first-write",
             "SD2x: rewriting the RxPDO watchdog does not restart it: it times out counted from the write that armed it, so a drive refreshed in time still trips",
+        ),
+        (
+            Fault::ListedFunctionRefused,
+            "listed-function-refused",
+            "FC 04 (Read Input Registers) is answered with exception 01 (illegal function) although the drive's profile lists it (the SD2x manual, line 277)",
         ),
     ];
 

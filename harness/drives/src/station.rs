@@ -1046,6 +1046,13 @@ impl Station {
                 .choices
                 .defined_of(FreedomKind::ServedExtra)
                 .all(|(f, _)| f.functions.contains(&fc.0));
+        if self.faults.has(Fault::ListedFunctionRefused) && fc == FunctionCode::READ_INPUT_REGISTERS
+        {
+            return Some((
+                Some(Response::exception(fc, ExceptionCode::ILLEGAL_FUNCTION)),
+                false,
+            ));
+        }
         if !supported && !served_extra {
             // A function the profile does not list: a drive may serve it anyway (a freedom of the spec).
             self.decisions.push(ids::SERVED_EXTRA_FUNCTION);

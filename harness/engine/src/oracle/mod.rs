@@ -583,7 +583,13 @@ fn compare_frames(
     let (Pdu::Response(e), Pdu::Response(o)) = (&exp_d.pdu, &obs_d.pdu) else {
         return out;
     };
-    if let Some(f) = exception_mismatch(e, o, &exp_d.pdu, &obs_d.pdu) {
+    // The manual line that lists the function, where the profile is a manual's (the generic profile's
+    // functions are the spec's optional ones).
+    let listed = profile
+        .function(e.function().without_exception_bit())
+        .filter(|f| f.confirmed)
+        .and_then(|f| f.line);
+    if let Some(f) = exception_mismatch(e, o, &exp_d.pdu, &obs_d.pdu, listed) {
         out.extend(f);
         return out;
     }
@@ -628,8 +634,16 @@ fn compare_frames(
 }
 
 /// Where the reference or the target answers with an exception: the findings, or `None` when neither does.
-/// "Illegal function" for a function the profile has is graded UNIMPLEMENTED: the target lacks it.
-fn exception_mismatch(e: &Response, o: &Response, exp: &Pdu, obs: &Pdu) -> Option<Vec<Finding>> {
+/// "Illegal function" for a function the profile has is graded UNIMPLEMENTED: the target lacks it; but where
+/// the drive's manual lists the function (`listed`: its line), serving it is a requirement of the manual, and
+/// refusing a request the reference serves with 01 is a FAIL.
+fn exception_mismatch(
+    e: &Response,
+    o: &Response,
+    exp: &Pdu,
+    obs: &Pdu,
+    listed: Option<u32>,
+) -> Option<Vec<Finding>> {
     let lacks = |same_function: bool| {
         matches!(o, Response::Exception { code, .. } if code.0 == 1) && same_function
     };
@@ -661,10 +675,17 @@ fn exception_mismatch(e: &Response, o: &Response, exp: &Pdu, obs: &Pdu) -> Optio
             summary(obs),
             summary(exp)
         ))]),
-        (false, true) => Some(vec![finding(
-            lacks(o.function().without_exception_bit() == e.function()),
-            differs(),
-        )]),
+        (false, true) => {
+            let lacking = lacks(o.function().without_exception_bit() == e.function());
+            Some(vec![match listed.filter(|_| lacking) {
+                Some(line) => must(format!(
+                    "{}: the manual lists function 0x{:02X} (manual line {line}), so the drive must serve it",
+                    differs(),
+                    e.function().0
+                )),
+                None => finding(lacking, differs()),
+            }])
+        }
         (false, false) => None,
     }
 }
@@ -829,7 +850,14 @@ fn identification_consistent(req: &[u8], o: &Response, out: &mut Vec<Finding>) {
 fn in_range(req: &[u8], o: &Response, p: &Profile, order: WordOrder, out: &mut Vec<Finding>) {
     let (address, input) = match Request::decode(req) {
         Ok(Request::ReadHoldingRegisters { address, .. }) => (address, false),
-        Ok(Request::ReadInputRegisters { address, .. }) => (address, true),
+        // Where the profile has no input register of its own, FC 04 reads the holding registers' map (the
+        // SD2x, line 327).
+        Ok(Request::ReadInputRegisters { address, .. }) => (
+            address,
+            p.registers
+                .iter()
+                .any(|r| r.get_ref().table == Table::Input),
+        ),
         _ => return,
     };
     let (Response::ReadHoldingRegisters { values } | Response::ReadInputRegisters { values }) = o

@@ -481,6 +481,13 @@ pub(crate) const WITNESSES: &[(&str, &str, &str)] = &[
         "sim:generic?transport=rtu",
         "profile/generic/identification/regular",
     ),
+    // A function the manual lists, refused with 01: a FAIL, not UNIMPLEMENTED (issue 15); the SD2x's FC 04
+    // had no positive read before.
+    (
+        "listed-function-refused",
+        "sim:sd2x",
+        "profile/sd2x/read-fc04/0x07D0-status-word",
+    ),
 ];
 
 /// Faults that break no single answer but the consistency of a drive's choices (issue 12: once a drive has

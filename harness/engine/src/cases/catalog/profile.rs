@@ -41,6 +41,9 @@ fn registers(cx: &mut Ctx) {
                 || cx.supports(FunctionCode::READ_INPUT_REGISTERS))
         {
             register_read(cx, r, &read);
+            if one_map(cx) && table == Table::Holding {
+                register_read_fc04(cx, r);
+            }
         }
         if !r.confirmed || !cx.can_write_registers() || Some(r.address) == watchdog {
             continue;
@@ -96,6 +99,48 @@ fn register_read(cx: &mut Ctx, r: &Register, read: &[u8]) {
             Outgoing::Pdu(read.to_vec()),
             Compare::InRange,
             "read",
+        )],
+    );
+}
+
+/// True where FC 03 and FC 04 read one register map: the profile lists both and has no input register of
+/// its own (the SD2x: "FC 03 and FC 04 are treated identically", manual line 327).
+fn one_map(cx: &Ctx) -> bool {
+    cx.supports(FunctionCode::READ_HOLDING_REGISTERS)
+        && cx.supports(FunctionCode::READ_INPUT_REGISTERS)
+        && !cx
+            .p
+            .registers
+            .iter()
+            .any(|r| r.get_ref().table == Table::Input)
+}
+
+/// The register read with FC 04 where FC 03 and FC 04 read one map ([`one_map`]): a positive read of the
+/// function the manual lists, beside the FC 03 read of `register_read`.
+fn register_read_fc04(cx: &mut Ctx, r: &Register) {
+    let p = cx.p;
+    let pid = &p.device.id;
+    cx.push(
+        format!("profile/{pid}/read-fc04/{}", reg_slug(r)),
+        format!("read {} with FC 04", r.name),
+        format!(
+            "{} register map: 0x{:04X} {}; FC 04 reads the map FC 03 reads",
+            p.device.name, r.address, r.name
+        ),
+        format!(
+            "Register 0x{:04X} is readable with Read Input Registers (FC 04), as with FC 03, and holds a value in {}..={}.",
+            r.address,
+            r.range().0,
+            r.range().1
+        ),
+        vec![],
+        vec![exchange(
+            Outgoing::Pdu(pdu(&Request::ReadInputRegisters {
+                address: r.address,
+                quantity: u16::from(r.width),
+            })),
+            Compare::InRange,
+            "read with FC 04",
         )],
     );
 }

@@ -59,6 +59,7 @@ pub enum Fault {
     SpeedWithoutEnable,
     WatchdogFromFirstWrite,
     ListedFunctionRefused,
+    InputBitsReversed,
 }
 
 impl Fault {
@@ -318,6 +319,11 @@ impl Fault {
             Fault::ListedFunctionRefused,
             "listed-function-refused",
             "FC 04 (Read Input Registers) is answered with exception 01 (illegal function) although the drive's profile lists it (the SD2x manual, line 277)",
+        ),
+        (
+            Fault::InputBitsReversed,
+            "input-bits-reversed",
+            "FC 02: the inputs asked for are packed in reverse order (the last one in bit 0 of the first byte), padding bits still 0",
         ),
     ];
 

@@ -1202,6 +1202,28 @@ impl Station {
                     if let Some(Response::ReportServerId { data }) = resp.as_mut() {
                         self.run_indicator(data);
                     }
+                    if self.faults.has(Fault::InputBitsReversed)
+                        && let (
+                            Request::ReadDiscreteInputs { quantity, .. },
+                            Some(Response::ReadDiscreteInputs { data }),
+                        ) = (&req, resp.as_mut())
+                    {
+                        let n = usize::from(*quantity);
+                        let bit = |d: &[u8], i: usize| {
+                            d.get(i / 8).is_some_and(|b| b >> (i % 8) & 1 == 1)
+                        };
+                        let old = data.clone();
+                        for i in 0..n.min(old.len() * 8) {
+                            let on = bit(&old, n - 1 - i);
+                            if let Some(b) = data.get_mut(i / 8) {
+                                if on {
+                                    *b |= 1 << (i % 8);
+                                } else {
+                                    *b &= !(1 << (i % 8));
+                                }
+                            }
+                        }
+                    }
                     if self.faults.has(Fault::BitPaddingOnes) {
                         resp.map(|r| pad_with_ones(&req, r))
                     } else {

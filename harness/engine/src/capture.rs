@@ -29,6 +29,9 @@ pub enum Captured {
     /// The event bytes of an FC 0C answer (6.10), byte 0 first: nothing to write back, kept for
     /// `Step::EventLogShifted`.
     EventLog { events: Vec<u8> },
+    /// Discrete inputs read with FC 02 from `address`, first input first: nothing to write back, kept for
+    /// `Step::Agree` with the registers that mirror them.
+    Inputs { address: u16, states: Vec<bool> },
 }
 
 impl Captured {
@@ -44,6 +47,14 @@ impl Captured {
     pub fn object_value(&self) -> Option<u32> {
         match self {
             Captured::Object(a) => a.value_le(),
+            _ => None,
+        }
+    }
+
+    /// The input states, when FC 02 inputs were kept.
+    pub fn inputs(&self) -> Option<&[bool]> {
+        match self {
+            Captured::Inputs { states, .. } => Some(states),
             _ => None,
         }
     }
@@ -116,7 +127,7 @@ impl Captured {
                     values: values.clone(),
                 }],
             },
-            Captured::EventLog { .. } => return None,
+            Captured::EventLog { .. } | Captured::Inputs { .. } => return None,
         })
     }
 }
@@ -176,6 +187,15 @@ pub fn captured(framing: Framing, request: &[u8], response: &[u8]) -> Option<Cap
                 .map(|i| data.get(i / 8).is_some_and(|b| b >> (i % 8) & 1 == 1))
                 .collect();
             Some(Captured::Coils { address, states })
+        }
+        (
+            Some(Request::ReadDiscreteInputs { address, quantity }),
+            Response::ReadDiscreteInputs { data },
+        ) => {
+            let states = (0..usize::from(quantity))
+                .map(|i| data.get(i / 8).is_some_and(|b| b >> (i % 8) & 1 == 1))
+                .collect();
+            Some(Captured::Inputs { address, states })
         }
         (Some(Request::VendorRead { mnemonic }), Response::VendorRead { params }) => {
             Some(Captured::Setting { mnemonic, params })

@@ -1290,11 +1290,15 @@ impl Runner {
         }
     }
 
-    /// A register pair and its mirroring object must hold the same value.
+    /// A register pair and its mirroring object must hold the same value; registers that mirror discrete
+    /// inputs one each (the MDrive/LMD I1-I4) must hold the inputs' states.
     fn agree(&self, registers: usize, object: usize, note: &str) -> StepResult {
         let order = self.profile.device.word_order;
         let kept = |slot: usize| self.slots.get(slot).and_then(Option::as_ref);
         let regs = kept(registers).and_then(Captured::registers);
+        if let (Some(r), Some(inputs)) = (regs, kept(object).and_then(Captured::inputs)) {
+            return inputs_agree(r, inputs, note);
+        }
         let obj = kept(object).and_then(Captured::object_value);
         let findings = match (regs, obj) {
             (Some(r), Some(o)) => {
@@ -2022,6 +2026,54 @@ pub fn worse(a: Verdict, b: Verdict) -> Verdict {
     if rank(b) > rank(a) { b } else { a }
 }
 
+/// Registers that mirror discrete inputs one each (0 off, anything else on) against the inputs read with FC
+/// 02. Inputs are live: one input that differs may have changed between the two reads, and is reported
+/// (INFORMATIONAL), not failed; two or more that differ (inputs in the wrong order within the FC 02 byte, or
+/// shifted) FAIL.
+fn inputs_agree(registers: &[u16], inputs: &[bool], note: &str) -> StepResult {
+    let step = |verdict: Verdict, findings: Vec<String>| StepResult {
+        note: note.to_string(),
+        sent: None,
+        expected: None,
+        observed: vec![],
+        verdict,
+        findings,
+    };
+    if registers.len() != inputs.len() {
+        return step(
+            Verdict::Informational,
+            vec![format!(
+                "not compared: {} registers, {} inputs",
+                registers.len(),
+                inputs.len()
+            )],
+        );
+    }
+    let bits = |v: &mut dyn Iterator<Item = bool>| -> String {
+        v.map(|b| if b { '1' } else { '0' }).collect()
+    };
+    let from_registers = bits(&mut registers.iter().map(|&r| r != 0));
+    let from_inputs = bits(&mut inputs.iter().copied());
+    let differ = registers
+        .iter()
+        .zip(inputs)
+        .filter(|(r, i)| (**r != 0) != **i)
+        .count();
+    let text = format!(
+        "the inputs read {from_inputs} with FC 02 (first input first) but {from_registers} as the registers that mirror them"
+    );
+    match differ {
+        0 => step(Verdict::Pass, vec![]),
+        1 => step(
+            Verdict::Informational,
+            vec![format!(
+                "{text}: one input differs, it may have changed between the reads"
+            )],
+        ),
+        _ => step(Verdict::Fail, vec![text]),
+    }
+}
+
 /// An FC 43 / MEI 0x0D answer PDU in the SD2x example's form (no Reserved byte) in the layout's form, when it
 /// is a well-formed answer in it.
 fn canopen_answer_with_reserved(pdu: &[u8]) -> Option<Vec<u8>> {
@@ -2035,6 +2087,29 @@ fn canopen_answer_with_reserved(pdu: &[u8]) -> Option<Vec<u8>> {
 
 #[cfg(test)]
 mod tests {
+
+    #[test]
+    fn inputs_agree_fails_two_inputs_that_differ_and_reports_one() {
+        let regs = [1u16, 1, 0, 1];
+        let same = [true, true, false, true];
+        assert_eq!(super::inputs_agree(&regs, &same, "").verdict, Verdict::Pass);
+        // One live input that changed between the two reads.
+        let one = [true, true, true, true];
+        assert_eq!(
+            super::inputs_agree(&regs, &one, "").verdict,
+            Verdict::Informational
+        );
+        // The inputs in reverse order.
+        let reversed = [true, false, true, true];
+        assert_eq!(
+            super::inputs_agree(&regs, &reversed, "").verdict,
+            Verdict::Fail
+        );
+        assert_eq!(
+            super::inputs_agree(&regs[..2], &same, "").verdict,
+            Verdict::Informational
+        );
+    }
     use super::*;
 
     fn framed(tid: u16) -> Framed {

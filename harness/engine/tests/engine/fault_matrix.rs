@@ -488,6 +488,17 @@ pub(crate) const WITNESSES: &[(&str, &str, &str)] = &[
         "sim:sd2x",
         "profile/sd2x/read-fc04/0x07D0-status-word",
     ),
+    // FC 02 inputs in the wrong bit order: the inputs compared with the registers that mirror them (issue 15).
+    (
+        "input-bits-reversed",
+        "sim:mdrive",
+        "profile/mdrive/discrete-input/agree-with-registers",
+    ),
+    (
+        "input-bits-reversed",
+        "sim:lmd",
+        "profile/lmd/discrete-input/agree-with-registers",
+    ),
 ];
 
 /// Faults that break no single answer but the consistency of a drive's choices (issue 12: once a drive has

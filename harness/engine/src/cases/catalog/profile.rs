@@ -6,8 +6,8 @@
 
 use super::around::Around;
 use super::mcode::{self, IoPoints};
-use super::{APP, Ctx, exchange, pdu, slug};
-use crate::cases::{Compare, Outgoing, Tag};
+use super::{APP, Ctx, capture, exchange, pdu, slug};
+use crate::cases::{Compare, Outgoing, Step, Tag};
 use codec::FunctionCode;
 use codec::{Mnemonic, Request};
 use drives::profile::{Register, Table};
@@ -401,7 +401,89 @@ fn discrete_inputs(cx: &mut Ctx) {
                 )],
             );
         }
+        inputs_agree_with_registers(cx);
     }
+}
+
+/// The discrete inputs read with FC 02 and the registers that mirror them one each (the MDrive's and LMD's
+/// I1-I4: "Read input 1" ...) hold the same states: an input in the wrong bit of the FC 02 byte shows. Only
+/// where every input has its register, at consecutive addresses.
+fn inputs_agree_with_registers(cx: &mut Ctx) {
+    let p = cx.p;
+    let pid = &p.device.id;
+    let mut inputs: Vec<u16> = p
+        .discrete_inputs
+        .iter()
+        .map(|d| d.get_ref().address)
+        .collect();
+    inputs.sort_unstable();
+    let (Some(&first), n) = (inputs.first(), inputs.len()) else {
+        return;
+    };
+    let mirror = |k: usize| {
+        p.registers.iter().map(|r| r.get_ref()).find(|r| {
+            r.width == 1
+                && r.access.readable()
+                && r.mnemonic
+                    .as_deref()
+                    .is_some_and(|m| m.eq_ignore_ascii_case(&format!("I{k}")))
+        })
+    };
+    let Some(regs) = (1..=n).map(mirror).collect::<Option<Vec<_>>>() else {
+        return;
+    };
+    let start = regs[0].address;
+    if n < 2
+        || inputs.windows(2).any(|w| w[1] != w[0] + 1)
+        || regs
+            .iter()
+            .enumerate()
+            .any(|(i, r)| r.address != start + i as u16)
+    {
+        return;
+    }
+    // Two at a time: both manuals' prose says no more than two consecutive registers per request (MDrive
+    // line 616, LMD line 900), and the FC 02 read of the same two inputs is compared with them.
+    let mut steps = Vec::new();
+    for (c, k) in (0..n).step_by(2).enumerate() {
+        let quantity = (n - k).min(2) as u16;
+        let (regs, bits) = (2 * c, 2 * c + 1);
+        steps.push(capture(
+            Outgoing::Pdu(pdu(&cx.read_request(
+                start + k as u16,
+                quantity,
+                Table::Holding,
+            ))),
+            Compare::InRange,
+            regs,
+            format!("read I{}-I{}", k + 1, k + usize::from(quantity)),
+        ));
+        steps.push(capture(
+            Outgoing::Pdu(pdu(&Request::ReadDiscreteInputs {
+                address: first + k as u16,
+                quantity,
+            })),
+            Compare::Structure,
+            bits,
+            format!("read inputs {}-{}", k + 1, k + usize::from(quantity)),
+        ));
+        steps.push(Step::Agree {
+            registers: regs,
+            object: bits,
+            note: "each input has its register's state".into(),
+        });
+    }
+    cx.push(
+        format!("profile/{pid}/discrete-input/agree-with-registers"),
+        format!("inputs 1-{n} read with FC 02 and as registers I1-I{n} agree"),
+        format!(
+            "{}: discrete inputs {first:#06X}.. and registers I1-I{n} at {start:#06X}..",
+            p.device.name
+        ),
+        "Input k read with Read Discrete Inputs (bit k-1 of the answer, spec 6.2) has the state register Ik reads (0 off, 1 on).",
+        vec![],
+        steps,
+    );
 }
 
 /// Vendor mnemonics: each readable one read, each writable one written with the manual's example, and

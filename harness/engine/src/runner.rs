@@ -1210,14 +1210,7 @@ impl Runner {
     /// began inside t3.5 (a MUST of the serial line guide, 2.5.1.1); INFORMATIONAL when this target's line
     /// cannot be measured.
     fn judge_answer_gaps(&self) -> StepResult {
-        let step = |verdict, note: String, findings| StepResult {
-            note,
-            sent: None,
-            expected: None,
-            observed: Vec::new(),
-            verdict,
-            findings,
-        };
+        let step = |verdict, note: String, findings| step_of(note, verdict, findings);
         if let Err(why) = &self.gaps_measurable {
             return step(
                 Verdict::Informational,
@@ -1263,31 +1256,16 @@ impl Runner {
             // The read's own step is judged already (exception 01 from a drive without FC 0C:
             // UNIMPLEMENTED); nothing to compare here.
             _ => {
-                return StepResult {
-                    note: format!(
+                return step_of(
+                    format!(
                         "{note}: not compared, one of the two FC 0C reads gave no event log (see its step)"
                     ),
-                    sent: None,
-                    expected: None,
-                    observed: vec![],
-                    verdict: Verdict::Skipped,
-                    findings: vec![],
-                };
+                    Verdict::Skipped,
+                    vec![],
+                );
             }
         };
-        let verdict = if findings.is_empty() {
-            Verdict::Pass
-        } else {
-            Verdict::Fail
-        };
-        StepResult {
-            note: note.to_string(),
-            sent: None,
-            expected: None,
-            observed: vec![],
-            verdict,
-            findings,
-        }
+        comparison(note, findings)
     }
 
     /// A register pair and its mirroring object must hold the same value; registers that mirror discrete
@@ -1324,32 +1302,14 @@ impl Runner {
             // Refused or unanswered: the read's own step judges that (a refusal a freedom admits, such as an
             // FC 43 read by a drive of the other reading of its manual, passes there); nothing to compare.
             _ => {
-                return StepResult {
-                    note: note.to_string(),
-                    sent: None,
-                    expected: None,
-                    observed: vec![],
-                    verdict: Verdict::Informational,
-                    findings: vec![
-                        "not compared: one of the two reads gave no value (its own step judges why)"
-                            .into(),
-                    ],
-                };
+                return step_of(
+                    note.to_string(),
+                    Verdict::Informational,
+                    vec!["not compared: one of the two reads gave no value (its own step judges why)".into()],
+                );
             }
         };
-        let verdict = if findings.is_empty() {
-            Verdict::Pass
-        } else {
-            Verdict::Fail
-        };
-        StepResult {
-            note: note.to_string(),
-            sent: None,
-            expected: None,
-            observed: vec![],
-            verdict,
-            findings,
-        }
+        comparison(note, findings)
     }
 
     fn exchange(
@@ -2026,19 +1986,35 @@ pub fn worse(a: Verdict, b: Verdict) -> Verdict {
     if rank(b) > rank(a) { b } else { a }
 }
 
-/// Registers that mirror discrete inputs one each (0 off, anything else on) against the inputs read with FC
-/// 02. Inputs are live: one input that differs may have changed between the two reads, and is reported
-/// (INFORMATIONAL), not failed; two or more that differ (inputs in the wrong order within the FC 02 byte, or
-/// shifted) FAIL.
-fn inputs_agree(registers: &[u16], inputs: &[bool], note: &str) -> StepResult {
-    let step = |verdict: Verdict, findings: Vec<String>| StepResult {
-        note: note.to_string(),
+/// A step that judged what earlier steps kept (no bytes of its own on the wire).
+fn step_of(note: String, verdict: Verdict, findings: Vec<String>) -> StepResult {
+    StepResult {
+        note,
         sent: None,
         expected: None,
         observed: vec![],
         verdict,
         findings,
+    }
+}
+
+/// [`step_of`] for a comparison: PASS without findings, FAIL with them.
+fn comparison(note: &str, findings: Vec<String>) -> StepResult {
+    let verdict = if findings.is_empty() {
+        Verdict::Pass
+    } else {
+        Verdict::Fail
     };
+    step_of(note.to_string(), verdict, findings)
+}
+
+/// Registers that mirror discrete inputs one each (0 off, anything else on) against the inputs read with FC
+/// 02. Inputs are live: one input that differs may have changed between the two reads, and is reported
+/// (INFORMATIONAL), not failed; two or more that differ (inputs in the wrong order within the FC 02 byte, or
+/// shifted) FAIL.
+fn inputs_agree(registers: &[u16], inputs: &[bool], note: &str) -> StepResult {
+    let step =
+        |verdict: Verdict, findings: Vec<String>| step_of(note.to_string(), verdict, findings);
     if registers.len() != inputs.len() {
         return step(
             Verdict::Informational,

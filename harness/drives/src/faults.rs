@@ -21,6 +21,7 @@ pub enum Fault {
     WordOrder,
     ExceptionWithoutFc,
     BroadcastAnswered,
+    BroadcastWriteIgnored,
     QuantityUnchecked,
     ReservedReadable,
     ReadOnlyWritable,
@@ -129,6 +130,11 @@ impl Fault {
             Fault::BroadcastAnswered,
             "broadcast-answered",
             "RTU: broadcast requests (address 0) get a response",
+        ),
+        (
+            Fault::BroadcastWriteIgnored,
+            "broadcast-write-ignored",
+            "RTU: a broadcast write (address 0; FC 05, 06, 0F, 10, 15, 16, 17) is not applied (still not answered), although every slave must accept the broadcast for writing functions",
         ),
         (
             Fault::QuantityUnchecked,

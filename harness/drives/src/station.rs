@@ -840,6 +840,15 @@ impl Station {
         }
         self.count(|c| c.slave_message = c.slave_message.wrapping_add(1));
         let pdu = adu.pdu.to_vec();
+        if broadcast
+            && self.faults.has(Fault::BroadcastWriteIgnored)
+            && pdu.first().is_some_and(|fc| writes_data_model(*fc))
+        {
+            // The firmware bug: a broadcast write is dropped unprocessed (and, a broadcast, not answered).
+            self.count(|c| c.no_response = c.no_response.wrapping_add(1));
+            self.finish_message();
+            return None;
+        }
         let resp = self.answer(now, adu.address, &pdu, Via::Rtu { broadcast });
         let resp = match resp {
             Some(r) if !broadcast || self.faults.has(Fault::BroadcastAnswered) => r,
@@ -1750,4 +1759,10 @@ fn pad_with_ones(req: &Request, resp: Response) -> Response {
         Response::ReadDiscreteInputs { data } => Response::ReadDiscreteInputs { data: pad(data) },
         other => other,
     }
+}
+
+/// True for the public functions that write the data model (FC 05, 06, 0F, 10, 15, 16, 17): the writing
+/// commands a broadcast carries (serial line spec 2.1).
+fn writes_data_model(fc: u8) -> bool {
+    matches!(fc, 0x05 | 0x06 | 0x0F | 0x10 | 0x15 | 0x16 | 0x17)
 }

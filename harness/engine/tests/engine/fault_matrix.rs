@@ -77,6 +77,11 @@ pub(crate) const WITNESSES: &[(&str, &str, &str)] = &[
         "rtu/address/broadcast-no-reply",
     ),
     (
+        "broadcast-write-ignored",
+        "sim:generic?transport=rtu",
+        "rtu/address/broadcast-write-applied",
+    ),
+    (
         "quantity-unchecked",
         "sim:generic",
         "spec/app-6/quantity/fc-0x03/zero",
@@ -615,6 +620,12 @@ const ONE_TRANSPORT: &[(&str, &str, &str)] = &[
         "tcp",
         "a broadcast is the serial line's address 0 (serial line spec 2.1); on Modbus/TCP unit id 0 \
          addresses the device itself (TCP guide 4.4.1.2)",
+    ),
+    (
+        "broadcast-write-ignored",
+        "tcp",
+        "a broadcast is the serial line's address 0 (serial line spec 2.1); on Modbus/TCP unit id 0 \
+         addresses the device itself (TCP guide 4.4.1.2): no write there is a broadcast",
     ),
     (
         "listen-only-ignored",

@@ -631,7 +631,7 @@ fn reg_slug(r: &Register) -> String {
 /// The in-range value a write case uses: the smallest change from the default that a conforming drive
 /// accepts (some registers take only some values of their range: the MDrive's microstep resolution MS
 /// takes those of its table, so 255 next to the default 256 is refused); the reference drive says which.
-fn write_value(cx: &Ctx, r: &Register) -> i64 {
+pub(super) fn write_value(cx: &Ctx, r: &Register) -> i64 {
     let (min, max) = r.range();
     let candidates: Vec<i64> = match r.default {
         Some(d) => vec![d + 1, d - 1, d / 2, d.saturating_mul(2), min, max, d],

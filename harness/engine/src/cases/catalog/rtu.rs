@@ -1,14 +1,17 @@
 //! Modbus RTU cases: CRC checking, slave addressing and broadcast, framing, and the FC 08 diagnostics.
 
-use super::{APP, Ctx, SER, exchange, known_good_read, pdu};
+use super::around::{Around, around_write};
+use super::{APP, Ctx, SER, exchange, known_good_read, pdu, profile};
 use crate::cases::{Compare, Mutation, Outgoing, Tag};
 use codec::FunctionCode;
 use codec::Request;
 use codec::codes::diag;
+use drives::profile::{Access, Register, Table};
 
 /// The RTU suite, family by family.
 pub(super) fn cases(cx: &mut Ctx) {
     crc_and_addressing(cx);
+    broadcast_write(cx);
     framing(cx);
     inter_frame_silence(cx);
     // FC 08 sub-functions as the profile lists them: a drive may implement some and not others.
@@ -112,6 +115,86 @@ fn crc_and_addressing(cx: &mut Ctx) {
             Compare::Exact,
             "address 0",
         )],
+    );
+}
+
+/// A register a broadcast write can change and the case put back: confirmed, read/write, in the holding
+/// table, neither motion nor destructive on its own, not the watchdog (writing it arms a timer).
+fn broadcast_register<'a>(cx: &Ctx<'a>) -> Option<&'a Register> {
+    let watchdog = cx.p.watchdog.as_ref().map(|w| w.register);
+    cx.p.registers.iter().map(|r| r.get_ref()).find(|r| {
+        r.confirmed
+            && r.access == Access::Rw
+            && r.table != Table::Input
+            && !r.motion
+            && !r.destructive
+            && Some(r.address) != watchdog
+    })
+}
+
+/// A broadcast write is applied (serial line spec 2.1: "All devices must accept the broadcast for writing
+/// function"), where the profile says the drive takes broadcasts (`device.broadcast`; the SD2x manual never
+/// mentions address 0 but as an invalid slave address, line 183, so its profile says no). The register is
+/// read first (with the run's slave address) and put back after ([`around_write`]); the write goes to
+/// address 0 with FC 06 (FC 16 for a 32-bit register or a profile without FC 06) and gets no answer; the
+/// read back with the run's own address must hold what the reference drive, which took the broadcast,
+/// holds. A broadcast reaches every drive on the bus: `Destructive`.
+fn broadcast_write(cx: &mut Ctx) {
+    let p = cx.p;
+    if !p.device.broadcast
+        || !(cx.supports(FunctionCode::READ_HOLDING_REGISTERS)
+            || cx.supports(FunctionCode::READ_INPUT_REGISTERS))
+    {
+        return;
+    }
+    let Some(r) = broadcast_register(cx) else {
+        return;
+    };
+    let v = profile::write_value(cx, r);
+    let words = r.words(p.device.word_order, v);
+    let write = if words.len() == 1 && cx.supports(FunctionCode::WRITE_SINGLE_REGISTER) {
+        Request::WriteSingleRegister {
+            address: r.address,
+            value: words[0],
+        }
+    } else if cx.supports(FunctionCode::WRITE_MULTIPLE_REGISTERS) {
+        Request::WriteMultipleRegisters {
+            address: r.address,
+            values: words,
+        }
+    } else {
+        return;
+    };
+    let fc = write.function().0;
+    let mut tags = vec![Tag::RtuOnly, Tag::Write, Tag::Destructive];
+    let mut a = Around::new();
+    around_write(cx, &write, &mut a, &mut tags);
+    let read = pdu(&cx.read_request(r.address, u16::from(r.width), Table::Holding));
+    let steps = a.wrap(vec![
+        exchange(
+            Outgoing::PduToUnit {
+                pdu: pdu(&write),
+                unit: 0,
+            },
+            Compare::Exact,
+            format!("broadcast FC 0x{fc:02X} {} = {v}: no answer", r.name),
+        ),
+        exchange(
+            Outgoing::Pdu(read),
+            Compare::Exact,
+            format!("read back {v} at slave address {}", cx.unit),
+        ),
+    ]);
+    cx.push(
+        "rtu/address/broadcast-write-applied".into(),
+        format!("a broadcast (address 0) write of {} is applied, unanswered", r.name),
+        format!("{SER}, section 2.1 (broadcast mode: writing commands, accepted by all devices, no reply)"),
+        format!(
+            "A write of {v} to register 0x{:04X} sent to address 0 gets no response and is applied: the drive reads it back at its own address.",
+            r.address
+        ),
+        tags,
+        steps,
     );
 }
 

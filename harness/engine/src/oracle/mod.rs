@@ -129,7 +129,7 @@ fn judge_in(
     order: WordOrder,
 ) -> Vec<Finding> {
     if *compare == Compare::RejectOrIgnore
-        && let Some(findings) = reject_or_ignore(framing, expected, observed)
+        && let Some(findings) = reject_or_ignore(framing, sent, expected, observed)
     {
         return findings;
     }
@@ -433,6 +433,7 @@ fn other_reading(framing: Framing, bytes: &[u8]) -> Option<Response> {
 /// when the observation needs the usual comparison.
 fn reject_or_ignore(
     framing: Framing,
+    sent: &Sent,
     expected: Option<&[u8]>,
     observed: &Received,
 ) -> Option<Vec<Finding>> {
@@ -441,16 +442,22 @@ fn reject_or_ignore(
         Received::Silence { partial, .. } if partial.is_empty() => Some(out),
         Received::Closed { .. } if framing == Framing::Tcp => Some(out),
         Received::Frame { bytes, .. } if expected.is_none() => {
-            // The reference ignores it; a target may reject it instead, with any exception.
-            let rejected = matches!(
-                decode_any(bytes, framing, Direction::Response).map(|d| d.pdu),
-                Ok(Pdu::Response(r)) if r.is_exception()
-            );
-            if !rejected {
-                out.push(must(format!(
+            // The reference ignores it; a target may reject it instead, with any exception code, but in the
+            // exception form of the request's function code (App 7: the function code with its MSB set).
+            let exception = match decode_any(bytes, framing, Direction::Response).map(|d| d.pdu) {
+                Ok(Pdu::Response(r)) if r.is_exception() => Some(r.function()),
+                _ => None,
+            };
+            match (exception, sent.pdu.first()) {
+                (None, _) => out.push(must(format!(
                     "an invalid request was answered as valid: {}",
                     brief(framing, bytes)
-                )));
+                ))),
+                (Some(f), Some(&fc)) if fc < 0x80 && f.0 != fc | 0x80 => out.push(should(format!(
+                    "the request is rejected, but with function code 0x{:02X}, not the request's 0x{fc:02X} + 0x80 (App 7)",
+                    f.0
+                ))),
+                _ => {}
             }
             Some(out)
         }
@@ -1020,5 +1027,42 @@ mod identification_tests {
         assert_eq!(findings(4, &answer(0x02, &[1])), 1);
         assert_eq!(findings(2, &answer(0x04, &[0])), 1);
         assert_eq!(findings(2, &answer(0x42, &[0])), 1);
+    }
+}
+
+#[cfg(test)]
+mod reject_tests {
+    use super::{Sent, Severity, reject_or_ignore};
+    use crate::targets::Received;
+    use codec::Framing;
+    use std::time::Duration;
+
+    fn frame(hex: &str) -> Received {
+        Received::Frame {
+            bytes: codec::parse_hex(hex).unwrap(),
+            first_at: Duration::ZERO,
+            last_at: Duration::ZERO,
+            max_gap: Duration::ZERO,
+        }
+    }
+
+    /// An invalid request the reference ignores may be rejected with any exception code, in the exception
+    /// form of the request's function code (App 7); another function code is NON-STRICT, an answer as valid
+    /// a FAIL.
+    #[test]
+    fn a_rejection_carries_the_requests_function_code() {
+        let sent = Sent {
+            tid: Some(1),
+            unit: 1,
+            pdu: vec![0x03; 254],
+        };
+        let judge = |hex: &str| reject_or_ignore(Framing::Tcp, &sent, None, &frame(hex)).unwrap();
+        assert!(judge("00 01 00 00 00 03 01 83 03").is_empty());
+        assert!(judge("00 01 00 00 00 03 01 83 01").is_empty());
+        let wrong = judge("00 01 00 00 00 03 01 80 01");
+        assert_eq!(wrong.len(), 1);
+        assert_eq!(wrong[0].severity, Severity::Should);
+        let served = judge("00 01 00 00 00 05 01 03 02 00 00");
+        assert_eq!(served[0].severity, Severity::Must);
     }
 }

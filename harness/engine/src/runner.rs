@@ -394,14 +394,13 @@ impl Runner {
         let Some(freedom) = requirements.freedom(FREEDOM).filter(|f| f.applies_to(&id)) else {
             return;
         };
-        let Some(value) = freedom
+        if !freedom
             .values
             .iter()
-            .find(|v| drives::choices::value_matches(v, EXAMPLE))
-            .cloned()
-        else {
+            .any(|v| drives::choices::value_matches(v, EXAMPLE))
+        {
             return;
-        };
+        }
         let Some(first) = self
             .profile
             .discrete_inputs
@@ -428,14 +427,34 @@ impl Runner {
             Ok(Some(r)) if !r.is_exception() => {}
             _ => return,
         }
-        let shown = crate::oracle::freedoms::shown_value(freedom, "", EXAMPLE);
         let origin = format!(
             "(input addressing learned before the cases: FC 02 refused at 0x{first:04X}, served at 0x{:04X})",
             first.wrapping_add(OFFSET)
         );
-        let _ = self.choices.record(&shown, &origin, &requirements);
         self.input_offset = OFFSET;
-        self.learned.choose(freedom, value);
+        self.follow_reading(freedom, EXAMPLE, &origin);
+    }
+
+    /// The drive follows the other reading `value` of `freedom`, learned before the cases: recorded as its
+    /// choice (from `origin`), taken by the reference drive, which is rebuilt with it.
+    fn follow_reading(
+        &mut self,
+        freedom: &drives::requirements::Freedom,
+        value: &str,
+        origin: &str,
+    ) {
+        let Some(v) = freedom
+            .values
+            .iter()
+            .find(|v| drives::choices::value_matches(v, value))
+            .cloned()
+        else {
+            return;
+        };
+        let shown = crate::oracle::freedoms::shown_value(freedom, "", value);
+        let requirements = Arc::clone(&self.requirements);
+        let _ = self.choices.record(&shown, origin, &requirements);
+        self.learned.choose(freedom, v);
         self.rebuild_reference();
     }
 
@@ -537,21 +556,15 @@ impl Runner {
         if !codec::canopen_with_reserved(&r).is_some_and(|long| is_object(&long)) {
             return;
         }
-        let Some(value) = freedom
+        if !freedom
             .values
             .iter()
-            .find(|v| drives::choices::value_matches(v, EXAMPLE))
-            .cloned()
-        else {
+            .any(|v| drives::choices::value_matches(v, EXAMPLE))
+        {
             return;
-        };
-        let shown = crate::oracle::freedoms::shown_value(freedom, "", EXAMPLE);
-        let _ = self
-            .choices
-            .record(&shown, &origin("example's"), &requirements);
+        }
         self.fc43_without_reserved = true;
-        self.learned.choose(freedom, value);
-        self.rebuild_reference();
+        self.follow_reading(freedom, EXAMPLE, &origin("example's"));
     }
 
     /// An answer frame of the target or the reference drive in the form the cases are judged in: a

@@ -29,6 +29,7 @@ pub(super) fn cases(cx: &mut Ctx) {
 fn registers(cx: &mut Ctx) {
     let p = cx.p;
     let watchdog = p.watchdog.as_ref().map(|w| w.register);
+    let fc04_too = one_map(cx);
     for r in p.registers.iter().map(|r| r.get_ref()) {
         let table = if r.table == Table::Input {
             Table::Input
@@ -41,7 +42,7 @@ fn registers(cx: &mut Ctx) {
                 || cx.supports(FunctionCode::READ_INPUT_REGISTERS))
         {
             register_read(cx, r, &read);
-            if one_map(cx) && table == Table::Holding {
+            if fc04_too && table == Table::Holding {
                 register_read_fc04(cx, r);
             }
         }

@@ -8,10 +8,9 @@
 //! The Modbus/TCP transport freedoms (unit ids, pipelined answer order and Server Busy, MBAP lengths that
 //! disagree with the PDU, PDUs over 253 bytes), the answer to a truncated PDU, the exception check order,
 //! the FC 08 counters, the FC 11/0B fields, a half register write accepted, the vendor field readings and
-//! the SD2x status bits and watchdog are part of it. The one value the models cannot take yet (the SD2x FC 43
-//! layout without the reserved byte) is named by `drives::choices::simulated`; the oracle admits it, but no
-//! simulator shows it, so it is not part of this test. Nor is `close` on a profile without Modbus/TCP
-//! (`drives::choices::simulated_on`: no connection to close).
+//! the SD2x status bits and watchdog and the SD2x FC 43 form without the layout's reserved byte are part of
+//! it. The one value left out is `close` on a profile without Modbus/TCP (`drives::choices::simulated_on`:
+//! no connection to close).
 
 use std::collections::BTreeSet;
 use std::sync::Mutex;
@@ -483,4 +482,101 @@ fn generated_with(
         .map(|(c, _)| c.clone())
         .collect();
     (out, bad)
+}
+
+/// `pipelined-server-busy` followed on its own: a drive with a single transaction (TCP guide 4.4.2.1-2)
+/// answers a write pipelined behind a read with exception 06 (Server Busy) and does not take it. The
+/// reference, which serves every pipelined request, would have taken it; it follows the drive's choice (the
+/// step is done again on it with `exception-06`), so the read-back right after is judged against the
+/// register as the drive keeps it. The same case against a drive that serves the whole pipeline shows the
+/// write taken, so the read-back does tell the two apart. With the following undone, the read-back FAILs.
+#[test]
+fn the_reference_follows_a_drive_that_refuses_pipelined_writes_as_busy() {
+    use engine::cases::{Case, Compare, Level, Outgoing, Step, Tag};
+    use engine::expect::Expectations;
+    use engine::observe::Dir;
+    use engine::runner::{RunConfig, Runner, Safety, Timing};
+    use engine::targets::sim::SimTarget;
+
+    const VALUE: u16 = 0x1234;
+    let p = test_support::profile("generic");
+    let requirements = Corpus::Embedded.requirements().expect("requirements");
+    // Holding register 5: read it, and write VALUE to it right behind, in one segment; then read it back.
+    let read = vec![0x03, 0x00, 0x05, 0x00, 0x01];
+    let write = [vec![0x06, 0x00, 0x05], VALUE.to_be_bytes().to_vec()].concat();
+    let step = |send: Outgoing, compare: Compare| Step::Exchange {
+        send,
+        compare,
+        capture: None,
+        note: String::new(),
+    };
+    let case = Case {
+        id: "test/pipeline/write-behind-a-read".into(),
+        title: "a write pipelined behind a read, read back".into(),
+        reference: "TCP guide 4.2.1.1, 4.4.2.1-2".into(),
+        requirement: "test".into(),
+        level: Level::Must,
+        tags: vec![Tag::TcpOnly, Tag::Write],
+        steps: vec![
+            step(
+                Outgoing::Batch(vec![read.clone(), write]),
+                Compare::Structure,
+            ),
+            step(Outgoing::Pdu(read), Compare::Exact),
+        ],
+        requirements: vec![],
+        freedoms: vec!["pipelined-server-busy".into()],
+    };
+    for (choice, kept) in [("exception-06", 0u16), ("response", VALUE)] {
+        let choose = format!("pipelined-server-busy={choice}");
+        let choices = drives::Choices::parse_all(&[choose.as_str()], &requirements, &p)
+            .expect("choices");
+        let drive = drives::Station::new(
+            drives::build_with(p.clone(), FaultSet::none(), choices.clone()),
+            FaultSet::none(),
+            p.device.default_unit,
+        )
+        .with_choices(choices);
+        let cfg = RunConfig {
+            unit: 1,
+            timing: Timing::default(),
+            safety: Safety::default(),
+            is_sim: true,
+        };
+        let reference = SimTarget::new(test_support::station("generic", &[]));
+        let mut runner = Runner::new(
+            Box::new(SimTarget::new(drive)),
+            reference,
+            p.clone(),
+            cfg,
+            Expectations::default(),
+        )
+        .with_requirements(std::sync::Arc::new(requirements.clone()));
+        let r = runner.run_case(&case).expect("run");
+        assert_eq!(r.verdict, Verdict::Pass, "{choose}: {r:#?}");
+        // The read-back's answer: the register as the drive keeps it.
+        let last = r
+            .wire
+            .iter()
+            .rev()
+            .find(|w| w.dir == Dir::Rx)
+            .expect("an answer");
+        assert_eq!(
+            last.bytes[last.bytes.len() - 2..],
+            kept.to_be_bytes(),
+            "{choose}: {last:?}"
+        );
+        let shown: Vec<_> = runner
+            .choices()
+            .choices()
+            .filter(|c| c.freedom == "pipelined-server-busy")
+            .map(|c| c.value.clone())
+            .collect();
+        let expected: Vec<String> = if choice == "exception-06" {
+            vec![choice.into()]
+        } else {
+            vec![]
+        };
+        assert_eq!(shown, expected, "{choose}: choices recorded");
+    }
 }

@@ -451,6 +451,28 @@ pub fn in_process(secs: f64) -> Result<Vec<NsPer>, BenchError> {
         model.advance(now);
         black_box(model.handle(now, UNIT, black_box(&req)));
     }));
+    // The copy of the reference drive the runner takes before a step whose answer a choice of the drive may
+    // decide (`Runner::run_step`: every request but a plain read, and on a profile with 32-bit registers
+    // every read too), per profile.
+    for (name, stem) in [
+        ("reference-copy-generic", "generic"),
+        ("reference-copy-mdrive", "mdrive"),
+        ("reference-copy-lmd", "lmd"),
+        ("reference-copy-sd2x", "sd2x"),
+    ] {
+        let p = Corpus::Embedded
+            .profile(stem)
+            .map_err(|e| other(e.to_string()))?;
+        let unit = p.device.default_unit;
+        let reference = SimTarget::new(Station::new(
+            drives::build(p, FaultSet::none()),
+            FaultSet::none(),
+            unit,
+        ));
+        out.push(time_per(name, secs, || {
+            black_box(black_box(&reference).clone());
+        }));
+    }
     Ok(out)
 }
 

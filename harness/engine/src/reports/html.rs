@@ -5,7 +5,7 @@
 //!
 //! A page with a million cases is of no use in a browser: each verdict shows at most
 //! [`HTML_ROWS_PER_VERDICT`] cases in full ([`HTML_PASS_ROWS`] PASS cases); the page says how many more there are, and `index.json` and
-//! `cases.jsonl` hold them all (`cases/` the non-PASS ones).
+//! `cases.jsonl` hold them all (`cases/` those that ran and did not PASS).
 
 use std::fmt::Write as _;
 use std::fs::{self, File};
@@ -429,7 +429,7 @@ fn footer(omitted: &[usize; 6]) -> String {
         if *n > 0 {
             let _ = writeln!(
                 s,
-                "<p class=\"banner\">{n} more {v} case(s) are not shown (at most {} of them); {INDEX_FILE} and {CASE_LINES_FILE} have every case, {CASES_DIR}/ the non-PASS ones.</p>",
+                "<p class=\"banner\">{n} more {v} case(s) are not shown (at most {} of them); {INDEX_FILE} and {CASE_LINES_FILE} have every case, {CASES_DIR}/ those that ran and did not PASS.</p>",
                 rows_shown(*v)
             );
         }

@@ -1,11 +1,13 @@
 //! `index.json` (streamed: the case array grows line by line, the summary closes it), `cases.jsonl` (every
 //! case's full record, one line each, streamed) and `cases/*.json` (the same record, pretty, for the cases
-//! whose verdict is not PASS).
+//! that ran and did not PASS).
 //!
 //! One streamed file for every case instead of one file per case: opening, writing and closing a file per
 //! case was most of what `--report` cost (three system calls and a directory entry per case, ~75 % of the
 //! samples in the kernel on ext4; BENCHMARKS.md, issue 17 item 3). The files a user opens to debug a
-//! failure stay one per case.
+//! failure stay one per case. A SKIPPED case has none: nothing of it reached the wire, and its reason is in
+//! its `index.json` entry (a generated run skips the alterations its transport cannot carry, ~3 % of its
+//! cases; their files were a third of what `--report` cost on ext4).
 
 use std::fs;
 use std::io::{self, Write};
@@ -20,10 +22,11 @@ use super::{
 use crate::{Case, CaseResult, Verdict};
 
 /// Format tag at the top of `index.json`, bumped when its layout changes (2: `file` only for the cases that
-/// have a case file, the non-PASS ones; every case's record is in `cases.jsonl`).
-pub const INDEX_FORMAT: &str = "modbus-harness-report/2";
+/// have a case file, the non-PASS ones; every case's record is in `cases.jsonl`. 3: no case file for a
+/// SKIPPED case, whose entry has the `reason` instead).
+pub const INDEX_FORMAT: &str = "modbus-harness-report/3";
 
-/// Writes `index.json`, `cases.jsonl` and a JSON file in `cases/` per non-PASS case.
+/// Writes `index.json`, `cases.jsonl` and a JSON file in `cases/` per case that ran and did not PASS.
 pub struct JsonSink {
     dir: PathBuf,
     index: Stream,
@@ -50,9 +53,12 @@ struct IndexEntry<'a> {
     verdict_before_expectations: Option<&'static str>,
     reference: &'a str,
     duration_us: u64,
-    /// The case file, for the cases that have one (not PASS).
+    /// The case file, for the cases that have one (ran, and not PASS).
     #[serde(skip_serializing_if = "Option::is_none")]
     file: Option<String>,
+    /// Why the case was skipped or could not complete, for a case without a case file.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    reason: Option<&'a str>,
 }
 
 impl JsonSink {
@@ -86,7 +92,7 @@ impl Sink for JsonSink {
             serde_json::to_writer(&mut *out, &record).map_err(cannot)?;
             out.write_all(b"\n")
         })?;
-        let file = if result.verdict == Verdict::Pass {
+        let file = if matches!(result.verdict, Verdict::Pass | Verdict::Skipped) {
             None
         } else {
             let name = case_file_name(&result.id);
@@ -105,6 +111,7 @@ impl Sink for JsonSink {
             verdict_before_expectations: result.expected_deviation.as_ref().map(|(v, _)| v.label()),
             reference: &case.reference,
             duration_us: result.duration.as_micros() as u64,
+            reason: result.reason.as_deref().filter(|_| file.is_none()),
             file,
         };
         let sep = if self.first { "\n" } else { ",\n" };

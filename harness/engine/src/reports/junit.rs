@@ -4,7 +4,11 @@
 //! SKIPPED a `<skipped>` (the reason as the message); PASS, NON-STRICT, INFORMATIONAL and UNIMPLEMENTED are
 //! passing test cases. Each test case's `<system-out>` starts with `verdict: …`; the suite has a property per
 //! verdict count (`count.NON-STRICT`, ...) and a `<system-out>` listing the NON-STRICT, UNIMPLEMENTED and
-//! INFORMATIONAL cases, so that they are visible in a CI's JUnit view without failing the job.
+//! INFORMATIONAL cases, so that they are visible in a CI's JUnit view without failing the job. The
+//! `<system-out>` of a PASS case has its steps and wire log for the first [`PASS_IN_FULL`] PASS cases only;
+//! later ones have the verdict and the id, and say where the rest is (`cases.jsonl`, `session.pcapng`): a
+//! long generated run's JUnit file stays readable by a CI, and writing a million PASS cases' wire logs twice
+//! was the larger part of what the JUnit file cost (BENCHMARKS.md, issue 17 item 3).
 //!
 //! The file is valid against the schema Jenkins' xUnit plugin uses (`harness/cli/tests/data/jenkins-junit.xsd`,
 //! checked by a test): no `<properties>` inside a `<testcase>`, no `skipped` on `<testsuites>`. The class
@@ -24,8 +28,8 @@ use quick_xml::Writer;
 use quick_xml::events::{BytesDecl, BytesEnd, BytesStart, BytesText, Event};
 
 use super::{
-    JUNIT_FILE, RunInfo, Sink, Summary, iso8601_utc, outcome_text, partial_path, promote,
-    wire_line, with_path, xml_safe,
+    CASE_LINES_FILE, JUNIT_FILE, PCAP_FILE, RunInfo, Sink, Summary, iso8601_utc, outcome_text,
+    partial_path, promote, wire_line, with_path, xml_safe,
 };
 use crate::{Case, CaseResult, Verdict};
 use codec::hex_spaced;
@@ -41,7 +45,12 @@ pub struct JunitSink {
     skipped: usize,
     /// The first case ids of each verdict in [`NOTED`], and how many there were.
     noted: Vec<(Verdict, Vec<String>, usize)>,
+    /// PASS cases written so far.
+    passes: usize,
 }
+
+/// How many PASS cases have their steps and wire log in `<system-out>` (as many as the HTML report shows).
+pub const PASS_IN_FULL: usize = super::html::HTML_PASS_ROWS;
 
 /// How many case ids per verdict the suite's `<system-out>` lists (the rest are counted).
 const LISTED_PER_VERDICT: usize = 200;
@@ -87,6 +96,7 @@ impl JunitSink {
             failures: 0,
             skipped: 0,
             noted: NOTED.iter().map(|v| (*v, Vec::new(), 0)).collect(),
+            passes: 0,
         })
     }
 
@@ -94,6 +104,7 @@ impl JunitSink {
         xml: &mut Writer<BufWriter<File>>,
         case: &Case,
         result: &CaseResult,
+        in_full: bool,
     ) -> io::Result<()> {
         let id = xml_safe(&result.id);
         let (class, name) = junit_names(&id);
@@ -128,8 +139,16 @@ impl JunitSink {
             _ => {}
         }
 
+        let out = if in_full {
+            system_out(case, result)
+        } else {
+            format!(
+                "verdict: {}\nid: {}\nsteps and wire log: {CASE_LINES_FILE}, {PCAP_FILE} (junit.xml has them for the first {PASS_IN_FULL} PASS cases)\n",
+                result.verdict, result.id
+            )
+        };
         xml.create_element("system-out")
-            .write_text_content(BytesText::new(&xml_safe(&system_out(case, result))))?;
+            .write_text_content(BytesText::new(&xml_safe(&out)))?;
         xml.write_event(Event::End(BytesEnd::new("testcase")))
     }
 
@@ -291,7 +310,10 @@ impl Sink for JunitSink {
         let xml = self.xml.as_mut().ok_or_else(|| {
             io::Error::other(format!("{}: report already finished", partial.display()))
         })?;
-        Self::write_case(xml, case, result).map_err(with_path("cannot write", &partial))?;
+        let in_full = result.verdict != Verdict::Pass || self.passes < PASS_IN_FULL;
+        Self::write_case(xml, case, result, in_full)
+            .map_err(with_path("cannot write", &partial))?;
+        self.passes += usize::from(result.verdict == Verdict::Pass);
         self.tests += 1;
         match result.verdict {
             Verdict::Fail => self.failures += 1,

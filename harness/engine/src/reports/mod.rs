@@ -55,7 +55,7 @@ use codec::hex_spaced;
 
 pub use html::{HTML_PASS_ROWS, HTML_ROWS_PER_VERDICT, HtmlSink, escape_html};
 pub use json::{INDEX_FORMAT, JsonSink};
-pub use junit::{JunitSink, junit_names};
+pub use junit::{JunitSink, PASS_IN_FULL as JUNIT_PASS_IN_FULL, junit_names};
 pub use pcap::{CLIENT_PORT_BASE, CLIENT_PORTS, PcapSink};
 
 /// The run index.
@@ -645,7 +645,7 @@ pub fn terminal_summary(summary: &Summary, info: &RunInfo) -> String {
     if let Some(dir) = &info.report_dir {
         let _ = writeln!(
             s,
-            "reports: {} ({INDEX_FILE}, {JUNIT_FILE}, {HTML_FILE}, {PCAP_FILE}, {CASE_LINES_FILE}, {CASES_DIR}/ for the non-PASS cases)",
+            "reports: {} ({INDEX_FILE}, {JUNIT_FILE}, {HTML_FILE}, {PCAP_FILE}, {CASE_LINES_FILE}, {CASES_DIR}/ for the cases that ran and did not PASS)",
             dir.display()
         );
         let _ = writeln!(

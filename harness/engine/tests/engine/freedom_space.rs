@@ -529,8 +529,8 @@ fn the_reference_follows_a_drive_that_refuses_pipelined_writes_as_busy() {
     };
     for (choice, kept) in [("exception-06", 0u16), ("response", VALUE)] {
         let choose = format!("pipelined-server-busy={choice}");
-        let choices = drives::Choices::parse_all(&[choose.as_str()], &requirements, &p)
-            .expect("choices");
+        let choices =
+            drives::Choices::parse_all(&[choose.as_str()], &requirements, &p).expect("choices");
         let drive = drives::Station::new(
             drives::build_with(p.clone(), FaultSet::none(), choices.clone()),
             FaultSet::none(),

@@ -66,16 +66,26 @@ fn index_json_has_every_case_and_the_counts() {
     write_sample(dir.path(), Transport::Tcp, 502);
     let index: serde_json::Value =
         serde_json::from_str(&read(&dir.path().join("index.json"))).expect("index.json parses");
-    assert_eq!(index["format"], "modbus-harness-report/2");
+    assert_eq!(index["format"], "modbus-harness-report/3");
     assert_eq!(index["run"]["profile"], "mdrive");
     assert_eq!(index["run"]["transport"], "tcp");
     let cases = index["cases"].as_array().expect("cases array");
     assert_eq!(cases.len(), IDS.len());
     for (entry, id) in cases.iter().zip(IDS) {
         assert_eq!(entry["id"], id);
-        // A case file is named for the cases that have one, the non-PASS ones.
+        // A case file is named for the cases that have one, those that ran and did not PASS; a SKIPPED
+        // case's entry has its reason instead.
         if entry["verdict"] == "PASS" {
             assert!(entry.get("file").is_none(), "{entry}");
+            assert!(entry.get("reason").is_none(), "{entry}");
+            continue;
+        }
+        if entry["verdict"] == "SKIPPED" {
+            assert!(entry.get("file").is_none(), "{entry}");
+            assert!(
+                entry["reason"].as_str().is_some_and(|r| !r.is_empty()),
+                "{entry}"
+            );
             continue;
         }
         let file = entry["file"].as_str().expect("file name");
@@ -115,7 +125,7 @@ fn index_json_has_every_case_and_the_counts() {
 }
 
 #[test]
-fn cases_jsonl_has_every_case_and_cases_dir_the_non_pass_ones() {
+fn cases_jsonl_has_every_case_and_cases_dir_the_failing_and_noted_ones() {
     let dir = tempfile::tempdir().expect("tempdir");
     write_sample(dir.path(), Transport::Tcp, 502);
     let sample = sample(Transport::Tcp);
@@ -126,7 +136,7 @@ fn cases_jsonl_has_every_case_and_cases_dir_the_non_pass_ones() {
     for (line, (case, result)) in lines.iter().zip(&sample) {
         let want = serde_json::json!({ "case": case, "result": result });
         assert_eq!(line, &want, "the line of {}", result.id);
-        if result.verdict != Verdict::Pass {
+        if !matches!(result.verdict, Verdict::Pass | Verdict::Skipped) {
             // The case file holds the same record.
             let file = dir.path().join("cases").join(case_file_name(&result.id));
             let file: serde_json::Value =
@@ -135,9 +145,13 @@ fn cases_jsonl_has_every_case_and_cases_dir_the_non_pass_ones() {
             non_pass.push(case_file_name(&result.id));
         }
     }
-    // `cases/` holds exactly the non-PASS cases.
+    // `cases/` holds exactly the cases that ran and did not PASS.
     non_pass.sort();
-    assert_eq!(non_pass.len(), 4, "the sample has 2 PASS and 4 others");
+    assert_eq!(
+        non_pass.len(),
+        3,
+        "the sample has 2 PASS, 1 SKIPPED and 3 others"
+    );
     assert_eq!(case_file_names(dir.path()), non_pass);
 }
 
@@ -336,6 +350,58 @@ fn html_shows_every_failure_first_and_a_bounded_number_of_passes() {
         .find("<details class=\"case v-PASS\"")
         .expect("a PASS row");
     assert!(last_fail < first_pass, "a FAIL row after a PASS row");
+}
+
+/// A long run's JUnit file: the first PASS cases have their steps and wire log in `<system-out>`, the later
+/// PASS cases their verdict and id and where the rest is; every other case has everything, however late.
+#[test]
+fn junit_gives_the_wire_of_a_bounded_number_of_passes_and_of_every_other_case() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let mut reports = Reports::create(dir.path(), &run_info(Transport::Tcp, 502)).expect("create");
+    let total = reports::JUNIT_PASS_IN_FULL + 300;
+    for n in 0..total {
+        let (case, mut result) = test_support::reports::numbered_pass(Transport::Tcp, n);
+        if n % 100 == 99 {
+            result.verdict = Verdict::NonStrict;
+        }
+        reports.case(&case, &result).expect("write case");
+    }
+    let summary = reports.summary(false, Duration::from_secs(1));
+    reports.finish(&summary).expect("finish");
+    let xml = read(&dir.path().join("junit.xml"));
+    let outs: Vec<&str> = xml
+        .split("<system-out>")
+        .skip(1)
+        .map(|s| s.split("</system-out>").next().expect("closed"))
+        .filter(|s| s.starts_with("verdict: "))
+        .collect();
+    assert_eq!(outs.len(), total, "one <system-out> per case");
+    let (mut passes, mut brief) = (0, 0);
+    for (n, out) in outs.iter().enumerate() {
+        let wire = out.contains("wire log:") && out.contains("step 1:");
+        if out.starts_with("verdict: PASS") {
+            passes += 1;
+            if passes <= reports::JUNIT_PASS_IN_FULL {
+                assert!(wire, "PASS case {n} within the first ones: {out}");
+            } else {
+                assert!(!wire, "PASS case {n} past the first ones: {out}");
+                assert!(
+                    out.contains("cases.jsonl") && out.contains("session.pcapng"),
+                    "{out}"
+                );
+                brief += 1;
+            }
+        } else {
+            assert!(wire, "case {n}, not PASS: {out}");
+        }
+    }
+    assert_eq!(brief, passes - reports::JUNIT_PASS_IN_FULL);
+    assert!(brief > 250, "{brief}");
+    // The NON-STRICT cases past the first PASS ones still have everything.
+    assert!(
+        outs.last()
+            .is_some_and(|o| o.starts_with("verdict: NON-STRICT"))
+    );
 }
 
 #[test]

@@ -891,6 +891,19 @@ impl Runner {
         wire: &mut Vec<WireEvent>,
     ) -> Result<Received, TargetError> {
         let pdu = crate::cases::catalog::known_good_read(&self.profile);
+        // Once the two transaction id sequences have wrapped (after 65,536 requests of a long campaign), the
+        // restore sequence's next id may be that of this step's request or of a recent one: the sentinel's
+        // answer would then be taken for that request's (an answer where silence was due: a false FAIL).
+        // The sentinel takes the next id that is neither.
+        for _ in 0..=RECENT_REQUESTS + frames.len() {
+            let t = self.restore_tid;
+            if !frames.iter().any(|f| f.sent.tid == Some(t))
+                && !self.recent.iter().any(|r| r.0 == t)
+            {
+                break;
+            }
+            self.restore_tid = t.wrapping_add(1);
+        }
         let case_tid = std::mem::replace(&mut self.next_tid, self.restore_tid);
         let f = self.frame(&pdu, self.cfg.unit, None);
         self.restore_tid = std::mem::replace(&mut self.next_tid, case_tid);
@@ -1032,6 +1045,11 @@ impl Runner {
         let pdu = example.as_deref().unwrap_or(pdu);
         let framing = self.target.framing();
         let tid = (framing == Framing::Tcp).then(|| {
+            // Not the id of a sentinel whose answer may still come (after the ids wrapped): that answer would
+            // be taken for this request's.
+            while self.sentinels.contains(&self.next_tid) {
+                self.next_tid = self.next_tid.wrapping_add(1);
+            }
             let t = self.next_tid;
             self.next_tid = self.next_tid.wrapping_add(1);
             t
@@ -2117,6 +2135,70 @@ mod tests {
         let mut bytes = Vec::new();
         tcp::encode_adu(tid, 1, pdu, &mut bytes).expect("encodes");
         Received::frame(bytes)
+    }
+
+    /// A long live campaign wraps the transaction ids: the silence sentinel then drew the id of the very
+    /// request whose silence it was to prove, and its answer was judged as that request's (a 30 s `fuzz
+    /// --allow-writes` against `simulate --profile mdrive` FAILed `gen/1/457444/write-reg-protoid`: "expected
+    /// no response, got" the sentinel's FC 03 answer). The sentinel now takes another id.
+    #[test]
+    fn a_sentinel_never_shares_the_transaction_id_of_the_request_it_follows() {
+        let p = drives::corpus::Corpus::Embedded
+            .profile("generic")
+            .expect("generic");
+        let station = || {
+            let unit = p.device.default_unit;
+            drives::Station::new(
+                drives::build(p.clone(), drives::FaultSet::none()),
+                drives::FaultSet::none(),
+                unit,
+            )
+        };
+        let cfg = RunConfig {
+            unit: 1,
+            timing: Timing::default(),
+            safety: Safety::default(),
+            // A real target's rules: the silence is proven by a sentinel.
+            is_sim: false,
+        };
+        let mut runner = Runner::new(
+            Box::new(SimTarget::new(station())),
+            SimTarget::new(station()),
+            p.clone(),
+            cfg,
+            Expectations::default(),
+        );
+        let case = Case {
+            id: "test/protocol-id".into(),
+            title: "a request with protocol id 1".into(),
+            reference: "test".into(),
+            requirement: "test".into(),
+            level: crate::cases::Level::Must,
+            tags: vec![Tag::TcpOnly],
+            steps: vec![Step::Exchange {
+                send: Outgoing::Mutated {
+                    pdu: vec![0x03, 0x00, 0x00, 0x00, 0x01],
+                    mutation: Mutation::ProtocolId(1),
+                },
+                compare: Compare::RejectOrIgnore,
+                capture: None,
+                note: String::new(),
+            }],
+            requirements: vec![],
+            freedoms: vec![],
+        };
+        for _ in 0..3 {
+            // The two sequences meet, as they do after wrapping.
+            runner.next_tid = runner.restore_tid;
+            let r = runner.run_case(&case).expect("run");
+            assert_eq!(r.verdict, Verdict::Pass, "{r:#?}");
+            assert_eq!(
+                runner.silences().sentinel,
+                1,
+                "a sentinel proved the silence"
+            );
+            runner.silences = Silences::default();
+        }
     }
 
     /// Pipelined answers are paired with their requests by transaction id, and one ahead of an earlier

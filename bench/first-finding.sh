@@ -26,10 +26,11 @@
 #   --expect TEXT    count only a `finding:` line containing TEXT (e.g. the case kind `comm-event-log`), and
 #                    run the campaigns with --keep-going so that another finding does not end them first
 #
-# The profile is the one whose behaviour the fault concerns: sd2x for the DS402/watchdog faults and
-# write-quantity-over-limit-dropped (the only FC 17 write limit below 121), mdrive for the MDrive/LMD
-# mnemonic faults, word order, 32-bit halves and undeclared functions, generic (which declares the whole
-# public function code set) for the rest. RTU-only faults (those of framing and of the serial line's
+# The profile is the one whose behaviour the fault concerns: sd2x for the DS402/watchdog faults,
+# write-quantity-over-limit-dropped (the only FC 17 write limit below 121) and the FC 04 its manual lists,
+# mdrive for the MDrive/LMD mnemonic faults, word order, 32-bit halves, undeclared functions, the inputs'
+# bit order (its inputs are not all off) and the range codes (its registers have ranges), generic (which
+# declares the whole public function code set) for the rest. RTU-only faults (those of framing and of the serial line's
 # state: the event log after a restart, listen only mode) are run over RTU over TCP
 # (`simulate --rtu-over-tcp`, `fuzz --target rtu+tcp://`). Reproducers go to a temporary directory. Once three
 # seeds of a fault found nothing the median is "not found" and its other seeds are not run.
@@ -108,17 +109,21 @@ signal.signal(signal.SIGTERM, on_signal)
 # answer-other-unit: on Modbus/TCP the generic and MDrive profiles answer every unit id (unit_ids 0-255), so
 # the fault changes nothing there; on RTU a frame for another address must go unanswered.
 RTU_ONLY = {"wrong-crc", "broadcast-answered", "counters-frozen", "crc-unchecked", "event-log-oldest-first",
-            "listen-only-ignored", "answer-other-unit"}
+            "listen-only-ignored", "answer-other-unit", "broadcast-write-ignored", "answer-inside-silence"}
+# input-bits-reversed: the MDrive's inputs are not all off (the generic drive's are, and reversed zeros are
+# zeros); range-code-inconsistent: the MDrive has ranged registers (the generic drive's take any value).
 MDRIVE = {"write-only-readable", "mnemonic-params-unchecked", "half-register-widened", "word-order",
-          "undeclared-function-served"}
+          "undeclared-function-served", "vendor-write-not-applied", "input-bits-reversed",
+          "range-code-inconsistent"}
+# listed-function-refused: the SD2x lists FC 04 (the generic drive too, but the fault concerns the manual's list).
+SD2X = {"watchdog-disabled", "write-quantity-over-limit-dropped", "ds402-enable-from-switch-on-disabled",
+        "speed-without-enable", "watchdog-from-first-write", "listed-function-refused"}
 
 def profile_of(fault):
     if forced:
         return forced
     # write-quantity-over-limit-dropped: only a profile whose FC 17 write limit is below the spec's (the SD2x).
-    if fault in ("watchdog-disabled", "write-quantity-over-limit-dropped",
-                 "ds402-enable-from-switch-on-disabled", "speed-without-enable",
-                 "watchdog-from-first-write"):
+    if fault in SD2X:
         return "sd2x"
     return "mdrive" if fault in MDRIVE else "generic"
 
@@ -163,12 +168,12 @@ def campaign(fault, seed, regressions):
                                 stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
         procs.append(fuzz)
         try:
-            at, _ = lines_until(fuzz, fuzz.stderr, t0 + duration + 15, b"finding:", expect)
+            at, line = lines_until(fuzz, fuzz.stderr, t0 + duration + 15, b"finding:", expect)
         finally:
             stop(fuzz)
             if fuzz in procs:
                 procs.remove(fuzz)
-        return None if at is None else at - t0
+        return (None, None) if at is None else (at - t0, line)
     finally:
         stop(sim)
         if sim in procs:
@@ -186,10 +191,12 @@ with tempfile.TemporaryDirectory(prefix="first-finding.") as regressions:
     for fault in faults:
         times = []
         for seed in range(1, seeds + 1):
-            t = campaign(fault, seed, regressions)
+            t, line = campaign(fault, seed, regressions)
             times.append(t)
+            # The finding itself, so that one that is not the fault's shows (see --expect).
+            what = "" if line is None else " (" + line.decode(errors="replace").strip()[:200] + ")"
             print(f"first-finding: {fault} seed {seed}: "
-                  f"{'not found' if t is None else f'{t:.2f} s'}", file=sys.stderr, flush=True)
+                  f"{'not found' if t is None else f'{t:.2f} s'}{what}", file=sys.stderr, flush=True)
             if sum(x is None for x in times) * 2 > seeds:
                 break
         found = sorted(x for x in times if x is not None)

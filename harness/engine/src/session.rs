@@ -788,9 +788,9 @@ impl Collected {
         }
     }
 
-    fn record(&mut self, opts: &Options, case: &Case, result: CaseResult, gen_index: Option<u64>) {
-        self.tally.record(&result);
-        self.expectations.record(&result);
+    fn record(&mut self, opts: &Options, case: &Case, result: &CaseResult, gen_index: Option<u64>) {
+        self.tally.record(result);
+        self.expectations.record(result);
         if result.verdict != Verdict::Skipped {
             self.exercised.extend(case.requirements.iter().cloned());
         }
@@ -804,7 +804,7 @@ impl Collected {
                 self.to_shrink.push((index, case.id.clone()));
             }
             if self.failures.len() < 200 {
-                self.failures.push(result);
+                self.failures.push(result.clone());
             }
         }
     }
@@ -1024,18 +1024,21 @@ pub fn run(
                 }
             }
         };
-        if let Some(r) = reports.as_mut() {
-            r.case(&case, &result)?;
-        }
         if let Some(w) = snap.as_mut() {
             w.add(&result)?;
         }
         progress(i + 1, total, &case.id, result.verdict);
-        collected.record(opts, &case, result, gen_index);
+        collected.record(opts, &case, &result, gen_index);
+        let id = after.as_ref().map(|_| case.id.clone());
+        // The case and its result go to the report writer as they are, not copied (the copy was the run
+        // loop's share of what `--report` cost; BENCHMARKS.md, issue 17 item 3).
+        if let Some(r) = reports.as_mut() {
+            r.case_owned(case, result)?;
+        }
         // A target that stopped answering is put back at the end, as far as it answers again then.
         let gone = watch.as_ref().is_some_and(|w| w.dead.is_some());
-        if let (Some(k), Some(touched), false) = (keeper.as_mut(), after, gone)
-            && let Err(e) = k.after_case(&mut runner, &case.id, &touched, &profile)
+        if let (Some(k), Some(touched), Some(id), false) = (keeper.as_mut(), after, id, gone)
+            && let Err(e) = k.after_case(&mut runner, &id, &touched, &profile)
         {
             failed = Some(e.into());
             break;

@@ -296,7 +296,8 @@ pub trait Sink {
 /// Every report format of a `--report DIR`, fed together.
 ///
 /// The formats are written on a thread of their own (`report-writer`): [`Reports::case`] counts the
-/// verdict and hands a copy of the case and its result over a bounded channel, in small batches, so the run
+/// verdict and hands a copy of the case and its result ([`Reports::case_owned`]: the case and its result
+/// themselves) over a bounded channel, in small batches, so the run
 /// loop does not wait for the files unless the writer falls behind by more than two batches. The first
 /// error of a format is returned by a later [`Reports::case`], by [`Reports::flush`] or by
 /// [`Reports::finish`], which completes the files and joins the thread. Dropped without `finish`, the
@@ -345,7 +346,13 @@ impl Reports {
     /// Count one completed case and hand it to the writer thread, which writes it to every format (every
     /// format is tried; the first error stops the thread and is returned by the next call).
     pub fn case(&mut self, case: &Case, result: &CaseResult) -> io::Result<()> {
-        self.tally.record(result);
+        self.case_owned(case.clone(), result.clone())
+    }
+
+    /// As [`Reports::case`], for a caller that is done with the case and its result: handed over without a
+    /// copy.
+    pub fn case_owned(&mut self, case: Case, result: CaseResult) -> io::Result<()> {
+        self.tally.record(&result);
         self.writer.send(case, result)
     }
 

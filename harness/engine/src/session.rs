@@ -1024,16 +1024,25 @@ pub fn run(
                 }
             }
         };
-        if let Some(w) = snap.as_mut() {
-            w.add(&result)?;
+        // A report or snapshot that cannot be written ends the run, but like an error of the target: after
+        // this case's writes are put back, and with the drive restored at the end (`failed`), not by
+        // returning at once, which would leave the drive as the case left it.
+        let mut unwritten: Option<SessionError> = None;
+        if let Some(w) = snap.as_mut()
+            && let Err(e) = w.add(&result)
+        {
+            unwritten = Some(e.into());
         }
         progress(i + 1, total, &case.id, result.verdict);
         collected.record(opts, &case, &result, gen_index);
         let id = after.as_ref().map(|_| case.id.clone());
         // The case and its result go to the report writer as they are, not copied (the copy was the run
         // loop's share of what `--report` cost; BENCHMARKS.md, issue 17 item 3).
-        if let Some(r) = reports.as_mut() {
-            r.case_owned(case, result)?;
+        if let Some(r) = reports.as_mut()
+            && let Err(e) = r.case_owned(case, result)
+            && unwritten.is_none()
+        {
+            unwritten = Some(e.into());
         }
         // A target that stopped answering is put back at the end, as far as it answers again then.
         let gone = watch.as_ref().is_some_and(|w| w.dead.is_some());
@@ -1041,6 +1050,10 @@ pub fn run(
             && let Err(e) = k.after_case(&mut runner, &id, &touched, &profile)
         {
             failed = Some(e.into());
+            break;
+        }
+        if let Some(e) = unwritten {
+            failed = Some(e);
             break;
         }
     }

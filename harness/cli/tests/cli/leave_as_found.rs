@@ -854,3 +854,77 @@ fn fuzz_with_writes_judges_against_the_drive_as_found_and_leaves_it_so() {
         }
     }
 }
+
+/// Makes a directory immutable (`chattr +i`: not even root may create a file in it) until dropped.
+struct Immutable(std::path::PathBuf);
+
+impl Immutable {
+    fn new(dir: &Path) -> Option<Self> {
+        let ok = Command::new("chattr")
+            .arg("+i")
+            .arg(dir)
+            .stderr(Stdio::null())
+            .status()
+            .is_ok_and(|s| s.success());
+        ok.then(|| Self(dir.to_path_buf()))
+    }
+}
+
+impl Drop for Immutable {
+    fn drop(&mut self) {
+        let _ = Command::new("chattr").arg("-i").arg(&self.0).status();
+    }
+}
+
+/// A report that can no longer be written in the middle of a run (here the case file of the first case
+/// that does not PASS, `cases/` made immutable) ends the run with that error, but the way an error of the
+/// target does: the writing case in progress is put back, and the drive is restored and verified before
+/// the run exits. Before, the run returned at once and the drive was not put back (no "every kept
+/// parameter reads as before", which only the final restore prints).
+#[test]
+fn a_report_that_fails_midrun_still_leaves_the_drive_as_found() {
+    let dir = TempDir::new("laf-report-fails");
+    // A drive that accepts out-of-range values: the write-out-of-range cases FAIL, so a case file is due.
+    let (sim, url, framing, _) = preset_sim("mdrive", dir.path(), &["--fault", "range-unchecked"]);
+    let p = profile("mdrive");
+    let before = read_everything(addr_of(&sim), framing, &p);
+    let report = dir.path().join("report");
+    let cases = report.join("cases");
+    std::fs::create_dir_all(&cases).expect("cases/");
+    let Some(_immutable) = Immutable::new(&cases) else {
+        // Needs chattr and a file system that keeps the attribute (ext2/3/4, xfs, btrfs): say so loudly.
+        eprintln!(
+            "SKIPPED: `chattr +i` is not available on {}",
+            cases.display()
+        );
+        return;
+    };
+    assert!(
+        std::fs::write(cases.join("probe.json"), b"{}").is_err(),
+        "chattr +i did not make {} immutable",
+        cases.display()
+    );
+    let (code, out, err) = harness(&[
+        "run",
+        "--target",
+        &url,
+        "--profile",
+        "mdrive",
+        "--no-progress",
+        "--report",
+        report.to_str().expect("path"),
+    ]);
+    assert_ne!(code, 0, "{out}\n{err}");
+    let all = format!("{out}\n{err}");
+    assert!(
+        all.contains("cases/"),
+        "the error names the case file: {all}"
+    );
+    assert!(
+        all.contains("every kept parameter reads as before"),
+        "the drive was not restored and verified before the exit: {all}"
+    );
+    let after = read_everything(addr_of(&sim), framing, &p);
+    let diff = differences(&before, &after);
+    assert!(diff.is_empty(), "not left as found: {diff:#?}");
+}

@@ -855,29 +855,43 @@ fn fuzz_with_writes_judges_against_the_drive_as_found_and_leaves_it_so() {
     }
 }
 
-/// Makes a directory immutable (`chattr +i`: not even root may create a file in it) until dropped.
-struct Immutable(std::path::PathBuf);
+/// A directory in which no file can be created until dropped: immutable (`chattr +i`, which binds root
+/// too), else read-only (mode 0555, which binds anyone but root); `None` when neither holds here.
+struct Unwritable(std::path::PathBuf);
 
-impl Immutable {
+impl Unwritable {
     fn new(dir: &Path) -> Option<Self> {
-        let ok = Command::new("chattr")
+        use std::os::unix::fs::PermissionsExt;
+        let guard = Self(dir.to_path_buf());
+        let refused = || std::fs::write(dir.join("probe.json"), b"{}").is_err();
+        let _ = Command::new("chattr")
             .arg("+i")
             .arg(dir)
             .stderr(Stdio::null())
-            .status()
-            .is_ok_and(|s| s.success());
-        ok.then(|| Self(dir.to_path_buf()))
+            .status();
+        if refused() {
+            return Some(guard);
+        }
+        let _ = std::fs::remove_file(dir.join("probe.json"));
+        let _ = std::fs::set_permissions(dir, std::fs::Permissions::from_mode(0o555));
+        refused().then_some(guard)
     }
 }
 
-impl Drop for Immutable {
+impl Drop for Unwritable {
     fn drop(&mut self) {
-        let _ = Command::new("chattr").arg("-i").arg(&self.0).status();
+        use std::os::unix::fs::PermissionsExt;
+        let _ = Command::new("chattr")
+            .arg("-i")
+            .arg(&self.0)
+            .stderr(Stdio::null())
+            .status();
+        let _ = std::fs::set_permissions(&self.0, std::fs::Permissions::from_mode(0o755));
     }
 }
 
 /// A report that can no longer be written in the middle of a run (here the case file of the first case
-/// that does not PASS, `cases/` made immutable) ends the run with that error, but the way an error of the
+/// that does not PASS, `cases/` made unwritable) ends the run with that error, but the way an error of the
 /// target does: the writing case in progress is put back, and the drive is restored and verified before
 /// the run exits. Before, the run returned at once and the drive was not put back (no "every kept
 /// parameter reads as before", which only the final restore prints).
@@ -891,19 +905,14 @@ fn a_report_that_fails_midrun_still_leaves_the_drive_as_found() {
     let report = dir.path().join("report");
     let cases = report.join("cases");
     std::fs::create_dir_all(&cases).expect("cases/");
-    let Some(_immutable) = Immutable::new(&cases) else {
-        // Needs chattr and a file system that keeps the attribute (ext2/3/4, xfs, btrfs): say so loudly.
-        eprintln!(
-            "SKIPPED: `chattr +i` is not available on {}",
+    // As root, `chattr +i` needs a file system that keeps the attribute (ext2/3/4, xfs, btrfs); .ci/run
+    // installs chattr (e2fsprogs).
+    let _unwritable = Unwritable::new(&cases).unwrap_or_else(|| {
+        panic!(
+            "cannot make {} unwritable (chattr +i, mode 0555)",
             cases.display()
-        );
-        return;
-    };
-    assert!(
-        std::fs::write(cases.join("probe.json"), b"{}").is_err(),
-        "chattr +i did not make {} immutable",
-        cases.display()
-    );
+        )
+    });
     let (code, out, err) = harness(&[
         "run",
         "--target",

@@ -892,14 +892,12 @@ impl Runner {
     ) -> Result<Received, TargetError> {
         let pdu = crate::cases::catalog::known_good_read(&self.profile);
         // Once the two transaction id sequences have wrapped (after 65,536 requests of a long campaign), the
-        // restore sequence's next id may be that of this step's request or of a recent one: the sentinel's
-        // answer would then be taken for that request's (an answer where silence was due: a false FAIL).
-        // The sentinel takes the next id that is neither.
-        for _ in 0..=RECENT_REQUESTS + frames.len() {
+        // restore sequence's next id may be that of a recent request, this step's included (`send_pieces`
+        // remembered them): the sentinel's answer would then be taken for that request's (an answer where
+        // silence was due: a false FAIL). The sentinel takes the next id that is none of them.
+        for _ in 0..=RECENT_REQUESTS {
             let t = self.restore_tid;
-            if !frames.iter().any(|f| f.sent.tid == Some(t))
-                && !self.recent.iter().any(|r| r.0 == t)
-            {
+            if !self.recent.iter().any(|r| r.0 == t) {
                 break;
             }
             self.restore_tid = t.wrapping_add(1);

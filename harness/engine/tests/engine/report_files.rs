@@ -320,21 +320,26 @@ fn html_has_every_case_and_escapes_findings() {
 
 /// A large run's page stays bounded: PASS rows stop at `HTML_PASS_ROWS` with a banner that counts the rest,
 /// every other verdict is shown, and it comes before the PASS rows.
-#[test]
-fn html_shows_every_failure_first_and_a_bounded_number_of_passes() {
-    let dir = tempfile::tempdir().expect("tempdir");
-    let mut reports = Reports::create(dir.path(), &run_info(Transport::Tcp, 502)).expect("create");
-    let extra = 250;
-    let total = reports::HTML_PASS_ROWS + extra;
+/// A run of `total` numbered PASS cases written to `dir`, every hundredth (n % 100 == 99) given `every_100th`.
+fn write_numbered(dir: &Path, total: usize, every_100th: Verdict) {
+    let mut reports = Reports::create(dir, &run_info(Transport::Tcp, 502)).expect("create");
     for n in 0..total {
         let (case, mut result) = test_support::reports::numbered_pass(Transport::Tcp, n);
         if n % 100 == 99 {
-            result.verdict = Verdict::Fail;
+            result.verdict = every_100th;
         }
         reports.case(&case, &result).expect("write case");
     }
     let summary = reports.summary(false, Duration::from_secs(1));
     reports.finish(&summary).expect("finish");
+}
+
+#[test]
+fn html_shows_every_failure_first_and_a_bounded_number_of_passes() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let extra = 250;
+    let total = reports::HTML_PASS_ROWS + extra;
+    write_numbered(dir.path(), total, Verdict::Fail);
     let html = read(&dir.path().join("report.html"));
     let fails = total / 100;
     let passes = html.matches("<details class=\"case v-PASS\"").count();
@@ -357,17 +362,8 @@ fn html_shows_every_failure_first_and_a_bounded_number_of_passes() {
 #[test]
 fn junit_gives_the_wire_of_a_bounded_number_of_passes_and_of_every_other_case() {
     let dir = tempfile::tempdir().expect("tempdir");
-    let mut reports = Reports::create(dir.path(), &run_info(Transport::Tcp, 502)).expect("create");
     let total = reports::JUNIT_PASS_IN_FULL + 300;
-    for n in 0..total {
-        let (case, mut result) = test_support::reports::numbered_pass(Transport::Tcp, n);
-        if n % 100 == 99 {
-            result.verdict = Verdict::NonStrict;
-        }
-        reports.case(&case, &result).expect("write case");
-    }
-    let summary = reports.summary(false, Duration::from_secs(1));
-    reports.finish(&summary).expect("finish");
+    write_numbered(dir.path(), total, Verdict::NonStrict);
     let xml = read(&dir.path().join("junit.xml"));
     let outs: Vec<&str> = xml
         .split("<system-out>")

@@ -28,3 +28,9 @@ impl From<Exit> for ExitCode {
         }
     }
 }
+
+/// Say why the command could not do its job, and exit 2.
+pub fn unusable(why: impl std::fmt::Display) -> ExitCode {
+    eprintln!("error: {why}");
+    Exit::Unusable.into()
+}

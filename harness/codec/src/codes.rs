@@ -2,9 +2,19 @@
 
 use std::fmt;
 
-/// A code newtype is its byte, both ways.
+/// A code newtype: a byte with its own type (open: any byte is one), its byte both ways.
 macro_rules! byte_newtype {
-    ($t:ident) => {
+    ($(#[$doc:meta])* $t:ident) => {
+        $(#[$doc])*
+        #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
+        #[cfg_attr(feature = "arbitrary", derive(arbitrary::Arbitrary))]
+        #[cfg_attr(
+            feature = "serde",
+            derive(serde::Serialize, serde::Deserialize),
+            serde(transparent)
+        )]
+        pub struct $t(pub u8);
+
         impl From<u8> for $t {
             fn from(b: u8) -> Self {
                 Self(b)
@@ -19,18 +29,14 @@ macro_rules! byte_newtype {
     };
 }
 
-byte_newtype!(FunctionCode);
-byte_newtype!(ExceptionCode);
-
-/// A Modbus function code byte (the high bit set marks an exception response).
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
-#[cfg_attr(feature = "arbitrary", derive(arbitrary::Arbitrary))]
-#[cfg_attr(
-    feature = "serde",
-    derive(serde::Serialize, serde::Deserialize),
-    serde(transparent)
-)]
-pub struct FunctionCode(pub u8);
+byte_newtype!(
+    /// A Modbus function code byte (the high bit set marks an exception response).
+    FunctionCode
+);
+byte_newtype!(
+    /// A Modbus exception code byte.
+    ExceptionCode
+);
 
 impl FunctionCode {
     pub const READ_COILS: Self = Self(0x01);
@@ -127,16 +133,6 @@ impl fmt::Display for FunctionCode {
         }
     }
 }
-
-/// A Modbus exception code byte.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
-#[cfg_attr(feature = "arbitrary", derive(arbitrary::Arbitrary))]
-#[cfg_attr(
-    feature = "serde",
-    derive(serde::Serialize, serde::Deserialize),
-    serde(transparent)
-)]
-pub struct ExceptionCode(pub u8);
 
 impl ExceptionCode {
     pub const ILLEGAL_FUNCTION: Self = Self(0x01);

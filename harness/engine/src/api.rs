@@ -329,15 +329,7 @@ impl SessionBuilder {
         let mut cases = Vec::with_capacity(planned.len());
         for (case, skip) in planned {
             let result = match skip {
-                Some(reason) => CaseResult {
-                    id: case.id.clone(),
-                    verdict: Verdict::Skipped,
-                    expected_deviation: None,
-                    steps: vec![],
-                    wire: vec![],
-                    duration: Duration::ZERO,
-                    reason: Some(reason),
-                },
+                Some(reason) => CaseResult::skipped(&case.id, reason),
                 None => runner
                     .run_case(&case)
                     .map_err(|e| ApiError::Session(e.into()))?,

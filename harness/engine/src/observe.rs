@@ -61,6 +61,19 @@ pub struct CaseResult {
 }
 
 impl CaseResult {
+    /// The result of a case that was not run, and why.
+    pub fn skipped(id: &str, reason: String) -> Self {
+        CaseResult {
+            id: id.to_string(),
+            verdict: Verdict::Skipped,
+            expected_deviation: None,
+            steps: vec![],
+            wire: vec![],
+            duration: Duration::ZERO,
+            reason: Some(reason),
+        }
+    }
+
     /// Every finding of every step, in order.
     pub fn findings(&self) -> impl Iterator<Item = &String> {
         self.steps.iter().flat_map(|s| s.findings.iter())

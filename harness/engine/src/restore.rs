@@ -130,62 +130,47 @@ fn gate(motion: bool, destructive: bool, safety: &Safety) -> Option<String> {
 /// objects that mirror a register).
 pub fn inventory(profile: &Profile, safety: &Safety) -> Inventory {
     let mut inv = Inventory::default();
-    let mut exclude = |key: String, name: &str, reason: String| {
-        inv.excluded.push(Excluded {
+    // Kept, or left out with the reason.
+    let mut file = |key: String, name: &str, reason: Option<String>, place: Place| match reason {
+        Some(reason) => inv.excluded.push(Excluded {
             key,
             name: name.to_string(),
             reason,
-        })
+        }),
+        None => inv.items.push(Item {
+            key,
+            name: name.to_string(),
+            place,
+        }),
     };
-    let mut items = Vec::new();
     for r in profile.registers.iter().map(|r| r.get_ref()) {
         if r.table == Table::Input {
             continue;
         }
-        let key = format!("holding:0x{:04X}", r.address);
-        let reason = if !r.confirmed {
-            Some("unconfirmed draft entry: width and access unknown, never written".to_string())
-        } else {
-            match r.access {
-                Access::Ro => Some("read-only".to_string()),
-                Access::Wo => Some("write-only: cannot be read back".to_string()),
-                Access::Rw => gate(r.motion, r.destructive, safety),
-            }
+        let unconfirmed = "unconfirmed draft entry: width and access unknown, never written";
+        let reason = access_reason(r.confirmed, unconfirmed, r.access, || {
+            gate(r.motion, r.destructive, safety)
+        });
+        let place = Place::Holding {
+            address: r.address,
+            width: r.width.max(1),
         };
-        match reason {
-            Some(reason) => exclude(key, &r.name, reason),
-            None => items.push(Item {
-                key,
-                name: r.name.clone(),
-                place: Place::Holding {
-                    address: r.address,
-                    width: r.width.max(1),
-                },
-            }),
-        }
+        file(
+            format!("holding:0x{:04X}", r.address),
+            &r.name,
+            reason,
+            place,
+        );
     }
     for b in profile.coils.iter().map(|b| b.get_ref()) {
-        let key = format!("coil:{}", b.address);
-        let reason = if !b.confirmed {
-            Some("unconfirmed draft entry, never written".to_string())
-        } else {
-            match b.access {
-                Access::Ro => Some("read-only".to_string()),
-                Access::Wo => Some("write-only: cannot be read back".to_string()),
-                Access::Rw => gate(b.motion, false, safety),
-            }
-        };
-        match reason {
-            Some(reason) => exclude(key, &b.name, reason),
-            None => items.push(Item {
-                key,
-                name: b.name.clone(),
-                place: Place::Coil { address: b.address },
-            }),
-        }
+        let unconfirmed = "unconfirmed draft entry, never written";
+        let reason = access_reason(b.confirmed, unconfirmed, b.access, || {
+            gate(b.motion, false, safety)
+        });
+        let place = Place::Coil { address: b.address };
+        file(format!("coil:{}", b.address), &b.name, reason, place);
     }
     for m in profile.mnemonics.iter().map(|m| m.get_ref()) {
-        let key = format!("mnemonic:{}", m.name);
         let reason = match (m.read, m.write) {
             (_, false) => Some("read-only".to_string()),
             (false, true) => {
@@ -196,41 +181,50 @@ pub fn inventory(profile: &Profile, safety: &Safety) -> Inventory {
             }
             (true, true) => gate(m.motion, m.destructive, safety),
         };
-        match reason {
-            Some(reason) => exclude(key, &m.name, reason),
-            None => items.push(Item {
-                key,
-                name: m.name.clone(),
-                place: Place::Mnemonic {
-                    mnemonic: m.name.clone(),
-                },
-            }),
-        }
+        let place = Place::Mnemonic {
+            mnemonic: m.name.clone(),
+        };
+        file(format!("mnemonic:{}", m.name), &m.name, reason, place);
     }
     for o in profile.objects.iter().map(|o| o.get_ref()) {
-        let key = format!("object:{}.{}", o.index, o.subindex);
-        let reason = match (o.access, o.register) {
-            (Access::Ro, _) => Some("read-only".to_string()),
-            (Access::Wo, _) => Some("write-only: cannot be read back".to_string()),
-            (Access::Rw, Some(r)) => Some(format!("mirrors holding register {r}, restored there")),
-            (Access::Rw, None) => gate(o.motion, false, safety),
+        let reason = match o.register {
+            Some(r) if o.access == Access::Rw => {
+                Some(format!("mirrors holding register {r}, restored there"))
+            }
+            _ => access_reason(true, "", o.access, || gate(o.motion, false, safety)),
         };
-        match reason {
-            Some(reason) => exclude(key, &o.name, reason),
-            None => items.push(Item {
-                key,
-                name: o.name.clone(),
-                place: Place::Object {
-                    node: 0,
-                    index: o.index,
-                    subindex: o.subindex,
-                    size: o.ty.size() as u16,
-                },
-            }),
-        }
+        let place = Place::Object {
+            node: 0,
+            index: o.index,
+            subindex: o.subindex,
+            size: o.ty.size() as u16,
+        };
+        file(
+            format!("object:{}.{}", o.index, o.subindex),
+            &o.name,
+            reason,
+            place,
+        );
     }
-    inv.items = items;
     inv
+}
+
+/// Why an entry is left out: `unconfirmed` for a draft entry not confirmed, read-only, write-only (it cannot
+/// be read back), or what `gated` says of a read/write entry.
+fn access_reason(
+    confirmed: bool,
+    unconfirmed: &str,
+    access: Access,
+    gated: impl FnOnce() -> Option<String>,
+) -> Option<String> {
+    if !confirmed {
+        return Some(unconfirmed.to_string());
+    }
+    match access {
+        Access::Ro => Some("read-only".to_string()),
+        Access::Wo => Some("write-only: cannot be read back".to_string()),
+        Access::Rw => gated(),
+    }
 }
 
 /// The read that shows an item's value.
@@ -479,6 +473,15 @@ pub struct Unrestored {
     pub reason: String,
 }
 
+impl Unrestored {
+    /// `before V, after W: reason` (`after unreadable` when it could not be read).
+    pub fn what(&self) -> String {
+        let after = self.after.as_ref();
+        let after = after.map_or_else(|| "unreadable".to_string(), ToString::to_string);
+        format!("before {}, after {after}: {}", self.before, self.reason)
+    }
+}
+
 /// The account of leaving the drive as found, for the reports.
 #[derive(Clone, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
 pub struct Account {
@@ -529,14 +532,10 @@ impl Account {
         ));
         for u in &self.unrestored {
             out.push(format!(
-                "  NOT RESTORED {} ({}): before {}, after {}: {}",
+                "  NOT RESTORED {} ({}): {}",
                 u.key,
                 u.name,
-                u.before,
-                u.after
-                    .as_ref()
-                    .map_or_else(|| "unreadable".to_string(), ToString::to_string),
-                u.reason
+                u.what()
             ));
         }
         if let Some(j) = &self.journal {

@@ -894,15 +894,7 @@ fn open_snapshot(
 
 /// A skipped case's result.
 fn skipped(case: &Case, reason: String) -> CaseResult {
-    CaseResult {
-        id: case.id.clone(),
-        verdict: Verdict::Skipped,
-        expected_deviation: None,
-        steps: vec![],
-        wire: vec![],
-        duration: Duration::ZERO,
-        reason: Some(reason),
-    }
+    CaseResult::skipped(&case.id, reason)
 }
 
 /// Run the selected catalog. `progress` is called after each case with (done, total, id, verdict).

@@ -1,6 +1,6 @@
 //! `modbus-harness fuzz`: a live fuzz campaign against an endpoint.
 
-use crate::exit::Exit;
+use crate::exit::{Exit, unusable};
 use std::io::IsTerminal;
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -112,16 +112,12 @@ fn parse_duration(s: &str) -> Option<Duration> {
 
 /// Run `fuzz`: exit 0 without findings, 1 with findings, 2 when it could not run.
 pub fn run(args: &FuzzArgs) -> ExitCode {
-    let fail = |m: String| {
-        eprintln!("error: {m}");
-        ExitCode::from(Exit::Unusable)
-    };
     let url = match TargetUrl::parse(&args.target) {
         Ok(u) => u,
-        Err(e) => return fail(e.to_string()),
+        Err(e) => return unusable(e),
     };
     let Some(duration) = parse_duration(&args.duration).filter(|d| !d.is_zero()) else {
-        return fail(format!(
+        return unusable(format!(
             "--duration `{}` is not a duration like 30s, 10m, 1h or 500ms",
             args.duration
         ));
@@ -132,7 +128,7 @@ pub fn run(args: &FuzzArgs) -> ExitCode {
             Ok(f) => {
                 faults.0.insert(f);
             }
-            Err(e) => return fail(e.to_string()),
+            Err(e) => return unusable(e),
         }
     }
     let mut base = Options::new(url);
@@ -247,6 +243,6 @@ pub fn run(args: &FuzzArgs) -> ExitCode {
             eprintln!("error: {e}");
             ExitCode::from(Exit::NotRestored)
         }
-        Err(e) => fail(e.to_string()),
+        Err(e) => unusable(e),
     }
 }

@@ -1,6 +1,6 @@
 //! `modbus-harness probe`: what a target answers, beside its profile, or as a draft profile.
 
-use crate::exit::Exit;
+use crate::exit::{Exit, unusable};
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 use std::time::Duration;
@@ -98,13 +98,9 @@ fn write_atomically(path: &Path, text: &str) -> std::io::Result<()> {
 
 /// Run `probe`: exit 0 when it ran, 2 when it could not.
 pub fn run(args: &ProbeArgs) -> ExitCode {
-    let fail = |m: String| {
-        eprintln!("error: {m}");
-        ExitCode::from(Exit::Unusable)
-    };
     let url = match TargetUrl::parse(&args.target) {
         Ok(u) => u,
-        Err(e) => return fail(e.to_string()),
+        Err(e) => return unusable(e),
     };
     let scan = match args
         .scan
@@ -113,7 +109,7 @@ pub fn run(args: &ProbeArgs) -> ExitCode {
     {
         Some((a, b)) if a <= b && b - a <= 4096 => (a, b),
         _ => {
-            return fail(format!(
+            return unusable(format!(
                 "--scan `{}` must be START-END with at most 4097 addresses (e.g. 0-0xFF)",
                 args.scan
             ));
@@ -122,13 +118,13 @@ pub fn run(args: &ProbeArgs) -> ExitCode {
     // Checked before anything is sent: a draft must not replace a profile someone has edited.
     if let Some(f) = &args.write_profile {
         if f.exists() && !args.force {
-            return fail(format!(
+            return unusable(format!(
                 "{} exists: not replaced (choose another file, or --force to replace it)",
                 f.display()
             ));
         }
         if f.is_dir() {
-            return fail(format!("{} is a directory", f.display()));
+            return unusable(format!("{} is a directory", f.display()));
         }
     }
     let corpus = Corpus::Embedded;
@@ -138,7 +134,7 @@ pub fn run(args: &ProbeArgs) -> ExitCode {
     });
     let profile: Option<Profile> = match profile_name.as_deref().map(|n| corpus.load(n)) {
         Some(Ok(p)) => Some(p),
-        Some(Err(e)) => return fail(e.to_string()),
+        Some(Err(e)) => return unusable(e),
         None => None,
     };
     let unit = args.unit;
@@ -155,7 +151,7 @@ pub fn run(args: &ProbeArgs) -> ExitCode {
         Duration::from_secs(3),
     ) {
         Ok(t) => t,
-        Err(e) => return fail(e.to_string()),
+        Err(e) => return unusable(e),
     };
     // Pre-flight: a known-good read (the profile's, else holding register 0; an exception answer counts).
     if !url.is_sim() {
@@ -168,7 +164,7 @@ pub fn run(args: &ProbeArgs) -> ExitCode {
         let bound = Duration::from_millis(args.preflight_timeout.max(1));
         let heard = match engine::liveness::ask(t.as_mut(), &request, bound) {
             Ok(h) => h,
-            Err(e) => return fail(e.to_string()),
+            Err(e) => return unusable(e),
         };
         if let Some(m) = engine::liveness::preflight_failure(
             &t.describe(),
@@ -179,7 +175,7 @@ pub fn run(args: &ProbeArgs) -> ExitCode {
             unit,
             bound,
         ) {
-            return fail(m);
+            return unusable(m);
         }
     }
     eprintln!(
@@ -201,12 +197,12 @@ pub fn run(args: &ProbeArgs) -> ExitCode {
     };
     let report = match probe::probe(t.as_mut(), &options) {
         Ok(r) => r,
-        Err(e) => return fail(e.to_string()),
+        Err(e) => return unusable(e),
     };
     print!("{}", probe::render(&report, profile.as_ref(), scan));
     // A target that stopped answering mid-probe: what was found is printed, no draft is written from it.
     if let Some(why) = &report.stopped {
-        return fail(format!(
+        return unusable(format!(
             "{why}{}",
             if args.write_profile.is_some() {
                 "; no draft profile written"
@@ -223,13 +219,13 @@ pub fn run(args: &ProbeArgs) -> ExitCode {
         Ok(p) => p,
         Err(e) => {
             eprintln!("{text}");
-            return fail(format!(
+            return unusable(format!(
                 "internal: the draft does not load ({e}); not written"
             ));
         }
     };
     if let Err(e) = write_atomically(file, &text) {
-        return fail(format!("cannot write {}: {e}", file.display()));
+        return unusable(format!("cannot write {}: {e}", file.display()));
     }
     println!(
         "\ndraft profile `{}` written to {}: {} function code(s), {} register(s), {} coil(s), {} discrete input(s), \

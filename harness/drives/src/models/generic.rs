@@ -86,6 +86,19 @@ impl Generic {
         Response::ReportServerId { data }
     }
 
+    /// [`Self::file_group`] of each sub-request, given as (reference type, file, record, length): the first
+    /// refusal, or every group.
+    fn file_groups(
+        &self,
+        subs: impl Iterator<Item = (u8, u16, u16, usize)>,
+        write: bool,
+    ) -> Result<Vec<(u16, usize)>, ExceptionCode> {
+        subs.map(|(reference_type, number, record, length)| {
+            self.file_group(reference_type, number, record, length, write)
+        })
+        .collect()
+    }
+
     /// The file and first record a sub-request names, if the state diagrams of spec 6.14/6.15 (figures 24,
     /// 25) let it through: reference type 6, a file of the profile, record number 0x0000-0x270F, and the
     /// group inside the file; else exception 02. `write` also needs a writable file, a read a readable one.
@@ -132,29 +145,24 @@ impl Generic {
         {
             return exc(ExceptionCode::ILLEGAL_DATA_VALUE);
         }
-        let mut groups = Vec::with_capacity(subs.len());
-        for s in subs {
-            match self.file_group(
-                s.reference_type,
-                s.file_number,
-                s.record_number,
-                usize::from(s.record_length),
-                false,
-            ) {
-                Ok(g) => groups.push((g, usize::from(s.record_length))),
-                Err(e) => return exc(e),
-            }
-        }
+        let named = subs.iter().map(|s| {
+            let n = usize::from(s.record_length);
+            (s.reference_type, s.file_number, s.record_number, n)
+        });
+        let groups = match self.file_groups(named, false) {
+            Ok(g) => g,
+            Err(e) => return exc(e),
+        };
         let sub_responses = groups
             .into_iter()
-            .map(|((number, start), n)| FileRecordData {
-                reference_type: file::REFERENCE_TYPE,
-                values: self
-                    .files
-                    .get(&number)
-                    .and_then(|(_, r)| r.get(start..start + n))
-                    .unwrap_or_default()
-                    .to_vec(),
+            .zip(subs)
+            .map(|((number, start), s)| {
+                let end = start + usize::from(s.record_length);
+                let records = self.files.get(&number).and_then(|(_, r)| r.get(start..end));
+                FileRecordData {
+                    reference_type: file::REFERENCE_TYPE,
+                    values: records.unwrap_or_default().to_vec(),
+                }
             })
             .collect();
         Response::ReadFileRecord { sub_responses }
@@ -170,25 +178,25 @@ impl Generic {
         if !(0x09..=0xFB).contains(&data_len) || subs.iter().any(|s| s.values.is_empty()) {
             return exc(ExceptionCode::ILLEGAL_DATA_VALUE);
         }
-        let mut groups = Vec::with_capacity(subs.len());
-        for s in subs {
-            match self.file_group(
+        let named = subs.iter().map(|s| {
+            (
                 s.reference_type,
                 s.file_number,
                 s.record_number,
                 s.values.len(),
-                true,
-            ) {
-                Ok(g) => groups.push((g, &s.values)),
-                Err(e) => return exc(e),
-            }
-        }
+            )
+        });
+        let groups = match self.file_groups(named, true) {
+            Ok(g) => g,
+            Err(e) => return exc(e),
+        };
         let n = if self.faults.has(Fault::FileWriteFirstOnly) {
             1
         } else {
             groups.len()
         };
-        for ((number, start), values) in groups.into_iter().take(n) {
+        let values = subs.iter().map(|s| &s.values);
+        for ((number, start), values) in groups.into_iter().zip(values).take(n) {
             if let Some(dst) = self
                 .files
                 .get_mut(&number)

@@ -842,32 +842,20 @@ fn status_bits(
     expected: Option<&Response>,
     observed: Option<&Response>,
 ) -> Vec<Alternative> {
-    let (Some(req), Some(register)) = (cx.request, f.register) else {
+    let (Some(req), Some(e), Some(o)) = (cx.request, expected, observed) else {
         return vec![];
     };
-    let Some((address, _)) = registers_read(req) else {
+    let Some((index, ev, ov)) = register_word(f, req, e, o) else {
         return vec![];
     };
-    let index = usize::from(register.wrapping_sub(address));
-    let (Some(e), Some(o)) = (
-        expected.and_then(register_values),
-        observed.and_then(register_values),
-    ) else {
-        return vec![];
-    };
-    let (Some(ev), Some(ov)) = (e.get(index), o.get(index)) else {
-        return vec![];
-    };
-    if e.len() != o.len() {
+    if register_values(e).map(Vec::len) != register_values(o).map(Vec::len) {
         return vec![];
     }
     // The tightest listed mask under which the two words agree.
     let Some(mask) = int_values(f).find(|m| ev & (*m as u16) == ov & (*m as u16)) else {
         return vec![];
     };
-    let mut values = e.clone();
-    values[index] = *ov;
-    let Some(answer) = expected.and_then(|e| with_register_values(e, values)) else {
+    let Some(answer) = with_word(e, index, ov) else {
         return vec![];
     };
     let answer = Some(answer);
@@ -877,6 +865,28 @@ fn status_bits(
         values_free: false,
         note: None,
     }]
+}
+
+/// The word of the freedom's register in what a register read `req` answers: its index in the values, and
+/// the word `expected` and `observed` give it.
+fn register_word(
+    f: &Freedom,
+    req: &Request,
+    expected: &Response,
+    observed: &Response,
+) -> Option<(usize, u16, u16)> {
+    let (address, _) = registers_read(req)?;
+    let index = usize::from(f.register?.wrapping_sub(address));
+    let e = *register_values(expected)?.get(index)?;
+    let o = *register_values(observed)?.get(index)?;
+    Some((index, e, o))
+}
+
+/// `answer` with the word at `index` replaced by `word`.
+fn with_word(answer: &Response, index: usize, word: u16) -> Option<Response> {
+    let mut values = register_values(answer)?.clone();
+    *values.get_mut(index)? = word;
+    with_register_values(answer, values)
 }
 
 fn register_values(r: &Response) -> Option<&Vec<u16>> {
@@ -981,25 +991,13 @@ fn field_value(
         ) if es == os && *oc == ec.wrapping_add(1) => one(o.clone(), "counted"),
         ("sd2x-watchdog-trip-state", _, _, Some(req)) => {
             // Fault (xxxx 1000 in bits 0-3 and 6) or fault reaction active (xxxx 1111).
-            let Some(register) = f.register else {
-                return vec![];
-            };
-            let Some((address, _)) = registers_read(req) else {
-                return vec![];
-            };
-            let index = usize::from(register.wrapping_sub(address));
-            let (Some(ev), Some(ov)) = (
-                register_values(e).and_then(|v| v.get(index)),
-                register_values(o).and_then(|v| v.get(index)),
-            ) else {
+            let Some((index, ev, ov)) = register_word(f, req, e, o) else {
                 return vec![];
             };
             const FAULT: u16 = 0x0008;
             const REACTION: u16 = 0x000F;
             if ev & 0x004F == FAULT && ov & 0x004F == REACTION {
-                let mut values = register_values(e).cloned().unwrap_or_default();
-                values[index] = *ov;
-                with_register_values(e, values)
+                with_word(e, index, ov)
                     .map(|a| one(a, "fault-reaction-active"))
                     .unwrap_or_default()
             } else {
@@ -1008,17 +1006,7 @@ fn field_value(
         }
         (_, _, _, Some(req)) => {
             // A numeric register field: any listed value, or any non-zero one where the data says so.
-            let Some(register) = f.register else {
-                return vec![];
-            };
-            let Some((address, _)) = registers_read(req) else {
-                return vec![];
-            };
-            let index = usize::from(register.wrapping_sub(address));
-            let (Some(ev), Some(ov)) = (
-                register_values(e).and_then(|v| v.get(index)),
-                register_values(o).and_then(|v| v.get(index)),
-            ) else {
+            let Some((index, ev, ov)) = register_word(f, req, e, o) else {
                 return vec![];
             };
             let listed = |w: u16| int_values(f).any(|v| v == i64::from(w));
@@ -1026,19 +1014,17 @@ fn field_value(
                 .values
                 .iter()
                 .any(|v| drives::choices::value_matches(v, "any-nonzero"));
-            if !listed(*ev) || ev == ov {
+            if !listed(ev) || ev == ov {
                 return vec![];
             }
-            let value = if listed(*ov) {
+            let value = if listed(ov) {
                 format!("0x{ov:04X}")
-            } else if any_nonzero && *ov != 0 {
+            } else if any_nonzero && ov != 0 {
                 "any-nonzero".to_string()
             } else {
                 return vec![];
             };
-            let mut values = register_values(e).cloned().unwrap_or_default();
-            values[index] = *ov;
-            with_register_values(e, values)
+            with_word(e, index, ov)
                 .map(|a| one(a, &value))
                 .unwrap_or_default()
         }

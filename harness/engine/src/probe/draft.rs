@@ -7,6 +7,7 @@
 use std::fmt::Write;
 
 use super::{ProbeReport, Support, id_object_name};
+use crate::cases::catalog::slug_of_length;
 use crate::targets::TargetUrl;
 use codec::{Framing, Parity};
 
@@ -17,15 +18,7 @@ fn q(s: &str) -> String {
 
 /// A name as an id: lowercase ASCII letters and digits, dashes between, at most 40 characters.
 fn slug(s: &str) -> String {
-    let mut out = String::new();
-    for c in s.chars() {
-        if c.is_ascii_alphanumeric() {
-            out.push(c.to_ascii_lowercase());
-        } else if !out.ends_with('-') {
-            out.push('-');
-        }
-    }
-    out.trim_matches('-').chars().take(40).collect()
+    slug_of_length(s, 40)
 }
 
 /// The unit ids to claim: the range that agrees with every unit id probed, if there is one.

@@ -215,15 +215,7 @@ impl JunitSink {
                 for u in &a.unrestored {
                     restore.push((
                         format!("not_restored.{}", u.key),
-                        format!(
-                            "{}: before {}, after {}: {}",
-                            u.name,
-                            u.before,
-                            u.after
-                                .as_ref()
-                                .map_or_else(|| "unreadable".to_string(), ToString::to_string),
-                            u.reason
-                        ),
+                        format!("{}: {}", u.name, u.what()),
                     ));
                 }
             }

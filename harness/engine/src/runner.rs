@@ -710,6 +710,26 @@ impl Runner {
         self.target.as_ref()
     }
 
+    /// Frame `pdu` for the unit with the restore's sequence of transaction ids: the traffic beside the cases
+    /// (restores, liveness probes, silence sentinels). Once the two sequences have wrapped (after 65,536
+    /// requests of a long campaign), the restore sequence's next id may be that of a recent request of the
+    /// cases, the step's own included (`send_pieces` remembered them): a late answer to that request would
+    /// then be taken for this one's (a wrong value "restored", an answer where silence was due). This takes
+    /// the next id that is none of them.
+    fn frame_aside(&mut self, pdu: &[u8]) -> Framed {
+        for _ in 0..=RECENT_REQUESTS {
+            let t = self.restore_tid;
+            if !self.recent.iter().any(|r| r.0 == t) {
+                break;
+            }
+            self.restore_tid = t.wrapping_add(1);
+        }
+        let case_tid = std::mem::replace(&mut self.next_tid, self.restore_tid);
+        let f = self.frame(pdu, self.cfg.unit, None);
+        self.restore_tid = std::mem::replace(&mut self.next_tid, case_tid);
+        f
+    }
+
     /// Send the known-good read `pdu` (the pre-flight, a liveness probe) and listen up to `bound`. Its
     /// transaction ids are the restore's sequence, so the cases' own ids do not depend on how many probes
     /// were sent; the reference drive gets the request too, so that it follows what the target counted.
@@ -718,9 +738,7 @@ impl Runner {
         pdu: &[u8],
         bound: Duration,
     ) -> Result<(crate::liveness::Heard, Vec<u8>), TargetError> {
-        let case_tid = std::mem::replace(&mut self.next_tid, self.restore_tid);
-        let f = self.frame(pdu, self.cfg.unit, None);
-        self.restore_tid = std::mem::replace(&mut self.next_tid, case_tid);
+        let f = self.frame_aside(pdu);
         self.target.drain();
         self.sync_shadow();
         self.pace();
@@ -891,20 +909,7 @@ impl Runner {
         wire: &mut Vec<WireEvent>,
     ) -> Result<Received, TargetError> {
         let pdu = crate::cases::catalog::known_good_read(&self.profile);
-        // Once the two transaction id sequences have wrapped (after 65,536 requests of a long campaign), the
-        // restore sequence's next id may be that of a recent request, this step's included (`send_pieces`
-        // remembered them): the sentinel's answer would then be taken for that request's (an answer where
-        // silence was due: a false FAIL). The sentinel takes the next id that is none of them.
-        for _ in 0..=RECENT_REQUESTS {
-            let t = self.restore_tid;
-            if !self.recent.iter().any(|r| r.0 == t) {
-                break;
-            }
-            self.restore_tid = t.wrapping_add(1);
-        }
-        let case_tid = std::mem::replace(&mut self.next_tid, self.restore_tid);
-        let f = self.frame(&pdu, self.cfg.unit, None);
-        self.restore_tid = std::mem::replace(&mut self.next_tid, case_tid);
+        let f = self.frame_aside(&pdu);
         let Some(tid) = f.sent.tid else {
             return self.target.recv(self.cfg.timing.silence);
         };
@@ -1420,9 +1425,7 @@ impl Runner {
         if self.silences.sentinel > sentinels {
             // The sentinel read that proved the silence reached both drives: the reference gets it again.
             let pdu = crate::cases::catalog::known_good_read(&self.profile);
-            let case_tid = std::mem::replace(&mut self.next_tid, self.restore_tid);
-            let f = self.frame(&pdu, self.cfg.unit, None);
-            self.restore_tid = std::mem::replace(&mut self.next_tid, case_tid);
+            let f = self.frame_aside(&pdu);
             self.shadow.send(&f.bytes)?;
             let _ = self.shadow.settle();
             let _ = self.shadow.take_decisions();
@@ -1860,9 +1863,7 @@ impl Runner {
     /// (silence, another unit, function code or transaction id, a frame that does not decode).
     fn transact_pdu(&mut self, pdu: &[u8]) -> Result<Option<Vec<u8>>, TargetError> {
         let fc = pdu.first().copied().unwrap_or(0);
-        let case_tid = std::mem::replace(&mut self.next_tid, self.restore_tid);
-        let f = self.frame(pdu, self.cfg.unit, None);
-        self.restore_tid = std::mem::replace(&mut self.next_tid, case_tid);
+        let f = self.frame_aside(pdu);
         // A late answer of an earlier request must never be taken for this one's (a wrong snapshot value
         // would be "restored" into the drive): stale bytes are dropped, and on Modbus/TCP the transaction id
         // and on every framing the unit and the function code must match.
@@ -1920,9 +1921,7 @@ impl crate::restore::Link for ReferenceLink<'_> {
         let Ok(pdu) = req.to_bytes() else {
             return Ok(None);
         };
-        let case_tid = std::mem::replace(&mut r.next_tid, r.restore_tid);
-        let f = r.frame(&pdu, r.cfg.unit, None);
-        r.restore_tid = std::mem::replace(&mut r.next_tid, case_tid);
+        let f = r.frame_aside(&pdu);
         r.sync_shadow();
         r.shadow.send(&f.bytes)?;
         let (answers, _) = r.shadow.settle();
@@ -2141,31 +2140,7 @@ mod tests {
     /// no response, got" the sentinel's FC 03 answer). The sentinel now takes another id.
     #[test]
     fn a_sentinel_never_shares_the_transaction_id_of_the_request_it_follows() {
-        let p = drives::corpus::Corpus::Embedded
-            .profile("generic")
-            .expect("generic");
-        let station = || {
-            let unit = p.device.default_unit;
-            drives::Station::new(
-                drives::build(p.clone(), drives::FaultSet::none()),
-                drives::FaultSet::none(),
-                unit,
-            )
-        };
-        let cfg = RunConfig {
-            unit: 1,
-            timing: Timing::default(),
-            safety: Safety::default(),
-            // A real target's rules: the silence is proven by a sentinel.
-            is_sim: false,
-        };
-        let mut runner = Runner::new(
-            Box::new(SimTarget::new(station())),
-            SimTarget::new(station()),
-            p.clone(),
-            cfg,
-            Expectations::default(),
-        );
+        let mut runner = generic_runner();
         let case = Case {
             id: "test/protocol-id".into(),
             title: "a request with protocol id 1".into(),
@@ -2197,6 +2172,67 @@ mod tests {
             );
             runner.silences = Silences::default();
         }
+    }
+
+    /// A runner against the generic reference drive with a real target's rules (silences proven by a
+    /// sentinel).
+    fn generic_runner() -> Runner {
+        let p = drives::corpus::Corpus::Embedded
+            .profile("generic")
+            .expect("generic");
+        let station = || {
+            let unit = p.device.default_unit;
+            drives::Station::new(
+                drives::build(p.clone(), drives::FaultSet::none()),
+                drives::FaultSet::none(),
+                unit,
+            )
+        };
+        let cfg = RunConfig {
+            unit: 1,
+            timing: Timing::default(),
+            safety: Safety::default(),
+            is_sim: false,
+        };
+        Runner::new(
+            Box::new(SimTarget::new(station())),
+            SimTarget::new(station()),
+            p.clone(),
+            cfg,
+            Expectations::default(),
+        )
+    }
+
+    /// The traffic beside the cases (restore reads and writes, liveness probes, sentinels) never takes the
+    /// transaction id of a recent request of the cases, after the sequences wrapped: a late answer to that
+    /// request would be taken for the restore read's (a wrong value put back into the drive).
+    #[test]
+    fn traffic_beside_the_cases_skips_the_ids_of_recent_requests() {
+        let mut runner = generic_runner();
+        let first = runner.restore_tid;
+        // Requests of the cases took the restore sequence's next three ids (as after wrapping).
+        for t in first..first + 3 {
+            runner.remember(Some(t), format!("case request {t}"));
+        }
+        let read = [0x03, 0x00, 0x00, 0x00, 0x01];
+        let f = runner.frame_aside(&read);
+        assert_eq!(
+            f.sent.tid,
+            Some(first + 3),
+            "the next id no recent request has"
+        );
+        let g = runner.frame_aside(&read);
+        assert_eq!(g.sent.tid, Some(first + 4));
+        // The restore's own transact goes the same way.
+        runner.remember(Some(first + 5), "case request".into());
+        let answer = runner.transact_pdu(&read).expect("transact");
+        assert!(answer.is_some(), "the drive answered the restore read");
+        assert_eq!(
+            runner.restore_tid,
+            first + 7,
+            "id {} was skipped",
+            first + 5
+        );
     }
 
     /// Pipelined answers are paired with their requests by transaction id, and one ahead of an earlier

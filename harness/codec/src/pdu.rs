@@ -671,6 +671,20 @@ fn decode_normal_response(fc: FunctionCode, r: &mut Reader<'_>) -> Result<Respon
 }
 
 impl Request {
+    /// A read of `quantity` items from `address` with one of the four read codes (FC 01-04); `None` for
+    /// another code.
+    pub fn read(function: FunctionCode, address: u16, quantity: u16) -> Option<Self> {
+        Some(match function {
+            FunctionCode::READ_COILS => Request::ReadCoils { address, quantity },
+            FunctionCode::READ_DISCRETE_INPUTS => Request::ReadDiscreteInputs { address, quantity },
+            FunctionCode::READ_HOLDING_REGISTERS => {
+                Request::ReadHoldingRegisters { address, quantity }
+            }
+            FunctionCode::READ_INPUT_REGISTERS => Request::ReadInputRegisters { address, quantity },
+            _ => return None,
+        })
+    }
+
     /// The function code this request carries.
     pub fn function(&self) -> FunctionCode {
         use Request::*;

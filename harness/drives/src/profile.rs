@@ -1217,6 +1217,16 @@ impl Profile {
         self.functions.iter().find(|f| f.code == code)
     }
 
+    /// The most items one request of `code` may carry on this drive: the profile's limit, else the spec's,
+    /// else 125.
+    pub fn max_quantity(&self, code: impl Into<FunctionCode>) -> u16 {
+        let code = code.into();
+        self.function(code)
+            .and_then(|f| f.max_quantity)
+            .or(code.max_quantity())
+            .unwrap_or(125)
+    }
+
     /// The mnemonic entry named `name`.
     pub fn mnemonic(&self, name: &str) -> Option<&VendorMnemonic> {
         self.mnemonics

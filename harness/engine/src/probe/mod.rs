@@ -106,22 +106,7 @@ fn probe_pdu(fc: u8, writes: bool) -> Result<Vec<u8>, &'static str> {
         });
     }
     let req = match fc {
-        0x01 => Request::ReadCoils {
-            address: 0,
-            quantity: 1,
-        },
-        0x02 => Request::ReadDiscreteInputs {
-            address: 0,
-            quantity: 1,
-        },
-        0x03 => Request::ReadHoldingRegisters {
-            address: 0,
-            quantity: 1,
-        },
-        0x04 => Request::ReadInputRegisters {
-            address: 0,
-            quantity: 1,
-        },
+        0x01..=0x04 => Request::read(codec::FunctionCode(fc), 0, 1).ok_or("not a read")?,
         0x05 => Request::WriteSingleCoil {
             address: 0,
             value: 0x1234,

@@ -2,16 +2,12 @@
 //! frames them as Modbus/TCP or RTU on a virtual clock, so that every case of the catalog (transport cases
 //! included) runs against it as against a drive on a wire. No sockets, no threads.
 
-use std::collections::VecDeque;
 use std::time::Duration;
 
-use super::reader::FrameReader;
+use super::line::{DriveEnd, TCP_LATENCY, VirtualLine};
 use super::{Received, Target, TargetError};
 use codec::framer::{FramerEvent, RtuFramer};
 use codec::{CharFormat, Direction, Framing, Parity, RtuTiming, rtu, tcp};
-
-/// Virtual time per exchange on Modbus/TCP (a loopback round trip, so that timestamps move).
-const TCP_LATENCY: Duration = Duration::from_micros(30);
 
 /// A Modbus server in process: the seam a firmware's request handler plugs into.
 ///
@@ -99,18 +95,56 @@ impl Device for Box<dyn Device> {
 /// RTU: the request framer of the codec cuts frames by length rules, CRC and the t3.5 silence at 19200 baud
 /// 8E1; a frame with a bad CRC is dropped (the device hears of it through [`Device::rtu_discarded`]); the answer carries the request's address and its CRC.
 pub struct DeviceTarget {
-    device: Box<dyn Device>,
-    framing: Framing,
-    now: Duration,
-    timing: RtuTiming,
+    end: DeviceEnd,
     /// Modbus/TCP: bytes received not yet cut into an ADU.
     tcp_buf: Vec<u8>,
+    line: VirtualLine,
+}
+
+/// The device's end of the line: the device and its RTU receiver.
+struct DeviceEnd {
+    device: Box<dyn Device>,
     /// RTU: the device's receive side.
     framer: RtuFramer,
-    /// Answers not yet received, with the virtual time they arrive.
-    queued: VecDeque<(Duration, Vec<u8>)>,
-    reader: FrameReader,
-    closed: bool,
+}
+
+impl DriveEnd for DeviceEnd {
+    fn deadline(&self) -> Option<Duration> {
+        self.framer.deadline()
+    }
+
+    fn poll(&mut self, line: &mut VirtualLine) {
+        let events = self.framer.poll(line.now);
+        self.answer_rtu(line, events);
+    }
+}
+
+impl DeviceEnd {
+    fn answer_rtu(&mut self, line: &mut VirtualLine, events: Vec<FramerEvent>) {
+        for ev in events {
+            // Discarded bytes (bad CRC, too short) get no answer, as on a line.
+            let bytes = match ev {
+                FramerEvent::Frame { bytes, .. } => bytes,
+                FramerEvent::Discarded { bytes, .. } => {
+                    self.device.advance(line.now);
+                    self.device.rtu_discarded(&bytes);
+                    continue;
+                }
+            };
+            let Ok(adu) = rtu::decode_adu(&bytes) else {
+                continue;
+            };
+            self.device.advance(line.now);
+            if let Some(pdu) = self.device.handle(adu.address, adu.pdu) {
+                let mut out = Vec::with_capacity(pdu.len() + 3);
+                out.push(adu.address);
+                out.extend_from_slice(&pdu);
+                let crc = rtu::crc16(&out);
+                out.extend_from_slice(&crc.to_le_bytes());
+                line.queue(line.now, out);
+            }
+        }
+    }
 }
 
 impl DeviceTarget {
@@ -123,56 +157,23 @@ impl DeviceTarget {
                 stop_bits: 1,
             },
         );
-        let rtu = framing == Framing::Rtu;
         Self {
-            device,
-            framing: if rtu { Framing::Rtu } else { Framing::Tcp },
-            now: Duration::ZERO,
-            timing,
-            tcp_buf: Vec::new(),
-            framer: RtuFramer::new(Direction::Request, timing, Vec::new()),
-            queued: VecDeque::new(),
-            reader: if rtu {
-                FrameReader::rtu(timing)
-            } else {
-                FrameReader::mbap()
+            end: DeviceEnd {
+                device,
+                framer: RtuFramer::new(Direction::Request, timing, Vec::new()),
             },
-            closed: false,
-        }
-    }
-
-    fn answer_rtu(&mut self, events: Vec<FramerEvent>) {
-        for ev in events {
-            // Discarded bytes (bad CRC, too short) get no answer, as on a line.
-            let bytes = match ev {
-                FramerEvent::Frame { bytes, .. } => bytes,
-                FramerEvent::Discarded { bytes, .. } => {
-                    self.device.advance(self.now);
-                    self.device.rtu_discarded(&bytes);
-                    continue;
-                }
-            };
-            let Ok(adu) = rtu::decode_adu(&bytes) else {
-                continue;
-            };
-            self.device.advance(self.now);
-            if let Some(pdu) = self.device.handle(adu.address, adu.pdu) {
-                let mut out = Vec::with_capacity(pdu.len() + 3);
-                out.push(adu.address);
-                out.extend_from_slice(&pdu);
-                let crc = rtu::crc16(&out);
-                out.extend_from_slice(&crc.to_le_bytes());
-                self.queued.push_back((self.now, out));
-            }
+            tcp_buf: Vec::new(),
+            line: VirtualLine::new(framing, timing),
         }
     }
 
     fn serve_tcp(&mut self) {
+        let line = &mut self.line;
         // Bounded by the buffer: each turn takes at least one whole ADU out of it.
         while let Some(len) = tcp::adu_len(&self.tcp_buf) {
             if !(8..=260).contains(&len) {
                 self.tcp_buf.clear();
-                self.closed = true;
+                line.closed = true;
                 return;
             }
             if self.tcp_buf.len() < len {
@@ -185,8 +186,9 @@ impl DeviceTarget {
             if header.protocol_id != 0 {
                 continue;
             }
-            self.device.advance(self.now);
-            if let Some(pdu) = self.device.handle(header.unit_id, &adu[tcp::MBAP_LEN..]) {
+            let device = &mut self.end.device;
+            device.advance(line.now);
+            if let Some(pdu) = device.handle(header.unit_id, &adu[tcp::MBAP_LEN..]) {
                 // Framed as it is, even when the device's answer is too long for an ADU.
                 let mut out = Vec::with_capacity(tcp::MBAP_LEN + pdu.len());
                 out.extend_from_slice(&header.transaction_id.to_be_bytes());
@@ -194,126 +196,65 @@ impl DeviceTarget {
                 out.extend_from_slice(&((pdu.len() + 1) as u16).to_be_bytes());
                 out.push(header.unit_id);
                 out.extend_from_slice(&pdu);
-                self.queued.push_back((self.now, out));
+                line.queue(line.now, out);
             }
-        }
-    }
-
-    /// Let the device see the silence up to `now` (RTU).
-    fn poll_line(&mut self) {
-        if self.framing == Framing::Rtu {
-            let events = self.framer.poll(self.now);
-            self.answer_rtu(events);
         }
     }
 }
 
 impl Target for DeviceTarget {
     fn framing(&self) -> Framing {
-        self.framing
+        self.line.framing
     }
 
     fn now(&self) -> Duration {
-        self.now
+        self.line.now
     }
 
     fn send(&mut self, bytes: &[u8]) -> Result<(), TargetError> {
-        match self.framing {
-            Framing::Rtu => {
-                // Bytes arrive one character time apart, as on a line: a chunk is not a silence.
-                for b in bytes {
-                    self.now += self.timing.char_time;
-                    let events = self.framer.push(self.now, std::slice::from_ref(b));
-                    self.answer_rtu(events);
-                }
+        if self.line.is_rtu() {
+            // Bytes arrive one character time apart, as on a line: a chunk is not a silence.
+            for b in bytes {
+                let line = &mut self.line;
+                line.now += line.timing.char_time;
+                let events = self.end.framer.push(line.now, std::slice::from_ref(b));
+                self.end.answer_rtu(line, events);
             }
-            _ => {
-                if self.closed {
-                    // The runner reconnects after a close; bytes sent on the old connection are lost.
-                    self.closed = false;
-                    self.tcp_buf.clear();
-                }
-                self.now += TCP_LATENCY;
-                self.tcp_buf.extend_from_slice(bytes);
-                self.serve_tcp();
+        } else {
+            if self.line.closed {
+                // The runner reconnects after a close; bytes sent on the old connection are lost.
+                self.line.closed = false;
+                self.tcp_buf.clear();
             }
+            self.line.now += TCP_LATENCY;
+            self.tcp_buf.extend_from_slice(bytes);
+            self.serve_tcp();
         }
         Ok(())
     }
 
     fn recv(&mut self, timeout: Duration) -> Result<Received, TargetError> {
-        let deadline = self.now + timeout;
-        // Bounded: each turn consumes a queued answer or a framer deadline, or returns.
-        loop {
-            if let Some(r) = self.reader.next() {
-                return Ok(r);
-            }
-            // An RTU device answers after t3.5 of silence following the request.
-            if self.framing == Framing::Rtu
-                && let Some(d) = self.framer.deadline()
-                && d <= deadline
-            {
-                self.now = self.now.max(d);
-                self.poll_line();
-                continue;
-            }
-            if let Some((at, _)) = self.queued.front()
-                && *at <= deadline
-            {
-                let (at, bytes) = self.queued.pop_front().unwrap_or_default();
-                self.now = self.now.max(at);
-                if self.framing == Framing::Rtu {
-                    self.now += self.timing.transmit_time(bytes.len());
-                }
-                self.reader.push(self.now, &bytes);
-                if self.framing == Framing::Rtu {
-                    // Nothing else is on the line: the frame ends with silence.
-                    self.now += self.timing.t3_5;
-                    self.reader.poll(self.now);
-                }
-                continue;
-            }
-            if self.closed && self.framing != Framing::Rtu {
-                self.now += TCP_LATENCY;
-                return Ok(Received::Closed {
-                    partial: self.reader.partial(),
-                    at: self.now,
-                });
-            }
-            self.now = self.now.max(deadline);
-            self.reader.poll(self.now);
-            if let Some(r) = self.reader.next() {
-                return Ok(r);
-            }
-            return Ok(Received::Silence {
-                partial: self.reader.partial(),
-                at: self.now,
-            });
-        }
+        self.line.recv(&mut self.end, timeout)
     }
 
     fn idle(&mut self, d: Duration) {
-        self.now += d;
-        self.poll_line();
-        self.device.advance(self.now);
+        self.line.now += d;
+        self.line.poll(&mut self.end);
+        self.end.device.advance(self.line.now);
     }
 
     fn reconnect(&mut self) -> Result<(), TargetError> {
         self.tcp_buf.clear();
-        self.closed = false;
-        self.reader.clear();
+        self.line.reconnect();
         Ok(())
     }
 
     fn drain(&mut self) {
-        // Answers that would have arrived by now are stale; later ones stay queued.
-        let now = self.now;
-        self.queued.retain(|(at, _)| *at > now);
-        self.reader.clear();
+        self.line.drain();
     }
 
     fn describe(&self) -> String {
-        let framing = if self.framing == Framing::Rtu {
+        let framing = if self.line.is_rtu() {
             "RTU"
         } else {
             "Modbus/TCP"
@@ -322,7 +263,7 @@ impl Target for DeviceTarget {
     }
 
     fn rtu_timing(&self) -> Option<RtuTiming> {
-        (self.framing == Framing::Rtu).then_some(self.timing)
+        self.line.rtu_timing()
     }
 
     fn answer_gap_measurable(&self) -> Result<(), String> {

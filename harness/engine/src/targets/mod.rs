@@ -2,6 +2,7 @@
 //! in-process reference drive. Blocking I/O with deadlines: the runner exchanges one step at a time.
 
 pub mod device;
+mod line;
 pub mod net;
 mod reader;
 pub mod serial;

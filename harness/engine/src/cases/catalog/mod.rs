@@ -101,12 +101,7 @@ impl<'a> Ctx<'a> {
     }
 
     fn max_quantity(&self, fc: impl Into<FunctionCode>) -> u16 {
-        let fc = fc.into();
-        self.p
-            .function(fc)
-            .and_then(|f| f.max_quantity)
-            .or(fc.max_quantity())
-            .unwrap_or(125)
+        self.p.max_quantity(fc)
     }
 
     /// A read that every healthy drive of the profile answers: the liveness probe after malformed input.

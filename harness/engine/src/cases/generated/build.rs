@@ -155,12 +155,7 @@ impl GenContext {
 
     /// The quantity limit of `fc`: the profile's, else the spec's.
     fn max_quantity(&self, fc: impl Into<FunctionCode>) -> u16 {
-        let fc = fc.into();
-        self.profile
-            .function(fc)
-            .and_then(|f| f.max_quantity)
-            .or(fc.max_quantity())
-            .unwrap_or(125)
+        self.profile.max_quantity(fc)
     }
 
     /// The read function for a table choice: FC 04 for input registers where supported, else FC 03.

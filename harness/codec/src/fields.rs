@@ -8,6 +8,7 @@ use std::fmt;
 
 use super::file_record::FileRecordWrite;
 use super::pdu::{Pdu, Request, Response};
+use crate::Mnemonic;
 
 /// A field value.
 #[derive(Clone, Debug, PartialEq, Eq)]
@@ -86,27 +87,34 @@ fn column(name: &'static str, v: impl Iterator<Item = u64>) -> Field {
 fn file_writes(subs: &[FileRecordWrite], f: &mut Vec<Field>) {
     let data_len: usize = subs.iter().map(|s| 7 + 2 * s.values.len()).sum();
     f.push(int("byte_count", data_len as u64));
-    f.push(column(
-        "reference_type",
-        subs.iter().map(|s| u64::from(s.reference_type)),
-    ));
-    f.push(column(
-        "file_number",
-        subs.iter().map(|s| u64::from(s.file_number)),
-    ));
-    f.push(column(
-        "record_number",
-        subs.iter().map(|s| u64::from(s.record_number)),
-    ));
-    f.push(column(
-        "record_length",
-        subs.iter().map(|s| s.values.len() as u64),
-    ));
+    let refs: Vec<_> = subs
+        .iter()
+        .map(|s| {
+            (
+                s.reference_type,
+                s.file_number,
+                s.record_number,
+                s.values.len(),
+            )
+        })
+        .collect();
+    file_refs(&refs, f);
     f.push(column(
         "values",
         subs.iter()
             .flat_map(|s| s.values.iter().map(|v| u64::from(*v))),
     ));
+}
+
+/// The columns of FC 14/15 sub-requests, each given as (reference type, file, record, record length).
+fn file_refs(refs: &[(u8, u16, u16, usize)], f: &mut Vec<Field>) {
+    f.push(column(
+        "reference_type",
+        refs.iter().map(|r| u64::from(r.0)),
+    ));
+    f.push(column("file_number", refs.iter().map(|r| u64::from(r.1))));
+    f.push(column("record_number", refs.iter().map(|r| u64::from(r.2))));
+    f.push(column("record_length", refs.iter().map(|r| r.3 as u64)));
 }
 
 fn mask_write(address: u16, and_mask: u16, or_mask: u16, f: &mut Vec<Field>) {
@@ -183,43 +191,20 @@ fn describe_request(r: &Request, f: &mut Vec<Field>) {
             f.push(int("address", *address));
             f.push(int("quantity", *quantity));
         }
-        WriteSingleCoil { address, value } => {
-            f.push(int("address", *address));
-            f.push(ints("values", &[*value]));
-            if *value == 0xFF00 || *value == 0 {
-                f.push(Field {
-                    name: "bits",
-                    value: FieldValue::Ints(vec![u64::from(*value == 0xFF00)]),
-                });
-            }
-        }
-        WriteSingleRegister { address, value } => {
-            f.push(int("address", *address));
-            f.push(ints("values", &[*value]));
-        }
-        Diagnostics { sub_function, data } => {
-            f.push(int("sub_function", *sub_function));
-            diag_data(data, f);
-        }
+        WriteSingleCoil { address, value } => single_write(*address, *value, true, f),
+        WriteSingleRegister { address, value } => single_write(*address, *value, false, f),
+        Diagnostics { sub_function, data } => diagnostics(*sub_function, data, f),
         ReadExceptionStatus | GetCommEventCounter | GetCommEventLog | ReportServerId => {}
         ReadFileRecord { sub_requests } => {
             f.push(int("byte_count", 7 * sub_requests.len() as u64));
-            f.push(column(
-                "reference_type",
-                sub_requests.iter().map(|s| u64::from(s.reference_type)),
-            ));
-            f.push(column(
-                "file_number",
-                sub_requests.iter().map(|s| u64::from(s.file_number)),
-            ));
-            f.push(column(
-                "record_number",
-                sub_requests.iter().map(|s| u64::from(s.record_number)),
-            ));
-            f.push(column(
-                "record_length",
-                sub_requests.iter().map(|s| u64::from(s.record_length)),
-            ));
+            let refs: Vec<_> = sub_requests
+                .iter()
+                .map(|s| {
+                    let length = usize::from(s.record_length);
+                    (s.reference_type, s.file_number, s.record_number, length)
+                })
+                .collect();
+            file_refs(&refs, f);
         }
         WriteFileRecord { sub_requests } => file_writes(sub_requests, f),
         MaskWriteRegister {
@@ -266,19 +251,9 @@ fn describe_request(r: &Request, f: &mut Vec<Field>) {
             f.push(int("read_code", *read_code));
             f.push(int("object_id", *object_id));
         }
-        VendorRead { mnemonic } => {
-            f.push(bytes("mnemonic_bytes", &mnemonic.0));
-            f.push(Field {
-                name: "mnemonic",
-                value: FieldValue::Text(mnemonic.name()),
-            });
-        }
+        VendorRead { mnemonic } => mnemonic_fields(mnemonic, f),
         VendorWrite { mnemonic, params } => {
-            f.push(bytes("mnemonic_bytes", &mnemonic.0));
-            f.push(Field {
-                name: "mnemonic",
-                value: FieldValue::Text(mnemonic.name()),
-            });
+            mnemonic_fields(mnemonic, f);
             f.push(int("byte_count", params.len() as u64));
             f.push(text("params", params));
         }
@@ -286,7 +261,29 @@ fn describe_request(r: &Request, f: &mut Vec<Field>) {
     }
 }
 
-fn diag_data(data: &[u8], f: &mut Vec<Field>) {
+/// FC 05 and 06, request and echo alike: the address and the value (and, for a coil, its state where the
+/// value is one of the two the spec allows).
+fn single_write(address: u16, value: u16, coil: bool, f: &mut Vec<Field>) {
+    f.push(int("address", address));
+    f.push(ints("values", &[value]));
+    if coil && (value == 0xFF00 || value == 0) {
+        f.push(Field {
+            name: "bits",
+            value: FieldValue::Ints(vec![u64::from(value == 0xFF00)]),
+        });
+    }
+}
+
+fn mnemonic_fields(mnemonic: &Mnemonic, f: &mut Vec<Field>) {
+    f.push(bytes("mnemonic_bytes", &mnemonic.0));
+    f.push(Field {
+        name: "mnemonic",
+        value: FieldValue::Text(mnemonic.name()),
+    });
+}
+
+fn diagnostics(sub_function: u16, data: &[u8], f: &mut Vec<Field>) {
+    f.push(int("sub_function", sub_function));
     if data.len() == 2 {
         f.push(int("data", u16::from_be_bytes([data[0], data[1]])));
     } else {
@@ -307,24 +304,9 @@ fn describe_response(r: &Response, f: &mut Vec<Field>) {
             f.push(int("byte_count", values.len() as u64 * 2));
             f.push(ints("values", values));
         }
-        WriteSingleCoil { address, value } => {
-            f.push(int("address", *address));
-            f.push(ints("values", &[*value]));
-            if *value == 0xFF00 || *value == 0 {
-                f.push(Field {
-                    name: "bits",
-                    value: FieldValue::Ints(vec![u64::from(*value == 0xFF00)]),
-                });
-            }
-        }
-        WriteSingleRegister { address, value } => {
-            f.push(int("address", *address));
-            f.push(ints("values", &[*value]));
-        }
-        Diagnostics { sub_function, data } => {
-            f.push(int("sub_function", *sub_function));
-            diag_data(data, f);
-        }
+        WriteSingleCoil { address, value } => single_write(*address, *value, true, f),
+        WriteSingleRegister { address, value } => single_write(*address, *value, false, f),
+        Diagnostics { sub_function, data } => diagnostics(*sub_function, data, f),
         WriteMultipleCoils { address, quantity } | WriteMultipleRegisters { address, quantity } => {
             f.push(int("address", *address));
             f.push(int("quantity", *quantity));
@@ -414,11 +396,7 @@ fn describe_response(r: &Response, f: &mut Vec<Field>) {
         }
         VendorWrite { written, mnemonic } => {
             f.push(int("byte_count", *written));
-            f.push(bytes("mnemonic_bytes", &mnemonic.0));
-            f.push(Field {
-                name: "mnemonic",
-                value: FieldValue::Text(mnemonic.name()),
-            });
+            mnemonic_fields(mnemonic, f);
         }
         Exception { code, .. } => f.push(int("exception", code.0)),
         Raw { data, .. } => f.push(bytes("data", data)),

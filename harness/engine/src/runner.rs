@@ -2241,29 +2241,21 @@ mod tests {
     fn answers_pair_by_transaction_id() {
         let frames = [framed(10), framed(11)];
         let late_first = answer(11, &[0x03, 0x02, 0x00, 0x00]);
-        assert_eq!(
-            pair(Framing::Tcp, &late_first, &frames, &[false, false], 0),
-            (1, true)
-        );
         let early = answer(10, &[0x03, 0x02, 0x00, 0x00]);
-        assert_eq!(
-            pair(Framing::Tcp, &early, &frames, &[false, true], 1),
-            (0, false)
-        );
-        assert_eq!(
-            pair(Framing::Tcp, &early, &frames, &[false, false], 0),
-            (0, false)
-        );
         // A transaction id of no request (or paired already): the first unpaired request.
         let stray = answer(99, &[0x03, 0x02, 0x00, 0x00]);
-        assert_eq!(
-            pair(Framing::Tcp, &stray, &frames, &[true, false], 1),
-            (1, false)
-        );
-        assert_eq!(
-            pair(Framing::Rtu, &late_first, &frames, &[false, false], 0),
-            (0, false)
-        );
+        // (framing, answer, requests paired already, next in order) -> (request, out of order)
+        let table = [
+            (Framing::Tcp, &late_first, [false, false], 0, (1, true)),
+            (Framing::Tcp, &early, [false, true], 1, (0, false)),
+            (Framing::Tcp, &early, [false, false], 0, (0, false)),
+            (Framing::Tcp, &stray, [true, false], 1, (1, false)),
+            (Framing::Rtu, &late_first, [false, false], 0, (0, false)),
+        ];
+        for (i, (framing, answer, paired, next, want)) in table.into_iter().enumerate() {
+            let got = pair(framing, answer, &frames, &paired, next);
+            assert_eq!(got, want, "row {i}");
+        }
     }
 
     #[test]

@@ -94,31 +94,10 @@ fn field_diff(exp: &Pdu, obs: &Pdu) -> Vec<String> {
     out
 }
 
-/// Judge one observation against the reference answer (`None`: the reference drive stays silent).
-pub fn judge(
-    framing: Framing,
-    sent: &Sent,
-    expected: Option<&[u8]>,
-    observed: &Received,
-    compare: &Compare,
-    profile: &Profile,
-    reference_closed: bool,
-) -> Vec<Finding> {
-    judge_in(
-        framing,
-        sent,
-        expected,
-        observed,
-        compare,
-        profile,
-        reference_closed,
-        profile.device.word_order,
-    )
-}
-
-/// [`judge`], reading 32-bit register values in `order`.
+/// Judge one observation against the reference answer (`None`: the reference drive stays silent), reading
+/// 32-bit register values in `order`.
 #[allow(clippy::too_many_arguments)]
-fn judge_in(
+fn judge(
     framing: Framing,
     sent: &Sent,
     expected: Option<&[u8]>,
@@ -201,6 +180,7 @@ pub fn judge_admitting(
         compare,
         profile,
         reference_closed || close_admitted,
+        profile.device.word_order,
     );
     let response = |b: &[u8]| match decode_any(b, framing, Direction::Response).map(|d| d.pdu) {
         Ok(Pdu::Response(r)) => Some(r),
@@ -274,7 +254,7 @@ pub fn judge_admitting(
                 WordOrder::HighFirst => WordOrder::LowFirst,
                 WordOrder::LowFirst => WordOrder::HighFirst,
             };
-            let again = judge_in(
+            let again = judge(
                 framing,
                 sent,
                 expected,
@@ -328,6 +308,7 @@ pub fn judge_admitting(
                 &compare,
                 profile,
                 reference_closed || alt.closes(),
+                profile.device.word_order,
             );
             if !fails(&again) {
                 let mut findings = again;

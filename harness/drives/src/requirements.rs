@@ -329,6 +329,13 @@ pub struct Freedom {
 }
 
 impl Freedom {
+    /// True when `value` is one of the admissible values (see [`crate::choices::value_matches`]).
+    pub fn admits(&self, value: &str) -> bool {
+        self.values
+            .iter()
+            .any(|v| crate::choices::value_matches(v, value))
+    }
+
     /// `unit-ids`: true when `unit` is in the freedom's range of unit ids (`units = [first, last]`).
     pub fn covers_unit(&self, unit: u8) -> bool {
         match self.units.as_slice() {

@@ -394,11 +394,7 @@ impl Runner {
         let Some(freedom) = requirements.freedom(FREEDOM).filter(|f| f.applies_to(&id)) else {
             return;
         };
-        if !freedom
-            .values
-            .iter()
-            .any(|v| drives::choices::value_matches(v, EXAMPLE))
-        {
+        if !freedom.admits(EXAMPLE) {
             return;
         }
         let Some(first) = self
@@ -556,11 +552,7 @@ impl Runner {
         if !codec::canopen_with_reserved(&r).is_some_and(|long| is_object(&long)) {
             return;
         }
-        if !freedom
-            .values
-            .iter()
-            .any(|v| drives::choices::value_matches(v, EXAMPLE))
-        {
+        if !freedom.admits(EXAMPLE) {
             return;
         }
         self.fc43_without_reserved = true;

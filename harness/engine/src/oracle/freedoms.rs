@@ -236,11 +236,7 @@ pub fn reference_shown(
             let reads = registers_read(req).is_some() || matches!(req, Request::VendorRead { .. });
             // A write tells only where a value of the freedom refuses writes (`ro`), a read only where one
             // refuses reads (`wo`): a write HM takes shows nothing between `rw` and `wo`.
-            let has = |name: &str| {
-                f.values
-                    .iter()
-                    .any(|v| drives::choices::value_matches(v, name))
-            };
+            let has = |name: &str| f.admits(name);
             let shows = (writes && has("ro")) || (reads && has("wo"));
             // A refusal of a request that covers other addresses too may be theirs (a reserved register
             // beside a write-only one answers 02 whatever the drive takes the write-only one for).
@@ -351,10 +347,7 @@ pub fn unambiguous(
     let mut reasons: Vec<&str> = Vec::new();
     let mut named: Vec<&str> = Vec::new();
     for f in applicable {
-        let listed = f
-            .values
-            .iter()
-            .any(|v| drives::choices::value_matches(v, &exception));
+        let listed = f.admits(&exception);
         let reason = match f.kind {
             FreedomKind::Optional if listed && touches(f, cx) => f.id.as_str(),
             FreedomKind::Access if touches(f, cx) => {
@@ -437,10 +430,7 @@ fn range_ends_open(requirements: &Requirements, cx: &StepContext<'_>) -> bool {
 /// the value.
 pub fn outcome_shown(f: &Freedom, cx: &StepContext<'_>, kind: &str) -> Option<Shown> {
     let about = cx.decided(f) || cx.malformed || (cx.batch && f.id.starts_with("pipelined"));
-    let listed = f
-        .values
-        .iter()
-        .any(|v| drives::choices::value_matches(v, kind));
+    let listed = f.admits(kind);
     (f.kind == FreedomKind::Outcome && about && listed).then(|| shown_named(f, "", kind))
 }
 
@@ -507,11 +497,7 @@ pub fn alternatives(
                 return vec![];
             }
             let mut out = Vec::new();
-            if observed.is_none()
-                && f.values
-                    .iter()
-                    .any(|v| drives::choices::value_matches(v, "silence"))
-            {
+            if observed.is_none() && f.admits("silence") {
                 out.push(alt(
                     None,
                     shown_named(f, format!("unit {}", cx.unit), "silence"),
@@ -519,10 +505,7 @@ pub fn alternatives(
             }
             if let (Some(e), Some((_, code))) = (expected, observed.and_then(exception_of)) {
                 let name = format!("exception-{:02X}", code.0);
-                if f.values
-                    .iter()
-                    .any(|v| drives::choices::value_matches(v, &name))
-                {
+                if f.admits(&name) {
                     out.push(alt(
                         Some(Response::exception(
                             e.function().without_exception_bit(),
@@ -632,11 +615,7 @@ fn optional(
     let fc = req.function();
     let mut out = Vec::new();
     match observed {
-        None if f
-            .values
-            .iter()
-            .any(|v| drives::choices::value_matches(v, "silence")) =>
-        {
+        None if f.admits("silence") => {
             out.push(Alternative {
                 answer: None,
                 shown: shown_named(f, about, "silence"),
@@ -680,11 +659,7 @@ fn access(
         return vec![];
     };
     let about = item_name(item);
-    let has = |name: &str| {
-        f.values
-            .iter()
-            .any(|v| drives::choices::value_matches(v, name))
-    };
+    let has = |name: &str| f.admits(name);
     let mut out = Vec::new();
     let writes = registers_written(req).is_some() || matches!(req, Request::VendorWrite { .. });
     let reads = registers_read(req).is_some() || matches!(req, Request::VendorRead { .. });
@@ -748,11 +723,7 @@ fn outcome(
     observed: Option<&Response>,
 ) -> Vec<Alternative> {
     let request = cx.request;
-    let has = |name: &str| {
-        f.values
-            .iter()
-            .any(|v| drives::choices::value_matches(v, name))
-    };
+    let has = |name: &str| f.admits(name);
     // A listed exception to the function `fc` the request asked for, where the drive answered one.
     let exception = |o: &Response, fc: FunctionCode| match exception_of(o) {
         Some((ofn, code))
@@ -1010,10 +981,7 @@ fn field_value(
                 return vec![];
             };
             let listed = |w: u16| int_values(f).any(|v| v == i64::from(w));
-            let any_nonzero = f
-                .values
-                .iter()
-                .any(|v| drives::choices::value_matches(v, "any-nonzero"));
+            let any_nonzero = f.admits("any-nonzero");
             if !listed(ev) || ev == ov {
                 return vec![];
             }

@@ -58,6 +58,24 @@ pub struct StepContext<'a> {
 }
 
 impl Alternative {
+    /// `answer` (`None`: no answer), compared as the step compares, shown as `shown`.
+    pub fn exact(answer: Option<Response>, shown: Shown) -> Self {
+        Alternative {
+            answer,
+            shown,
+            values_free: false,
+            note: None,
+        }
+    }
+
+    /// `answer`, compared in structure only: its data values are free.
+    pub fn values_free(answer: Option<Response>, shown: Shown) -> Self {
+        Alternative {
+            values_free: true,
+            ..Self::exact(answer, shown)
+        }
+    }
+
     /// True when the alternative is the connection closed (an outcome freedom's `close`).
     pub fn closes(&self) -> bool {
         self.answer.is_none() && self.shown.value == "close"
@@ -442,12 +460,7 @@ pub fn alternatives(
     expected: Option<&Response>,
     observed: Option<&Response>,
 ) -> Vec<Alternative> {
-    let alt = |answer: Option<Response>, shown: Shown| Alternative {
-        answer,
-        shown,
-        values_free: false,
-        note: None,
-    };
+    let alt = Alternative::exact;
     match f.kind {
         FreedomKind::ExceptionCode => {
             // Any listed code where the reference answers with a listed code.
@@ -529,6 +542,11 @@ pub fn alternatives(
             if code != ExceptionCode::ILLEGAL_FUNCTION || !f.functions.contains(&fc.0) {
                 return vec![];
             }
+            let shown = shown_named(f, format!("FC 0x{:02X}", fc.0), "served");
+            let served = format!(
+                "FC 0x{:02X} is served although the profile does not list it (admissible: {})",
+                fc.0, f.id
+            );
             // A drive serving the function refuses a malformed request for it as any served function's:
             // 03, the implied length incorrect (App 7).
             if cx.malformed
@@ -537,26 +555,18 @@ pub fn alternatives(
                 })
             {
                 return vec![Alternative {
-                    answer: Some(o.clone()),
-                    shown: shown_named(f, format!("FC 0x{:02X}", fc.0), "served"),
-                    values_free: false,
                     note: Some(format!(
-                        "FC 0x{:02X} is served although the profile does not list it (admissible: {}); this malformed request for it is refused with 03",
-                        fc.0, f.id
+                        "{served}; this malformed request for it is refused with 03"
                     )),
+                    ..Alternative::exact(Some(o.clone()), shown)
                 }];
             }
             if o.is_exception() || o.function() != fc {
                 return vec![];
             }
             vec![Alternative {
-                answer: Some(o.clone()),
-                shown: shown_named(f, format!("FC 0x{:02X}", fc.0), "served"),
-                values_free: true,
-                note: Some(format!(
-                    "FC 0x{:02X} is served although the profile does not list it (admissible: {})",
-                    fc.0, f.id
-                )),
+                note: Some(served),
+                ..Alternative::values_free(Some(o.clone()), shown)
             }]
         }
         FreedomKind::StatusBits => status_bits(f, cx, expected, observed),
@@ -616,12 +626,7 @@ fn optional(
     let mut out = Vec::new();
     match observed {
         None if f.admits("silence") => {
-            out.push(Alternative {
-                answer: None,
-                shown: shown_named(f, about, "silence"),
-                values_free: false,
-                note: None,
-            });
+            out.push(Alternative::exact(None, shown_named(f, about, "silence")));
         }
         Some(o) => {
             if let Some((ofn, code)) = exception_of(o) {
@@ -630,12 +635,10 @@ fn optional(
                     .iter()
                     .any(|v| drives::Choices::exception_value(v) == Some(code));
                 if absent && ofn.without_exception_bit() == fc && expected != observed {
-                    out.push(Alternative {
-                        answer: Some(Response::exception(fc, code)),
-                        shown: shown_named(f, about, &format!("exception-{:02X}", code.0)),
-                        values_free: false,
-                        note: None,
-                    });
+                    out.push(Alternative::exact(
+                        Some(Response::exception(fc, code)),
+                        shown_named(f, about, &format!("exception-{:02X}", code.0)),
+                    ));
                 }
             }
         }
@@ -676,12 +679,10 @@ fn access(
             None
         };
         if let Some(v) = value {
-            out.push(Alternative {
-                answer: Some(o.clone()),
-                shown: shown_named(f, about, v),
-                values_free: true,
-                note: None,
-            });
+            out.push(Alternative::values_free(
+                Some(o.clone()),
+                shown_named(f, about, v),
+            ));
         }
     } else if !e.is_exception()
         && let Some((_, code)) = exception_of(o)
@@ -702,12 +703,10 @@ fn access(
         ]
         .contains(&code);
         if let (Some(v), true) = (value, refusal) {
-            out.push(Alternative {
-                answer: Some(Response::exception(req.function(), code)),
-                shown: shown_named(f, about, v),
-                values_free: false,
-                note: None,
-            });
+            out.push(Alternative::exact(
+                Some(Response::exception(req.function(), code)),
+                shown_named(f, about, v),
+            ));
         }
     }
     out
@@ -729,12 +728,10 @@ fn outcome(
         Some((ofn, code))
             if ofn.without_exception_bit() == fc && has(&format!("exception-{:02X}", code.0)) =>
         {
-            vec![Alternative {
-                answer: Some(Response::exception(fc, code)),
-                shown: shown_named(f, "", &format!("exception-{:02X}", code.0)),
-                values_free: false,
-                note: None,
-            }]
+            vec![Alternative::exact(
+                Some(Response::exception(fc, code)),
+                shown_named(f, "", &format!("exception-{:02X}", code.0)),
+            )]
         }
         _ => vec![],
     };
@@ -747,29 +744,21 @@ fn outcome(
             .or_else(|| cx.pdu.first().map(|&b| FunctionCode(b)))
             .map(|fc| exception(o, fc))
             .unwrap_or_default(),
-        (_, None) if cx.closed && has("close") => vec![Alternative {
-            answer: None,
-            shown: shown_named(f, "", "close"),
-            values_free: false,
-            note: None,
-        }],
-        (_, None) if has("silence") => vec![Alternative {
-            answer: None,
-            shown: shown_named(f, "", "silence"),
-            values_free: false,
-            note: None,
-        }],
+        (_, None) if cx.closed && has("close") => {
+            vec![Alternative::exact(None, shown_named(f, "", "close"))]
+        }
+        (_, None) if has("silence") => {
+            vec![Alternative::exact(None, shown_named(f, "", "silence"))]
+        }
         (Some(e), Some(o)) => {
             let fc = e.function().without_exception_bit();
             if exception_of(o).is_some() {
                 exception(o, fc)
             } else if has("response") && o.function() == fc && e.is_exception() {
-                vec![Alternative {
-                    answer: Some(served_as_asked(request).unwrap_or_else(|| o.clone())),
-                    shown: shown_named(f, "", "response"),
-                    values_free: true,
-                    note: None,
-                }]
+                vec![Alternative::values_free(
+                    Some(served_as_asked(request).unwrap_or_else(|| o.clone())),
+                    shown_named(f, "", "response"),
+                )]
             } else {
                 vec![]
             }
@@ -830,12 +819,10 @@ fn status_bits(
         return vec![];
     };
     let answer = Some(answer);
-    vec![Alternative {
+    vec![Alternative::exact(
         answer,
-        shown: shown(f, "", &FreedomValue::Int(mask)),
-        values_free: false,
-        note: None,
-    }]
+        shown(f, "", &FreedomValue::Int(mask)),
+    )]
 }
 
 /// The word of the freedom's register in what a register read `req` answers: its index in the values, and
@@ -891,12 +878,7 @@ fn field_value(
         return vec![];
     };
     let one = |answer: Response, value: &str| {
-        vec![Alternative {
-            answer: Some(answer),
-            shown: shown_named(f, "", value),
-            values_free: false,
-            note: None,
-        }]
+        vec![Alternative::exact(Some(answer), shown_named(f, "", value))]
     };
     match (f.id.as_str(), e, o, cx.request) {
         (

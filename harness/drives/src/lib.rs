@@ -16,5 +16,5 @@ pub mod tell;
 
 pub use choices::{Choices, Decision, Rejection};
 pub use faults::{Fault, FaultSet};
-pub use models::{DriveModel, build, build_with};
+pub use models::{BoxClone, DriveModel, build, build_with};
 pub use station::{Counters, RtuPort, Station, TcpConn, Wire};

@@ -270,7 +270,7 @@ impl RtuPort {
 }
 
 /// A simulated drive on the wire. A clone is an independent copy in the same state (see
-/// [`DriveModel::box_clone`]).
+/// [`BoxClone::box_clone`](crate::models::BoxClone::box_clone)).
 #[derive(Clone)]
 pub struct Station {
     model: Box<dyn DriveModel>,
@@ -355,7 +355,7 @@ impl Station {
         };
         if latched.iter().any(|a| self.latched_taken.contains(a)) {
             // Acknowledged as the drive would, on a copy: the latched value stays.
-            let mut scratch = self.model.box_clone();
+            let mut scratch = self.model.clone();
             return scratch.handle(now, unit, req);
         }
         let before = match (&self.sink, &written) {
@@ -1537,7 +1537,7 @@ impl Station {
             _ => return rejection,
         };
         let last = u32::from(address) + u32::from(quantity.max(1)) - 1;
-        let mut scratch = self.model.box_clone();
+        let mut scratch = self.model.clone();
         let mut invalid = |a: u16| {
             scratch.handle(now, unit, &one(a)).is_some_and(|r| {
                 matches!(r, Response::Exception { code, .. } if code == ExceptionCode::ILLEGAL_DATA_ADDRESS)

@@ -794,6 +794,9 @@ pub struct Keeper {
     /// Items a case left differing that the restore after it could not put back (retried at the end).
     pending: BTreeMap<String, Unrestored>,
     last_saved: Option<std::time::Instant>,
+    /// The journal is the run's own file in the temporary directory (no `--journal`, no report directory):
+    /// removed once every kept parameter reads as before, kept otherwise for `restore --journal`.
+    scratch_journal: bool,
 }
 
 impl Keeper {
@@ -819,7 +822,15 @@ impl Keeper {
             account,
             pending: BTreeMap::new(),
             last_saved: None,
+            scratch_journal: false,
         }
+    }
+
+    /// The journal is a scratch file nobody asked for: remove it when the run ends with every kept
+    /// parameter restored and verified (a killed run, or one that leaves a parameter changed, keeps it).
+    pub fn scratch_journal(mut self) -> Self {
+        self.scratch_journal = true;
+        self
     }
 
     /// The account so far.
@@ -1025,6 +1036,13 @@ impl Keeper {
                 reason: e.to_string(),
             });
         }
+        if self.scratch_journal
+            && self.account.clean()
+            && let Some(path) = &self.journal_path
+            && std::fs::remove_file(path).is_ok()
+        {
+            self.account.journal = None;
+        }
         self.account.clone()
     }
 }
@@ -1211,6 +1229,52 @@ mod tests {
             "{}",
             fake.requests
         );
+        assert_eq!(Journal::load(&journal).expect("journal").state, "running");
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    /// A journal nobody asked for (no `--journal`, no report directory) is removed after a verified
+    /// restore, and kept where a parameter did not come back or the target stopped answering.
+    #[test]
+    fn a_scratch_journal_goes_once_the_drive_reads_as_found() {
+        let dir = std::env::temp_dir().join(format!("mbh-scratch-{}", std::process::id()));
+        let journal = dir.join("journal.json");
+        let p = drives::corpus::Corpus::Embedded
+            .load("generic")
+            .expect("generic");
+        let fresh = || Fake {
+            regs: [(0, 10), (1, 11), (2, 12)].into(),
+            dead: false,
+            stuck: None,
+            requests: 0,
+        };
+        let finish = |fake: &mut Fake, change: &dyn Fn(&mut Fake), scratch: bool| {
+            let mut k = keeper_of(fake, &journal);
+            if scratch {
+                k = k.scratch_journal();
+            }
+            assert!(journal.exists(), "journaled before the first write");
+            fake.regs.insert(0, 99);
+            change(fake);
+            k.finish(fake, &p)
+        };
+        let a = finish(&mut fresh(), &|_| {}, true);
+        assert!(a.clean(), "{a:?}");
+        assert!(!journal.exists(), "removed after the verified restore");
+        assert_eq!(a.journal, None, "and not named as the way back");
+        // Asked for (`--journal`, a report directory): kept.
+        let a = finish(&mut fresh(), &|_| {}, false);
+        assert!(a.clean() && journal.exists(), "{a:?}");
+        assert_eq!(a.journal.as_deref(), Some(journal.as_path()));
+        // A parameter that does not come back, a target that stopped answering: kept.
+        let a = finish(&mut fresh(), &|f| f.stuck = Some(0), true);
+        assert!(!a.clean() && journal.exists(), "{a:?}");
+        assert_eq!(
+            Journal::load(&journal).expect("journal").state,
+            "unrestored"
+        );
+        let a = finish(&mut fresh(), &|f| f.dead = true, true);
+        assert!(!a.clean() && journal.exists(), "{a:?}");
         assert_eq!(Journal::load(&journal).expect("journal").state, "running");
         let _ = std::fs::remove_dir_all(&dir);
     }

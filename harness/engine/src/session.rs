@@ -1175,6 +1175,7 @@ pub fn keeper(
     if !opts.leave_as_found || opts.target.is_sim() || opts.safety.read_only {
         return None;
     }
+    let scratch = opts.journal.is_none() && opts.report_dir.is_none();
     let journal = opts
         .journal
         .clone()
@@ -1199,13 +1200,18 @@ pub fn keeper(
         Some(p) if p != "auto" => p.clone(),
         _ => profile.device.id.clone(),
     };
-    Some(crate::restore::Keeper::new(
+    let keeper = crate::restore::Keeper::new(
         crate::restore::inventory(profile, &opts.safety),
         opts.target.to_string(),
         profile_name,
         cfg.unit,
         Some(journal),
-    ))
+    );
+    Some(if scratch {
+        keeper.scratch_journal()
+    } else {
+        keeper
+    })
 }
 
 /// The reference drive takes the parameters the target was found with, so that a drive found off its

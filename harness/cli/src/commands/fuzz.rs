@@ -88,8 +88,8 @@ pub struct FuzzArgs {
     #[arg(long, default_value_t = 20, value_name = "N")]
     max_findings: usize,
     /// With --allow-writes against a real drive: the state journal of the parameters read before the first
-    /// write (default: a file in the temporary directory, named in the output); `restore --journal FILE`
-    /// puts them back if the campaign could not.
+    /// write (default: a file in the temporary directory, named in the output, removed once every parameter
+    /// reads as before); `restore --journal FILE` puts them back if the campaign could not.
     #[arg(long, value_name = "FILE")]
     journal: Option<PathBuf>,
 }

@@ -47,8 +47,8 @@ Leave as found (real targets):
   Before its first write the run reads every parameter of the profile it can read and write back
   (holding registers, coils, FC 0x41 settings, objects; read-only, write-only, motion and destructive
   ones without their flags are left out, each with the reason), keeps them in a state journal (--journal
-  FILE, default REPORT/journal.json or a file in the temporary directory; written and synced before the
-  first write, updated as the run goes), puts back and verifies what each writing case could have changed,
+  FILE, default REPORT/journal.json or a file in the temporary directory that is removed once the drive
+  reads as found; written and synced before the first write, updated as the run goes), puts back and verifies what each writing case could have changed,
   and at the end (also after Ctrl-C, SIGTERM or an error) restores everything that differs. What cannot be
   put back is listed with its value before and after. After a killed run:
   modbus-harness restore --journal FILE.
@@ -212,7 +212,8 @@ pub struct RunArgs {
     #[arg(long)]
     policy_on_sim: bool,
     /// State journal of the leave-as-found snapshot (default: REPORT/journal.json, else a file in the
-    /// temporary directory); `modbus-harness restore --journal FILE` undoes a killed run.
+    /// temporary directory, removed once the drive reads as found); `modbus-harness restore --journal FILE`
+    /// undoes a killed run.
     #[arg(long, value_name = "FILE")]
     journal: Option<PathBuf>,
 }

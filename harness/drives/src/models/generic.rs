@@ -342,10 +342,6 @@ impl DriveModel for Generic {
         &self.profile
     }
 
-    fn box_clone(&self) -> Box<dyn DriveModel> {
-        Box::new(self.clone())
-    }
-
     fn adopt(&mut self, choices: &Choices) {
         self.bank.adopt(choices);
     }

@@ -1223,10 +1223,6 @@ impl DriveModel for Mdrive {
         std::mem::take(&mut self.decisions)
     }
 
-    fn box_clone(&self) -> Box<dyn DriveModel> {
-        Box::new(self.clone())
-    }
-
     fn adopt(&mut self, choices: &Choices) {
         self.choices = choices.clone();
         self.bank.adopt(choices);

@@ -19,7 +19,7 @@ use crate::choices::{Choices, Decision};
 use crate::faults::FaultSet;
 
 /// An executable model of a drive: what a conforming drive answers, and its state over time.
-pub trait DriveModel: Send {
+pub trait DriveModel: Send + BoxClone {
     /// The profile the model was built from.
     fn profile(&self) -> &Profile;
 
@@ -29,11 +29,6 @@ pub trait DriveModel: Send {
     /// Answer a request addressed to this drive as unit `unit` at `now` (after `advance(now)`).
     /// `None` means the drive stays silent. Broadcasts are handled too; the station drops their answer.
     fn handle(&mut self, now: Duration, unit: u8, request: &Request) -> Option<Response>;
-
-    /// A copy of the model in its present state, which then evolves on its own. Cheap: the profile and
-    /// the register map are shared, only the state is copied (the in-process fuzz targets clone a pristine
-    /// model per input instead of building one).
-    fn box_clone(&self) -> Box<dyn DriveModel>;
 
     /// The freedoms that decided the answers since the last call (see [`crate::choices`]).
     fn take_decisions(&mut self) -> Vec<Decision> {
@@ -46,6 +41,19 @@ pub trait DriveModel: Send {
     /// took is taken by the reference too). Choices that shape the model (access, word order, addressing)
     /// are fixed when it is built and stay as they are.
     fn adopt(&mut self, _choices: &Choices) {}
+}
+
+/// A copy of a model in its present state, which then evolves on its own: every model that is `Clone` has
+/// it. Cheap: the profile and the register map are shared, only the state is copied (the in-process fuzz
+/// targets clone a pristine model per input instead of building one).
+pub trait BoxClone {
+    fn box_clone(&self) -> Box<dyn DriveModel>;
+}
+
+impl<T: DriveModel + Clone + 'static> BoxClone for T {
+    fn box_clone(&self) -> Box<dyn DriveModel> {
+        Box::new(self.clone())
+    }
 }
 
 impl Clone for Box<dyn DriveModel> {

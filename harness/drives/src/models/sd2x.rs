@@ -959,10 +959,6 @@ impl DriveModel for Sd2x {
         std::mem::take(&mut self.decisions)
     }
 
-    fn box_clone(&self) -> Box<dyn DriveModel> {
-        Box::new(self.clone())
-    }
-
     fn adopt(&mut self, choices: &Choices) {
         self.choices = choices.clone();
     }

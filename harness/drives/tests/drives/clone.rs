@@ -1,4 +1,4 @@
-//! `Station::clone` (through `DriveModel::box_clone`): a clone is an independent drive in the state of the
+//! `Station::clone` (through `BoxClone::box_clone`): a clone is an independent drive in the state of the
 //! original. The in-process fuzz targets clone a pristine station per input instead of building one, so a
 //! clone must answer exactly as a new station does, and what is done to one must not show in the other.
 

@@ -1125,6 +1125,18 @@ mod tests {
         requests: usize,
     }
 
+    impl Fake {
+        /// Holding registers 0-2 holding 10, 11, 12; answering, nothing stuck.
+        fn three() -> Self {
+            Fake {
+                regs: [(0, 10), (1, 11), (2, 12)].into(),
+                dead: false,
+                stuck: None,
+                requests: 0,
+            }
+        }
+    }
+
     impl Link for Fake {
         fn transact(&mut self, req: &Request) -> Result<Option<Response>, TargetError> {
             self.requests += 1;
@@ -1184,10 +1196,8 @@ mod tests {
             .load("generic")
             .expect("generic");
         let mut fake = Fake {
-            regs: [(0, 10), (1, 11), (2, 12)].into(),
-            dead: false,
             stuck: Some(2),
-            requests: 0,
+            ..Fake::three()
         };
         let mut k = keeper_of(&mut fake, &journal);
         let j = Journal::load(&journal).expect("journal before the first write");
@@ -1209,12 +1219,7 @@ mod tests {
 
         // A dead target: the keeper gives up after a bounded number of silent requests, and the journal
         // stays `running` for `restore --journal`.
-        let mut fake = Fake {
-            regs: [(0, 10), (1, 11), (2, 12)].into(),
-            dead: false,
-            stuck: None,
-            requests: 0,
-        };
+        let mut fake = Fake::three();
         let mut k = keeper_of(&mut fake, &journal);
         fake.dead = true;
         fake.requests = 0;
@@ -1242,12 +1247,7 @@ mod tests {
         let p = drives::corpus::Corpus::Embedded
             .load("generic")
             .expect("generic");
-        let fresh = || Fake {
-            regs: [(0, 10), (1, 11), (2, 12)].into(),
-            dead: false,
-            stuck: None,
-            requests: 0,
-        };
+        let fresh = Fake::three;
         let finish = |fake: &mut Fake, change: &dyn Fn(&mut Fake), scratch: bool| {
             let mut k = keeper_of(fake, &journal);
             if scratch {

@@ -1188,13 +1188,19 @@ mod tests {
         k
     }
 
-    #[test]
-    fn the_keeper_restores_verifies_and_journals_and_names_what_does_not_come_back() {
-        let dir = std::env::temp_dir().join(format!("mbh-keeper-{}", std::process::id()));
+    /// A directory of this test process for a journal (its path), and the generic profile.
+    fn journal_and_generic(name: &str) -> (PathBuf, PathBuf, Profile) {
+        let dir = std::env::temp_dir().join(format!("{name}-{}", std::process::id()));
         let journal = dir.join("journal.json");
         let p = drives::corpus::Corpus::Embedded
             .load("generic")
             .expect("generic");
+        (dir, journal, p)
+    }
+
+    #[test]
+    fn the_keeper_restores_verifies_and_journals_and_names_what_does_not_come_back() {
+        let (dir, journal, p) = journal_and_generic("mbh-keeper");
         let mut fake = Fake {
             stuck: Some(2),
             ..Fake::three()
@@ -1242,11 +1248,7 @@ mod tests {
     /// restore, and kept where a parameter did not come back or the target stopped answering.
     #[test]
     fn a_scratch_journal_goes_once_the_drive_reads_as_found() {
-        let dir = std::env::temp_dir().join(format!("mbh-scratch-{}", std::process::id()));
-        let journal = dir.join("journal.json");
-        let p = drives::corpus::Corpus::Embedded
-            .load("generic")
-            .expect("generic");
+        let (dir, journal, p) = journal_and_generic("mbh-scratch");
         let fresh = Fake::three;
         let finish = |fake: &mut Fake, change: &dyn Fn(&mut Fake), scratch: bool| {
             let mut k = keeper_of(fake, &journal);

@@ -357,6 +357,7 @@ fn known_divergence(
                 &Compare::Structure,
                 &profiles()[3],
                 false,
+                profiles()[3].device.word_order,
             );
             assert!(
                 findings

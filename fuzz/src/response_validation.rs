@@ -94,6 +94,7 @@ pub fn response_validation(data: &[u8]) {
         compare,
         profile,
         closed,
+        profile.device.word_order,
     );
     for level in [Level::Must, Level::Should, Level::Info] {
         let _ = oracle::verdict(&findings, level);
@@ -119,7 +120,16 @@ pub fn response_validation(data: &[u8]) {
             max_gap: at,
         };
         for compare in &COMPARES {
-            let findings = oracle::judge(framing, &sent, Some(e), &own, compare, profile, closed);
+            let findings = oracle::judge(
+                framing,
+                &sent,
+                Some(e),
+                &own,
+                compare,
+                profile,
+                closed,
+                profile.device.word_order,
+            );
             assert!(
                 findings.is_empty(),
                 "{} judged against itself ({compare:?}): {findings:?}",

@@ -97,7 +97,7 @@ fn field_diff(exp: &Pdu, obs: &Pdu) -> Vec<String> {
 /// Judge one observation against the reference answer (`None`: the reference drive stays silent), reading
 /// 32-bit register values in `order`.
 #[allow(clippy::too_many_arguments)]
-fn judge(
+pub fn judge(
     framing: Framing,
     sent: &Sent,
     expected: Option<&[u8]>,

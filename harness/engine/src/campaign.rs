@@ -86,6 +86,8 @@ pub struct CampaignFinding {
 pub struct CampaignOutcome {
     pub cases: u64,
     pub probes: u64,
+    /// Requests sent to the target in all: the cases', the sentinels, the probes, the restore's.
+    pub requests: u64,
     pub elapsed: Duration,
     pub findings: Vec<CampaignFinding>,
     /// Findings that repeated an earlier one's signature (same kind, same case family, same first finding
@@ -102,6 +104,11 @@ impl CampaignOutcome {
     /// Cases per second over the whole campaign.
     pub fn exec_per_sec(&self) -> f64 {
         self.cases as f64 / self.elapsed.as_secs_f64().max(1e-9)
+    }
+
+    /// Requests sent to the target per second over the whole campaign (a case sends one or more).
+    pub fn requests_per_sec(&self) -> f64 {
+        self.requests as f64 / self.elapsed.as_secs_f64().max(1e-9)
     }
 }
 
@@ -580,6 +587,7 @@ fn fuzz_loop(
     Ok(CampaignOutcome {
         cases,
         probes,
+        requests: runner.requests(),
         elapsed: started.elapsed(),
         findings,
         repeats,

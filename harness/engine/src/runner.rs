@@ -173,6 +173,8 @@ pub struct Runner {
     )>,
     /// How the silences due on Modbus/TCP to a real target were settled, for the run's log.
     silences: Silences,
+    /// Requests sent to the target: the cases', the sentinels, the liveness probes, the restore's.
+    requests: u64,
     /// The step being run is followed by a new connection (`Step::Reconnect`): its connection may be
     /// half-closed to prove a silence (see `prove_silence_by_close`).
     reconnect_next: bool,
@@ -284,6 +286,7 @@ impl Runner {
             unit_ignored: false,
             follow: Vec::new(),
             silences: Silences::default(),
+            requests: 0,
             reconnect_next: false,
             resync_rtu: false,
         }
@@ -738,6 +741,7 @@ impl Runner {
         self.shadow.send(&f.bytes)?;
         let _ = self.shadow.settle();
         let _ = self.shadow.take_decisions();
+        self.requests += 1;
         let heard = crate::liveness::ask(self.target.as_mut(), &f.bytes, bound)?;
         if heard == crate::liveness::Heard::Modbus {
             self.unanswered.clear();
@@ -908,6 +912,7 @@ impl Runner {
         self.shadow.send(&f.bytes)?;
         let (reference_answers, _) = self.shadow.settle();
         let _ = self.shadow.take_decisions();
+        self.requests += 1;
         self.target.send(&f.bytes)?;
         if self.sentinels.len() >= 16 {
             self.sentinels.pop_front();
@@ -975,6 +980,12 @@ impl Runner {
     /// Modbus/TCP to a real target: how the silences due were settled.
     pub fn silences(&self) -> Silences {
         self.silences
+    }
+
+    /// Requests sent to the target so far: the cases', the sentinels, the liveness probes and the
+    /// restore's reads and writes (a request sent in pieces counts once, requests sent together each).
+    pub fn requests(&self) -> u64 {
+        self.requests
     }
 
     /// Silence proven by the target's close, for a request no sentinel can follow (its MBAP length is not
@@ -1579,6 +1590,7 @@ impl Runner {
                 self.shadow.idle(*gap);
             }
         }
+        self.requests += frames.len() as u64;
         for f in frames {
             let by = self.case_id.clone();
             self.remember(f.sent.tid, by);
@@ -1862,6 +1874,7 @@ impl Runner {
         self.target.drain();
         self.sync_shadow();
         self.pace();
+        self.requests += 1;
         self.target.send(&f.bytes)?;
         self.shadow.send(&f.bytes)?;
         let _ = self.shadow.settle();
@@ -2133,7 +2146,24 @@ mod tests {
     #[test]
     fn a_sentinel_never_shares_the_transaction_id_of_the_request_it_follows() {
         let mut runner = generic_runner();
-        let case = Case {
+        let case = protocol_id_case();
+        for _ in 0..3 {
+            // The two sequences meet, as they do after wrapping.
+            runner.next_tid = runner.restore_tid;
+            let r = runner.run_case(&case).expect("run");
+            assert_eq!(r.verdict, Verdict::Pass, "{r:#?}");
+            assert_eq!(
+                runner.silences().sentinel,
+                1,
+                "a sentinel proved the silence"
+            );
+            runner.silences = Silences::default();
+        }
+    }
+
+    /// A read sent with protocol id 1: the drive must not answer it (TCP guide 4.4.1).
+    fn protocol_id_case() -> Case {
+        Case {
             id: "test/protocol-id".into(),
             title: "a request with protocol id 1".into(),
             reference: "test".into(),
@@ -2151,19 +2181,34 @@ mod tests {
             }],
             requirements: vec![],
             freedoms: vec![],
-        };
-        for _ in 0..3 {
-            // The two sequences meet, as they do after wrapping.
-            runner.next_tid = runner.restore_tid;
-            let r = runner.run_case(&case).expect("run");
-            assert_eq!(r.verdict, Verdict::Pass, "{r:#?}");
-            assert_eq!(
-                runner.silences().sentinel,
-                1,
-                "a sentinel proved the silence"
-            );
-            runner.silences = Silences::default();
         }
+    }
+
+    /// The runner counts every request it sends the target: the cases', the sentinels, the liveness
+    /// probes, the restore's (`fuzz` prints them beside the cases).
+    #[test]
+    fn the_requests_sent_to_the_target_are_counted() {
+        let mut runner = generic_runner();
+        let read = [0x03, 0x00, 0x00, 0x00, 0x01];
+        let mut case = protocol_id_case();
+        case.steps = vec![Step::Exchange {
+            send: Outgoing::Pdu(read.to_vec()),
+            compare: Compare::Exact,
+            capture: None,
+            note: String::new(),
+        }];
+        let r = runner.run_case(&case).expect("run");
+        assert_eq!(r.verdict, Verdict::Pass, "{r:#?}");
+        assert_eq!(runner.requests(), 1, "one read");
+        let r = runner.run_case(&protocol_id_case()).expect("run");
+        assert_eq!(r.verdict, Verdict::Pass, "{r:#?}");
+        assert_eq!(runner.requests(), 3, "the ignored request and its sentinel");
+        runner.transact_pdu(&read).expect("restore read");
+        assert_eq!(runner.requests(), 4, "a restore read");
+        runner
+            .known_good(&read, Duration::from_millis(100))
+            .expect("probe");
+        assert_eq!(runner.requests(), 5, "a liveness probe");
     }
 
     /// A runner against the generic reference drive with a real target's rules (silences proven by a

@@ -217,11 +217,13 @@ pub fn run(args: &FuzzArgs) -> ExitCode {
                 }
             }
             println!(
-                "fuzz: {} cases, {} probes in {:.1} s ({:.0} exec/s), seed {}, {} finding(s){}; stopped by {}",
+                "fuzz: {} cases, {} probes in {:.1} s ({:.0} exec/s), {} requests ({:.0}/s), seed {}, {} finding(s){}; stopped by {}",
                 o.cases,
                 o.probes,
                 o.elapsed.as_secs_f64(),
                 o.exec_per_sec(),
+                o.requests,
+                o.requests_per_sec(),
                 o.seed,
                 o.findings.len(),
                 if o.repeats > 0 {

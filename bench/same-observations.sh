@@ -58,7 +58,7 @@ for p in sd2x mdrive lmd generic; do
 done
 # FAIL verdicts: a fault per profile that the catalog catches.
 compare "fault-sd2x" --target sim:sd2x --fault wrong-exception-code --fault wrong-crc --fault counters-frozen
-compare "fault-mdrive" --target sim:mdrive --fault range-unchecked --fault word-order --fault reserved-readable
+compare "fault-mdrive" --target sim:mdrive --fault range-unchecked --fault word-order --fault reserved-readable --fault half-register-widened
 compare "fault-generic" --target sim:generic --fault quantity-unchecked --fault bit-padding-ones --fault file-write-first-only
 
 echo "$runs runs, ${#differ[@]} differ"

@@ -1319,17 +1319,9 @@ impl Station {
         if !self.faults.has(Fault::HalfRegisterWidened) {
             return None;
         }
-        let profile = self.model.profile();
-        let inside = |a: u32| {
-            u16::try_from(a).ok().is_some_and(|a| {
-                profile
-                    .register_at(a, false)
-                    .is_some_and(|r| r.width == 2 && r.address != a)
-            })
-        };
         let splits = |address: u16, quantity: usize| {
-            let start = u32::from(address);
-            quantity > 0 && (inside(start) || inside(start + quantity as u32))
+            let quantity = u16::try_from(quantity).unwrap_or(u16::MAX);
+            self.inside_pair(false, address, quantity)
         };
         match req {
             Request::ReadHoldingRegisters { address, quantity }

@@ -86,13 +86,7 @@ pub fn classify(p: &Profile, pdu: &[u8]) -> BTreeSet<Tag> {
                 .get(1..5)
                 .map(|b| Mnemonic([b[0], b[1], b[2], b[3]]).name());
             match m.as_deref().and_then(|n| p.mnemonic(n)) {
-                Some(m) => {
-                    r.motion |= m.motion;
-                    r.destructive |= m.destructive;
-                    if let Some(reg) = m.register {
-                        r.registers(p, Some(reg), 1);
-                    }
-                }
+                Some(m) => r.item(p, m.motion, m.destructive, m.register),
                 // A mnemonic the profile does not know (or a missing one) may do anything.
                 None => r.all(),
             }
@@ -109,13 +103,7 @@ pub fn classify(p: &Profile, pdu: &[u8]) -> BTreeSet<Tag> {
                 let sub = pdu.get(7).copied();
                 match (index, sub) {
                     (Some(i), Some(s)) => match p.object(i, s) {
-                        Some(o) => {
-                            r.motion |= o.motion;
-                            r.destructive |= o.destructive;
-                            if let Some(reg) = o.register {
-                                r.registers(p, Some(reg), 1);
-                            }
-                        }
+                        Some(o) => r.item(p, o.motion, o.destructive, o.register),
                         None => r.all(),
                     },
                     _ => r.all(),
@@ -173,6 +161,16 @@ struct Rating {
 }
 
 impl Rating {
+    /// A write of a profile item (an FC 0x41 setting, an object) with its flags, and of the register it
+    /// mirrors, if any.
+    fn item(&mut self, p: &Profile, motion: bool, destructive: bool, register: Option<u16>) {
+        self.motion |= motion;
+        self.destructive |= destructive;
+        if let Some(reg) = register {
+            self.registers(p, Some(reg), 1);
+        }
+    }
+
     fn all(&mut self) {
         self.write = true;
         self.motion = true;

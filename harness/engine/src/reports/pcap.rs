@@ -353,29 +353,12 @@ impl Sink for PcapSink {
         };
         let (t0, t_end) = (first.at, last.at);
         let mut conn = self.new_conn();
-        let syn = Flags {
-            syn: true,
-            ..Flags::default()
-        };
-        let syn_ack = Flags {
-            syn: true,
-            ack: true,
-            ..Flags::default()
-        };
-        let ack = Flags {
-            ack: true,
-            ..Flags::default()
-        };
-        let data = Flags {
-            ack: true,
-            psh: true,
-            ..Flags::default()
-        };
-        let fin = Flags {
-            ack: true,
-            fin: true,
-            ..Flags::default()
-        };
+        let flags = |syn, ack, psh, fin| Flags { syn, ack, psh, fin };
+        let syn = flags(true, false, false, false);
+        let syn_ack = flags(true, true, false, false);
+        let ack = flags(false, true, false, false);
+        let data = flags(false, true, true, false);
+        let fin = flags(false, true, false, true);
         let label = format!("case {}: {}", result.id, result.verdict);
         self.segment(&mut conn, t0, true, syn, &[], Some(label))?;
         self.segment(&mut conn, t0, false, syn_ack, &[], None)?;

@@ -335,20 +335,17 @@ impl Fault {
 
     /// The command-line name of the fault.
     pub fn name(self) -> &'static str {
-        Self::ALL
-            .iter()
-            .find(|f| f.0 == self)
-            .map(|f| f.1)
-            .unwrap_or("?")
+        self.entry().map_or("?", |f| f.1)
     }
 
     /// What the fault does.
     pub fn description(self) -> &'static str {
-        Self::ALL
-            .iter()
-            .find(|f| f.0 == self)
-            .map(|f| f.2)
-            .unwrap_or("?")
+        self.entry().map_or("?", |f| f.2)
+    }
+
+    /// The fault's row of [`Fault::ALL`].
+    fn entry(self) -> Option<&'static (Fault, &'static str, &'static str)> {
+        Self::ALL.iter().find(|f| f.0 == self)
     }
 }
 

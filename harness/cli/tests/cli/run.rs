@@ -5,7 +5,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 
 use engine::session::{Options, resolve_profile, run};
 use engine::targets::TargetUrl;
-use test_support::{TempDir, harness, loopback_tcp_and_rtu, serve};
+use test_support::{TempDir, harness, loopback_tcp_and_rtu, read_json, serve, sim_run_args};
 
 #[test]
 fn bad_targets_exit_2_with_a_clear_message() {
@@ -91,14 +91,10 @@ fn bad_targets_exit_2_with_a_clear_message() {
 fn a_run_writes_every_report_and_exits_by_verdict() {
     let dir = TempDir::new("cli-run");
     let report = dir.path().join("r");
-    let (code, out, err) = harness(&[
-        "run",
-        "--target",
+    let (code, out, err) = harness(&sim_run_args(
         "sim:sd2x",
-        "--no-progress",
-        "--report",
-        report.to_str().unwrap(),
-    ]);
+        &["--report", report.to_str().unwrap()],
+    ));
     assert_eq!(code, 0, "{out}{err}");
     assert!(
         out.trim_end()
@@ -113,14 +109,7 @@ fn a_run_writes_every_report_and_exits_by_verdict() {
     for f in test_support::reports::REPORT_FILES {
         assert!(report.join(f).is_file(), "{f} missing");
     }
-    let (code, out, _) = harness(&[
-        "run",
-        "--target",
-        "sim:mdrive",
-        "--no-progress",
-        "--fault",
-        "range-unchecked",
-    ]);
+    let (code, out, _) = harness(&sim_run_args("sim:mdrive", &["--fault", "range-unchecked"]));
     assert_eq!(code, 1, "a FAIL exits 1: {out}");
     assert!(
         out.contains("FAIL profile/mdrive/write-out-of-range/"),
@@ -132,16 +121,10 @@ fn a_run_writes_every_report_and_exits_by_verdict() {
 fn shuffle_prints_the_order_and_keeps_the_ids() {
     let dir = TempDir::new("cli-shuffle");
     let report = dir.path().join("r");
-    let (code, out, err) = harness(&[
-        "run",
-        "--target",
+    let (code, out, err) = harness(&sim_run_args(
         "sim:lmd",
-        "--no-progress",
-        "--shuffle",
-        "42",
-        "--report",
-        report.to_str().unwrap(),
-    ]);
+        &["--shuffle", "42", "--report", report.to_str().unwrap()],
+    ));
     assert_eq!(code, 0, "{out}{err}");
     assert!(
         err.contains("shuffled with seed 42 (replay with --shuffle 42)"),
@@ -155,10 +138,7 @@ fn shuffle_prints_the_order_and_keeps_the_ids() {
         .skip(1)
         .map_while(|l| l.trim_start().split_once(' ').map(|(_, id)| id))
         .collect();
-    let index: serde_json::Value = serde_json::from_str(
-        &std::fs::read_to_string(report.join("index.json")).expect("index.json"),
-    )
-    .expect("json");
+    let index = read_json(&report.join("index.json"));
     let reported: Vec<&str> = index["cases"]
         .as_array()
         .expect("cases")
@@ -275,10 +255,8 @@ fn an_interrupted_run_leaves_a_complete_report() {
     .expect("run");
     assert!(out.summary.interrupted);
     assert_eq!(out.summary.cases, 10);
-    let index: serde_json::Value = serde_json::from_str(
-        &std::fs::read_to_string(dir.path().join("r/index.json")).expect("index.json written"),
-    )
-    .expect("index.json is complete JSON");
+    // index.json is written, and complete JSON.
+    let index = read_json(&dir.path().join("r/index.json"));
     assert_eq!(index["cases"].as_array().map(|a| a.len()), Some(10));
     assert_eq!(
         index["summary"]["interrupted"],

@@ -421,6 +421,16 @@ impl SimProcess {
         sim
     }
 
+    /// `simulate --profile PROFILE ENDPOINT 127.0.0.1:0 [--fault FAULT]`: one loopback endpoint (`ENDPOINT`
+    /// `--listen` or `--rtu-over-tcp`) on any free port, with `fault` when there is one.
+    pub fn on_loopback(profile: &str, endpoint: &str, fault: Option<&str>) -> Self {
+        let mut args = vec!["--profile", profile, endpoint, "127.0.0.1:0"];
+        if let Some(f) = fault {
+            args.extend(["--fault", f]);
+        }
+        Self::start(&args)
+    }
+
     /// `simulate --profile PROFILE --serial TTY --baud 19200 --parity none EXTRA...`: the simulator on `tty`
     /// (its end of a pty pair) at 19200 8N1.
     pub fn serial_19200_8n1(tty: &Path, profile: &str, extra: &[&str]) -> Self {

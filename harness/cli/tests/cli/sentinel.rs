@@ -105,11 +105,7 @@ fn a_drive_that_answers_what_it_must_ignore_fails_with_sentinels_on() {
         ),
     ] {
         for (fault, code_wanted) in [(None, 0), (Some(bad), 1)] {
-            let mut args = vec!["--profile", "mdrive", "--listen", "127.0.0.1:0"];
-            if let Some(f) = fault {
-                args.extend(["--fault", f]);
-            }
-            let sim = SimProcess::start(&args);
+            let sim = SimProcess::on_loopback("mdrive", "--listen", fault);
             let url = sim.tcp_url();
             let (code, out, err) = harness(&run_args(&url, "mdrive", &["--cases", case]));
             assert_eq!(code, code_wanted, "{case} {fault:?}: {out}\n{err}");

@@ -760,6 +760,17 @@ pub fn wait_socat_ready(stderr: impl std::io::Read + Send + 'static, what: &str)
     }
 }
 
+/// Panics with `what`, preceded by how many and followed by one a line, unless `items` is empty: a check
+/// over a whole corpus or catalog that lists everything it found wrong.
+pub fn assert_none(items: &[String], what: &str) {
+    assert!(
+        items.is_empty(),
+        "{} {what}:\n{}",
+        items.len(),
+        items.join("\n")
+    );
+}
+
 /// A conformance run with no log, no interruption and no progress reports.
 pub fn run_quietly(o: &Options) -> Result<RunOutcome, SessionError> {
     session::run(

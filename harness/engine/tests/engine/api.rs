@@ -65,27 +65,27 @@ fn ran(results: &Results) -> usize {
     results.cases().len() - results.count(Verdict::Skipped)
 }
 
-#[test]
-fn reference_drive_behind_the_pdu_seam_passes_over_tcp() {
-    let results = Session::builder()
+/// The generic reference drive behind the PDU seam, over RTU framing when `rtu` (else Modbus/TCP): the run
+/// passes and more than 100 cases ran.
+fn reference_drive_behind_the_pdu_seam(rtu: bool) -> Results {
+    let builder = Session::builder()
         .profile("generic")
-        .device(StationDevice::new("generic", &[], false))
-        .tcp()
-        .run();
+        .device(StationDevice::new("generic", &[], rtu));
+    let results = if rtu { builder.rtu() } else { builder.tcp() }.run();
     results.assert_passes();
     assert!(ran(&results) > 100, "{results}");
+    results
+}
+
+#[test]
+fn reference_drive_behind_the_pdu_seam_passes_over_tcp() {
+    let results = reference_drive_behind_the_pdu_seam(false);
     assert!(results.verdict("tcp/mbap/transaction-id-echo").is_some());
 }
 
 #[test]
 fn reference_drive_behind_the_pdu_seam_passes_over_rtu() {
-    let results = Session::builder()
-        .profile("generic")
-        .device(StationDevice::new("generic", &[], true))
-        .rtu()
-        .run();
-    results.assert_passes();
-    assert!(ran(&results) > 100, "{results}");
+    let results = reference_drive_behind_the_pdu_seam(true);
     assert!(
         results.cases().iter().any(|c| c.id.starts_with("rtu/")),
         "no RTU case ran:\n{results}"

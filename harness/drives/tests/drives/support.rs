@@ -169,6 +169,19 @@ pub fn both(p: &Profile, fault: Fault, pdus: &[&str]) -> (Vec<String>, Vec<Strin
     )
 }
 
+/// A healthy drive answers `pdus` (in order) with `healthy`, and one with `fault` with `faulty` ([`both`]).
+pub fn assert_fault_shows(
+    p: &Profile,
+    fault: Fault,
+    pdus: &[&str],
+    healthy: &[&str],
+    faulty: &[&str],
+) {
+    let (ok, bad) = both(p, fault, pdus);
+    assert_eq!(ok, healthy, "{fault}: the healthy drive");
+    assert_eq!(bad, faulty, "{fault}: the drive with the fault");
+}
+
 // ---------------------------------------------------------------------------------------------------------------
 // Exchange tables (tests/data/exchanges.toml)
 // ---------------------------------------------------------------------------------------------------------------

@@ -147,6 +147,13 @@ pub fn harness_in(dir: Option<&Path>, args: &[&str]) -> (i32, String, String) {
     harness_bounded(dir, args, COMMAND_LIMIT)
 }
 
+/// [`harness_in`] a command that must exit 0 (else the failure shows its stderr): its stdout.
+pub fn harness_ok(dir: Option<&Path>, args: &[&str]) -> String {
+    let (code, out, err) = harness_in(dir, args);
+    assert_eq!(code, 0, "{err}");
+    out
+}
+
 /// [`harness_in`] bounded by `limit` instead of [`COMMAND_LIMIT`].
 pub fn harness_bounded(
     dir: Option<&Path>,
@@ -197,6 +204,22 @@ pub fn sim_run_args<'a>(target: &'a str, extra: &[&'a str]) -> Vec<&'a str> {
     let mut args = vec!["run", "--target", target, "--no-progress"];
     args.extend_from_slice(extra);
     args
+}
+
+/// [`harness`] `run --target TARGET --no-progress EXTRA... --report REPORT` ([`sim_run_args`]), the report
+/// in a fresh temporary directory tagged `tag`: that directory (removed when dropped), the report's path
+/// (`DIR/report`), and the run's (exit code, stdout, stderr).
+pub fn sim_run_reported(
+    tag: &str,
+    target: &str,
+    extra: &[&str],
+) -> (TempDir, PathBuf, (i32, String, String)) {
+    let dir = TempDir::new(tag);
+    let report = dir.path().join("report");
+    let mut args = sim_run_args(target, extra);
+    args.extend(["--report", report.to_str().expect("utf-8 path")]);
+    let ran = harness(&args);
+    (dir, report, ran)
 }
 
 /// A JSON file (a report's index, a journal), parsed; panics naming the file when it cannot be read or is

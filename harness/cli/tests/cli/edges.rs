@@ -6,7 +6,7 @@ use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 
-use test_support::{TempDir, harness, sim_run_args};
+use test_support::{TempDir, harness, sim_run_args, sim_run_reported};
 
 /// The workspace's top-level directory (where `snapshots/` is).
 fn workspace() -> PathBuf {
@@ -221,12 +221,9 @@ fn without_a_terminal_the_run_prints_plain_progress_lines_to_stderr() {
 
 #[test]
 fn fail_details_beyond_the_cap_are_counted_and_sent_to_the_report() {
-    let dir = TempDir::new("cli-edges-fails");
-    let report = dir.path().join("r");
     let range_unchecked = ["--fault", "range-unchecked"];
-    let mut args = sim_run_args("sim:mdrive", &range_unchecked);
-    args.extend(["--report", report.to_str().unwrap()]);
-    let (code, out, err) = harness(&args);
+    let (_dir, report, (code, out, err)) =
+        sim_run_reported("cli-edges-fails", "sim:mdrive", &range_unchecked);
     assert_eq!(code, 1, "{out}{err}");
     let fails: usize = out
         .lines()

@@ -8,7 +8,7 @@
 use std::path::{Path, PathBuf};
 
 use drives::profile::Profile;
-use test_support::{SimProcess, TempDir, harness, harness_in, read_json, sim_run_args};
+use test_support::{SimProcess, TempDir, harness, harness_in, harness_ok, read_json, sim_run_args};
 
 /// The example of corpus/profiles/SCHEMA.md: a block of ten registers, two 32-bit registers, a block of coils.
 const MY_DRIVE: &str = include_str!("../data/my_drive.toml");
@@ -53,7 +53,7 @@ fn profile_files_work_wherever_a_profile_is_named() {
         &["--target", &format!("sim:{}?transport=rtu", s(&abs))],
     );
     // --profile with a file, beside a sim: of the same file.
-    let (code, out, err) = harness_in(
+    let out = harness_ok(
         Some(d),
         &[
             "run",
@@ -64,7 +64,6 @@ fn profile_files_work_wherever_a_profile_is_named() {
             "./my.toml",
         ],
     );
-    assert_eq!(code, 0, "{err}");
     assert!(
         out.contains("profile/my-drive/write/0x0100-target-position"),
         "{out}"
@@ -97,13 +96,12 @@ fn profile_files_work_wherever_a_profile_is_named() {
     );
     assert_eq!(code, 0, "fuzz: {out}{err}");
     assert!(out.contains("0 finding(s)"), "{out}");
-    let (code, out, err) = harness_in(
+    let out = harness_ok(
         Some(d),
         &["probe", "--target", "sim:./my.toml", "--scan", "0-0x110"],
     );
-    assert_eq!(code, 0, "{err}");
     assert!(!out.contains("DIFFERENT") && out.contains("same"), "{out}");
-    let (code, out, err) = harness_in(
+    let out = harness_ok(
         Some(d),
         &[
             "probe",
@@ -115,7 +113,6 @@ fn profile_files_work_wherever_a_profile_is_named() {
             "0-9",
         ],
     );
-    assert_eq!(code, 0, "{err}");
     assert!(
         out.contains("DIFFERENT"),
         "compared with the file, not generic: {out}"
@@ -134,15 +131,17 @@ fn profile_files_work_wherever_a_profile_is_named() {
     let corpus = d.join("corpus");
     std::fs::create_dir_all(corpus.join("profiles")).expect("mkdir");
     write(&corpus.join("profiles"), "mine.toml", MY_DRIVE);
-    let (code, out, err) = harness(&[
-        "run",
-        "--list",
-        "--corpus",
-        s(&corpus),
-        "--target",
-        "sim:mine",
-    ]);
-    assert_eq!(code, 0, "{err}");
+    let out = harness_ok(
+        None,
+        &[
+            "run",
+            "--list",
+            "--corpus",
+            s(&corpus),
+            "--target",
+            "sim:mine",
+        ],
+    );
     assert!(out.contains("profile/my-drive/read/"), "{out}");
     let (code, _, err) = harness(&["run", "--target", "sim:mine"]);
     assert_eq!(code, 2);
@@ -246,17 +245,19 @@ fn probe_write_profile_never_replaces_a_file_unless_forced() {
         "{err}"
     );
     assert_eq!(std::fs::read_to_string(&f).expect("read"), "# my edits\n");
-    let (code, out, err) = harness(&[
-        "probe",
-        "--target",
-        "sim:generic",
-        "--scan",
-        "0-3",
-        "--write-profile",
-        s(&f),
-        "--force",
-    ]);
-    assert_eq!(code, 0, "{err}");
+    let out = harness_ok(
+        None,
+        &[
+            "probe",
+            "--target",
+            "sim:generic",
+            "--scan",
+            "0-3",
+            "--write-profile",
+            s(&f),
+            "--force",
+        ],
+    );
     assert!(
         out.contains("draft profile `generic-draft` written to"),
         "{out}"

@@ -5,7 +5,10 @@ use std::sync::atomic::{AtomicBool, Ordering};
 
 use engine::session::{Options, resolve_profile, run};
 use engine::targets::TargetUrl;
-use test_support::{TempDir, harness, loopback_tcp_and_rtu, read_json, serve, sim_run_args};
+use test_support::{
+    TempDir, harness, harness_ok, loopback_tcp_and_rtu, read_json, serve, sim_run_args,
+    sim_run_reported,
+};
 
 #[test]
 fn bad_targets_exit_2_with_a_clear_message() {
@@ -89,12 +92,7 @@ fn bad_targets_exit_2_with_a_clear_message() {
 
 #[test]
 fn a_run_writes_every_report_and_exits_by_verdict() {
-    let dir = TempDir::new("cli-run");
-    let report = dir.path().join("r");
-    let (code, out, err) = harness(&sim_run_args(
-        "sim:sd2x",
-        &["--report", report.to_str().unwrap()],
-    ));
+    let (_dir, report, (code, out, err)) = sim_run_reported("cli-run", "sim:sd2x", &[]);
     assert_eq!(code, 0, "{out}{err}");
     assert!(
         out.trim_end()
@@ -119,12 +117,8 @@ fn a_run_writes_every_report_and_exits_by_verdict() {
 
 #[test]
 fn shuffle_prints_the_order_and_keeps_the_ids() {
-    let dir = TempDir::new("cli-shuffle");
-    let report = dir.path().join("r");
-    let (code, out, err) = harness(&sim_run_args(
-        "sim:lmd",
-        &["--shuffle", "42", "--report", report.to_str().unwrap()],
-    ));
+    let (_dir, report, (code, out, err)) =
+        sim_run_reported("cli-shuffle", "sim:lmd", &["--shuffle", "42"]);
     assert_eq!(code, 0, "{out}{err}");
     assert!(
         err.contains("shuffled with seed 42 (replay with --shuffle 42)"),
@@ -167,15 +161,17 @@ fn shuffle_prints_the_order_and_keeps_the_ids() {
 #[test]
 fn dry_run_shows_the_safety_policy_without_touching_the_target() {
     // Nothing listens on port 1: a dry run must not connect.
-    let (code, out, err) = harness(&[
-        "run",
-        "--dry-run",
-        "--target",
-        "tcp://127.0.0.1:1",
-        "--profile",
-        "mdrive",
-    ]);
-    assert_eq!(code, 0, "{err}");
+    let out = harness_ok(
+        None,
+        &[
+            "run",
+            "--dry-run",
+            "--target",
+            "tcp://127.0.0.1:1",
+            "--profile",
+            "mdrive",
+        ],
+    );
     assert!(
         out.contains("SKIP profile/mdrive/write/0x0043-ma"),
         "a move is skipped without --allow-motion: {out}"
@@ -208,8 +204,10 @@ fn dry_run_shows_the_safety_policy_without_touching_the_target() {
 fn probe_finds_what_the_profile_documents() {
     for p in ["mdrive", "sd2x", "generic"] {
         let scan = if p == "sd2x" { "1995-2030" } else { "0-0xC0" };
-        let (code, out, err) = harness(&["probe", "--target", &format!("sim:{p}"), "--scan", scan]);
-        assert_eq!(code, 0, "{err}");
+        let out = harness_ok(
+            None,
+            &["probe", "--target", &format!("sim:{p}"), "--scan", scan],
+        );
         assert!(
             !out.contains("DIFFERENT") && !out.contains("<-"),
             "{p}: {out}"

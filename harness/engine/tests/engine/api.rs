@@ -245,18 +245,17 @@ fn an_sd2x_following_the_fc43_example_is_learned_and_its_objects_are_checked() {
     for case in reads {
         // On the wire: the request without the Reserved byte (slave, 2B 0D, control 00, then the node id),
         // and the object in the answer, in the same form (not an exception, not an SDO error).
-        let tx: Vec<&[u8]> = case
-            .wire
-            .iter()
-            .filter(|w| w.dir == engine::observe::Dir::Tx)
-            .map(|w| w.bytes.as_slice())
-            .collect();
-        let rx: Vec<&[u8]> = case
-            .wire
-            .iter()
-            .filter(|w| w.dir == engine::observe::Dir::Rx)
-            .map(|w| w.bytes.as_slice())
-            .collect();
+        let on_wire = |dir: engine::observe::Dir| -> Vec<&[u8]> {
+            case.wire
+                .iter()
+                .filter(|w| w.dir == dir)
+                .map(|w| w.bytes.as_slice())
+                .collect()
+        };
+        let (tx, rx) = (
+            on_wire(engine::observe::Dir::Tx),
+            on_wire(engine::observe::Dir::Rx),
+        );
         assert!(
             matches!(tx.as_slice(), [[_, 0x2B, 0x0D, 0x00, node, ..]] if *node != 0),
             "{}: sent {tx:02X?}",

@@ -49,22 +49,10 @@ FAULTS=""
 WRITES=""
 PROFILE=""
 EXPECT=""
-while [ $# -gt 0 ]; do
-  case "$1" in
-    --bin) BIN=$2; shift ;;
-    --seeds) SEEDS=$2; shift ;;
-    --duration) DURATION=$2; shift ;;
-    --core) CORE=$2; shift ;;
-    --faults) FAULTS=$2; shift ;;
-    --allow-writes) WRITES="$WRITES --allow-writes" ;;
-    --allow-destructive|--allow-motion) WRITES="$WRITES $1" ;;
-    --profile) PROFILE=$2; shift ;;
-    --expect) EXPECT=$2; shift ;;
-    -h|--help) sed -n '2,37p' "$0"; exit 0 ;;
-    *) echo "first-finding.sh: unknown argument $1" >&2; exit 2 ;;
-  esac
-  shift
-done
+. "$here/lib.sh"
+bench_parse first-finding.sh 2,37 --bin=BIN --seeds=SEEDS --duration=DURATION --core=CORE --faults=FAULTS \
+  --allow-writes@=WRITES --allow-destructive@=WRITES --allow-motion@=WRITES --profile=PROFILE \
+  --expect=EXPECT -- "$@"
 for tool in python3 taskset; do
   command -v "$tool" >/dev/null || { echo "first-finding.sh: $tool is missing" >&2; exit 1; }
 done

@@ -24,22 +24,12 @@ PROFILE=mdrive
 CORE=0
 SIM=
 BINS=()
-while [ $# -gt 0 ]; do
-  case "$1" in
-    --seconds) SECS=$2; shift ;;
-    --rounds) ROUNDS=$2; shift ;;
-    --profile) PROFILE=$2; shift ;;
-    --core) CORE=$2; shift ;;
-    --sim) SIM=$2; shift ;;
-    -h|--help) sed -n '2,18p' "$0"; exit 0 ;;
-    *=*) BINS+=("$1") ;;
-    *) echo "live-campaign.sh: unknown argument $1" >&2; exit 2 ;;
-  esac
-  shift
-done
-[ ${#BINS[@]} -gt 0 ] || { echo "live-campaign.sh: give at least one LABEL=BINARY" >&2; exit 2; }
-[ -n "$SIM" ] || SIM=${BINS[-1]#*=}
 here=$(cd "$(dirname "$0")" && pwd)
+. "$here/lib.sh"
+bench_parse live-campaign.sh 2,18 --seconds=SECS --rounds=ROUNDS --profile=PROFILE --core=CORE --sim=SIM \
+  LABEL=BINARY -- "$@"
+bench_need_bins live-campaign.sh
+[ -n "$SIM" ] || SIM=${BINS[-1]#*=}
 work=$(mktemp -d "${TMPDIR:-/tmp}/live-campaign.XXXXXX")
 # Servers are started inside $(...): their pids go to a file.
 cleanup() {

@@ -12,7 +12,7 @@ makes 200 warm-up requests, then reads for SECS seconds and prints the line the 
 
 import asyncio
 import logging
-import signal
+import os
 import sys
 import time
 
@@ -70,16 +70,11 @@ async def server(port):
     # device id 0: pymodbus answers every unit id, as the simulator and the libmodbus server do on TCP.
     dev = SimDevice(id=0, simdata=(coils, discrete, holding, inputs))
     srv = ModbusTcpServer(dev, framer=FramerType.SOCKET, address=("127.0.0.1", port))
-    stop = asyncio.Event()
-    loop = asyncio.get_running_loop()
-    for sig in (signal.SIGTERM, signal.SIGINT):
-        loop.add_signal_handler(sig, stop.set)
-    await srv.serve_forever(background=True)
-    host, bound = srv.transport.sockets[0].getsockname()[:2]
-    print(f"listening tcp {host}:{bound}", flush=True)
-    await stop.wait()
-    await srv.shutdown()
-    return 0
+    # The serving loop of the interop tests' pymodbus peer (tests/peers/pymodbus_server.py).
+    sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "tests", "peers"))
+    from pymodbus_server import serve_until_signalled, tcp_listening
+
+    return await serve_until_signalled(srv, tcp_listening)
 
 
 def main(argv):

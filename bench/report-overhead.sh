@@ -23,20 +23,10 @@ PROFILE=mdrive
 DIR=${TMPDIR:-/tmp}
 PINS=()
 BINS=()
-while [ $# -gt 0 ]; do
-  case "$1" in
-    --cases) CASES=$2; shift ;;
-    --rounds) ROUNDS=$2; shift ;;
-    --profile) PROFILE=$2; shift ;;
-    --dir) DIR=$2; shift ;;
-    --pin) PINS+=("$2"); shift ;;
-    -h|--help) sed -n '2,18p' "$0"; exit 0 ;;
-    *=*) BINS+=("$1") ;;
-    *) echo "report-overhead.sh: unknown argument $1" >&2; exit 2 ;;
-  esac
-  shift
-done
-[ ${#BINS[@]} -gt 0 ] || { echo "report-overhead.sh: give at least one LABEL=BINARY" >&2; exit 2; }
+. "$(dirname "$0")/lib.sh"
+bench_parse report-overhead.sh 2,18 --cases=CASES --rounds=ROUNDS --profile=PROFILE --dir=DIR --pin+=PINS \
+  LABEL=BINARY -- "$@"
+bench_need_bins report-overhead.sh
 [ ${#PINS[@]} -gt 0 ] || PINS=(0 0,1)
 
 work=$(mktemp -d "$DIR/report-overhead.XXXXXX")

@@ -82,6 +82,26 @@ def identity():
     return ident
 
 
+def tcp_listening(server):
+    """The line a Modbus/TCP server prints once it serves: `listening tcp HOST:PORT`."""
+    host, port = server.transport.sockets[0].getsockname()[:2]
+    return f"listening tcp {host}:{port}"
+
+
+async def serve_until_signalled(server, listening):
+    """Serve with `server` (a pymodbus server) until SIGTERM or SIGINT, then shut it down (returns 0).
+    `listening(server)` is the line printed once it serves. bench/pymodbus_peers.py's server uses it too."""
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        loop.add_signal_handler(sig, stop.set)
+    await server.serve_forever(background=True)
+    print(listening(server), flush=True)
+    await stop.wait()
+    await server.shutdown()
+    return 0
+
+
 def usage():
     print(__doc__, file=sys.stderr)
     return 2
@@ -114,19 +134,9 @@ async def serve(argv):
         return usage()
 
     server.context = BoundedBits(server.context)
-    stop = asyncio.Event()
-    loop = asyncio.get_running_loop()
-    for sig in (signal.SIGTERM, signal.SIGINT):
-        loop.add_signal_handler(sig, stop.set)
-    await server.serve_forever(background=True)
     if argv[1] == "tcp":
-        host, port = server.transport.sockets[0].getsockname()[:2]
-        print(f"listening tcp {host}:{port}", flush=True)
-    else:
-        print(f"listening serial {argv[2]}", flush=True)
-    await stop.wait()
-    await server.shutdown()
-    return 0
+        return await serve_until_signalled(server, tcp_listening)
+    return await serve_until_signalled(server, lambda _: f"listening serial {argv[2]}")
 
 
 def main(argv):

@@ -144,6 +144,22 @@ pub const COMMAND_LIMIT: Duration = Duration::from_secs(120);
 /// Run `modbus-harness ARGS` in `dir` (None: the test's own directory), stdin closed, bounded by
 /// [`COMMAND_LIMIT`]; (exit code, stdout, stderr). A panic of the binary fails the test.
 pub fn harness_in(dir: Option<&Path>, args: &[&str]) -> (i32, String, String) {
+    harness_bounded(dir, args, COMMAND_LIMIT)
+}
+
+/// [`harness_in`] a command that must exit 0 (else the failure shows its stderr): its stdout.
+pub fn harness_ok(dir: Option<&Path>, args: &[&str]) -> String {
+    let (code, out, err) = harness_in(dir, args);
+    assert_eq!(code, 0, "{err}");
+    out
+}
+
+/// [`harness_in`] bounded by `limit` instead of [`COMMAND_LIMIT`].
+pub fn harness_bounded(
+    dir: Option<&Path>,
+    args: &[&str],
+    limit: Duration,
+) -> (i32, String, String) {
     let out_dir = TempDir::new("harness-out");
     let (o, e) = (out_dir.path().join("out"), out_dir.path().join("err"));
     let mut cmd = Command::new(harness_bin());
@@ -155,7 +171,7 @@ pub fn harness_in(dir: Option<&Path>, args: &[&str]) -> (i32, String, String) {
         cmd.current_dir(d);
     }
     let mut child = cmd.spawn().expect("spawn modbus-harness");
-    let status = wait_bounded(&mut child, COMMAND_LIMIT, &format!("{args:?}"));
+    let status = wait_bounded(&mut child, limit, &format!("{args:?}"));
     let out = std::fs::read_to_string(&o).unwrap_or_default();
     let err = std::fs::read_to_string(&e).unwrap_or_default();
     assert!(!err.contains("panicked"), "{args:?} panicked: {err}");
@@ -165,6 +181,53 @@ pub fn harness_in(dir: Option<&Path>, args: &[&str]) -> (i32, String, String) {
 /// [`harness_in`] the test's own directory.
 pub fn harness(args: &[&str]) -> (i32, String, String) {
     harness_in(None, args)
+}
+
+/// The arguments of a conformance run of `profile` against `target` without progress lines:
+/// `run --target TARGET --profile PROFILE --no-progress EXTRA...`.
+pub fn run_args<'a>(target: &'a str, profile: &'a str, extra: &[&'a str]) -> Vec<&'a str> {
+    let mut args = vec![
+        "run",
+        "--target",
+        target,
+        "--profile",
+        profile,
+        "--no-progress",
+    ];
+    args.extend_from_slice(extra);
+    args
+}
+
+/// The arguments of a conformance run against `target` (a `sim:` one, whose profile goes with it) without
+/// progress lines: `run --target TARGET --no-progress EXTRA...`.
+pub fn sim_run_args<'a>(target: &'a str, extra: &[&'a str]) -> Vec<&'a str> {
+    let mut args = vec!["run", "--target", target, "--no-progress"];
+    args.extend_from_slice(extra);
+    args
+}
+
+/// [`harness`] `run --target TARGET --no-progress EXTRA... --report REPORT` ([`sim_run_args`]), the report
+/// in a fresh temporary directory tagged `tag`: that directory (removed when dropped), the report's path
+/// (`DIR/report`), and the run's (exit code, stdout, stderr).
+pub fn sim_run_reported(
+    tag: &str,
+    target: &str,
+    extra: &[&str],
+) -> (TempDir, PathBuf, (i32, String, String)) {
+    let dir = TempDir::new(tag);
+    let report = dir.path().join("report");
+    let mut args = sim_run_args(target, extra);
+    args.extend(["--report", report.to_str().expect("utf-8 path")]);
+    let ran = harness(&args);
+    (dir, report, ran)
+}
+
+/// A JSON file (a report's index, a journal), parsed; panics naming the file when it cannot be read or is
+/// not JSON.
+pub fn read_json(path: &Path) -> serde_json::Value {
+    let text = std::fs::read_to_string(path)
+        .unwrap_or_else(|e| panic!("cannot read {}: {e}", path.display()));
+    serde_json::from_str(&text).unwrap_or_else(|e| panic!("{} is not JSON: {e}", path.display()))
 }
 
 /// A fresh temporary directory, removed on drop.
@@ -381,6 +444,16 @@ impl SimProcess {
         sim
     }
 
+    /// `simulate --profile PROFILE ENDPOINT 127.0.0.1:0 [--fault FAULT]`: one loopback endpoint (`ENDPOINT`
+    /// `--listen` or `--rtu-over-tcp`) on any free port, with `fault` when there is one.
+    pub fn on_loopback(profile: &str, endpoint: &str, fault: Option<&str>) -> Self {
+        let mut args = vec!["--profile", profile, endpoint, "127.0.0.1:0"];
+        if let Some(f) = fault {
+            args.extend(["--fault", f]);
+        }
+        Self::start(&args)
+    }
+
     /// `simulate --profile PROFILE --serial TTY --baud 19200 --parity none EXTRA...`: the simulator on `tty`
     /// (its end of a pty pair) at 19200 8N1.
     pub fn serial_19200_8n1(tty: &Path, profile: &str, extra: &[&str]) -> Self {
@@ -397,6 +470,19 @@ impl SimProcess {
         ];
         args.extend_from_slice(extra);
         Self::start(&args)
+    }
+
+    /// `tcp://ADDRESS` of the Modbus/TCP endpoint (asked for with `--listen`).
+    pub fn tcp_url(&self) -> String {
+        format!("tcp://{}", self.tcp.expect("a tcp endpoint"))
+    }
+
+    /// `rtu+tcp://ADDRESS` of the RTU over TCP endpoint (asked for with `--rtu-over-tcp`).
+    pub fn rtu_over_tcp_url(&self) -> String {
+        format!(
+            "rtu+tcp://{}",
+            self.rtu_over_tcp.expect("an rtu-over-tcp endpoint")
+        )
     }
 
     pub fn pid(&self) -> u32 {
@@ -555,29 +641,27 @@ pub fn peer_file(name: &str) -> PathBuf {
         .join(name)
 }
 
+/// The registers of a profile that a run may write and must put back (the kept parameters): read/write
+/// holding registers that neither move a motor nor destroy anything.
+pub fn kept_registers(p: &Profile) -> impl Iterator<Item = &drives::profile::Register> {
+    use drives::profile::{Access, Table};
+    p.registers.iter().map(|r| r.get_ref()).filter(|r| {
+        r.access == Access::Rw && r.table != Table::Input && !r.motion && !r.destructive
+    })
+}
+
 /// A writable 16-bit holding register of a profile with a value in its range (not its default) to write,
 /// and a writable coil: what a read/write round trip can use without moving a motor.
 pub fn rw_holding_and_coil(p: &Profile) -> (Option<(u16, u16)>, Option<u16>) {
-    use drives::profile::{Access, Table};
-    let reg = p
-        .registers
-        .iter()
-        .map(|r| r.get_ref())
-        .find(|r| {
-            r.access == Access::Rw
-                && r.width == 1
-                && r.table != Table::Input
-                && !r.motion
-                && !r.destructive
-        })
-        .map(|r| {
-            let (lo, hi) = r.range();
-            let mut v = 0x1234i64.clamp(lo, hi);
-            if Some(v) == r.default {
-                v = if v < hi { v + 1 } else { v - 1 };
-            }
-            (r.address, v as u16)
-        });
+    use drives::profile::Access;
+    let reg = kept_registers(p).find(|r| r.width == 1).map(|r| {
+        let (lo, hi) = r.range();
+        let mut v = 0x1234i64.clamp(lo, hi);
+        if Some(v) == r.default {
+            v = if v < hi { v + 1 } else { v - 1 };
+        }
+        (r.address, v as u16)
+    });
     let coil = p
         .coils
         .iter()
@@ -697,6 +781,17 @@ pub fn wait_socat_ready(stderr: impl std::io::Read + Send + 'static, what: &str)
             Err(_) => panic!("{what} did not start within {STEP:?}: {log:#?}"),
         }
     }
+}
+
+/// Panics with `what`, preceded by how many and followed by one a line, unless `items` is empty: a check
+/// over a whole corpus or catalog that lists everything it found wrong.
+pub fn assert_none(items: &[String], what: &str) {
+    assert!(
+        items.is_empty(),
+        "{} {what}:\n{}",
+        items.len(),
+        items.join("\n")
+    );
 }
 
 /// A conformance run with no log, no interruption and no progress reports.

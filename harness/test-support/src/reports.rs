@@ -117,6 +117,32 @@ fn exchange(
     }
 }
 
+/// The FC 03 read of two registers the synthetic cases send, and the answer the reference and the target
+/// give to it.
+const READ: [u8; 5] = [0x03, 0x00, 0x00, 0x00, 0x02];
+const ANSWER: [u8; 6] = [0x03, 0x04, 0x00, 0x0A, 0x01, 0x02];
+
+/// The result `verdict` of a case whose [`READ`] (transaction id `tid`), sent at `at`, was answered with
+/// [`ANSWER`] as expected.
+fn read_answered(
+    transport: Transport,
+    id: &str,
+    verdict: Verdict,
+    at: Duration,
+    tid: u16,
+) -> CaseResult {
+    exchange(
+        id,
+        verdict,
+        at,
+        frame(transport, tid, &READ),
+        Some(frame(transport, tid, &ANSWER)),
+        Some(frame(transport, tid, &ANSWER)),
+        vec![],
+        false,
+    )
+}
+
 /// The ids of [`sample`], in order.
 pub const IDS: [&str; 6] = [
     "generic/6.3/fc03-two-registers",
@@ -130,23 +156,13 @@ pub const IDS: [&str; 6] = [
 /// A PASS, a FAIL (malformed response: bad CRC on RTU, bad MBAP length on TCP, finding with markup),
 /// a SKIPPED, a PASS whose request is malformed on purpose, a NON-STRICT and an INFORMATIONAL case.
 pub fn sample(transport: Transport) -> Vec<(Case, CaseResult)> {
-    let read = [0x03, 0x00, 0x00, 0x00, 0x02];
-    let answer = [0x03, 0x04, 0x00, 0x0A, 0x01, 0x02];
+    let (read, answer) = (READ, ANSWER);
     let ms = Duration::from_millis;
     let mut out = Vec::new();
 
     // PASS: FC 03 exchange.
     let c = case(IDS[0], "FC 03 reads two registers", &read, vec![]);
-    let r = exchange(
-        IDS[0],
-        Verdict::Pass,
-        ms(10),
-        frame(transport, 1, &read),
-        Some(frame(transport, 1, &answer)),
-        Some(frame(transport, 1, &answer)),
-        vec![],
-        false,
-    );
+    let r = read_answered(transport, IDS[0], Verdict::Pass, ms(10), 1);
     out.push((c, r));
 
     // FAIL: a malformed response.
@@ -255,35 +271,21 @@ pub fn sample(transport: Transport) -> Vec<(Case, CaseResult)> {
     // INFORMATIONAL.
     let mut c = case(IDS[5], "what unit 0 answers", &read, vec![]);
     c.level = Level::Info;
-    let r = exchange(
-        IDS[5],
-        Verdict::Informational,
-        ms(50),
-        frame(transport, 5, &read),
-        Some(frame(transport, 5, &answer)),
-        Some(frame(transport, 5, &answer)),
-        vec![],
-        false,
-    );
+    let r = read_answered(transport, IDS[5], Verdict::Informational, ms(50), 5);
     out.push((c, r));
     out
 }
 
 /// A small PASS case with one exchange, numbered `n`.
 pub fn numbered_pass(transport: Transport, n: usize) -> (Case, CaseResult) {
-    let read = [0x03, 0x00, 0x00, 0x00, 0x02];
-    let answer = [0x03, 0x04, 0x00, 0x0A, 0x01, 0x02];
     let id = format!("bulk/pass/{n:07}");
-    let c = case(&id, "bulk", &read, vec![]);
-    let r = exchange(
+    let c = case(&id, "bulk", &READ, vec![]);
+    let r = read_answered(
+        transport,
         &id,
         Verdict::Pass,
         Duration::from_micros(n as u64 * 1000),
-        frame(transport, n as u16, &read),
-        Some(frame(transport, n as u16, &answer)),
-        Some(frame(transport, n as u16, &answer)),
-        vec![],
-        false,
+        n as u16,
     );
     (c, r)
 }

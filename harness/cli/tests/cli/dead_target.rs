@@ -6,14 +6,13 @@
 
 use std::io::{Read, Write};
 use std::net::{Shutdown, SocketAddr, TcpListener, TcpStream};
-use std::path::Path;
-use std::process::{Command, Stdio};
+use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex};
 use std::thread;
 use std::time::{Duration, Instant};
 
-use test_support::{SimProcess, TempDir, harness_bin, wait_bounded};
+use test_support::{SimProcess, TempDir, harness_bounded, read_json, run_args};
 
 /// How long any peer thread of these tests lives at most.
 const PEER_LIFETIME: Duration = Duration::from_secs(60);
@@ -21,33 +20,8 @@ const PEER_LIFETIME: Duration = Duration::from_secs(60);
 /// Run the binary with `args`, at most `limit`: (exit code, stdout, stderr, wall time).
 fn harness_timed(args: &[&str], limit: Duration) -> (i32, String, String, Duration) {
     let started = Instant::now();
-    let mut child = Command::new(harness_bin())
-        .args(args)
-        .stdin(Stdio::null())
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .expect("spawn modbus-harness");
-    let mut out = child.stdout.take().expect("stdout");
-    let mut err = child.stderr.take().expect("stderr");
-    let o = thread::spawn(move || {
-        let mut s = String::new();
-        let _ = out.read_to_string(&mut s);
-        s
-    });
-    let e = thread::spawn(move || {
-        let mut s = String::new();
-        let _ = err.read_to_string(&mut s);
-        s
-    });
-    let status = wait_bounded(&mut child, limit, &format!("modbus-harness {args:?}"));
-    let elapsed = started.elapsed();
-    (
-        status.code().unwrap_or(-1),
-        o.join().unwrap_or_default(),
-        e.join().unwrap_or_default(),
-        elapsed,
-    )
+    let (code, out, err) = harness_bounded(None, args, limit);
+    (code, out, err, started.elapsed())
 }
 
 /// A loopback listener (port 0) whose connections are handled by `serve` on a thread each; the accept loop
@@ -189,8 +163,23 @@ fn walk(dir: &Path) -> Vec<std::path::PathBuf> {
 }
 
 fn index(dir: &Path) -> serde_json::Value {
-    serde_json::from_str(&std::fs::read_to_string(dir.join("index.json")).expect("index.json"))
-        .expect("index.json is JSON")
+    read_json(&dir.join("index.json"))
+}
+
+/// `run --target TARGET --profile generic --read-only --no-progress EXTRA... --report DIR/report`, at most
+/// 90 s: the report directory, and (exit code, stdout, stderr, wall time).
+fn read_only_generic_run(
+    target: &str,
+    dir: &TempDir,
+    extra: &[&str],
+) -> (PathBuf, (i32, String, String, Duration)) {
+    let report = dir.path().join("report");
+    let report_s = report.to_string_lossy().into_owned();
+    let mut args = run_args(target, "generic", &["--read-only"]);
+    args.extend_from_slice(extra);
+    args.extend_from_slice(&["--report", &report_s]);
+    let ran = harness_timed(&args, Duration::from_secs(90));
+    (report, ran)
 }
 
 #[test]
@@ -204,26 +193,9 @@ fn a_drive_that_dies_is_one_fail_then_skipped_with_complete_reports() {
         "--fault",
         "stop-after-malformed",
     ]);
-    let target = format!("tcp://{}", sim.tcp.expect("tcp"));
     let dir = TempDir::new("dead-target");
-    let report = dir.path().join("report");
-    let report_s = report.to_string_lossy().into_owned();
-    let (code, out, err, took) = harness_timed(
-        &[
-            "run",
-            "--target",
-            &target,
-            "--profile",
-            "generic",
-            "--read-only",
-            "--no-progress",
-            "--recovery-wait",
-            "3",
-            "--report",
-            &report_s,
-        ],
-        Duration::from_secs(90),
-    );
+    let (report, (code, out, err, took)) =
+        read_only_generic_run(&sim.tcp_url(), &dir, &["--recovery-wait", "3"]);
     assert_eq!(code, 1, "one FAIL: exit 1\n{out}\n{err}");
     assert!(took < Duration::from_secs(30), "took {took:?}");
     assert!(
@@ -369,33 +341,21 @@ impl Proxy {
         });
         Self { addr }
     }
+
+    /// A `simulate --profile generic` process with a proxy in `mode` in front of it: the simulator (to be
+    /// kept to the end of the test) and the proxy's target URL.
+    fn before_generic_sim(mode: Mode) -> (SimProcess, String) {
+        let sim = SimProcess::start(&["--profile", "generic", "--listen", "127.0.0.1:0"]);
+        let proxy = Proxy::start(sim.tcp.expect("tcp"), mode);
+        (sim, format!("tcp://{}", proxy.addr))
+    }
 }
 
 #[test]
 fn a_drive_silent_for_3_s_is_waited_for_and_the_run_goes_on() {
-    let sim = SimProcess::start(&["--profile", "generic", "--listen", "127.0.0.1:0"]);
-    let proxy = Proxy::start(
-        sim.tcp.expect("tcp"),
-        Mode::Pause(40, Duration::from_secs(3)),
-    );
-    let target = format!("tcp://{}", proxy.addr);
+    let (sim, target) = Proxy::before_generic_sim(Mode::Pause(40, Duration::from_secs(3)));
     let dir = TempDir::new("paused-target");
-    let report = dir.path().join("report");
-    let report_s = report.to_string_lossy().into_owned();
-    let (code, out, err, took) = harness_timed(
-        &[
-            "run",
-            "--target",
-            &target,
-            "--profile",
-            "generic",
-            "--read-only",
-            "--no-progress",
-            "--report",
-            &report_s,
-        ],
-        Duration::from_secs(90),
-    );
+    let (report, (code, out, err, took)) = read_only_generic_run(&target, &dir, &[]);
     assert_eq!(
         code, 1,
         "the request lost in the silence FAILs\n{out}\n{err}"
@@ -457,34 +417,13 @@ fn a_run_stopped_by_an_error_still_completes_its_reports() {
 
 #[test]
 fn a_late_answer_is_attributed_to_its_request_by_transaction_id() {
-    let sim = SimProcess::start(&["--profile", "generic", "--listen", "127.0.0.1:0"]);
     // The 100th answer (a profile read: cases that keep their connection follow) comes 1.3 s late: after
     // its case's 1 s timeout and the liveness probe, within a later case (paced at 200 requests/s, so that
     // the run is still going when it comes).
-    let proxy = Proxy::start(
-        sim.tcp.expect("tcp"),
-        Mode::Delay(100, Duration::from_millis(1300)),
-    );
-    let target = format!("tcp://{}", proxy.addr);
+    let (sim, target) = Proxy::before_generic_sim(Mode::Delay(100, Duration::from_millis(1300)));
     let dir = TempDir::new("late-answer");
-    let report = dir.path().join("report");
-    let report_s = report.to_string_lossy().into_owned();
-    let (code, out, err, _) = harness_timed(
-        &[
-            "run",
-            "--target",
-            &target,
-            "--profile",
-            "generic",
-            "--read-only",
-            "--no-progress",
-            "--max-rate",
-            "200",
-            "--report",
-            &report_s,
-        ],
-        Duration::from_secs(90),
-    );
+    let (report, (code, out, err, _)) =
+        read_only_generic_run(&target, &dir, &["--max-rate", "200"]);
     assert_eq!(
         code, 1,
         "the case whose answer was late FAILs\n{out}\n{err}"
@@ -514,14 +453,9 @@ fn a_late_answer_is_attributed_to_its_request_by_transaction_id() {
 
 #[test]
 fn a_probe_whose_target_stops_answering_stops_and_exits_2() {
-    let sim = SimProcess::start(&["--profile", "generic", "--listen", "127.0.0.1:0"]);
     // From the 30th request on (the pre-flight and the function codes answered, the scan begun) the drive
     // is silent for longer than the probe lasts.
-    let proxy = Proxy::start(
-        sim.tcp.expect("tcp"),
-        Mode::Pause(30, Duration::from_secs(60)),
-    );
-    let target = format!("tcp://{}", proxy.addr);
+    let (sim, target) = Proxy::before_generic_sim(Mode::Pause(30, Duration::from_secs(60)));
     let (code, out, err, took) = harness_timed(
         &[
             "probe",

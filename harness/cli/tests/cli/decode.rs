@@ -18,6 +18,13 @@ fn run(args: &[&str]) -> (i32, String, String) {
     )
 }
 
+/// The first output line that starts with `error:` (empty when there is none).
+fn error_line(out: &str) -> &str {
+    out.lines()
+        .find(|l| l.starts_with("error:"))
+        .unwrap_or_default()
+}
+
 /// The value column of the first output row named `name`.
 fn row<'a>(out: &'a str, name: &str) -> Option<&'a str> {
     out.lines().find_map(|l| {
@@ -50,10 +57,7 @@ fn decode_rtu_bad_crc() {
     let crc = row(&out, "CRC").unwrap_or_default();
     assert!(crc.contains("0x8884") && crc.contains("0x8784"), "{out}");
     assert!(crc.contains("MISMATCH"), "{out}");
-    let error = out
-        .lines()
-        .find(|l| l.starts_with("error:"))
-        .unwrap_or_default();
+    let error = error_line(&out);
     assert!(
         error.contains("at byte 6") && error.contains("0x8784") && error.contains("0x8884"),
         "{out}"
@@ -68,10 +72,7 @@ fn decode_tcp_with_protocol_id_1() {
     assert_eq!(code, 1, "stdout:\n{out}\nstderr:\n{err}");
     let pid = row(&out, "protocol id").unwrap_or_default();
     assert!(pid.contains("0x0001") && pid.contains("must be 0"), "{out}");
-    let error = out
-        .lines()
-        .find(|l| l.starts_with("error:"))
-        .unwrap_or_default();
+    let error = error_line(&out);
     assert!(
         error.contains("at byte 2") && error.contains("protocol id is 0x0001"),
         "{out}"

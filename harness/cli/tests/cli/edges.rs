@@ -6,19 +6,7 @@ use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 
-use test_support::TempDir;
-
-fn harness(args: &[&str]) -> (i32, String, String) {
-    let out = Command::new(env!("CARGO_BIN_EXE_modbus-harness"))
-        .args(args)
-        .output()
-        .expect("run the binary");
-    (
-        out.status.code().unwrap_or(-1),
-        String::from_utf8_lossy(&out.stdout).into_owned(),
-        String::from_utf8_lossy(&out.stderr).into_owned(),
-    )
-}
+use test_support::{TempDir, harness, sim_run_args, sim_run_reported};
 
 /// The workspace's top-level directory (where `snapshots/` is).
 fn workspace() -> PathBuf {
@@ -83,34 +71,18 @@ fn a_committed_insta_snapshot_compares_clean_on_a_healthy_target_and_drifts_when
 
 #[test]
 fn an_empty_selection_or_an_invalid_glob_exits_2_with_a_clear_message() {
+    // What follows `run --target sim:sd2x`.
     let cases: &[(&[&str], &str)] = &[
         (
-            &[
-                "run",
-                "--target",
-                "sim:sd2x",
-                "--no-progress",
-                "--cases",
-                "nothing/*",
-            ],
+            &["--no-progress", "--cases", "nothing/*"],
+            "no case selected: --cases `nothing/*` matches no case",
+        ),
+        (
+            &["--list", "--cases", "nothing/*"],
             "no case selected: --cases `nothing/*` matches no case",
         ),
         (
             &[
-                "run",
-                "--target",
-                "sim:sd2x",
-                "--list",
-                "--cases",
-                "nothing/*",
-            ],
-            "no case selected: --cases `nothing/*` matches no case",
-        ),
-        (
-            &[
-                "run",
-                "--target",
-                "sim:sd2x",
                 "--no-progress",
                 "--cases",
                 "golden/*",
@@ -120,28 +92,22 @@ fn an_empty_selection_or_an_invalid_glob_exits_2_with_a_clear_message() {
             "--cases `golden/*` with --exclude `golden` leaves no case",
         ),
         (
-            &["run", "--target", "sim:sd2x", "--cases", "spec/[x"],
+            &["--cases", "spec/[x"],
             "--cases `spec/[x` is not a valid glob",
         ),
         (
-            &["run", "--target", "sim:sd2x", "--exclude", "spec/[x"],
+            &["--exclude", "spec/[x"],
             "--exclude `spec/[x` is not a valid glob",
         ),
     ];
-    for (args, message) in cases {
-        let (code, out, err) = harness(args);
+    for (rest, message) in cases {
+        let args = [&["run", "--target", "sim:sd2x"], *rest].concat();
+        let (code, out, err) = harness(&args);
         assert_eq!(code, 2, "{args:?}: {out}{err}");
         assert!(err.contains(message), "{args:?}: {err}");
     }
     // A selection that matches runs as before.
-    let (code, out, err) = harness(&[
-        "run",
-        "--target",
-        "sim:sd2x",
-        "--no-progress",
-        "--cases",
-        "golden/*",
-    ]);
+    let (code, out, err) = harness(&sim_run_args("sim:sd2x", &["--cases", "golden/*"]));
     assert_eq!(code, 0, "{out}{err}");
     assert!(out.contains("RESULT: PASS"), "{out}");
 }
@@ -180,20 +146,19 @@ fn unmatched_and_stale_expectations_are_reported_and_strict_expect_fails_on_them
     )
     .expect("write");
     let run = |file: &Path, strict: bool| {
-        let mut args = vec![
-            "run",
-            "--target",
+        let mut args = sim_run_args(
             "sim:mdrive",
-            "--no-progress",
-            "--fault",
-            "range-unchecked",
-            "--cases",
-            "profile/mdrive/write-out-of-range/*",
-            "--cases",
-            "golden/mdrive/4.2.4/*",
-            "--expect",
-            file.to_str().unwrap(),
-        ];
+            &[
+                "--fault",
+                "range-unchecked",
+                "--cases",
+                "profile/mdrive/write-out-of-range/*",
+                "--cases",
+                "golden/mdrive/4.2.4/*",
+                "--expect",
+                file.to_str().unwrap(),
+            ],
+        );
         if strict {
             args.push("--strict-expect");
         }
@@ -256,18 +221,9 @@ fn without_a_terminal_the_run_prints_plain_progress_lines_to_stderr() {
 
 #[test]
 fn fail_details_beyond_the_cap_are_counted_and_sent_to_the_report() {
-    let dir = TempDir::new("cli-edges-fails");
-    let report = dir.path().join("r");
-    let (code, out, err) = harness(&[
-        "run",
-        "--target",
-        "sim:mdrive",
-        "--no-progress",
-        "--fault",
-        "range-unchecked",
-        "--report",
-        report.to_str().unwrap(),
-    ]);
+    let range_unchecked = ["--fault", "range-unchecked"];
+    let (_dir, report, (code, out, err)) =
+        sim_run_reported("cli-edges-fails", "sim:mdrive", &range_unchecked);
     assert_eq!(code, 1, "{out}{err}");
     let fails: usize = out
         .lines()
@@ -287,14 +243,7 @@ fn fail_details_beyond_the_cap_are_counted_and_sent_to_the_report() {
         "{out}"
     );
     // Without --report the count says how to get them.
-    let (_, out, _) = harness(&[
-        "run",
-        "--target",
-        "sim:mdrive",
-        "--no-progress",
-        "--fault",
-        "range-unchecked",
-    ]);
+    let (_, out, _) = harness(&sim_run_args("sim:mdrive", &range_unchecked));
     assert!(
         out.contains(&format!(
             "{} more FAIL details: rerun with --report DIR",

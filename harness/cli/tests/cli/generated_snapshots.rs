@@ -9,14 +9,15 @@
 
 use std::io::Write;
 use std::path::Path;
-use std::process::Command;
 use std::time::Duration;
 
 use drives::{Fault, FaultSet};
 use engine::servers::ServerConfig;
 use engine::session::{Options, SnapshotOptions};
 use engine::targets::TargetUrl;
-use test_support::{PtyPair, have_socat, loopback_tcp_and_rtu, run_ok, serve, skip};
+use test_support::{
+    PtyPair, harness, have_socat, loopback_tcp_and_rtu, run_ok, serve, sim_run_args, skip,
+};
 
 /// The seed of every committed snapshot.
 const SEED: u64 = 20_240_601;
@@ -346,32 +347,21 @@ fn another_admissible_choice_is_drift_naming_the_freedom() {
 fn the_command_line_exits_1_on_drift_and_prints_the_cases() {
     let dir = tempfile::tempdir().expect("tempdir");
     let file = dir.path().join("snap.txt");
+    let snap = file.to_str().expect("utf-8 path");
     let cli = |extra: &[&str]| {
-        let out = Command::new(env!("CARGO_BIN_EXE_modbus-harness"))
-            .args([
-                "run",
-                "--target",
-                "sim:mdrive",
-                "--no-progress",
-                "--no-shrink",
-            ])
-            .args(["--generated", "30", "--snapshot"])
-            .arg(&file)
-            .args(extra)
-            .output()
-            .expect("run modbus-harness");
-        (
-            out.status.code(),
-            String::from_utf8_lossy(&out.stdout).into_owned(),
-            String::from_utf8_lossy(&out.stderr).into_owned(),
-        )
+        let mut args = sim_run_args(
+            "sim:mdrive",
+            &["--no-shrink", "--generated", "30", "--snapshot", snap],
+        );
+        args.extend_from_slice(extra);
+        harness(&args)
     };
     let seed = SEED.to_string();
     let (code, stdout, _) = cli(&["--seed", &seed, "--update-snapshot"]);
-    assert_eq!(code, Some(0), "{stdout}");
+    assert_eq!(code, 0, "{stdout}");
     assert!(stdout.contains("snapshot written"), "{stdout}");
     let (code, stdout, stderr) = cli(&["--seed", &seed]);
-    assert_eq!(code, Some(0), "{stdout}");
+    assert_eq!(code, 0, "{stdout}");
     assert!(stdout.contains("no drift"), "{stdout}");
     assert!(
         stderr.contains(&format!("seed: {SEED}")),
@@ -379,23 +369,20 @@ fn the_command_line_exits_1_on_drift_and_prints_the_cases() {
     );
     let other = (SEED + 1).to_string();
     let (code, stdout, _) = cli(&["--seed", &other]);
-    assert_eq!(code, Some(1), "{stdout}");
+    assert_eq!(code, 1, "{stdout}");
     assert!(stdout.contains("differs from this run"), "{stdout}");
     assert!(stdout.contains(&format!("+ gen/{other}/0/")), "{stdout}");
     // Without a file there is nothing to compare with: the run cannot be made (exit 2), and says how.
     let missing = dir.path().join("none.txt");
-    let out = Command::new(env!("CARGO_BIN_EXE_modbus-harness"))
-        .args([
-            "run",
-            "--target",
-            "sim:mdrive",
-            "--generated",
-            "3",
-            "--snapshot",
-        ])
-        .arg(&missing)
-        .output()
-        .expect("run modbus-harness");
-    assert_eq!(out.status.code(), Some(2));
-    assert!(String::from_utf8_lossy(&out.stderr).contains("--update-snapshot"));
+    let (code, _, stderr) = harness(&[
+        "run",
+        "--target",
+        "sim:mdrive",
+        "--generated",
+        "3",
+        "--snapshot",
+        missing.to_str().expect("utf-8 path"),
+    ]);
+    assert_eq!(code, 2);
+    assert!(stderr.contains("--update-snapshot"));
 }

@@ -4,22 +4,15 @@
 //! `.ci/run` installs Chromium, its driver and Selenium and sets `MODBUS_HARNESS_REQUIRE_BROWSER=1`, so that
 //! in CI a missing browser fails; elsewhere the test says it skipped.
 
-use test_support::{TempDir, harness};
+use test_support::sim_run_reported;
 
 #[test]
 fn the_html_report_works_in_headless_chromium() {
-    let dir = TempDir::new("html-browser");
-    let report = dir.path().join("report");
-    let (code, out, err) = harness(&[
-        "run",
-        "--target",
+    let (dir, report, (code, out, err)) = sim_run_reported(
+        "html-browser",
         "sim:mdrive",
-        "--fault",
-        "wrong-exception-code",
-        "--no-progress",
-        "--report",
-        report.to_str().expect("path"),
-    ]);
+        &["--fault", "wrong-exception-code"],
+    );
     assert_eq!(code, 1, "the fault makes cases FAIL: {out}\n{err}");
     let png = dir.path().join("report.png");
     let script = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/cli/check_report.py");

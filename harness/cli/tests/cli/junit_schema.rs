@@ -6,7 +6,7 @@
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
-use test_support::{TempDir, runs, skip};
+use test_support::{TempDir, harness, runs, sim_run_args, skip};
 
 fn xsd() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/jenkins-junit.xsd")
@@ -55,28 +55,19 @@ fn report(dir: &Path) -> (String, PathBuf) {
     let expect = dir.join("expect.toml");
     std::fs::write(&expect, EXPECT).expect("write");
     let report = dir.join("r");
-    let out = Command::new(env!("CARGO_BIN_EXE_modbus-harness"))
-        .args([
-            "run",
-            "--target",
-            "sim:mdrive",
-            "--no-progress",
+    let (code, _, err) = harness(&sim_run_args(
+        "sim:mdrive",
+        &[
             "--policy-on-sim",
             "--fault",
             "range-unchecked",
             "--expect",
-        ])
-        .arg(&expect)
-        .arg("--report")
-        .arg(&report)
-        .output()
-        .expect("run the binary");
-    assert_eq!(
-        out.status.code(),
-        Some(1),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+            expect.to_str().expect("utf-8 path"),
+            "--report",
+            report.to_str().expect("utf-8 path"),
+        ],
+    ));
+    assert_eq!(code, 1, "{err}");
     let file = report.join("junit.xml");
     (std::fs::read_to_string(&file).expect("junit.xml"), file)
 }

@@ -8,7 +8,7 @@
 use std::collections::BTreeMap;
 use std::io::{Read, Write};
 use std::net::{SocketAddr, TcpStream};
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
@@ -16,7 +16,10 @@ use codec::{Direction, Framing, Mnemonic, Pdu, Request, Response};
 use drives::profile::{Access, Profile, Table};
 use drives::tell::apply_presets;
 use drives::{DriveModel, FaultSet};
-use test_support::{ChildGuard, SimProcess, TempDir, harness, harness_bin, wait_bounded};
+use test_support::{
+    ChildGuard, SimProcess, TempDir, harness, harness_bin, kept_registers, read_json, run_args,
+    wait_bounded,
+};
 
 const RUN_LIMIT: Duration = Duration::from_secs(120);
 
@@ -350,73 +353,159 @@ fn wait_for_a_change(run: &mut ChildGuard, sim_journal: &Path) {
     }
 }
 
-/// A preset simulator of `name` journaling to `dir/sim.jsonl`; (process, target URL, framing).
-fn preset_sim(name: &str, dir: &Path, extra: &[&str]) -> (SimProcess, String, Framing, usize) {
-    let presets = nonfactory_presets(name);
-    let file = dir.join("preset.txt");
-    std::fs::write(&file, presets.join("\n")).expect("preset file");
-    let journal = dir.join("sim.jsonl");
-    let rtu = name == "sd2x";
-    let mut args = vec![
-        "--profile",
-        name,
-        if rtu { "--rtu-over-tcp" } else { "--listen" },
-        "127.0.0.1:0",
-        "--journal",
-        journal.to_str().expect("path"),
-        "--preset",
-        file.to_str().expect("path"),
-    ];
-    args.extend_from_slice(extra);
-    let sim = SimProcess::start(&args);
-    let (url, framing) = if rtu {
-        (
-            format!("rtu+tcp://{}", sim.rtu_over_tcp.expect("rtu-over-tcp")),
-            Framing::Rtu,
-        )
-    } else {
-        (format!("tcp://{}", sim.tcp.expect("tcp")), Framing::Tcp)
-    };
-    (sim, url, framing, presets.len())
+/// A preset simulator of `name` (see [`nonfactory_presets`]) journaling every write it accepts to
+/// `dir/sim.jsonl`, with what a test needs to read it back as a client: its profile, the run's target URL
+/// and the framing of that endpoint (RTU over TCP for the SD2x, Modbus/TCP for the others).
+struct PresetDrive {
+    sim: SimProcess,
+    url: String,
+    framing: Framing,
+    /// How many presets moved it off its factory values.
+    presets: usize,
+    p: Profile,
 }
 
-fn addr_of(sim: &SimProcess) -> SocketAddr {
-    sim.tcp.or(sim.rtu_over_tcp).expect("an endpoint")
+impl PresetDrive {
+    fn start(name: &str, dir: &Path, extra: &[&str]) -> Self {
+        let presets = nonfactory_presets(name);
+        let file = dir.join("preset.txt");
+        std::fs::write(&file, presets.join("\n")).expect("preset file");
+        let journal = dir.join("sim.jsonl");
+        let rtu = name == "sd2x";
+        let mut args = vec![
+            "--profile",
+            name,
+            if rtu { "--rtu-over-tcp" } else { "--listen" },
+            "127.0.0.1:0",
+            "--journal",
+            journal.to_str().expect("path"),
+            "--preset",
+            file.to_str().expect("path"),
+        ];
+        args.extend_from_slice(extra);
+        let sim = SimProcess::start(&args);
+        let (url, framing) = if rtu {
+            (sim.rtu_over_tcp_url(), Framing::Rtu)
+        } else {
+            (sim.tcp_url(), Framing::Tcp)
+        };
+        Self {
+            sim,
+            url,
+            framing,
+            presets: presets.len(),
+            p: profile(name),
+        }
+    }
+
+    /// Every parameter as the drive reads it now ([`read_everything`]).
+    fn read(&self) -> BTreeMap<String, String> {
+        let addr = self.sim.tcp.or(self.sim.rtu_over_tcp).expect("an endpoint");
+        read_everything(addr, self.framing, &self.p)
+    }
+
+    /// Panics with `what` and the differences unless every parameter reads as in `before`.
+    fn assert_reads_as(&self, before: &BTreeMap<String, String>, what: &str) {
+        let diff = differences(before, &self.read());
+        assert!(diff.is_empty(), "{what}: {diff:#?}");
+    }
+}
+
+/// `modbus-harness ARGS` started as a child with stdin closed and the given stdout and stderr, killed on
+/// drop: a run the test interrupts.
+fn spawn_harness(args: &[&str], stdout: Stdio, stderr: Stdio) -> ChildGuard {
+    let child = Command::new(harness_bin())
+        .args(args)
+        .stdin(Stdio::null())
+        .stdout(stdout)
+        .stderr(stderr)
+        .spawn()
+        .expect("spawn run");
+    ChildGuard(child)
+}
+
+/// A file for a child's output.
+fn output_file(path: &Path) -> Stdio {
+    std::fs::File::create(path).expect("output file").into()
+}
+
+/// A run of `name` against `drive` paced at `rate` requests a second, with `EXTRA` and its journal at
+/// `dir/run-journal.json`, started as a child with the given stdout and stderr; returns once the drive's
+/// journal (`dir/sim.jsonl`) shows a write that changed a value ([`wait_for_a_change`]): the run, still
+/// going, and the path of its journal.
+fn paced_run_past_a_change(
+    drive: &PresetDrive,
+    name: &str,
+    dir: &Path,
+    rate: &str,
+    extra: &[&str],
+    (stdout, stderr): (Stdio, Stdio),
+) -> (ChildGuard, PathBuf) {
+    let journal = dir.join("run-journal.json");
+    let mut args = run_args(&drive.url, name, &["--max-rate", rate]);
+    args.extend_from_slice(extra);
+    args.extend_from_slice(&["--journal", journal.to_str().expect("path")]);
+    let mut run = spawn_harness(&args, stdout, stderr);
+    wait_for_a_change(&mut run, &dir.join("sim.jsonl"));
+    (run, journal)
+}
+
+/// `fuzz --target DRIVE --profile NAME --seed 1 --regressions DIR/regressions EXTRA...`.
+fn fuzz(drive: &PresetDrive, name: &str, dir: &Path, extra: &[&str]) -> (i32, String, String) {
+    let regressions = dir.join("regressions");
+    let mut args = vec![
+        "fuzz",
+        "--target",
+        &drive.url,
+        "--profile",
+        name,
+        "--seed",
+        "1",
+        "--regressions",
+        regressions.to_str().expect("path"),
+    ];
+    args.extend_from_slice(extra);
+    harness(&args)
+}
+
+/// Run `check` on each of the drives `names`, side by side, each in its own thread; a panic of any is the
+/// test's.
+fn on_each_drive_at_once(names: [&'static str; 3], check: fn(&'static str)) {
+    let threads: Vec<_> = names
+        .into_iter()
+        .map(|name| std::thread::spawn(move || check(name)))
+        .collect();
+    for t in threads {
+        if let Err(e) = t.join() {
+            std::panic::resume_unwind(e);
+        }
+    }
 }
 
 #[test]
 fn a_default_run_leaves_every_preset_drive_as_found_and_writes_no_motion_register() {
     for name in ["mdrive", "lmd", "sd2x"] {
         let dir = TempDir::new(&format!("laf-{name}"));
-        let (sim, url, framing, presets) = preset_sim(name, dir.path(), &[]);
-        assert!(presets > 0, "{name}: no non-factory preset found");
-        let p = profile(name);
-        let before = read_everything(addr_of(&sim), framing, &p);
+        let drive = PresetDrive::start(name, dir.path(), &[]);
+        assert!(drive.presets > 0, "{name}: no non-factory preset found");
+        let p = &drive.p;
+        let before = drive.read();
         let report = dir.path().join("report");
-        let (code, out, err) = harness(&[
-            "run",
-            "--target",
-            &url,
-            "--profile",
+        let (code, out, err) = harness(&run_args(
+            &drive.url,
             name,
-            "--no-progress",
-            "--report",
-            report.to_str().expect("path"),
-        ]);
+            &["--report", report.to_str().expect("path")],
+        ));
         assert_eq!(code, 0, "{name}: {out}\n{err}");
         assert!(
             out.contains("every kept parameter reads as before"),
             "{name}: {out}"
         );
-        let after = read_everything(addr_of(&sim), framing, &p);
-        let diff = differences(&before, &after);
-        assert!(diff.is_empty(), "{name}: not left as found: {diff:#?}");
+        drive.assert_reads_as(&before, &format!("{name}: not left as found"));
         let lines = journal_lines(&dir.path().join("sim.jsonl"));
         // Where the profile keeps parameters, the run did write (else "as found" proves nothing), and some
         // write moved a preset value. The SD2x keeps none: its default run must change nothing at all.
-        let kept = !p.registers.iter().map(|r| r.get_ref()).all(|r| {
-            r.table == Table::Input || r.access != Access::Rw || r.motion || r.destructive
-        });
+        let kept = kept_registers(p).next().is_some();
         if kept {
             assert!(!lines.is_empty(), "{name}: the run wrote nothing");
             assert!(
@@ -427,18 +516,12 @@ fn a_default_run_leaves_every_preset_drive_as_found_and_writes_no_motion_registe
             let changed: Vec<_> = lines.iter().filter(|j| j["old"] != j["new"]).collect();
             assert!(changed.is_empty(), "{name}: {changed:#?}");
         }
-        let motion = motion_writes(&p, &lines);
+        let motion = motion_writes(p, &lines);
         assert!(motion.is_empty(), "{name}: {motion:#?}");
         // The journal of the run is there, complete, and says the drive was restored.
-        let j: serde_json::Value = serde_json::from_str(
-            &std::fs::read_to_string(report.join("journal.json")).expect("run journal"),
-        )
-        .expect("journal json");
+        let j = read_json(&report.join("journal.json"));
         assert_eq!(j["state"], "restored", "{name}: {j}");
-        let index: serde_json::Value = serde_json::from_str(
-            &std::fs::read_to_string(report.join("index.json")).expect("index"),
-        )
-        .expect("index json");
+        let index = read_json(&report.join("index.json"));
         let laf = &index["summary"]["leave_as_found"];
         assert_eq!(laf["kept"].as_u64().unwrap_or(0) > 0, kept, "{name}: {laf}");
         assert_eq!(laf["unrestored"], serde_json::json!([]), "{name}");
@@ -449,16 +532,8 @@ fn a_default_run_leaves_every_preset_drive_as_found_and_writes_no_motion_registe
 fn a_read_only_run_writes_nothing() {
     for name in ["mdrive", "lmd", "sd2x"] {
         let dir = TempDir::new(&format!("laf-ro-{name}"));
-        let (_sim, url, _, _) = preset_sim(name, dir.path(), &[]);
-        let (code, out, err) = harness(&[
-            "run",
-            "--target",
-            &url,
-            "--profile",
-            name,
-            "--no-progress",
-            "--read-only",
-        ]);
+        let drive = PresetDrive::start(name, dir.path(), &[]);
+        let (code, out, err) = harness(&run_args(&drive.url, name, &["--read-only"]));
         assert_eq!(code, 0, "{name}: {out}\n{err}");
         let lines = journal_lines(&dir.path().join("sim.jsonl"));
         assert!(lines.is_empty(), "{name}: --read-only wrote: {lines:#?}");
@@ -474,54 +549,36 @@ fn a_read_only_run_writes_nothing() {
 #[test]
 fn a_run_killed_halfway_is_undone_by_restore_journal() {
     let name = "mdrive";
-    let p = profile(name);
     // The kill must land between a case's change and its own restore (a 50 ms window at --max-rate 20); on
     // a machine too busy for that, the attempt is made again with a fresh drive, at most three times.
     let mut attempt = 0;
-    let (_dir, sim, framing, before, journal) = loop {
+    let (_dir, drive, before, journal) = loop {
         attempt += 1;
         assert!(
             attempt <= 3,
             "three kills came after the case had restored itself: nothing to undo"
         );
         let dir = TempDir::new("laf-kill");
-        let (sim, url, framing, _) = preset_sim(name, dir.path(), &[]);
-        let before = read_everything(addr_of(&sim), framing, &p);
-        let journal = dir.path().join("run-journal.json");
-        let sim_journal = dir.path().join("sim.jsonl");
-        let child = Command::new(harness_bin())
-            .args([
-                "run",
-                "--target",
-                &url,
-                "--profile",
-                name,
-                "--no-progress",
-                "--max-rate",
-                "20",
-                "--journal",
-                journal.to_str().expect("path"),
-            ])
-            .stdin(Stdio::null())
-            .stdout(Stdio::null())
-            .stderr(Stdio::null())
-            .spawn()
-            .expect("spawn run");
-        let mut run = ChildGuard(child);
-        wait_for_a_change(&mut run, &sim_journal);
+        let drive = PresetDrive::start(name, dir.path(), &[]);
+        let before = drive.read();
+        let (mut run, journal) = paced_run_past_a_change(
+            &drive,
+            name,
+            dir.path(),
+            "20",
+            &[],
+            (Stdio::null(), Stdio::null()),
+        );
         run.0.kill().expect("SIGKILL the run");
         let _ = run.0.wait();
-        let killed = read_everything(addr_of(&sim), framing, &p);
+        let killed = drive.read();
         if !differences(&before, &killed).is_empty() {
-            break (dir, sim, framing, before, journal);
+            break (dir, drive, before, journal);
         }
         eprintln!("attempt {attempt}: the kill came after the case had restored itself; again");
     };
-    // `_dir` holds the files until the end of the test.
-    let j: serde_json::Value = serde_json::from_str(
-        &std::fs::read_to_string(&journal).expect("journal written before the first write"),
-    )
-    .expect("journal json");
+    // `_dir` holds the files until the end of the test. The journal was written before the first write.
+    let j = read_json(&journal);
     assert_eq!(j["state"], "running", "{j}");
     // The journal holds the drive's values before the run (the presets, not the factory values).
     let items = j["items"].as_array().cloned().unwrap_or_default();
@@ -549,12 +606,7 @@ fn a_run_killed_halfway_is_undone_by_restore_journal() {
     let (code, out, err) = harness(&["restore", "--journal", journal.to_str().expect("path")]);
     assert_eq!(code, 0, "{out}\n{err}");
     assert!(out.contains("RESULT: RESTORED"), "{out}");
-    let after = read_everything(addr_of(&sim), framing, &p);
-    let diff = differences(&before, &after);
-    assert!(
-        diff.is_empty(),
-        "not left as found after restore: {diff:#?}"
-    );
+    drive.assert_reads_as(&before, "not left as found after restore");
 }
 
 /// A register that keeps the first value written to it (`simulate --latch`): the run cannot put it back, says
@@ -564,32 +616,18 @@ fn a_register_that_does_not_keep_its_restored_value_is_reported_and_exits_3() {
     let name = "mdrive";
     let p = profile(name);
     // A read/write register the catalog writes in range: the first non-motion 16-bit one with a range.
-    let reg = p
-        .registers
-        .iter()
-        .map(|r| r.get_ref())
-        .find(|r| {
-            r.access == Access::Rw
-                && !r.motion
-                && !r.destructive
-                && r.table != Table::Input
-                && r.max.is_some()
-        })
+    let reg = kept_registers(&p)
+        .find(|r| r.max.is_some())
         .expect("a read/write register");
     let latch = reg.address.to_string();
     let dir = TempDir::new("laf-latch");
-    let (_sim, url, _, _) = preset_sim(name, dir.path(), &["--latch", &latch]);
+    let drive = PresetDrive::start(name, dir.path(), &["--latch", &latch]);
     let report = dir.path().join("report");
-    let (code, out, err) = harness(&[
-        "run",
-        "--target",
-        &url,
-        "--profile",
+    let (code, out, err) = harness(&run_args(
+        &drive.url,
         name,
-        "--no-progress",
-        "--report",
-        report.to_str().expect("path"),
-    ]);
+        &["--report", report.to_str().expect("path")],
+    ));
     let key = format!("holding:0x{:04X}", reg.address);
     assert_eq!(code, 3, "{out}\n{err}");
     assert!(
@@ -598,9 +636,7 @@ fn a_register_that_does_not_keep_its_restored_value_is_reported_and_exits_3() {
         "{out}"
     );
     assert!(out.contains("RESULT: NOT RESTORED"), "{out}");
-    let index: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(report.join("index.json")).expect("index"))
-            .expect("index json");
+    let index = read_json(&report.join("index.json"));
     let unrestored = index["summary"]["leave_as_found"]["unrestored"]
         .as_array()
         .cloned()
@@ -628,32 +664,17 @@ fn a_register_that_does_not_keep_its_restored_value_is_reported_and_exits_3() {
 fn a_run_stopped_with_sigterm_restores_before_it_exits() {
     let name = "lmd";
     let dir = TempDir::new("laf-term");
-    let (sim, url, framing, _) = preset_sim(name, dir.path(), &[]);
-    let p = profile(name);
-    let before = read_everything(addr_of(&sim), framing, &p);
-    let journal = dir.path().join("run-journal.json");
-    let sim_journal = dir.path().join("sim.jsonl");
+    let drive = PresetDrive::start(name, dir.path(), &[]);
+    let before = drive.read();
     let out_file = dir.path().join("run.out");
-    let child = Command::new(harness_bin())
-        .args([
-            "run",
-            "--target",
-            &url,
-            "--profile",
-            name,
-            "--no-progress",
-            "--max-rate",
-            "40",
-            "--journal",
-            journal.to_str().expect("path"),
-        ])
-        .stdin(Stdio::null())
-        .stdout(std::fs::File::create(&out_file).expect("out"))
-        .stderr(Stdio::null())
-        .spawn()
-        .expect("spawn run");
-    let mut run = ChildGuard(child);
-    wait_for_a_change(&mut run, &sim_journal);
+    let (mut run, journal) = paced_run_past_a_change(
+        &drive,
+        name,
+        dir.path(),
+        "40",
+        &[],
+        (output_file(&out_file), Stdio::null()),
+    );
     let pid = run.0.id().to_string();
     let sent = Command::new("kill")
         .args(["-TERM", &pid])
@@ -667,15 +688,9 @@ fn a_run_stopped_with_sigterm_restores_before_it_exits() {
         out.contains("every kept parameter reads as before"),
         "{out}"
     );
-    let j: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(&journal).expect("journal")).expect("json");
+    let j = read_json(&journal);
     assert_eq!(j["state"], "restored", "{j}");
-    let after = read_everything(addr_of(&sim), framing, &p);
-    let diff = differences(&before, &after);
-    assert!(
-        diff.is_empty(),
-        "not left as found after SIGTERM: {diff:#?}"
-    );
+    drive.assert_reads_as(&before, "not left as found after SIGTERM");
 }
 
 /// The drive dies halfway (the simulator is killed after a write changed a value): the run stops, cannot
@@ -684,42 +699,25 @@ fn a_run_stopped_with_sigterm_restores_before_it_exits() {
 fn a_target_that_dies_halfway_is_reported_not_restored_with_exit_3() {
     let name = "mdrive";
     let dir = TempDir::new("laf-dead");
-    let (mut sim, url, _, _) = preset_sim(name, dir.path(), &[]);
-    let journal = dir.path().join("run-journal.json");
-    let sim_journal = dir.path().join("sim.jsonl");
+    let mut drive = PresetDrive::start(name, dir.path(), &[]);
     let (o, e) = (dir.path().join("run.out"), dir.path().join("run.err"));
-    let child = Command::new(harness_bin())
-        .args([
-            "run",
-            "--target",
-            &url,
-            "--profile",
-            name,
-            "--no-progress",
-            "--max-rate",
-            "40",
-            "--timeout",
-            "200",
-            "--journal",
-            journal.to_str().expect("path"),
-        ])
-        .stdin(Stdio::null())
-        .stdout(std::fs::File::create(&o).expect("out"))
-        .stderr(std::fs::File::create(&e).expect("err"))
-        .spawn()
-        .expect("spawn run");
-    let mut run = ChildGuard(child);
-    wait_for_a_change(&mut run, &sim_journal);
-    sim.child.0.kill().expect("kill the simulator");
-    let _ = sim.child.0.wait();
+    let (mut run, journal) = paced_run_past_a_change(
+        &drive,
+        name,
+        dir.path(),
+        "40",
+        &["--timeout", "200"],
+        (output_file(&o), output_file(&e)),
+    );
+    drive.sim.child.0.kill().expect("kill the simulator");
+    let _ = drive.sim.child.0.wait();
     let status = wait_bounded(&mut run.0, RUN_LIMIT, "the run after its target died");
     let out = std::fs::read_to_string(&o).unwrap_or_default();
     let err = std::fs::read_to_string(&e).unwrap_or_default();
     assert_eq!(status.code(), Some(3), "{out}\n{err}");
     assert!(err.contains("NOT left as found"), "{err}");
     assert!(err.contains(journal.to_str().expect("path")), "{err}");
-    let j: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(&journal).expect("journal")).expect("json");
+    let j = read_json(&journal);
     assert_eq!(j["state"], "running", "kept for restore --journal: {j}");
 }
 
@@ -728,73 +726,44 @@ fn a_target_that_dies_halfway_is_reported_not_restored_with_exit_3() {
 /// motion register). The three drives are tried side by side, each in its own thread.
 #[test]
 fn a_default_fuzz_and_probe_leave_every_preset_drive_as_found() {
-    let threads: Vec<_> = ["mdrive", "lmd", "sd2x"]
-        .into_iter()
-        .map(|name| {
-            std::thread::spawn(move || {
-                let dir = TempDir::new(&format!("laf-fuzz-{name}"));
-                let (sim, url, framing, presets) = preset_sim(name, dir.path(), &[]);
-                assert!(presets > 0, "{name}: no non-factory preset found");
-                let p = profile(name);
-                let before = read_everything(addr_of(&sim), framing, &p);
-                let regressions = dir.path().join("regressions");
-                let (code, out, err) = harness(&[
-                    "fuzz",
-                    "--target",
-                    &url,
-                    "--profile",
-                    name,
-                    "--duration",
-                    "15s",
-                    "--seed",
-                    "1",
-                    "--regressions",
-                    regressions.to_str().expect("path"),
-                ]);
-                // A finding (exit 1) would be a fault of the reference drive; the campaign must have run.
-                assert_eq!(code, 0, "{name} fuzz: {out}\n{err}");
-                let after_fuzz = read_everything(addr_of(&sim), framing, &p);
-                let diff = differences(&before, &after_fuzz);
-                assert!(diff.is_empty(), "{name}: fuzz changed the drive: {diff:#?}");
-                let (code, out, err) = harness(&[
-                    "probe",
-                    "--target",
-                    &url,
-                    "--profile",
-                    name,
-                    "--unit",
-                    &p.device.default_unit.to_string(),
-                ]);
-                assert_eq!(code, 0, "{name} probe: {out}\n{err}");
-                let after_probe = read_everything(addr_of(&sim), framing, &p);
-                let diff = differences(&before, &after_probe);
-                assert!(
-                    diff.is_empty(),
-                    "{name}: probe changed the drive: {diff:#?}"
-                );
-                let lines = journal_lines(&dir.path().join("sim.jsonl"));
-                assert!(
-                    motion_writes(&p, &lines).is_empty(),
-                    "{name}: a motion register was written"
-                );
-                assert!(
-                    lines.is_empty(),
-                    "{name}: fuzz or probe wrote by default: {lines:#?}"
-                );
-                // The comparison has teeth: the presets are there to be seen, off the factory values.
-                assert!(
-                    before.len() >= presets,
-                    "{name}: read {} parameters, preset {presets}",
-                    before.len()
-                );
-            })
-        })
-        .collect();
-    for t in threads {
-        if let Err(e) = t.join() {
-            std::panic::resume_unwind(e);
-        }
-    }
+    on_each_drive_at_once(["mdrive", "lmd", "sd2x"], |name| {
+        let dir = TempDir::new(&format!("laf-fuzz-{name}"));
+        let drive = PresetDrive::start(name, dir.path(), &[]);
+        let presets = drive.presets;
+        assert!(presets > 0, "{name}: no non-factory preset found");
+        let p = &drive.p;
+        let before = drive.read();
+        let (code, out, err) = fuzz(&drive, name, dir.path(), &["--duration", "15s"]);
+        // A finding (exit 1) would be a fault of the reference drive; the campaign must have run.
+        assert_eq!(code, 0, "{name} fuzz: {out}\n{err}");
+        drive.assert_reads_as(&before, &format!("{name}: fuzz changed the drive"));
+        let (code, out, err) = harness(&[
+            "probe",
+            "--target",
+            &drive.url,
+            "--profile",
+            name,
+            "--unit",
+            &p.device.default_unit.to_string(),
+        ]);
+        assert_eq!(code, 0, "{name} probe: {out}\n{err}");
+        drive.assert_reads_as(&before, &format!("{name}: probe changed the drive"));
+        let lines = journal_lines(&dir.path().join("sim.jsonl"));
+        assert!(
+            motion_writes(p, &lines).is_empty(),
+            "{name}: a motion register was written"
+        );
+        assert!(
+            lines.is_empty(),
+            "{name}: fuzz or probe wrote by default: {lines:#?}"
+        );
+        // The comparison has teeth: the presets are there to be seen, off the factory values.
+        assert!(
+            before.len() >= presets,
+            "{name}: read {} parameters, preset {presets}",
+            before.len()
+        );
+    });
 }
 
 /// `fuzz --allow-writes` against a preset drive: the writes happen (the drive's journal shows values
@@ -804,55 +773,35 @@ fn a_default_fuzz_and_probe_leave_every_preset_drive_as_found() {
 /// declares FC 0x16 (mask write) and FC 0x07, whose generated cases write (a mask, a coil pattern first).
 #[test]
 fn fuzz_with_writes_judges_against_the_drive_as_found_and_leaves_it_so() {
-    let threads: Vec<_> = ["mdrive", "lmd", "generic"]
-        .into_iter()
-        .map(|name| {
-            std::thread::spawn(move || {
-                let dir = TempDir::new(&format!("laf-fuzzw-{name}"));
-                let (sim, url, framing, _) = preset_sim(name, dir.path(), &[]);
-                let p = profile(name);
-                let before = read_everything(addr_of(&sim), framing, &p);
-                let journal = dir.path().join("run-journal.json");
-                let regressions = dir.path().join("regressions");
-                let (code, out, err) = harness(&[
-                    "fuzz",
-                    "--target",
-                    &url,
-                    "--profile",
-                    name,
-                    "--duration",
-                    "8s",
-                    "--seed",
-                    "1",
-                    "--allow-writes",
-                    "--journal",
-                    journal.to_str().expect("path"),
-                    "--regressions",
-                    regressions.to_str().expect("path"),
-                ]);
-                assert_eq!(code, 0, "{name} fuzz --allow-writes: {out}\n{err}");
-                assert!(err.contains("FUZZ WRITES AHEAD"), "{name}: {err}");
-                let lines = journal_lines(&dir.path().join("sim.jsonl"));
-                assert!(
-                    lines.iter().any(|j| j["old"] != j["new"]),
-                    "{name}: no generated write changed anything"
-                );
-                assert!(motion_writes(&p, &lines).is_empty(), "{name}");
-                let after = read_everything(addr_of(&sim), framing, &p);
-                let diff = differences(&before, &after);
-                assert!(diff.is_empty(), "{name}: not left as found: {diff:#?}");
-                let j: serde_json::Value =
-                    serde_json::from_str(&std::fs::read_to_string(&journal).expect("fuzz journal"))
-                        .expect("journal json");
-                assert_eq!(j["state"], "restored", "{name}: {j}");
-            })
-        })
-        .collect();
-    for t in threads {
-        if let Err(e) = t.join() {
-            std::panic::resume_unwind(e);
-        }
-    }
+    on_each_drive_at_once(["mdrive", "lmd", "generic"], |name| {
+        let dir = TempDir::new(&format!("laf-fuzzw-{name}"));
+        let drive = PresetDrive::start(name, dir.path(), &[]);
+        let before = drive.read();
+        let journal = dir.path().join("run-journal.json");
+        let (code, out, err) = fuzz(
+            &drive,
+            name,
+            dir.path(),
+            &[
+                "--duration",
+                "8s",
+                "--allow-writes",
+                "--journal",
+                journal.to_str().expect("path"),
+            ],
+        );
+        assert_eq!(code, 0, "{name} fuzz --allow-writes: {out}\n{err}");
+        assert!(err.contains("FUZZ WRITES AHEAD"), "{name}: {err}");
+        let lines = journal_lines(&dir.path().join("sim.jsonl"));
+        assert!(
+            lines.iter().any(|j| j["old"] != j["new"]),
+            "{name}: no generated write changed anything"
+        );
+        assert!(motion_writes(&drive.p, &lines).is_empty(), "{name}");
+        drive.assert_reads_as(&before, &format!("{name}: not left as found"));
+        let j = read_json(&journal);
+        assert_eq!(j["state"], "restored", "{name}: {j}");
+    });
 }
 
 /// A directory in which no file can be created until dropped: immutable (`chattr +i`, which binds root
@@ -899,9 +848,8 @@ impl Drop for Unwritable {
 fn a_report_that_fails_midrun_still_leaves_the_drive_as_found() {
     let dir = TempDir::new("laf-report-fails");
     // A drive that accepts out-of-range values: the write-out-of-range cases FAIL, so a case file is due.
-    let (sim, url, framing, _) = preset_sim("mdrive", dir.path(), &["--fault", "range-unchecked"]);
-    let p = profile("mdrive");
-    let before = read_everything(addr_of(&sim), framing, &p);
+    let drive = PresetDrive::start("mdrive", dir.path(), &["--fault", "range-unchecked"]);
+    let before = drive.read();
     let report = dir.path().join("report");
     let cases = report.join("cases");
     std::fs::create_dir_all(&cases).expect("cases/");
@@ -913,16 +861,11 @@ fn a_report_that_fails_midrun_still_leaves_the_drive_as_found() {
             cases.display()
         )
     });
-    let (code, out, err) = harness(&[
-        "run",
-        "--target",
-        &url,
-        "--profile",
+    let (code, out, err) = harness(&run_args(
+        &drive.url,
         "mdrive",
-        "--no-progress",
-        "--report",
-        report.to_str().expect("path"),
-    ]);
+        &["--report", report.to_str().expect("path")],
+    ));
     assert_ne!(code, 0, "{out}\n{err}");
     let all = format!("{out}\n{err}");
     assert!(
@@ -933,7 +876,5 @@ fn a_report_that_fails_midrun_still_leaves_the_drive_as_found() {
         all.contains("every kept parameter reads as before"),
         "the drive was not restored and verified before the exit: {all}"
     );
-    let after = read_everything(addr_of(&sim), framing, &p);
-    let diff = differences(&before, &after);
-    assert!(diff.is_empty(), "not left as found: {diff:#?}");
+    drive.assert_reads_as(&before, "not left as found");
 }

@@ -8,7 +8,7 @@
 use std::path::{Path, PathBuf};
 
 use drives::profile::Profile;
-use test_support::{SimProcess, TempDir, harness, harness_in};
+use test_support::{SimProcess, TempDir, harness, harness_in, harness_ok, read_json, sim_run_args};
 
 /// The example of corpus/profiles/SCHEMA.md: a block of ten registers, two 32-bit registers, a block of coils.
 const MY_DRIVE: &str = include_str!("../data/my_drive.toml");
@@ -53,7 +53,7 @@ fn profile_files_work_wherever_a_profile_is_named() {
         &["--target", &format!("sim:{}?transport=rtu", s(&abs))],
     );
     // --profile with a file, beside a sim: of the same file.
-    let (code, out, err) = harness_in(
+    let out = harness_ok(
         Some(d),
         &[
             "run",
@@ -64,7 +64,6 @@ fn profile_files_work_wherever_a_profile_is_named() {
             "./my.toml",
         ],
     );
-    assert_eq!(code, 0, "{err}");
     assert!(
         out.contains("profile/my-drive/write/0x0100-target-position"),
         "{out}"
@@ -72,14 +71,7 @@ fn profile_files_work_wherever_a_profile_is_named() {
     // sim:NAME runs NAME's drive, which --profile judges: the generic drive is not this one.
     let (code, out, err) = harness_in(
         Some(d),
-        &[
-            "run",
-            "--no-progress",
-            "--target",
-            "sim:generic",
-            "--profile",
-            "my.toml",
-        ],
+        &sim_run_args("sim:generic", &["--profile", "my.toml"]),
     );
     assert_eq!(code, 1, "the generic drive judged by my.toml: {out}{err}");
     assert!(out.contains("FAIL tcp/unit-id/0"), "{out}");
@@ -104,13 +96,12 @@ fn profile_files_work_wherever_a_profile_is_named() {
     );
     assert_eq!(code, 0, "fuzz: {out}{err}");
     assert!(out.contains("0 finding(s)"), "{out}");
-    let (code, out, err) = harness_in(
+    let out = harness_ok(
         Some(d),
         &["probe", "--target", "sim:./my.toml", "--scan", "0-0x110"],
     );
-    assert_eq!(code, 0, "{err}");
     assert!(!out.contains("DIFFERENT") && out.contains("same"), "{out}");
-    let (code, out, err) = harness_in(
+    let out = harness_ok(
         Some(d),
         &[
             "probe",
@@ -122,7 +113,6 @@ fn profile_files_work_wherever_a_profile_is_named() {
             "0-9",
         ],
     );
-    assert_eq!(code, 0, "{err}");
     assert!(
         out.contains("DIFFERENT"),
         "compared with the file, not generic: {out}"
@@ -141,15 +131,17 @@ fn profile_files_work_wherever_a_profile_is_named() {
     let corpus = d.join("corpus");
     std::fs::create_dir_all(corpus.join("profiles")).expect("mkdir");
     write(&corpus.join("profiles"), "mine.toml", MY_DRIVE);
-    let (code, out, err) = harness(&[
-        "run",
-        "--list",
-        "--corpus",
-        s(&corpus),
-        "--target",
-        "sim:mine",
-    ]);
-    assert_eq!(code, 0, "{err}");
+    let out = harness_ok(
+        None,
+        &[
+            "run",
+            "--list",
+            "--corpus",
+            s(&corpus),
+            "--target",
+            "sim:mine",
+        ],
+    );
     assert!(out.contains("profile/my-drive/read/"), "{out}");
     let (code, _, err) = harness(&["run", "--target", "sim:mine"]);
     assert_eq!(code, 2);
@@ -253,17 +245,19 @@ fn probe_write_profile_never_replaces_a_file_unless_forced() {
         "{err}"
     );
     assert_eq!(std::fs::read_to_string(&f).expect("read"), "# my edits\n");
-    let (code, out, err) = harness(&[
-        "probe",
-        "--target",
-        "sim:generic",
-        "--scan",
-        "0-3",
-        "--write-profile",
-        s(&f),
-        "--force",
-    ]);
-    assert_eq!(code, 0, "{err}");
+    let out = harness_ok(
+        None,
+        &[
+            "probe",
+            "--target",
+            "sim:generic",
+            "--scan",
+            "0-3",
+            "--write-profile",
+            s(&f),
+            "--force",
+        ],
+    );
     assert!(
         out.contains("draft profile `generic-draft` written to"),
         "{out}"
@@ -339,7 +333,7 @@ fn drafts_of_every_reference_drive_pass_against_that_drive() {
     // `simulate` processes over Modbus/TCP, and the SD2x over RTU over TCP.
     for (profile, scan) in [("generic", "0-0x7F"), ("mdrive", "0-0x60")] {
         let sim = SimProcess::start(&["--profile", profile, "--listen", "127.0.0.1:0"]);
-        let target = format!("tcp://{}", sim.tcp.expect("tcp endpoint"));
+        let target = sim.tcp_url();
         let draft = draft_and_run(d, &format!("simulate-{profile}"), &target, scan);
         assert_eq!(
             draft.device.unit_ids,
@@ -348,10 +342,7 @@ fn drafts_of_every_reference_drive_pass_against_that_drive() {
         );
     }
     let sim = SimProcess::start(&["--profile", "sd2x", "--rtu-over-tcp", "127.0.0.1:0"]);
-    let target = format!(
-        "rtu+tcp://{}",
-        sim.rtu_over_tcp.expect("rtu-over-tcp endpoint")
-    );
+    let target = sim.rtu_over_tcp_url();
     let draft = draft_and_run(d, "simulate-sd2x", &target, "1995-2030");
     assert_eq!(
         draft.device.unit_ids,
@@ -381,7 +372,7 @@ fn a_profile_you_write_passes_against_simulate_and_sim() {
     let file = write(dir.path(), "my_drive.toml", MY_DRIVE);
     let sim = SimProcess::start(&["--profile", s(&file), "--listen", "127.0.0.1:0"]);
     let report = dir.path().join("report");
-    let target = format!("tcp://{}", sim.tcp.expect("tcp endpoint"));
+    let target = sim.tcp_url();
     run_passes(
         None,
         &[
@@ -393,10 +384,7 @@ fn a_profile_you_write_passes_against_simulate_and_sim() {
             s(&report),
         ],
     );
-    let index: serde_json::Value = serde_json::from_str(
-        &std::fs::read_to_string(report.join("index.json")).expect("index.json"),
-    )
-    .expect("index.json parses");
+    let index = read_json(&report.join("index.json"));
     let verdict = |id: &str| {
         index["cases"]
             .as_array()

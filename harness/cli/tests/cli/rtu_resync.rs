@@ -5,34 +5,29 @@
 //! which took it with the next request as one garbled frame: the healthy simulator "failed" the following
 //! liveness read (seed 1, case gen/1/123/read-reg-bytecount).
 
-use test_support::{SimProcess, TempDir, harness};
+use test_support::{SimProcess, TempDir, harness, read_json, run_args};
 
 #[test]
 fn generated_cases_over_rtu_over_tcp_pass_on_a_healthy_simulator() {
     let sim = SimProcess::start(&["--profile", "generic", "--rtu-over-tcp", "127.0.0.1:0"]);
-    let url = format!("rtu+tcp://{}", sim.rtu_over_tcp.expect("rtu-over-tcp"));
+    let url = sim.rtu_over_tcp_url();
     let dir = TempDir::new("rtu-resync");
     let report = dir.path().join("report");
-    let (code, out, err) = harness(&[
-        "run",
-        "--target",
+    let (code, out, err) = harness(&run_args(
         &url,
-        "--profile",
         "generic",
-        "--no-progress",
-        "--generated",
-        "130",
-        "--seed",
-        "1",
-        "--no-shrink",
-        "--report",
-        report.to_str().expect("path"),
-    ]);
+        &[
+            "--generated",
+            "130",
+            "--seed",
+            "1",
+            "--no-shrink",
+            "--report",
+            report.to_str().expect("path"),
+        ],
+    ));
     assert_eq!(code, 0, "{out}\n{err}");
-    let index: serde_json::Value = serde_json::from_str(
-        &std::fs::read_to_string(report.join("index.json")).expect("index.json"),
-    )
-    .expect("index.json parses");
+    let index = read_json(&report.join("index.json"));
     let case = index["cases"]
         .as_array()
         .expect("cases")

@@ -5,7 +5,10 @@ use std::sync::atomic::{AtomicBool, Ordering};
 
 use engine::session::{Options, resolve_profile, run};
 use engine::targets::TargetUrl;
-use test_support::{TempDir, harness, loopback_tcp_and_rtu, serve};
+use test_support::{
+    TempDir, harness, harness_ok, loopback_tcp_and_rtu, read_json, serve, sim_run_args,
+    sim_run_reported,
+};
 
 #[test]
 fn bad_targets_exit_2_with_a_clear_message() {
@@ -89,16 +92,7 @@ fn bad_targets_exit_2_with_a_clear_message() {
 
 #[test]
 fn a_run_writes_every_report_and_exits_by_verdict() {
-    let dir = TempDir::new("cli-run");
-    let report = dir.path().join("r");
-    let (code, out, err) = harness(&[
-        "run",
-        "--target",
-        "sim:sd2x",
-        "--no-progress",
-        "--report",
-        report.to_str().unwrap(),
-    ]);
+    let (_dir, report, (code, out, err)) = sim_run_reported("cli-run", "sim:sd2x", &[]);
     assert_eq!(code, 0, "{out}{err}");
     assert!(
         out.trim_end()
@@ -113,14 +107,7 @@ fn a_run_writes_every_report_and_exits_by_verdict() {
     for f in test_support::reports::REPORT_FILES {
         assert!(report.join(f).is_file(), "{f} missing");
     }
-    let (code, out, _) = harness(&[
-        "run",
-        "--target",
-        "sim:mdrive",
-        "--no-progress",
-        "--fault",
-        "range-unchecked",
-    ]);
+    let (code, out, _) = harness(&sim_run_args("sim:mdrive", &["--fault", "range-unchecked"]));
     assert_eq!(code, 1, "a FAIL exits 1: {out}");
     assert!(
         out.contains("FAIL profile/mdrive/write-out-of-range/"),
@@ -130,18 +117,8 @@ fn a_run_writes_every_report_and_exits_by_verdict() {
 
 #[test]
 fn shuffle_prints_the_order_and_keeps_the_ids() {
-    let dir = TempDir::new("cli-shuffle");
-    let report = dir.path().join("r");
-    let (code, out, err) = harness(&[
-        "run",
-        "--target",
-        "sim:lmd",
-        "--no-progress",
-        "--shuffle",
-        "42",
-        "--report",
-        report.to_str().unwrap(),
-    ]);
+    let (_dir, report, (code, out, err)) =
+        sim_run_reported("cli-shuffle", "sim:lmd", &["--shuffle", "42"]);
     assert_eq!(code, 0, "{out}{err}");
     assert!(
         err.contains("shuffled with seed 42 (replay with --shuffle 42)"),
@@ -155,10 +132,7 @@ fn shuffle_prints_the_order_and_keeps_the_ids() {
         .skip(1)
         .map_while(|l| l.trim_start().split_once(' ').map(|(_, id)| id))
         .collect();
-    let index: serde_json::Value = serde_json::from_str(
-        &std::fs::read_to_string(report.join("index.json")).expect("index.json"),
-    )
-    .expect("json");
+    let index = read_json(&report.join("index.json"));
     let reported: Vec<&str> = index["cases"]
         .as_array()
         .expect("cases")
@@ -187,15 +161,17 @@ fn shuffle_prints_the_order_and_keeps_the_ids() {
 #[test]
 fn dry_run_shows_the_safety_policy_without_touching_the_target() {
     // Nothing listens on port 1: a dry run must not connect.
-    let (code, out, err) = harness(&[
-        "run",
-        "--dry-run",
-        "--target",
-        "tcp://127.0.0.1:1",
-        "--profile",
-        "mdrive",
-    ]);
-    assert_eq!(code, 0, "{err}");
+    let out = harness_ok(
+        None,
+        &[
+            "run",
+            "--dry-run",
+            "--target",
+            "tcp://127.0.0.1:1",
+            "--profile",
+            "mdrive",
+        ],
+    );
     assert!(
         out.contains("SKIP profile/mdrive/write/0x0043-ma"),
         "a move is skipped without --allow-motion: {out}"
@@ -228,8 +204,10 @@ fn dry_run_shows_the_safety_policy_without_touching_the_target() {
 fn probe_finds_what_the_profile_documents() {
     for p in ["mdrive", "sd2x", "generic"] {
         let scan = if p == "sd2x" { "1995-2030" } else { "0-0xC0" };
-        let (code, out, err) = harness(&["probe", "--target", &format!("sim:{p}"), "--scan", scan]);
-        assert_eq!(code, 0, "{err}");
+        let out = harness_ok(
+            None,
+            &["probe", "--target", &format!("sim:{p}"), "--scan", scan],
+        );
         assert!(
             !out.contains("DIFFERENT") && !out.contains("<-"),
             "{p}: {out}"
@@ -275,10 +253,8 @@ fn an_interrupted_run_leaves_a_complete_report() {
     .expect("run");
     assert!(out.summary.interrupted);
     assert_eq!(out.summary.cases, 10);
-    let index: serde_json::Value = serde_json::from_str(
-        &std::fs::read_to_string(dir.path().join("r/index.json")).expect("index.json written"),
-    )
-    .expect("index.json is complete JSON");
+    // index.json is written, and complete JSON.
+    let index = read_json(&dir.path().join("r/index.json"));
     assert_eq!(index["cases"].as_array().map(|a| a.len()), Some(10));
     assert_eq!(
         index["summary"]["interrupted"],

@@ -54,6 +54,18 @@ fn read_only_run_fuzz_and_probe_put_no_write_on_the_sd2x_wire() {
     read_only_puts_no_write_on_the_wire("sd2x");
 }
 
+/// The bounds of the read-only fuzz campaigns tried here.
+const SHORT_FUZZ: [&str; 8] = [
+    "--duration",
+    "2s",
+    "--max-cases",
+    "400",
+    "--timeout",
+    "300",
+    "--seed",
+    "7",
+];
+
 fn read_only_puts_no_write_on_the_wire(name: &str) {
     {
         let cases: [(&str, Vec<&str>); 5] = [
@@ -63,37 +75,12 @@ fn read_only_puts_no_write_on_the_wire(name: &str) {
             ),
             (
                 "fuzz --read-only",
-                vec![
-                    "fuzz",
-                    "--profile",
-                    name,
-                    "--read-only",
-                    "--duration",
-                    "2s",
-                    "--max-cases",
-                    "400",
-                    "--timeout",
-                    "300",
-                    "--seed",
-                    "7",
-                ],
+                [&["fuzz", "--profile", name, "--read-only"][..], &SHORT_FUZZ].concat(),
             ),
             // The default fuzz against a real target: reads only, no flag needed.
             (
                 "fuzz (default)",
-                vec![
-                    "fuzz",
-                    "--profile",
-                    name,
-                    "--duration",
-                    "2s",
-                    "--max-cases",
-                    "400",
-                    "--timeout",
-                    "300",
-                    "--seed",
-                    "7",
-                ],
+                [&["fuzz", "--profile", name][..], &SHORT_FUZZ].concat(),
             ),
             ("probe", vec!["probe", "--profile", name]),
             (

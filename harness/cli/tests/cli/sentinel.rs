@@ -5,7 +5,7 @@
 //! the window (`--no-sentinel`), compared through snapshots; sentinels were used; and a drive that answers
 //! what it must ignore still FAILs with sentinels on.
 
-use test_support::{SimProcess, TempDir, harness};
+use test_support::{SimProcess, TempDir, harness, run_args};
 
 /// The `silences:` line of a run's log: (proven by a sentinel, proven by the target's close after a
 /// half-close, listened out).
@@ -38,26 +38,24 @@ fn verdicts(snap: &std::path::Path) -> Vec<String> {
 fn sentinels_give_the_verdicts_of_the_window() {
     for name in ["generic", "mdrive", "lmd"] {
         let sim = SimProcess::start(&["--profile", name, "--listen", "127.0.0.1:0"]);
-        let url = format!("tcp://{}", sim.tcp.expect("tcp"));
+        let url = sim.tcp_url();
         let dir = TempDir::new(&format!("sentinel-{name}"));
         let run = |snap: &std::path::Path, sentinel: bool| {
-            let mut args = vec![
-                "run",
-                "--target",
+            let mut args = run_args(
                 &url,
-                "--profile",
                 name,
-                "--no-progress",
-                "--generated",
-                "300",
-                "--seed",
-                "5",
-                "--with-catalog",
-                "--no-shrink",
-                "--snapshot",
-                snap.to_str().expect("path"),
-                "--update-snapshot",
-            ];
+                &[
+                    "--generated",
+                    "300",
+                    "--seed",
+                    "5",
+                    "--with-catalog",
+                    "--no-shrink",
+                    "--snapshot",
+                    snap.to_str().expect("path"),
+                    "--update-snapshot",
+                ],
+            );
             if !sentinel {
                 args.push("--no-sentinel");
             }
@@ -107,22 +105,9 @@ fn a_drive_that_answers_what_it_must_ignore_fails_with_sentinels_on() {
         ),
     ] {
         for (fault, code_wanted) in [(None, 0), (Some(bad), 1)] {
-            let mut args = vec!["--profile", "mdrive", "--listen", "127.0.0.1:0"];
-            if let Some(f) = fault {
-                args.extend(["--fault", f]);
-            }
-            let sim = SimProcess::start(&args);
-            let url = format!("tcp://{}", sim.tcp.expect("tcp"));
-            let (code, out, err) = harness(&[
-                "run",
-                "--target",
-                &url,
-                "--profile",
-                "mdrive",
-                "--no-progress",
-                "--cases",
-                case,
-            ]);
+            let sim = SimProcess::on_loopback("mdrive", "--listen", fault);
+            let url = sim.tcp_url();
+            let (code, out, err) = harness(&run_args(&url, "mdrive", &["--cases", case]));
             assert_eq!(code, code_wanted, "{case} {fault:?}: {out}\n{err}");
             match fault {
                 // The healthy drive ignores the frame: the sentinel or the close proves it.

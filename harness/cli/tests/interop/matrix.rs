@@ -8,11 +8,8 @@
 //! - The run against `modbus-harness simulate --fault wrong-exception-code` fails (exit code 1) where the
 //!   same run against the healthy simulator passes: a broken reference drive turns the matrix red.
 
-use std::io::{BufReader, Read};
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
-use std::process::{Command, Stdio};
-use std::sync::mpsc;
 use std::time::Duration;
 
 use test_support::peer_servers::PeerServer;
@@ -26,33 +23,10 @@ fn repo() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("../..")
 }
 
-/// Drain a pipe on a thread; the text arrives on the channel when the pipe closes.
-fn collect(pipe: impl Read + Send + 'static) -> mpsc::Receiver<String> {
-    let (tx, rx) = mpsc::channel();
-    std::thread::spawn(move || {
-        let mut s = String::new();
-        let _ = BufReader::new(pipe).read_to_string(&mut s);
-        let _ = tx.send(s);
-    });
-    rx
-}
-
-/// `modbus-harness run ARGS`, bounded: (exit code, stdout, stderr).
-fn harness_run(args: &[&str]) -> (Option<i32>, String, String) {
-    let mut child = Command::new(env!("CARGO_BIN_EXE_modbus-harness"))
-        .arg("run")
-        .args(args)
-        .arg("--no-progress")
-        .stdin(Stdio::null())
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .expect("spawn modbus-harness run");
-    let out = collect(child.stdout.take().expect("stdout"));
-    let err = collect(child.stderr.take().expect("stderr"));
-    let status = wait_bounded(&mut child, RUN_LIMIT, "modbus-harness run");
-    let text = |rx: mpsc::Receiver<String>| rx.recv_timeout(STEP).unwrap_or_default();
-    (status.code(), text(out), text(err))
+/// `modbus-harness run --target TARGET --profile generic --no-progress EXTRA...`, bounded: (exit code,
+/// stdout, stderr).
+fn harness_run(target: &str, extra: &[&str]) -> (i32, String, String) {
+    harness_bounded(None, &run_args(target, "generic", extra), RUN_LIMIT)
 }
 
 /// The generic profile's map through one connection each: input register n holds n, coil 99 is the last
@@ -147,23 +121,16 @@ fn count(summary: &str, verdict: &str) -> usize {
         .unwrap_or(0)
 }
 
-fn run_pymodbus(expect: &Path) -> (Option<i32>, String, String) {
+fn run_pymodbus(expect: &Path) -> (i32, String, String) {
     // A fresh server per run: the cases write to it.
     let server = PeerServer::pymodbus();
     let target = format!("tcp://{}", server.addr);
     let expect = expect.to_string_lossy().into_owned();
-    let mut args = vec![
-        "--target",
-        &target,
-        "--profile",
-        "generic",
-        "--expect",
-        &expect,
-    ];
+    let mut args = vec!["--expect", &expect];
     for c in SELECTED {
         args.extend(["--cases", c]);
     }
-    let out = harness_run(&args);
+    let out = harness_run(&target, &args);
     let status = server.terminate();
     assert!(status.success(), "pymodbus server after SIGTERM: {status}");
     out
@@ -178,8 +145,7 @@ fn a_missing_expectation_fails_the_run_against_the_pymodbus_server() {
     let full = repo().join("tests/expect/pymodbus-tcp.toml");
     let (code, out, err) = run_pymodbus(&full);
     assert_eq!(
-        code,
-        Some(0),
+        code, 0,
         "with the committed expectations the selected cases pass:\n{out}\n{err}"
     );
     assert!(
@@ -193,8 +159,7 @@ fn a_missing_expectation_fails_the_run_against_the_pymodbus_server() {
     std::fs::write(&partial, without_entry(&text, DROPPED)).expect("write the reduced file");
     let (code, out, err) = run_pymodbus(&partial);
     assert_eq!(
-        code,
-        Some(1),
+        code, 1,
         "without the entry for {DROPPED} the run fails:\n{out}\n{err}"
     );
     assert!(
@@ -211,31 +176,15 @@ fn a_missing_expectation_fails_the_run_against_the_pymodbus_server() {
 #[test]
 fn a_simulator_fault_fails_the_run_where_the_healthy_simulator_passes() {
     let run = |fault: Option<&str>| {
-        let mut args = vec!["--profile", "generic", "--listen", "127.0.0.1:0"];
-        if let Some(f) = fault {
-            args.extend(["--fault", f]);
-        }
-        let sim = SimProcess::start(&args);
-        let target = format!("tcp://{}", sim.tcp.expect("tcp endpoint"));
-        let out = harness_run(&[
-            "--target",
-            &target,
-            "--profile",
-            "generic",
-            "--cases",
-            "spec/*",
-        ]);
+        let sim = SimProcess::on_loopback("generic", "--listen", fault);
+        let out = harness_run(&sim.tcp_url(), &["--cases", "spec/*"]);
         drop(sim);
         out
     };
     let (code, out, err) = run(None);
-    assert_eq!(code, Some(0), "the healthy simulator passes:\n{out}\n{err}");
+    assert_eq!(code, 0, "the healthy simulator passes:\n{out}\n{err}");
     let (code, out, err) = run(Some("wrong-exception-code"));
-    assert_eq!(
-        code,
-        Some(1),
-        "wrong-exception-code fails the run:\n{out}\n{err}"
-    );
+    assert_eq!(code, 1, "wrong-exception-code fails the run:\n{out}\n{err}");
     assert!(
         out.contains("FAIL spec/app-7/unsupported-function/"),
         "an exception case is named among the failures:\n{out}"

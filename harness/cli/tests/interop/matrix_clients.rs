@@ -18,6 +18,8 @@ use test_support::peers::{Peer, client_command};
 use test_support::*;
 use tokio_modbus::prelude::*;
 
+use crate::tokio_modbus::answered;
+
 /// Run `peer` with `endpoint` and the operations of `ops`, and compare every output line with the expected
 /// one (`ops`: operation, expected line).
 async fn expect_lines(peer: Peer, test: &str, endpoint: &[String], ops: &[(&str, &str)]) {
@@ -109,19 +111,21 @@ async fn tokio_modbus_tcp_lmd_manual_answers() {
     let mut ctx = within("connect", tcp::connect_slave(addr, slave))
         .await
         .expect("connect");
-    let coils = within("FC 01", ctx.read_coils(0, 3)).await;
     assert_eq!(
-        coils.expect("transport").expect("FC 01"),
+        answered("FC 01", ctx.read_coils(0, 3), "FC 01").await,
         [true, false, true]
     );
-    let vm = within("FC 03", ctx.read_holding_registers(0x8B, 2)).await;
-    assert_eq!(vm.expect("transport").expect("FC 03"), LMD_VM_DEFAULT);
-    within("FC 16", ctx.write_multiple_registers(0x8B, &LMD_VM_600000))
-        .await
-        .expect("transport")
-        .expect("FC 16 accepted");
-    let vm = within("FC 03", ctx.read_holding_registers(0x8B, 2)).await;
-    let words = vm.expect("transport").expect("FC 03");
+    assert_eq!(
+        answered("FC 03", ctx.read_holding_registers(0x8B, 2), "FC 03").await,
+        LMD_VM_DEFAULT
+    );
+    answered(
+        "FC 16",
+        ctx.write_multiple_registers(0x8B, &LMD_VM_600000),
+        "FC 16 accepted",
+    )
+    .await;
+    let words = answered("FC 03", ctx.read_holding_registers(0x8B, 2), "FC 03").await;
     assert_eq!(words, LMD_VM_600000);
     assert_eq!(
         (u32::from(words[1]) << 16) | u32::from(words[0]),
@@ -129,14 +133,10 @@ async fn tokio_modbus_tcp_lmd_manual_answers() {
         "low word first"
     );
     for coil in [2, 1] {
-        within("FC 05", ctx.write_single_coil(coil, true))
-            .await
-            .expect("transport")
-            .expect("FC 05 accepted");
+        answered("FC 05", ctx.write_single_coil(coil, true), "FC 05 accepted").await;
     }
-    let coils = within("FC 01", ctx.read_coils(0, 3)).await;
     assert_eq!(
-        coils.expect("transport").expect("FC 01"),
+        answered("FC 01", ctx.read_coils(0, 3), "FC 01").await,
         [true, true, true]
     );
     server.shutdown().await;

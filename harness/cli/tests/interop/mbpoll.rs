@@ -5,6 +5,13 @@
 use test_support::mbpoll::*;
 use test_support::*;
 
+/// A `simulate --profile mdrive` process on loopback Modbus/TCP (port 0), and the port it listens on.
+fn mdrive_over_tcp() -> (SimProcess, u16) {
+    let sim = SimProcess::on_loopback("mdrive", "--listen", None);
+    let port = sim.tcp.expect("tcp endpoint").port();
+    (sim, port)
+}
+
 /// SD2x over its real transport, the manual's examples in order: 6.1 writes the RxPDO twice (FC 16, the
 /// golden telegrams' values), the 500 ms watchdog they armed trips, and the 6.3 read of register 2000
 /// (input table) returns the manual's 0x7038 = 28728.
@@ -60,8 +67,7 @@ async fn mbpoll_tcp_mdrive_max_velocity() {
     if !mbpoll_or_skip(test) {
         return;
     }
-    let sim = SimProcess::start(&["--profile", "mdrive", "--listen", "127.0.0.1:0"]);
-    let port = sim.tcp.expect("tcp endpoint").port();
+    let (_sim, port) = mdrive_over_tcp();
     mbpoll_tcp_vm_768000_then_600000(port, &["-t", "4:int", "-B", "-r", "139"]).await;
 }
 
@@ -72,8 +78,7 @@ async fn mbpoll_tcp_mdrive_illegal_function() {
     if !mbpoll_or_skip(test) {
         return;
     }
-    let sim = SimProcess::start(&["--profile", "mdrive", "--listen", "127.0.0.1:0"]);
-    let port = sim.tcp.expect("tcp endpoint").port();
+    let (_sim, port) = mdrive_over_tcp();
     let (ok, out, err) = run_client(&mut mbpoll_tcp(port, &["-t", "3", "-r", "0"], &[])).await;
     assert!(!ok, "FC 04 should fail on an MDrive:\n{out}");
     assert!(err.contains("Illegal function"), "{out}\n{err}");

@@ -8,7 +8,7 @@ use std::time::{Duration, Instant};
 use codec::rtu::crc_ok;
 use drives::Fault;
 use drives::station::LATE_RESPONSE_DELAY;
-use engine::servers::{self, ServerConfig, ServerError};
+use engine::servers::{self, ServerConfig, ServerError, ServerHandle};
 use test_support::*;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::TcpStream;
@@ -28,18 +28,27 @@ fn echo(data: u16) -> Vec<u8> {
     pdu
 }
 
+/// An in-process SD2x with `faults` on loopback (Modbus/TCP and RTU over TCP, port 0), and a client
+/// connected to its Modbus/TCP endpoint.
+async fn sd2x_and_tcp_client(faults: &[Fault]) -> (ServerHandle, TcpStream) {
+    let server = serve("sd2x", faults, loopback_tcp_and_rtu()).await;
+    let s = connect(server.tcp_addr().unwrap()).await;
+    (server, s)
+}
+
+/// Write `bytes` to `s`, bounded in time.
+async fn send(s: &mut TcpStream, bytes: &[u8]) {
+    within("write", s.write_all(bytes)).await.expect("write");
+}
+
 /// Two requests in one write are both answered, in order, each with its own transaction id.
 #[tokio::test]
 async fn tcp_pipelined_requests_answered_in_order() {
-    let server = serve("sd2x", &[], loopback_tcp_and_rtu()).await;
-    let mut s = connect(server.tcp_addr().unwrap()).await;
+    let (server, mut s) = sd2x_and_tcp_client(&[]).await;
     let first = tcp_adu(0x0101, 1, &echo(0xAAAA));
     let second = tcp_adu(0x0202, 1, &echo(0x5555));
     let both = [first.clone(), second.clone()].concat();
-    tokio::time::timeout(STEP, s.write_all(&both))
-        .await
-        .unwrap()
-        .unwrap();
+    send(&mut s, &both).await;
     assert_eq!(read_tcp_adu(&mut s).await, first, "first reply");
     assert_eq!(read_tcp_adu(&mut s).await, second, "second reply");
     server.shutdown().await;
@@ -53,10 +62,7 @@ async fn rtu_over_tcp_back_to_back_frames_answered_in_order() {
     let first = rtu_adu(1, &echo(0x1111));
     let second = rtu_adu(1, &echo(0x2222));
     let both = [first.clone(), second.clone()].concat();
-    tokio::time::timeout(STEP, s.write_all(&both))
-        .await
-        .unwrap()
-        .unwrap();
+    send(&mut s, &both).await;
     assert_eq!(read_upto(&mut s, both.len()).await, both);
     server.shutdown().await;
 }
@@ -65,16 +71,15 @@ async fn rtu_over_tcp_back_to_back_frames_answered_in_order() {
 /// the wire through the server (the check a conformance case relies on).
 #[tokio::test]
 async fn tcp_pipeline_drop_fault_reaches_the_wire() {
-    let server = serve("sd2x", &[Fault::PipelineDrop], loopback_tcp_and_rtu()).await;
-    let mut s = connect(server.tcp_addr().unwrap()).await;
+    let (server, mut s) = sd2x_and_tcp_client(&[Fault::PipelineDrop]).await;
     let first = tcp_adu(7, 1, &echo(1));
     let second = tcp_adu(8, 1, &echo(2));
     let third = tcp_adu(9, 1, &echo(3));
     let both = [first.clone(), second].concat();
-    s.write_all(&both).await.unwrap();
+    send(&mut s, &both).await;
     assert_eq!(read_tcp_adu(&mut s).await, first);
     // A later request on its own is answered: had the second one been answered, it would come first.
-    s.write_all(&third).await.unwrap();
+    send(&mut s, &third).await;
     assert_eq!(read_tcp_adu(&mut s).await, third);
     server.shutdown().await;
 }
@@ -121,10 +126,9 @@ async fn fifty_concurrent_connections_all_answered() {
 /// An MBAP length of 1 cannot be resynchronised: the server closes the connection, and serves others.
 #[tokio::test]
 async fn tcp_bad_mbap_length_closes_the_connection() {
-    let server = serve("sd2x", &[], loopback_tcp_and_rtu()).await;
+    let (server, mut s) = sd2x_and_tcp_client(&[]).await;
     let addr = server.tcp_addr().unwrap();
-    let mut s = connect(addr).await;
-    s.write_all(&[0, 1, 0, 0, 0, 1, 1]).await.unwrap();
+    send(&mut s, &[0, 1, 0, 0, 0, 1, 1]).await;
     let mut buf = [0u8; 16];
     let n = tokio::time::timeout(STEP, s.read(&mut buf))
         .await
@@ -144,16 +148,15 @@ async fn tcp_bad_mbap_length_closes_the_connection() {
 /// connection keeps reading meanwhile: a second request is answered right after the first.
 #[tokio::test]
 async fn tcp_late_response_delay_is_honoured() {
-    let server = serve("sd2x", &[Fault::LateResponse], loopback_tcp_and_rtu()).await;
-    let mut s = connect(server.tcp_addr().unwrap()).await;
+    let (server, mut s) = sd2x_and_tcp_client(&[Fault::LateResponse]).await;
     let first = tcp_adu(1, 1, &echo(1));
     let second = tcp_adu(2, 1, &echo(2));
     let sent = Instant::now();
-    s.write_all(&first).await.unwrap();
+    send(&mut s, &first).await;
     // The second request arrives while the first reply waits: in its own segment, not read together.
     let gap = Duration::from_millis(200);
     tokio::time::sleep(gap).await;
-    s.write_all(&second).await.unwrap();
+    send(&mut s, &second).await;
     assert_eq!(read_tcp_adu(&mut s).await, first);
     assert!(
         sent.elapsed() >= LATE_RESPONSE_DELAY,
@@ -174,11 +177,10 @@ async fn tcp_late_response_delay_is_honoured() {
 /// Shutdown ends the listeners and open connections (the client sees the close) in bounded time.
 #[tokio::test]
 async fn shutdown_closes_open_connections() {
-    let server = serve("sd2x", &[], loopback_tcp_and_rtu()).await;
+    let (server, mut s) = sd2x_and_tcp_client(&[]).await;
     let addr = server.tcp_addr().unwrap();
-    let mut s = connect(addr).await;
     let req = tcp_adu(1, 1, &echo(1));
-    s.write_all(&req).await.unwrap();
+    send(&mut s, &req).await;
     assert_eq!(read_tcp_adu(&mut s).await, req);
     tokio::time::timeout(STEP, server.shutdown())
         .await
@@ -218,17 +220,10 @@ async fn start_on_a_taken_port_is_a_bind_error() {
 /// `--fault tid-not-echoed` on the command line: the reply's transaction id is the request's plus one.
 #[tokio::test]
 async fn cli_fault_tid_not_echoed_over_tcp() {
-    let plain = SimProcess::start(&["--profile", "sd2x", "--listen", "127.0.0.1:0"]);
+    let plain = SimProcess::on_loopback("sd2x", "--listen", None);
     let req = tcp_adu(0x1234, 1, &echo(0xBEEF));
     assert_eq!(tcp_exchange(plain.tcp.unwrap(), &req).await, req);
-    let faulty = SimProcess::start(&[
-        "--profile",
-        "sd2x",
-        "--listen",
-        "127.0.0.1:0",
-        "--fault",
-        "tid-not-echoed",
-    ]);
+    let faulty = SimProcess::on_loopback("sd2x", "--listen", Some("tid-not-echoed"));
     let reply = tcp_exchange(faulty.tcp.unwrap(), &req).await;
     assert_eq!(&reply[..2], &[0x12, 0x35], "transaction id of {reply:02X?}");
     assert_eq!(&reply[2..], &req[2..], "the rest is unchanged");
@@ -239,13 +234,9 @@ async fn cli_fault_tid_not_echoed_over_tcp() {
 async fn cli_fault_wrong_crc_over_rtu_over_tcp() {
     let req = rtu_adu(1, &echo(0x0F0F));
     for (fault, crc_good) in [(None, true), (Some("wrong-crc"), false)] {
-        let mut args = vec!["--profile", "sd2x", "--rtu-over-tcp", "127.0.0.1:0"];
-        if let Some(f) = fault {
-            args.extend(["--fault", f]);
-        }
-        let sim = SimProcess::start(&args);
+        let sim = SimProcess::on_loopback("sd2x", "--rtu-over-tcp", fault);
         let mut s = connect(sim.rtu_over_tcp.unwrap()).await;
-        s.write_all(&req).await.unwrap();
+        send(&mut s, &req).await;
         let reply = read_upto(&mut s, req.len()).await;
         assert_eq!(reply.len(), req.len(), "{fault:?}: {reply:02X?}");
         assert_eq!(&reply[..reply.len() - 2], &req[..req.len() - 2]);

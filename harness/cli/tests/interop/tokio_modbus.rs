@@ -9,6 +9,20 @@ use tokio::io::AsyncWriteExt;
 use tokio_modbus::client::Context;
 use tokio_modbus::prelude::*;
 
+/// A tokio-modbus call, bounded in time ([`within`], naming it `what`), that must reach the drive
+/// (else a panic saying `transport`) and be answered without an exception (else a panic saying
+/// `exception`): the answer.
+pub(crate) async fn answered<T, X: std::fmt::Debug, E: std::fmt::Debug>(
+    what: &str,
+    call: impl std::future::Future<Output = Result<Result<T, X>, E>>,
+    exception: &str,
+) -> T {
+    within(what, call)
+        .await
+        .expect("transport")
+        .expect(exception)
+}
+
 /// The transports a fixture can use.
 #[derive(Clone, Copy, Debug)]
 enum Via {
@@ -133,9 +147,13 @@ async fn sd2x_status_word(test: &str, via: Via) {
         Some(Ok(vec![SD2X_STATUS_AFTER_61])),
         "FC 04 status word after the 6.1 telegrams and the watchdog"
     );
-    let holding = within("FC 03 read 2000", f.ctx.read_holding_registers(2000, 1)).await;
     assert_eq!(
-        holding.expect("transport").expect("no exception"),
+        answered(
+            "FC 03 read 2000",
+            f.ctx.read_holding_registers(2000, 1),
+            "no exception"
+        )
+        .await,
         vec![SD2X_STATUS_AFTER_61],
         "FC 03 status word"
     );
@@ -236,14 +254,18 @@ async fn tcp_mdrive_max_velocity_write_read() {
     else {
         return;
     };
-    let w = within(
+    answered(
         "FC 16 write 0x008B",
         f.ctx.write_multiple_registers(0x008B, &[0x0009, 0x27C0]),
+        "FC 16 accepted",
     )
     .await;
-    w.expect("transport").expect("FC 16 accepted");
-    let r = within("FC 03 read 0x008B", f.ctx.read_holding_registers(0x008B, 2)).await;
-    let words = r.expect("transport").expect("FC 03 answered");
+    let words = answered(
+        "FC 03 read 0x008B",
+        f.ctx.read_holding_registers(0x008B, 2),
+        "FC 03 answered",
+    )
+    .await;
     assert_eq!(words, vec![0x0009, 0x27C0]);
     assert_eq!((u32::from(words[0]) << 16) | u32::from(words[1]), 600_000);
     f.server.shutdown().await;
@@ -258,32 +280,43 @@ async fn generic_round_trip(test: &str, via: Via) {
     let Some(mut f) = fixture(test, "generic", via).await else {
         return;
     };
-    within("FC 06", f.ctx.write_single_register(addr, value))
-        .await
-        .expect("transport")
-        .expect("FC 06 accepted");
-    let r = within("FC 03", f.ctx.read_holding_registers(addr, 1)).await;
-    assert_eq!(r.expect("transport").expect("FC 03"), vec![value]);
-    within("FC 16", f.ctx.write_multiple_registers(addr, &[value ^ 1]))
-        .await
-        .expect("transport")
-        .expect("FC 16 accepted");
-    let r = within("FC 03", f.ctx.read_holding_registers(addr, 1)).await;
-    assert_eq!(r.expect("transport").expect("FC 03"), vec![value ^ 1]);
+    answered(
+        "FC 06",
+        f.ctx.write_single_register(addr, value),
+        "FC 06 accepted",
+    )
+    .await;
+    assert_eq!(
+        answered("FC 03", f.ctx.read_holding_registers(addr, 1), "FC 03").await,
+        vec![value]
+    );
+    answered(
+        "FC 16",
+        f.ctx.write_multiple_registers(addr, &[value ^ 1]),
+        "FC 16 accepted",
+    )
+    .await;
+    assert_eq!(
+        answered("FC 03", f.ctx.read_holding_registers(addr, 1), "FC 03").await,
+        vec![value ^ 1]
+    );
     for on in [true, false] {
-        within("FC 05", f.ctx.write_single_coil(coil, on))
-            .await
-            .expect("transport")
-            .expect("FC 05 accepted");
-        let r = within("FC 01", f.ctx.read_coils(coil, 1)).await;
-        assert_eq!(r.expect("transport").expect("FC 01"), vec![on]);
+        answered("FC 05", f.ctx.write_single_coil(coil, on), "FC 05 accepted").await;
+        assert_eq!(
+            answered("FC 01", f.ctx.read_coils(coil, 1), "FC 01").await,
+            vec![on]
+        );
     }
-    within("FC 15", f.ctx.write_multiple_coils(coil, &[true]))
-        .await
-        .expect("transport")
-        .expect("FC 15 accepted");
-    let r = within("FC 01", f.ctx.read_coils(coil, 1)).await;
-    assert_eq!(r.expect("transport").expect("FC 01"), vec![true]);
+    answered(
+        "FC 15",
+        f.ctx.write_multiple_coils(coil, &[true]),
+        "FC 15 accepted",
+    )
+    .await;
+    assert_eq!(
+        answered("FC 01", f.ctx.read_coils(coil, 1), "FC 01").await,
+        vec![true]
+    );
     f.server.shutdown().await;
 }
 

@@ -296,17 +296,28 @@ fn request_strategy(framer_safe: bool) -> BoxedStrategy<Request> {
         (mnemonic(), vec(any::<u8>(), 0..=MAX_PDU_LEN - 6))
             .prop_map(|(mnemonic, params)| Request::VendorWrite { mnemonic, params }),
     ];
+    with_raw(typed, 22, framer_safe, |function, data| Request::Raw {
+        function,
+        data,
+    })
+}
+
+/// `typed`; unless `framer_safe`, also (1 in `typed_weight + 2` each) a PDU of an untyped function code and
+/// a raw MEI PDU, made by `raw` from the function code and the data.
+fn with_raw<T: std::fmt::Debug + 'static>(
+    typed: impl Strategy<Value = T> + 'static,
+    typed_weight: u32,
+    framer_safe: bool,
+    raw: fn(FunctionCode, Vec<u8>) -> T,
+) -> BoxedStrategy<T> {
     if framer_safe {
         typed.boxed()
     } else {
         prop_oneof![
-            22 => typed,
+            typed_weight => typed,
             1 => (untyped_fc(), vec(any::<u8>(), 0..=MAX_PDU_LEN - 1))
-                .prop_map(|(function, data)| Request::Raw { function, data }),
-            1 => raw_mei().prop_map(|data| Request::Raw {
-                function: FunctionCode::ENCAPSULATED_INTERFACE,
-                data
-            }),
+                .prop_map(move |(function, data)| raw(function, data)),
+            1 => raw_mei().prop_map(move |data| raw(FunctionCode::ENCAPSULATED_INTERFACE, data)),
         ]
         .boxed()
     }
@@ -389,20 +400,10 @@ fn response_strategy(framer_safe: bool) -> BoxedStrategy<Response> {
             .prop_map(|(written, mnemonic)| Response::VendorWrite { written, mnemonic }),
         exception,
     ];
-    if framer_safe {
-        typed.boxed()
-    } else {
-        prop_oneof![
-            24 => typed,
-            1 => (untyped_fc(), vec(any::<u8>(), 0..=MAX_PDU_LEN - 1))
-                .prop_map(|(function, data)| Response::Raw { function, data }),
-            1 => raw_mei().prop_map(|data| Response::Raw {
-                function: FunctionCode::ENCAPSULATED_INTERFACE,
-                data
-            }),
-        ]
-        .boxed()
-    }
+    with_raw(typed, 24, framer_safe, |function, data| Response::Raw {
+        function,
+        data,
+    })
 }
 
 /// A valid PDU of either direction, with its direction.

@@ -110,14 +110,16 @@ fn mnemonic(name: &str) -> Vec<u8> {
     Mnemonic::from_name(name).expect("mnemonic").0.to_vec()
 }
 
+/// The answer to an FC 0x41 read of TR by an MDrive taking `choose`.
+fn read_tr(choose: &[&str]) -> Vec<u8> {
+    let read_tr = [vec![0x41], mnemonic("TR")].concat();
+    ask(&mut station("mdrive", choose), &read_tr)
+}
+
 #[test]
 fn fc41_two_byte_count() {
-    let read_tr = [vec![0x41], mnemonic("TR")].concat();
-    let one = ask(&mut station("mdrive", &[]), &read_tr);
-    let two = ask(
-        &mut station("mdrive", &["fc41-byte-count-width=2-byte"]),
-        &read_tr,
-    );
+    let one = read_tr(&[]);
+    let two = read_tr(&["fc41-byte-count-width=2-byte"]);
     assert_eq!(one[1] as usize, one.len() - 2);
     assert_eq!(two[..3], [0x41, 0x00, one[1]]);
     assert_eq!(two[3..], one[2..]);
@@ -125,12 +127,8 @@ fn fc41_two_byte_count() {
 
 #[test]
 fn fc41_read_back_as_written() {
-    let read_tr = [vec![0x41], mnemonic("TR")].concat();
-    let reference = ask(&mut station("mdrive", &[]), &read_tr);
-    let own = ask(
-        &mut station("mdrive", &["fc41-read-back-format=as-written"]),
-        &read_tr,
-    );
+    let reference = read_tr(&[]);
+    let own = read_tr(&["fc41-read-back-format=as-written"]);
     assert_eq!(&reference[2..], b"0, 0, 0");
     assert_eq!(&own[2..], b"=0,0,0");
 }

@@ -15,7 +15,9 @@ use proptest::collection::vec;
 use proptest::prelude::*;
 use proptest::sample::{select, subsequence};
 
-use crate::support::{MODEL_FAULTS, Sim, ascii_hex, both, profile, run_exchanges};
+use crate::support::{
+    MODEL_FAULTS, Sim, ascii_hex, assert_fault_shows, both, profile, run_exchanges,
+};
 
 fn generic_profile() -> Profile {
     profile("generic")
@@ -214,13 +216,13 @@ fn any_other_profile_is_served() {
 
 #[test]
 fn fault_reserved_readable() {
-    let (ok, bad) = both(
+    assert_fault_shows(
         &generic_profile(),
         Fault::ReservedReadable,
         &["03 00 63 00 02", "01 00 64 00 01", "06 00 64 00 01"],
+        &["83 02", "81 02", "86 02"],
+        &["03 04 00 00 00 00", "01 01 00", "86 02"],
     );
-    assert_eq!(ok, ["83 02", "81 02", "86 02"]);
-    assert_eq!(bad, ["03 04 00 00 00 00", "01 01 00", "86 02"]);
 }
 
 #[test]
@@ -236,31 +238,35 @@ fn fault_quantity_unchecked() {
 
 #[test]
 fn fault_word_order() {
-    let (ok, bad) = both(&other_profile(), Fault::WordOrder, &["03 00 10 00 02"]);
-    assert_eq!(ok, ["03 04 FF FE FF FF"]);
-    assert_eq!(bad, ["03 04 FF FF FF FE"]);
+    assert_fault_shows(
+        &other_profile(),
+        Fault::WordOrder,
+        &["03 00 10 00 02"],
+        &["03 04 FF FE FF FF"],
+        &["03 04 FF FF FF FE"],
+    );
 }
 
 #[test]
 fn fault_read_only_writable() {
-    let (ok, bad) = both(
+    assert_fault_shows(
         &other_profile(),
         Fault::ReadOnlyWritable,
         &["10 00 12 00 01 02 00 07", "03 00 12 00 01"],
+        &["90 02", "03 02 55 AA"],
+        &["10 00 12 00 01", "03 02 00 07"],
     );
-    assert_eq!(ok, ["90 02", "03 02 55 AA"]);
-    assert_eq!(bad, ["10 00 12 00 01", "03 02 00 07"]);
 }
 
 #[test]
 fn fault_range_unchecked() {
-    let (ok, bad) = both(
+    assert_fault_shows(
         &other_profile(),
         Fault::RangeUnchecked,
         &["10 00 14 00 01 02 00 09", "03 00 14 00 01"],
+        &["90 03", "03 02 00 01"],
+        &["10 00 14 00 01", "03 02 00 09"],
     );
-    assert_eq!(ok, ["90 03", "03 02 00 01"]);
-    assert_eq!(bad, ["10 00 14 00 01", "03 02 00 09"]);
 }
 
 // ---------------------------------------------------------------------------------------------------------------

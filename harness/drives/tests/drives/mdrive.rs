@@ -17,7 +17,9 @@ use proptest::collection::vec;
 use proptest::prelude::*;
 use proptest::sample::{select, subsequence};
 
-use crate::support::{MODEL_FAULTS, Sim, ascii_hex, both, hex, profile, run_exchanges};
+use crate::support::{
+    MODEL_FAULTS, Sim, ascii_hex, assert_fault_shows, both, hex, profile, run_exchanges,
+};
 
 /// The MDrive/LMD registers and mnemonics through the client view.
 impl Sim {
@@ -690,25 +692,33 @@ fn device_identification() {
 
 #[test]
 fn fault_word_order() {
-    let (ok, bad) = both(&profile("mdrive"), Fault::WordOrder, &["03 00 8B 00 02"]);
-    assert_eq!(ok, ["03 04 00 0B B8 00"]);
-    assert_eq!(bad, ["03 04 B8 00 00 0B"]);
+    assert_fault_shows(
+        &profile("mdrive"),
+        Fault::WordOrder,
+        &["03 00 8B 00 02"],
+        &["03 04 00 0B B8 00"],
+        &["03 04 B8 00 00 0B"],
+    );
     // Writes too: the high-first write of 600000 lands as 0x27C00009 (out of range) on the faulted drive.
-    let (ok, bad) = both(
+    assert_fault_shows(
         &profile("mdrive"),
         Fault::WordOrder,
         &["10 00 8B 00 02 04 00 09 27 C0"],
+        &["10 00 8B 00 02"],
+        &["90 03"],
     );
-    assert_eq!(ok, ["10 00 8B 00 02"]);
-    assert_eq!(bad, ["90 03"]);
-    let (ok, bad) = both(&profile("lmd"), Fault::WordOrder, &["03 00 8B 00 02"]);
-    assert_eq!(ok, ["03 04 B8 00 00 0B"]);
-    assert_eq!(bad, ["03 04 00 0B B8 00"]);
+    assert_fault_shows(
+        &profile("lmd"),
+        Fault::WordOrder,
+        &["03 00 8B 00 02"],
+        &["03 04 B8 00 00 0B"],
+        &["03 04 00 0B B8 00"],
+    );
 }
 
 #[test]
 fn fault_reserved_readable() {
-    let (ok, bad) = both(
+    assert_fault_shows(
         &profile("mdrive"),
         Fault::ReservedReadable,
         &[
@@ -716,20 +726,20 @@ fn fault_reserved_readable() {
             "03 00 C0 00 02",
             "10 00 02 00 01 02 00 01",
         ],
+        &["83 02", "83 02", "90 02"],
+        &["03 02 00 00", "03 04 00 00 00 00", "90 02"],
     );
-    assert_eq!(ok, ["83 02", "83 02", "90 02"]);
-    assert_eq!(bad, ["03 02 00 00", "03 04 00 00 00 00", "90 02"]);
 }
 
 #[test]
 fn fault_read_only_writable() {
-    let (ok, bad) = both(
+    assert_fault_shows(
         &profile("mdrive"),
         Fault::ReadOnlyWritable,
         &["10 00 1F 00 01 02 00 01", "03 00 1F 00 01"],
+        &["90 02", "03 02 00 00"],
+        &["10 00 1F 00 01", "03 02 00 01"],
     );
-    assert_eq!(ok, ["90 02", "03 02 00 00"]);
-    assert_eq!(bad, ["10 00 1F 00 01", "03 02 00 01"]);
     let mut ok = Sim::new("lmd", &[]);
     let mut bad = Sim::new("lmd", &[Fault::ReadOnlyWritable]);
     assert_eq!(ok.vendor_write("IT", "=9,9"), "C2 02");

@@ -2,8 +2,8 @@
 //! quotations are on the lines they cite, and malformed files are rejected with the right line.
 
 use std::collections::BTreeSet;
-use std::path::PathBuf;
 
+use crate::support::seeds_dir;
 use drives::corpus::Corpus;
 use drives::requirements::{
     DocKind, FileKind, FreedomKind, FreedomValue, KnownIds, Level, Requirements,
@@ -92,17 +92,6 @@ fn coverage_counts_exercised_and_listed_per_document() {
 }
 
 // ---- the quotations are on the lines they cite ------------------------------------------------------------
-
-/// shared/seeds/ beside the repository (the developers' and CI's layout), or MODBUS_HARNESS_SEEDS.
-fn seeds_dir() -> Option<PathBuf> {
-    if let Ok(d) = std::env::var("MODBUS_HARNESS_SEEDS") {
-        return Some(PathBuf::from(d));
-    }
-    let root = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../..");
-    [root.join("../shared/seeds"), root.join("shared/seeds")]
-        .into_iter()
-        .find(|d| d.is_dir())
-}
 
 /// The comparison form of a text: markup, emphasis, table rules, cell separators and bullets dropped,
 /// hyphenated line breaks joined, whitespace collapsed, lower case.

@@ -3,24 +3,13 @@
 //! same MCode registers and mnemonics the same way, flag them alike.
 
 use std::collections::BTreeMap;
-use std::path::PathBuf;
 
+use crate::support::seeds_dir;
 use drives::corpus::Corpus;
 use drives::profile::Profile;
 
 fn profile(name: &str) -> Profile {
     Corpus::Embedded.profile(name).expect("profile")
-}
-
-/// shared/seeds/ beside the repository, or MODBUS_HARNESS_SEEDS (as requirements.rs).
-fn seeds_dir() -> Option<PathBuf> {
-    if let Ok(d) = std::env::var("MODBUS_HARNESS_SEEDS") {
-        return Some(PathBuf::from(d));
-    }
-    let root = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../..");
-    [root.join("../shared/seeds"), root.join("shared/seeds")]
-        .into_iter()
-        .find(|d| d.is_dir())
 }
 
 /// A flagged entry: what it is, its flags, its `why`, and words the cited line must contain one of.

@@ -3,6 +3,7 @@
 //! station panic or answer something that does not decode.
 
 use std::collections::BTreeMap;
+use std::path::PathBuf;
 use std::sync::{Mutex, OnceLock};
 use std::time::Duration;
 
@@ -13,6 +14,18 @@ use drives::profile::Profile;
 use drives::{self, Fault, FaultSet, Station};
 use proptest::prelude::*;
 use serde::Deserialize;
+
+/// shared/seeds/ beside the repository (the developers' and CI's layout), or MODBUS_HARNESS_SEEDS: the
+/// manuals whose lines the requirements and the safety flags cite.
+pub fn seeds_dir() -> Option<PathBuf> {
+    if let Ok(d) = std::env::var("MODBUS_HARNESS_SEEDS") {
+        return Some(PathBuf::from(d));
+    }
+    let root = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../..");
+    [root.join("../shared/seeds"), root.join("shared/seeds")]
+        .into_iter()
+        .find(|d| d.is_dir())
+}
 
 /// A profile of the embedded corpus, or of tests/data/ for a stem `data/NAME` (tests/data/NAME.toml), parsed
 /// once per test binary (the profiles are large and the property tests build many stations).
@@ -154,6 +167,19 @@ pub fn both(p: &Profile, fault: Fault, pdus: &[&str]) -> (Vec<String>, Vec<Strin
         pdus.iter().map(|r| ok.ask(r)).collect(),
         pdus.iter().map(|r| bad.ask(r)).collect(),
     )
+}
+
+/// A healthy drive answers `pdus` (in order) with `healthy`, and one with `fault` with `faulty` ([`both`]).
+pub fn assert_fault_shows(
+    p: &Profile,
+    fault: Fault,
+    pdus: &[&str],
+    healthy: &[&str],
+    faulty: &[&str],
+) {
+    let (ok, bad) = both(p, fault, pdus);
+    assert_eq!(ok, healthy, "{fault}: the healthy drive");
+    assert_eq!(bad, faulty, "{fault}: the drive with the fault");
 }
 
 // ---------------------------------------------------------------------------------------------------------------

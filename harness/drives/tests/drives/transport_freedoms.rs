@@ -27,6 +27,22 @@ fn station(stem: &str, choose: &[&str]) -> Station {
     .with_choices(choices)
 }
 
+/// `bytes` served once by the reference drive, which refuses them (exception 03), and by drives choosing
+/// `FREEDOM=silence` (no answer) and `FREEDOM=close` (no answer, the connection closed): the three stations,
+/// for what the test looks at next.
+fn refused_silent_or_closed(freedom: &str, bytes: &[u8]) -> (Station, Station, Station) {
+    let mut reference = station("mdrive", &[]);
+    assert_eq!(
+        serve(&mut reference, bytes),
+        (vec![(1, "83 03".into())], false)
+    );
+    let mut silent = station("mdrive", &[&format!("{freedom}=silence")]);
+    assert_eq!(serve(&mut silent, bytes), (vec![], false));
+    let mut closing = station("mdrive", &[&format!("{freedom}=close")]);
+    assert_eq!(serve(&mut closing, bytes), (vec![], true));
+    (reference, silent, closing)
+}
+
 /// A Modbus/TCP ADU.
 fn adu(tid: u16, unit: u8, pdu: &[u8]) -> Vec<u8> {
     let mut out = Vec::new();
@@ -134,17 +150,10 @@ fn pipelined_server_busy_exception_06_for_the_requests_behind_the_first() {
 fn truncated_pdu_silence_or_close_on_tcp_and_silence_on_rtu() {
     let u = unit("mdrive");
     let short = adu(1, u, &[0x03, 0x00, 0x01]);
-    let mut reference = station("mdrive", &[]);
-    assert_eq!(
-        serve(&mut reference, &short),
-        (vec![(1, "83 03".into())], false)
-    );
+    let (mut reference, mut silent, mut closing) =
+        refused_silent_or_closed("truncated-pdu", &short);
     assert!(reference.take_decisions().contains(&ids::TRUNCATED_PDU));
-    let mut silent = station("mdrive", &["truncated-pdu=silence"]);
-    assert_eq!(serve(&mut silent, &short), (vec![], false));
     assert!(silent.take_decisions().contains(&ids::TRUNCATED_PDU));
-    let mut closing = station("mdrive", &["truncated-pdu=close"]);
-    assert_eq!(serve(&mut closing, &short), (vec![], true));
     // An RTU line has no connection: the drive chosen `close` keeps silent there.
     let mut frame = Vec::new();
     rtu::encode_adu(u, &[0x03, 0x00, 0x01], &mut frame).expect("encodes");
@@ -169,16 +178,8 @@ fn mbap_length_short_refused_ignored_or_closed() {
     let u = unit("mdrive");
     // The MBAP length one short, the PDU's last byte right behind it.
     let bytes = adu_length(1, u, READ, -1);
-    let mut reference = station("mdrive", &[]);
-    assert_eq!(
-        serve(&mut reference, &bytes),
-        (vec![(1, "83 03".into())], false)
-    );
+    let (mut reference, _, _) = refused_silent_or_closed("mbap-length-short", &bytes);
     assert!(reference.take_decisions().contains(&ids::MBAP_LENGTH_SHORT));
-    let mut silent = station("mdrive", &["mbap-length-short=silence"]);
-    assert_eq!(serve(&mut silent, &bytes), (vec![], false));
-    let mut closing = station("mdrive", &["mbap-length-short=close"]);
-    assert_eq!(serve(&mut closing, &bytes), (vec![], true));
     // The MBAP length's freedom decides there, not the truncated PDU's.
     let mut truncated_silent = station("mdrive", &["truncated-pdu=silence"]);
     assert_eq!(

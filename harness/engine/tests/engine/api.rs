@@ -65,27 +65,27 @@ fn ran(results: &Results) -> usize {
     results.cases().len() - results.count(Verdict::Skipped)
 }
 
-#[test]
-fn reference_drive_behind_the_pdu_seam_passes_over_tcp() {
-    let results = Session::builder()
+/// The generic reference drive behind the PDU seam, over RTU framing when `rtu` (else Modbus/TCP): the run
+/// passes and more than 100 cases ran.
+fn reference_drive_behind_the_pdu_seam(rtu: bool) -> Results {
+    let builder = Session::builder()
         .profile("generic")
-        .device(StationDevice::new("generic", &[], false))
-        .tcp()
-        .run();
+        .device(StationDevice::new("generic", &[], rtu));
+    let results = if rtu { builder.rtu() } else { builder.tcp() }.run();
     results.assert_passes();
     assert!(ran(&results) > 100, "{results}");
+    results
+}
+
+#[test]
+fn reference_drive_behind_the_pdu_seam_passes_over_tcp() {
+    let results = reference_drive_behind_the_pdu_seam(false);
     assert!(results.verdict("tcp/mbap/transaction-id-echo").is_some());
 }
 
 #[test]
 fn reference_drive_behind_the_pdu_seam_passes_over_rtu() {
-    let results = Session::builder()
-        .profile("generic")
-        .device(StationDevice::new("generic", &[], true))
-        .rtu()
-        .run();
-    results.assert_passes();
-    assert!(ran(&results) > 100, "{results}");
+    let results = reference_drive_behind_the_pdu_seam(true);
     assert!(
         results.cases().iter().any(|c| c.id.starts_with("rtu/")),
         "no RTU case ran:\n{results}"
@@ -245,18 +245,17 @@ fn an_sd2x_following_the_fc43_example_is_learned_and_its_objects_are_checked() {
     for case in reads {
         // On the wire: the request without the Reserved byte (slave, 2B 0D, control 00, then the node id),
         // and the object in the answer, in the same form (not an exception, not an SDO error).
-        let tx: Vec<&[u8]> = case
-            .wire
-            .iter()
-            .filter(|w| w.dir == engine::observe::Dir::Tx)
-            .map(|w| w.bytes.as_slice())
-            .collect();
-        let rx: Vec<&[u8]> = case
-            .wire
-            .iter()
-            .filter(|w| w.dir == engine::observe::Dir::Rx)
-            .map(|w| w.bytes.as_slice())
-            .collect();
+        let on_wire = |dir: engine::observe::Dir| -> Vec<&[u8]> {
+            case.wire
+                .iter()
+                .filter(|w| w.dir == dir)
+                .map(|w| w.bytes.as_slice())
+                .collect()
+        };
+        let (tx, rx) = (
+            on_wire(engine::observe::Dir::Tx),
+            on_wire(engine::observe::Dir::Rx),
+        );
         assert!(
             matches!(tx.as_slice(), [[_, 0x2B, 0x0D, 0x00, node, ..]] if *node != 0),
             "{}: sent {tx:02X?}",

@@ -170,6 +170,15 @@ fn on_two_threads<T: Send, R: Send>(jobs: Vec<T>, work: impl Fn(T) -> R + Sync) 
     results.into_inner().expect("results")
 }
 
+/// Run `work` on every job on two threads ([`on_two_threads`]); panics listing every problem it reported.
+fn assert_no_problems<T: Send, P: IntoIterator<Item = String> + Send>(
+    jobs: Vec<T>,
+    work: impl Fn(T) -> P + Sync,
+) {
+    let problems: Vec<String> = on_two_threads(jobs, work).into_iter().flatten().collect();
+    assert!(problems.is_empty(), "{problems:#?}");
+}
+
 #[test]
 fn drives_taking_any_admissible_choice_pass_the_catalog_and_faults_still_fail_their_witnesses() {
     let configs = configurations();
@@ -283,7 +292,7 @@ fn generated_cases_admit_the_transport_choices() {
         .iter()
         .flat_map(|t| CHOICES.iter().map(move |c| (*t, *c)))
         .collect();
-    let problems: Vec<String> = on_two_threads(jobs, |(target, choice)| {
+    assert_no_problems(jobs, |(target, choice)| {
         let (out, bad) = generated(target, &[choice.to_string()], 300, 5);
         let (id, value) = choice.split_once('=').expect("choice");
         let mut problems = Vec::new();
@@ -301,11 +310,7 @@ fn generated_cases_admit_the_transport_choices() {
             ));
         }
         problems
-    })
-    .into_iter()
-    .flatten()
-    .collect();
-    assert!(problems.is_empty(), "{problems:#?}");
+    });
 }
 
 /// Generated cases meet the vendor readings, functions served beyond the profile and unit ids with requests
@@ -339,17 +344,13 @@ fn generated_cases_admit_the_vendor_readings_and_extra_functions() {
         ("sim:lmd", 2300, 400, &["tcp-unit-ids=silence"]),
         ("sim:mdrive", 9903, 100, &["mbap-length-long=exception-03"]),
     ];
-    let problems: Vec<String> = on_two_threads(jobs, |(target, seed, n, choose)| {
+    assert_no_problems(jobs, |(target, seed, n, choose)| {
         let choose: Vec<String> = choose.iter().map(|c| c.to_string()).collect();
         let (_, bad) = generated(target, &choose, n, seed);
         (!bad.is_empty()).then(|| {
             format!("{target} --choose {choose:?} --generated {n} --seed {seed}: FAIL or NON-STRICT {bad:?}")
         })
-    })
-    .into_iter()
-    .flatten()
-    .collect();
-    assert!(problems.is_empty(), "{problems:#?}");
+    });
 }
 
 /// A drive that takes a half of a 32-bit register (`partial-register-write=response`) changes state where
@@ -364,7 +365,7 @@ fn the_reference_follows_a_drive_that_takes_half_registers() {
         ("sim:lmd", 3102, 400),
         ("sim:mdrive?transport=rtu", 3102, 400),
     ];
-    let problems: Vec<String> = on_two_threads(jobs, |(target, seed, n)| {
+    assert_no_problems(jobs, |(target, seed, n)| {
         let choose = vec!["partial-register-write=response".to_string()];
         let (out, bad) = generated(target, &choose, n, seed);
         let shown = out
@@ -384,11 +385,7 @@ fn the_reference_follows_a_drive_that_takes_half_registers() {
                 "{target}: the choice recorded is {other:?}, not response case after case"
             )),
         }
-    })
-    .into_iter()
-    .flatten()
-    .collect();
-    assert!(problems.is_empty(), "{problems:#?}");
+    });
 }
 
 /// Drives taking random combinations of choices (`bench/freedom-combos.py --nonstrict`) were rated
@@ -442,17 +439,13 @@ fn choices_are_recorded_from_unambiguous_evidence_only() {
             ],
         ),
     ];
-    let problems: Vec<String> = on_two_threads(jobs, |(target, seed, choose)| {
+    assert_no_problems(jobs, |(target, seed, choose)| {
         let choose: Vec<String> = choose.iter().map(|c| c.to_string()).collect();
         let (_, bad) = generated_with(target, &choose, 400, seed, true);
         (!bad.is_empty()).then(|| {
             format!("{target} --choose {choose:?} --with-catalog --generated 400 --seed {seed}: FAIL or NON-STRICT {bad:?}")
         })
-    })
-    .into_iter()
-    .flatten()
-    .collect();
-    assert!(problems.is_empty(), "{problems:#?}");
+    });
 }
 
 /// `n` generated cases of `seed` against `target` taking `choose`: the run, and the cases it FAILed or rated

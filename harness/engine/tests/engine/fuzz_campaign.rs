@@ -6,7 +6,7 @@ use std::time::Duration;
 
 use drives::{Fault, FaultSet};
 use engine::Verdict;
-use engine::campaign::{CampaignOptions, FindingKind, campaign};
+use engine::campaign::{CampaignFinding, CampaignOptions, CampaignOutcome, FindingKind, campaign};
 use engine::session::{Options, run};
 use engine::targets::TargetUrl;
 use test_support::TempDir;
@@ -37,7 +37,7 @@ fn options_on(
 }
 
 /// A campaign with no log, no interrupt and no progress; it must complete.
-fn quiet(o: &CampaignOptions) -> engine::campaign::CampaignOutcome {
+fn quiet(o: &CampaignOptions) -> CampaignOutcome {
     campaign(
         o,
         &mut std::io::sink(),
@@ -45,6 +45,14 @@ fn quiet(o: &CampaignOptions) -> engine::campaign::CampaignOutcome {
         |_, _, _| {},
     )
     .expect("campaign")
+}
+
+/// The campaign's finding that the drive stopped answering; panics with `missing` when there is none.
+fn stopped_answering<'a>(out: &'a CampaignOutcome, missing: &str) -> &'a CampaignFinding {
+    out.findings
+        .iter()
+        .find(|f| f.kind == FindingKind::StoppedAnswering)
+        .expect(missing)
 }
 
 #[test]
@@ -64,11 +72,7 @@ fn finds_a_drive_that_stops_answering_and_keeps_a_reproducer() {
         true,
     );
     let out = quiet(&o);
-    let stop = out
-        .findings
-        .iter()
-        .find(|f| f.kind == FindingKind::StoppedAnswering)
-        .expect("the liveness probe notices the dead drive");
+    let stop = stopped_answering(&out, "the liveness probe notices the dead drive");
     assert!(out.cases <= 3000, "bounded: {} cases", out.cases);
     assert_eq!(
         stop.replayed,
@@ -155,11 +159,7 @@ fn a_drive_that_stops_answering_is_probed_at_once() {
     let mut o = options(&[Fault::StopAfterMalformed], dir.path(), false);
     o.probe_every = 1_000_000;
     let out = quiet(&o);
-    let f = out
-        .findings
-        .iter()
-        .find(|f| f.kind == FindingKind::StoppedAnswering)
-        .expect("stopped answering found without a periodic probe");
+    let f = stopped_answering(&out, "stopped answering found without a periodic probe");
     assert_eq!(out.stopped, "the drive stopped answering");
     // The malformed case, the case that went unanswered after it, and the probe.
     assert!(

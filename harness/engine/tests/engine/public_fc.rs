@@ -33,6 +33,17 @@ fn context<'a>(p: &'a drives::profile::Profile, req: &'a Request) -> StepContext
     }
 }
 
+/// `check` with the corpus freedom `id` and the context of a step sending `req` to the generic profile.
+fn with_freedom(
+    id: &str,
+    req: Request,
+    check: impl FnOnce(&drives::requirements::Freedom, &StepContext<'_>),
+) {
+    let (reqs, p) = corpus();
+    let f = reqs.freedom(id).expect("freedom in the corpus");
+    check(f, &context(&p, &req));
+}
+
 fn server_id(run: u8) -> Response {
     let mut data = vec![0x47, run];
     data.extend_from_slice(b"modbus-harness generic");
@@ -43,23 +54,19 @@ fn server_id(run: u8) -> Response {
 /// changed, is not.
 #[test]
 fn run_indicator_off_is_admissible_and_0x01_is_not() {
-    let (reqs, p) = corpus();
-    let f = reqs
-        .freedom("run-indicator-status")
-        .expect("freedom in the corpus");
-    let req = Request::ReportServerId;
-    let cx = context(&p, &req);
-    let on = server_id(0xFF);
-    let off = alternatives(f, &cx, Some(&on), Some(&server_id(0x00)));
-    assert_eq!(off.len(), 1);
-    assert_eq!(off[0].shown.value, "off");
-    assert_eq!(off[0].answer.as_ref(), Some(&server_id(0x00)));
-    assert!(alternatives(f, &cx, Some(&on), Some(&server_id(0x01))).is_empty());
-    let mut other_id = server_id(0x00);
-    if let Response::ReportServerId { data } = &mut other_id {
-        data[0] = 0x48;
-    }
-    assert!(alternatives(f, &cx, Some(&on), Some(&other_id)).is_empty());
+    with_freedom("run-indicator-status", Request::ReportServerId, |f, cx| {
+        let on = server_id(0xFF);
+        let off = alternatives(f, cx, Some(&on), Some(&server_id(0x00)));
+        assert_eq!(off.len(), 1);
+        assert_eq!(off[0].shown.value, "off");
+        assert_eq!(off[0].answer.as_ref(), Some(&server_id(0x00)));
+        assert!(alternatives(f, cx, Some(&on), Some(&server_id(0x01))).is_empty());
+        let mut other_id = server_id(0x00);
+        if let Response::ReportServerId { data } = &mut other_id {
+            data[0] = 0x48;
+        }
+        assert!(alternatives(f, cx, Some(&on), Some(&other_id)).is_empty());
+    });
 }
 
 /// A one-group FC 14 answer is kept and written back with FC 15 at the same records.
@@ -104,21 +111,21 @@ fn file_records_are_captured_and_restored_with_fc15() {
 /// counted), two more (the exceptions counted, fault `event-counter-counts-exceptions`) is not.
 #[test]
 fn event_counter_may_count_the_clear_but_nothing_more() {
-    let (reqs, p) = corpus();
-    let f = reqs
-        .freedom("event-counter-clear-counted")
-        .expect("freedom in the corpus");
-    let req = Request::GetCommEventCounter;
-    let cx = context(&p, &req);
-    let count = |n| Response::GetCommEventCounter {
-        status: 0,
-        event_count: n,
-    };
-    let one_more = alternatives(f, &cx, Some(&count(1)), Some(&count(2)));
-    assert_eq!(one_more.len(), 1);
-    assert_eq!(one_more[0].shown.value, "counted");
-    assert!(alternatives(f, &cx, Some(&count(1)), Some(&count(3))).is_empty());
-    assert!(alternatives(f, &cx, Some(&count(1)), Some(&count(0))).is_empty());
+    with_freedom(
+        "event-counter-clear-counted",
+        Request::GetCommEventCounter,
+        |f, cx| {
+            let count = |n| Response::GetCommEventCounter {
+                status: 0,
+                event_count: n,
+            };
+            let one_more = alternatives(f, cx, Some(&count(1)), Some(&count(2)));
+            assert_eq!(one_more.len(), 1);
+            assert_eq!(one_more[0].shown.value, "counted");
+            assert!(alternatives(f, cx, Some(&count(1)), Some(&count(3))).is_empty());
+            assert!(alternatives(f, cx, Some(&count(1)), Some(&count(0))).is_empty());
+        },
+    );
 }
 
 /// `truncated-pdu`: where the reference refuses a truncated PDU with 03 and the drive closes the connection

@@ -14,7 +14,7 @@ use engine::runner::{RunConfig, Runner, Safety, Timing};
 use engine::safety::classify;
 use engine::targets::sim::SimTarget;
 use engine::{Case, Compare, Level, Outgoing, Step, Tag, Verdict};
-use test_support::{profile, station};
+use test_support::{assert_none, profile, station};
 
 const PROFILES: [&str; 4] = ["mdrive", "lmd", "sd2x", "generic"];
 
@@ -138,12 +138,7 @@ fn no_case_is_tagged_weaker_than_the_classifier_rates_its_bytes() {
         );
     }
     assert!(checked > 1000, "only {checked} cases");
-    assert!(
-        bad.is_empty(),
-        "{} cases tagged weaker than their bytes:\n{}",
-        bad.len(),
-        bad.join("\n")
-    );
+    assert_none(&bad, "cases tagged weaker than their bytes");
 }
 
 /// A case tagged read-only whose bytes write a motion register (the MDrive's homing mode) is not sent: the

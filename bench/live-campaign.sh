@@ -81,7 +81,10 @@ for round in $(seq "$ROUNDS"); do
       eps=$(sed -n 's/.*(\([0-9]*\) exec\/s).*/\1/p' <<<"$line")
       [ -n "$eps" ] || { echo "live-campaign.sh: $label ($mode) gave no summary" >&2; exit 1; }
       printf '%s\t%s\n' "${label%+w} ($mode)" "$eps" >>"$results"
-      echo "round $round  ${label%+w} ($mode)  $eps exec/s" >&2
+      # Binaries that print the requests they sent (cases, sentinels, probes, restores) get a row of those.
+      rps=$(sed -n 's/.* requests (\([0-9]*\)\/s).*/\1/p' <<<"$line")
+      [ -z "$rps" ] || printf '%s\t%s\n' "${label%+w} ($mode), requests" "$rps" >>"$results"
+      echo "round $round  ${label%+w} ($mode)  $eps exec/s${rps:+, $rps requests/s}" >&2
     done
   done
   kill "$(tail -1 "$work/pids")" 2>/dev/null || true
@@ -102,10 +105,12 @@ floor = statistics.median(v["floor"])
 print(f"`fuzz --profile {profile} --seed 1 --duration {secs}s` against `simulate --profile {profile}` on 127.0.0.1, "
       f"{rounds} round(s), medians; load average before {lb}, after {la}.")
 print()
-print("| client → simulator | exec/s (req/s for the floor) | per round | of the ping-pong floor |")
+print("| client → simulator | exec/s (req/s for the floor and the `requests` rows) | per round | of the ping-pong floor |")
 print("|---|---:|---|---:|")
 for k in order:
     m = statistics.median(v[k])
     name = "raw TCP ping-pong (the floor)" if k == "floor" else f"`fuzz` {k}"
+    if k.endswith(", requests"):
+        name = f"`fuzz` {k[: -len(', requests')]}: requests sent"
     print(f"| {name} | {m:,.0f} | {', '.join(f'{x:,.0f}' for x in v[k])} | {m / floor * 100:.1f}% |")
 EOF

@@ -165,7 +165,7 @@ pub fn inventory(profile: &Profile, safety: &Safety) -> Inventory {
     for b in profile.coils.iter().map(|b| b.get_ref()) {
         let unconfirmed = "unconfirmed draft entry, never written";
         let reason = access_reason(b.confirmed, unconfirmed, b.access, || {
-            gate(b.motion, false, safety)
+            gate(b.motion, b.destructive, safety)
         });
         let place = Place::Coil { address: b.address };
         file(format!("coil:{}", b.address), &b.name, reason, place);
@@ -191,7 +191,7 @@ pub fn inventory(profile: &Profile, safety: &Safety) -> Inventory {
             Some(r) if o.access == Access::Rw => {
                 Some(format!("mirrors holding register {r}, restored there"))
             }
-            _ => access_reason(true, "", o.access, || gate(o.motion, false, safety)),
+            _ => access_reason(true, "", o.access, || gate(o.motion, o.destructive, safety)),
         };
         let place = Place::Object {
             node: 0,
@@ -1350,5 +1350,68 @@ mod tests {
             },
         );
         assert!(allowed.items.len() > safe.items.len());
+    }
+
+    /// A coil or object whose write cannot be put back (an action, a counter reset) is not written back without
+    /// --allow-destructive, as a destructive register or setting is not: writing its old value may do the
+    /// action again.
+    #[test]
+    fn destructive_coils_and_objects_are_kept_only_when_destructive_writes_are_allowed() {
+        let mut p = drives::corpus::Corpus::Embedded
+            .load("generic")
+            .expect("generic");
+        p.coils[0].get_mut().destructive = true;
+        let first = p.coils[0].get_ref().address;
+        let kept = |inv: &Inventory| {
+            inv.items
+                .iter()
+                .any(|i| matches!(i.place, Place::Coil { address } if address == first))
+        };
+        let safe = inventory(&p, &Safety::default());
+        assert!(!kept(&safe), "kept without --allow-destructive");
+        let why = safe
+            .excluded
+            .iter()
+            .find(|e| e.key == format!("coil:{first}"));
+        assert!(
+            why.is_some_and(|e| e.reason.starts_with("destructive")),
+            "{why:?}"
+        );
+        let allowed = Safety {
+            allow_destructive: true,
+            ..Safety::default()
+        };
+        assert!(kept(&inventory(&p, &allowed)));
+        // The other coils are kept either way.
+        assert!(
+            safe.items
+                .iter()
+                .any(|i| matches!(i.place, Place::Coil { .. }))
+        );
+        // An object that mirrors no register, likewise (the SD2x's own read/write objects all mirror one or
+        // move the motor: the first one, made a plain setting).
+        let mut p = drives::corpus::Corpus::Embedded.load("sd2x").expect("sd2x");
+        let (index, subindex) = {
+            let o = p.objects[0].get_mut();
+            (o.access, o.register, o.motion) = (drives::profile::Access::Rw, None, false);
+            (o.index, o.subindex)
+        };
+        assert!(
+            kept_object(&inventory(&p, &Safety::default()), index, subindex),
+            "kept while not destructive"
+        );
+        p.objects[0].get_mut().destructive = true;
+        assert!(!kept_object(
+            &inventory(&p, &Safety::default()),
+            index,
+            subindex
+        ));
+        assert!(kept_object(&inventory(&p, &allowed), index, subindex));
+    }
+
+    fn kept_object(inv: &Inventory, index: u16, subindex: u8) -> bool {
+        inv.items.iter().any(|i| {
+            matches!(i.place, Place::Object { index: x, subindex: s, .. } if x == index && s == subindex)
+        })
     }
 }

@@ -199,8 +199,9 @@ fn a_drive_that_answers_malformed_is_not_taken_for_one_that_stopped() {
 }
 
 /// The faults of the public function codes the generator draws on the generic profile (issue 17 item 5:
-/// FC 07, 0B, 0C, 11, 14, 15, 16, 18, and 08/04 followed by 08/01), each with the framing where the function
-/// shows it (the event log after a restart and listen only mode act on a serial line).
+/// FC 07, 0B, 0C, 11, 14, 15, 16, 18, 2B/0E, and 08/04 followed by 08/01), each with the framing where the
+/// function shows it (the event log after a restart and listen only mode act on a serial line), and an SD2x
+/// that refuses a function code its manual lists.
 const PUBLIC_FC_FAULTS: &[(Fault, &str)] = &[
     (Fault::ExceptionStatusReversed, "sim:generic"),
     (Fault::EventCounterCountsExceptions, "sim:generic"),
@@ -211,12 +212,16 @@ const PUBLIC_FC_FAULTS: &[(Fault, &str)] = &[
     (Fault::MaskWriteWrong, "sim:generic"),
     (Fault::FifoOffByOne, "sim:generic"),
     (Fault::ListenOnlyIgnored, "sim:generic?transport=rtu"),
+    // FC 2B/0E: a regular object where the declared conformity level says basic (6.21).
+    (Fault::ConformityLevelWrong, "sim:generic"),
+    // FC 04 refused although the SD2x manual lists it (line 277).
+    (Fault::ListedFunctionRefused, "sim:sd2x"),
 ];
 
 /// Each fault of [`PUBLIC_FC_FAULTS`] is found by a short seeded campaign, and the same campaigns find
-/// nothing on a healthy drive (no case of these function codes FAILs a conforming answer).
+/// nothing on the healthy drives (no case of these function codes FAILs a conforming answer).
 #[test]
-fn the_public_function_code_faults_are_found_and_a_healthy_generic_drive_gives_none() {
+fn the_public_function_code_faults_are_found_and_healthy_drives_give_none() {
     let dir = TempDir::new("fuzz-public-fc");
     let mut problems = Vec::new();
     for (fault, target) in PUBLIC_FC_FAULTS {
@@ -235,7 +240,7 @@ fn the_public_function_code_faults_are_found_and_a_healthy_generic_drive_gives_n
             ));
         }
     }
-    for target in ["sim:generic", "sim:generic?transport=rtu"] {
+    for target in ["sim:generic", "sim:generic?transport=rtu", "sim:sd2x"] {
         let mut o = options_on(target, &[], dir.path(), true);
         o.max_cases = Some(1500);
         let out = quiet(&o);

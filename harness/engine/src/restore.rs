@@ -147,8 +147,8 @@ pub fn inventory(profile: &Profile, safety: &Safety) -> Inventory {
         if r.table == Table::Input {
             continue;
         }
-        let unconfirmed = "unconfirmed draft entry: width and access unknown, never written";
-        let reason = access_reason(r.confirmed, unconfirmed, r.access, || {
+        let draft = "unconfirmed draft entry: width and access unknown, never written";
+        let reason = access_reason((!r.confirmed).then_some(draft), r.access, || {
             gate(r.motion, r.destructive, safety)
         });
         let place = Place::Holding {
@@ -163,8 +163,8 @@ pub fn inventory(profile: &Profile, safety: &Safety) -> Inventory {
         );
     }
     for b in profile.coils.iter().map(|b| b.get_ref()) {
-        let unconfirmed = "unconfirmed draft entry, never written";
-        let reason = access_reason(b.confirmed, unconfirmed, b.access, || {
+        let draft = "unconfirmed draft entry, never written";
+        let reason = access_reason((!b.confirmed).then_some(draft), b.access, || {
             gate(b.motion, b.destructive, safety)
         });
         let place = Place::Coil { address: b.address };
@@ -191,7 +191,7 @@ pub fn inventory(profile: &Profile, safety: &Safety) -> Inventory {
             Some(r) if o.access == Access::Rw => {
                 Some(format!("mirrors holding register {r}, restored there"))
             }
-            _ => access_reason(true, "", o.access, || gate(o.motion, o.destructive, safety)),
+            _ => access_reason(None, o.access, || gate(o.motion, o.destructive, safety)),
         };
         let place = Place::Object {
             node: 0,
@@ -209,16 +209,15 @@ pub fn inventory(profile: &Profile, safety: &Safety) -> Inventory {
     inv
 }
 
-/// Why an entry is left out: `unconfirmed` for a draft entry not confirmed, read-only, write-only (it cannot
-/// be read back), or what `gated` says of a read/write entry.
+/// Why an entry is left out: `draft` (the reason, for a draft entry not confirmed), read-only, write-only (it
+/// cannot be read back), or what `gated` says of a read/write entry.
 fn access_reason(
-    confirmed: bool,
-    unconfirmed: &str,
+    draft: Option<&str>,
     access: Access,
     gated: impl FnOnce() -> Option<String>,
 ) -> Option<String> {
-    if !confirmed {
-        return Some(unconfirmed.to_string());
+    if let Some(why) = draft {
+        return Some(why.to_string());
     }
     match access {
         Access::Ro => Some("read-only".to_string()),

@@ -12,7 +12,9 @@
 #   --core C     the core everything is pinned to (default 0)
 #   --sim BIN    the binary whose `simulate` serves (default: the last LABEL=BINARY); one simulator per round,
 #                so every binary of a round fuzzes the same server
-#   LABEL=BINARY a modbus-harness binary to measure, with `--no-sentinel` as a second row when LABEL ends in +w
+#   LABEL=BINARY a modbus-harness binary to measure, with `--no-sentinel` as a second row when LABEL ends in +w,
+#                and with `--pipeline 1` (one request at a time; the binary's default pipelines) as another
+#                row when it ends in +p (+wp: both)
 #
 # Needs gcc, pkg-config, libmodbus-dev (for bench/peers.c), taskset, timeout. Prints a Markdown table on
 # stdout and progress on stderr. Every process started is stopped at exit; every run is bounded by `timeout`.
@@ -70,21 +72,27 @@ for round in $(seq "$ROUNDS"); do
   echo "round $round  ping-pong floor  $floor req/s" >&2
   for b in "${BINS[@]}"; do
     label=${b%%=*} bin=${b#*=}
-    for mode in sentinel window; do
+    flags=${label##*+}
+    [ "$flags" != "$label" ] || flags=
+    for mode in sentinel window one-at-a-time; do
       extra=()
       if [ "$mode" = window ]; then
-        [[ "$label" == *+w ]] || continue
+        [[ "$flags" == *w* ]] || continue
         extra=(--no-sentinel)
+      fi
+      if [ "$mode" = one-at-a-time ]; then
+        [[ "$flags" == *p* ]] || continue
+        extra=(--pipeline 1)
       fi
       line=$(timeout "$limit" "${pin[@]}" "$bin" fuzz --target "tcp://$sim" --profile "$PROFILE" --seed 1 \
         --duration "${SECS}s" "${extra[@]}" 2>&1 | grep -E '^fuzz: [0-9]+ cases' | tail -1 || true)
       eps=$(sed -n 's/.*(\([0-9]*\) exec\/s).*/\1/p' <<<"$line")
       [ -n "$eps" ] || { echo "live-campaign.sh: $label ($mode) gave no summary" >&2; exit 1; }
-      printf '%s\t%s\n' "${label%+w} ($mode)" "$eps" >>"$results"
+      printf '%s\t%s\n' "${label%+*} ($mode)" "$eps" >>"$results"
       # Binaries that print the requests they sent (cases, sentinels, probes, restores) get a row of those.
       rps=$(sed -n 's/.* requests (\([0-9]*\)\/s).*/\1/p' <<<"$line")
-      [ -z "$rps" ] || printf '%s\t%s\n' "${label%+w} ($mode), requests" "$rps" >>"$results"
-      echo "round $round  ${label%+w} ($mode)  $eps exec/s${rps:+, $rps requests/s}" >&2
+      [ -z "$rps" ] || printf '%s\t%s\n' "${label%+*} ($mode), requests" "$rps" >>"$results"
+      echo "round $round  ${label%+*} ($mode)  $eps exec/s${rps:+, $rps requests/s}" >&2
     done
   done
   kill "$(tail -1 "$work/pids")" 2>/dev/null || true

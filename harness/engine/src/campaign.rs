@@ -37,6 +37,10 @@ pub struct CampaignOptions {
     /// With `keep_going`: stop after this many distinct findings (by signature; repeats are counted, not
     /// written again).
     pub max_findings: usize,
+    /// Modbus/TCP to a real target: put up to this many generated reads in flight at once where the target
+    /// answers a burst of that many known-good reads sent in one write (see
+    /// [`crate::runner::Runner::discover_pipelining`]); 1 sends one request at a time.
+    pub pipeline: usize,
 }
 
 /// Why the campaign does not send `case` (already rated by the classifier), if it does not: the run's
@@ -98,6 +102,10 @@ pub struct CampaignOutcome {
     pub seed: u64,
     /// With `--allow-writes` against a real drive: what was read before the first write and put back.
     pub leave_as_found: Option<crate::restore::Account>,
+    /// How many requests were put in flight at once (at the start; 1 when one at a time), and why.
+    pub pipelining: crate::runner::Pipelining,
+    /// Cases whose request went out with others in flight.
+    pub pipelined: u64,
 }
 
 impl CampaignOutcome {
@@ -430,6 +438,9 @@ fn heard_anything(result: &crate::observe::CaseResult) -> bool {
             })
 }
 
+/// A case whose answer may come from a pipeline, and whether it did.
+type Ran = (Case, crate::observe::CaseResult, bool);
+
 /// The campaign's loop (see [`campaign`]).
 #[allow(clippy::too_many_arguments)]
 fn fuzz_loop(
@@ -447,55 +458,113 @@ fn fuzz_loop(
     let probe = probe_case(profile);
     let started = Instant::now();
     let mut last_tick = Instant::now();
-    let (mut cases, mut probes, mut index) = (0u64, 0u64, 0u64);
+    let (mut cases, mut probes, mut index, mut pipelined) = (0u64, 0u64, 0u64, 0u64);
     let mut history: Vec<Case> = Vec::new();
     let mut findings = Vec::new();
     let mut seen = std::collections::BTreeSet::new();
     let mut repeats = 0u64;
     let mut stopped = None;
+    // Requests in flight at once: found out before the first case (a FAIL of the burst is a finding).
+    let (pipelining, burst) = runner.discover_pipelining(opts.pipeline)?;
+    if opts.pipeline > 1 && !cfg.is_sim {
+        let _ = writeln!(
+            log,
+            "fuzz: {} ({})",
+            if pipelining.depth > 1 {
+                format!("up to {} requests in flight", pipelining.depth)
+            } else {
+                "one request at a time".to_string()
+            },
+            pipelining.why
+        );
+    }
+    let mut depth = pipelining.depth;
+    if let Some((case, result)) = burst.filter(|(_, r)| r.verdict == Verdict::Fail) {
+        let f: Vec<String> = result.findings().cloned().collect();
+        let first = f.first().cloned().unwrap_or_default();
+        let _ = writeln!(log, "finding: {} FAILs: {first}", case.id);
+        seen.insert(signature(FindingKind::Fail, &case.id, &first));
+        let d = Detected {
+            kind: FindingKind::Fail,
+            case_id: case.id.clone(),
+            findings: f,
+            history: vec![case],
+        };
+        findings.push(record(opts, &profile.device.id, d, &probe, log));
+        if !opts.keep_going {
+            stopped = Some("the first finding (--keep-going goes on)".to_string());
+        }
+    }
+    // Cases generated and allowed, not run yet (a case that ended a pipelined batch runs next).
+    let mut queue: std::collections::VecDeque<Case> = std::collections::VecDeque::new();
     // Bounded by the duration, the case limit and the interrupt; a generator that only produced skipped
     // cases is bounded by the index limit.
-    while started.elapsed() < opts.duration
+    while stopped.is_none()
+        && started.elapsed() < opts.duration
         && opts.max_cases.is_none_or(|m| cases < m)
         && !interrupt.load(Ordering::SeqCst)
         && index < u64::MAX / 2
     {
         // Every generated input is rated by the classifier before the policy decides; the runner rates
         // the bytes again just before sending.
-        let case = generator.case(index).retagged(profile, cfg.unit);
-        index += 1;
-        if campaign_skip(&case, cfg, framing, opts.allow_writes).is_some() {
+        let next_case = |index: &mut u64| {
+            let case = generator.case(*index).retagged(profile, cfg.unit);
+            *index += 1;
+            campaign_skip(&case, cfg, framing, opts.allow_writes)
+                .is_none()
+                .then_some(case)
+        };
+        let Some(case) = queue.pop_front().or_else(|| next_case(&mut index)) else {
             continue;
-        }
-        let mut touched = None;
-        if let Some(k) = keeper.as_deref_mut() {
-            let t = k.touched(&case);
-            if (case.has(crate::cases::Tag::Write) || !t.is_empty()) && !k.armed() {
-                k.take_snapshot(runner)?;
-                let a = k.account();
-                let _ = writeln!(
-                    log,
-                    "leave as found: {} parameter(s) read before the first write (journal {})",
-                    a.kept,
-                    a.journal
-                        .as_ref()
-                        .map_or_else(|| "none".into(), |p| p.display().to_string())
-                );
-                crate::session::align_reference(log, k, runner, profile);
+        };
+        let untouched = |k: &Option<&mut crate::restore::Keeper>, c: &Case| {
+            k.as_deref().is_none_or(|k| k.touched(c).is_empty())
+        };
+        let ran: Vec<Ran> = if depth > 1 && runner.pipelinable(&case) && untouched(&keeper, &case) {
+            // A batch: this case and the pipelinable ones after it, up to the depth, the next liveness
+            // probe and the case limit; the first one that cannot be pipelined runs after them.
+            let every = opts.probe_every.max(1);
+            let room = (every - cases % every)
+                .min(opts.max_cases.map_or(u64::MAX, |m| m.saturating_sub(cases)))
+                .min(depth as u64) as usize;
+            let mut batch = vec![case];
+            // Bounded by the room and by the generated indices looked at (skipped ones included).
+            for _ in 0..room.saturating_mul(8) {
+                if batch.len() >= room {
+                    break;
+                }
+                let Some(c) = next_case(&mut index) else {
+                    continue;
+                };
+                if runner.pipelinable(&c) && untouched(&keeper, &c) {
+                    batch.push(c);
+                } else {
+                    queue.push_back(c);
+                    break;
+                }
             }
-            if !t.is_empty() {
-                touched = Some(t);
+            if batch.len() < 2 {
+                // Nothing to put in flight beside it.
+                let case = batch.remove(0);
+                let result = runner.run_case(&case)?;
+                vec![(case, result, false)]
+            } else {
+                let results = runner.run_pipelined(&batch)?;
+            batch
+                .into_iter()
+                .zip(results)
+                .map(|(c, (r, p))| (c, r, p))
+                .collect()
             }
-        }
-        let result = runner.run_case(&case)?;
-        if let (Some(k), Some(t)) = (keeper.as_deref_mut(), touched.as_ref()) {
-            k.after_case(runner, &case.id, t, profile)?;
-        }
-        cases += 1;
-        history.push(case.clone());
+        } else {
+            vec![run_one(runner, keeper.as_deref_mut(), case, profile, log)?]
+        };
+        cases += ran.len() as u64;
+        pipelined += ran.iter().filter(|r| r.2).count() as u64;
+        history.extend(ran.iter().map(|r| r.0.clone()));
         // A liveness probe right after a case whose due answer did not come (before judging it: a drive
         // that stopped answering is that finding, not a wrong answer), and every N cases.
-        if unanswered(&result) || cases % opts.probe_every.max(1) == 0 {
+        if ran.iter().any(|r| unanswered(&r.1)) || cases % opts.probe_every.max(1) == 0 {
             probes += 1;
             let p = runner.run_case(&probe)?;
             if p.verdict == Verdict::Fail {
@@ -539,11 +608,43 @@ fn fuzz_loop(
             }
             history.clear();
         }
-        if result.verdict == Verdict::Fail {
+        // A pipelined case that FAILs, went unanswered or was refused as busy ends the pipelining: from
+        // here one request at a time, so that every later finding is one of a request sent alone.
+        if let Some((c, r, _)) = ran
+            .iter()
+            .find(|(_, r, p)| *p && (r.verdict == Verdict::Fail || unanswered(r) || busy(r)))
+        {
+            depth = 1;
+            let _ = writeln!(
+                log,
+                "fuzz: one request at a time from here: {} was sent with other requests in flight and {}",
+                c.id,
+                if busy(r) {
+                    "was refused as busy (exception 06)"
+                } else if r.verdict == Verdict::Fail {
+                    "FAILs"
+                } else {
+                    "went unanswered"
+                }
+            );
+        }
+        for (case, result, in_flight) in &ran {
+            if result.verdict != Verdict::Fail {
+                continue;
+            }
             let f: Vec<String> = result.findings().cloned().collect();
             let first = f.first().cloned().unwrap_or_default();
             if seen.insert(signature(FindingKind::Fail, &case.id, &first)) {
-                let _ = writeln!(log, "finding: {} FAILs: {first}", case.id);
+                let _ = writeln!(
+                    log,
+                    "finding: {} FAILs{}: {first}",
+                    case.id,
+                    if *in_flight {
+                        " (its request was sent with others in flight)"
+                    } else {
+                        ""
+                    }
+                );
                 let d = Detected {
                     kind: FindingKind::Fail,
                     case_id: case.id.clone(),
@@ -594,5 +695,49 @@ fn fuzz_loop(
         stopped,
         seed: opts.seed,
         leave_as_found: None,
+        pipelining,
+        pipelined,
+    })
+}
+
+/// Run one case alone; with a keeper (`--allow-writes` against a real drive), the drive's parameters are
+/// read before the first case that may write, and what the case changed is put back after it.
+fn run_one(
+    runner: &mut crate::runner::Runner,
+    keeper: Option<&mut crate::restore::Keeper>,
+    case: Case,
+    profile: &drives::profile::Profile,
+    log: &mut dyn Write,
+) -> Result<Ran, SessionError> {
+    let Some(k) = keeper else {
+        let result = runner.run_case(&case)?;
+        return Ok((case, result, false));
+    };
+    let t = k.touched(&case);
+    if (case.has(crate::cases::Tag::Write) || !t.is_empty()) && !k.armed() {
+        k.take_snapshot(runner)?;
+        let a = k.account();
+        let _ = writeln!(
+            log,
+            "leave as found: {} parameter(s) read before the first write (journal {})",
+            a.kept,
+            a.journal
+                .as_ref()
+                .map_or_else(|| "none".into(), |p| p.display().to_string())
+        );
+        crate::session::align_reference(log, k, runner, profile);
+    }
+    let result = runner.run_case(&case)?;
+    if !t.is_empty() {
+        k.after_case(runner, &case.id, &t, profile)?;
+    }
+    Ok((case, result, false))
+}
+
+/// True when an answer of the case was exception 06, Server Busy.
+fn busy(result: &crate::observe::CaseResult) -> bool {
+    result.steps.iter().flat_map(|s| &s.observed).any(|o| {
+        matches!(o, crate::targets::Received::Frame { bytes, .. }
+            if matches!(bytes.get(codec::tcp::MBAP_LEN..), Some([fc, 0x06]) if fc & 0x80 != 0))
     })
 }

@@ -87,6 +87,13 @@ pub struct FuzzArgs {
     /// with other numbers is a repeat: counted, no second reproducer).
     #[arg(long, default_value_t = 20, value_name = "N")]
     max_findings: usize,
+    /// Modbus/TCP: put up to N generated reads in flight at once, when the target answers a burst of N
+    /// known-good reads sent in one write normally (sent before the first case; a FAIL of it is a finding).
+    /// Only plain reads (FC 01-04) of well-formed requests are pipelined; each is still judged alone, its
+    /// answer taken by transaction id. After a pipelined case FAILs, goes unanswered or is refused as busy,
+    /// the rest of the campaign sends one request at a time. 1: one request at a time throughout.
+    #[arg(long, default_value_t = 8, value_name = "N", value_parser = clap::value_parser!(u16).range(1..=64))]
+    pipeline: u16,
     /// With --allow-writes against a real drive: the state journal of the parameters read before the first
     /// write (default: a file in the temporary directory, named in the output, removed once every parameter
     /// reads as before); `restore --journal FILE` puts them back if the campaign could not.
@@ -164,6 +171,7 @@ pub fn run(args: &FuzzArgs) -> ExitCode {
         regressions,
         allow_writes: args.allow_writes,
         max_findings: args.max_findings,
+        pipeline: usize::from(args.pipeline),
     };
     let interrupt = Arc::new(AtomicBool::new(false));
     {
@@ -217,8 +225,16 @@ pub fn run(args: &FuzzArgs) -> ExitCode {
                 }
             }
             println!(
-                "fuzz: {} cases, {} probes in {:.1} s ({:.0} exec/s), {} requests ({:.0}/s), seed {}, {} finding(s){}; stopped by {}",
+                "fuzz: {} cases{}, {} probes in {:.1} s ({:.0} exec/s), {} requests ({:.0}/s), seed {}, {} finding(s){}; stopped by {}",
                 o.cases,
+                if o.pipelined > 0 {
+                    format!(
+                        " ({} pipelined, up to {} in flight)",
+                        o.pipelined, o.pipelining.depth
+                    )
+                } else {
+                    String::new()
+                },
                 o.probes,
                 o.elapsed.as_secs_f64(),
                 o.exec_per_sec(),

@@ -9,6 +9,7 @@ mod generated_snapshots;
 mod html_browser;
 mod junit_schema;
 mod leave_as_found;
+mod pipeline;
 mod profiles;
 mod rtu_resync;
 mod run;

@@ -33,6 +33,7 @@ fn options_on(
         regressions: dir.to_path_buf(),
         allow_writes: false,
         max_findings: 20,
+        pipeline: 1,
     }
 }
 

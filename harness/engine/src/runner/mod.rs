@@ -18,6 +18,10 @@ use drives::requirements::{FreedomKind, Requirements};
 use drives::station::Station;
 use std::sync::Arc;
 
+mod pipeline;
+
+pub use pipeline::{MAX_IN_FLIGHT, Pipelining};
+
 /// How long the runner waits.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Timing {
@@ -191,6 +195,12 @@ pub struct Runner {
     /// For a step that sends several requests in one write: the freedoms that decided each one's answer,
     /// found by sending them one by one to a copy of the reference (see [`decisions_one_by_one`]).
     frame_decisions: Vec<Vec<drives::Decision>>,
+    /// Modbus/TCP, pipelined cases (see [`pipeline`]): the requests of the cases to come that are on the
+    /// wire already, in case order, and the answers to them that arrived while an earlier case listened.
+    ahead: std::collections::VecDeque<pipeline::Ahead>,
+    stash: Vec<Received>,
+    /// The step's request went out before the step began (pipelined), at this time of the target's.
+    presented: Option<Duration>,
 }
 
 /// The freedoms that decide the answer to each of `frames` when `reference` gets them one at a time, in
@@ -289,6 +299,9 @@ impl Runner {
             requests: 0,
             reconnect_next: false,
             resync_rtu: false,
+            ahead: std::collections::VecDeque::new(),
+            stash: Vec::new(),
+            presented: None,
         }
     }
 
@@ -815,7 +828,7 @@ impl Runner {
                 // The late answer of a silence sentinel: expected, not this step's; dropped.
                 self.sentinels.remove(k);
                 let left = wait.saturating_sub(self.target.now().saturating_sub(start));
-                got = self.target.recv(left)?;
+                got = self.recv_answer(frames, left)?;
                 continue;
             }
             let Some((_, by, sent_at)) = self.recent.iter().rev().find(|(t, _, _)| *t == tid)
@@ -836,7 +849,7 @@ impl Runner {
             });
             record(&got, wire);
             let left = wait.saturating_sub(self.target.now().saturating_sub(start));
-            got = self.target.recv(left)?;
+            got = self.recv_answer(frames, left)?;
         }
         Ok(got)
     }
@@ -924,7 +937,7 @@ impl Runner {
             self.cfg.timing.timeout.max(self.cfg.timing.silence)
         };
         let start = self.target.now();
-        let got = self.target.recv(bound)?;
+        let got = self.recv_answer(frames, bound)?;
         let Received::Frame { bytes, .. } = &got else {
             if matches!(got, Received::Silence { .. }) && !reference_answers.is_empty() {
                 self.sentinel_given_up = true;
@@ -966,7 +979,7 @@ impl Runner {
                 .timing
                 .silence
                 .saturating_sub(self.target.now().saturating_sub(start));
-            return self.target.recv(left);
+            return self.recv_answer(frames, left);
         }
         // The sentinel's answer came with nothing for this step before it: the silence is proven.
         self.sentinels.retain(|t| *t != tid);
@@ -1145,27 +1158,47 @@ impl Runner {
 
     /// Run one case (already selected and allowed by the policy).
     pub fn run_case(&mut self, case: &Case) -> Result<CaseResult, TargetError> {
-        let started = self.target.now();
-        let mut wire = Vec::new();
-        let mut steps = Vec::new();
-        // Modbus/TCP: answers that came after their step gave up are attributed to their requests by
-        // transaction id and noted on this case's first step (on other framings they are only discarded).
-        let late = if self.target.framing() == Framing::Tcp {
-            let stale = self.target.drain_stale();
-            let notes = self.late_in(&stale);
-            if !stale.is_empty() {
-                wire.push(WireEvent {
-                    dir: Dir::Rx,
-                    at: self.target.now(),
-                    bytes: stale,
-                    intended_malformed: false,
-                });
-            }
-            notes
+        // Requests of pipelined cases on the wire: what arrives is theirs, not stale.
+        let (late, wire) = if self.ahead.is_empty() {
+            self.take_stale()
         } else {
-            self.target.drain();
-            Vec::new()
+            (Vec::new(), Vec::new())
         };
+        self.run_case_after(case, late, wire)
+    }
+
+    /// Discard what arrived unasked before a case. Modbus/TCP: answers that came after their step gave up
+    /// are attributed to their requests by transaction id, as notes for the case's first step, and kept for
+    /// its wire log (on other framings they are only discarded).
+    fn take_stale(&mut self) -> (Vec<String>, Vec<WireEvent>) {
+        let mut wire = Vec::new();
+        if self.target.framing() != Framing::Tcp {
+            self.target.drain();
+            return (Vec::new(), wire);
+        }
+        let stale = self.target.drain_stale();
+        let notes = self.late_in(&stale);
+        if !stale.is_empty() {
+            wire.push(WireEvent {
+                dir: Dir::Rx,
+                at: self.target.now(),
+                bytes: stale,
+                intended_malformed: false,
+            });
+        }
+        (notes, wire)
+    }
+
+    /// Run one case, the stale answers before it taken already (`late`: notes for its first step; `wire`:
+    /// its wire log so far).
+    fn run_case_after(
+        &mut self,
+        case: &Case,
+        late: Vec<String>,
+        mut wire: Vec<WireEvent>,
+    ) -> Result<CaseResult, TargetError> {
+        let started = self.target.now();
+        let mut steps = Vec::new();
         // One empty slot per capture the case names; a restore of a slot nothing filled is SKIPPED.
         self.slots = vec![None; case.slots()];
         self.case_id.clone_from(&case.id);
@@ -1478,6 +1511,14 @@ impl Runner {
     /// `None` for a restore with nothing captured.
     fn outgoing(&mut self, send: &Outgoing) -> Option<(Vec<Framed>, Vec<Piece>)> {
         let unit = self.cfg.unit;
+        self.presented = None;
+        // A pipelined case's request went out ahead of it (see [`pipeline`]).
+        if self.ahead.front().is_some_and(|a| a.case == self.case_id) {
+            let a = self.ahead.pop_front()?;
+            self.presented = Some(a.at);
+            let piece = vec![(a.frame.bytes.clone(), Duration::ZERO)];
+            return Some((vec![a.frame], piece));
+        }
         Some(match send {
             Outgoing::Pdu(p) => {
                 let f = self.frame(&self.in_drive_order(p), unit, None);
@@ -1572,6 +1613,19 @@ impl Runner {
                     });
                 }
             }
+            if let Some(at) = self.presented {
+                // Pipelined: on the wire already, with the requests of the cases after it.
+                wire.push(WireEvent {
+                    dir: Dir::Tx,
+                    at,
+                    bytes: bytes.clone(),
+                    intended_malformed: malformed,
+                });
+                before_last_write = at;
+                last_write = Some(at);
+                self.shadow.send(bytes)?;
+                continue;
+            }
             self.pace();
             wire.push(WireEvent {
                 dir: Dir::Tx,
@@ -1590,7 +1644,10 @@ impl Runner {
                 self.shadow.idle(*gap);
             }
         }
-        self.requests += frames.len() as u64;
+        if self.presented.is_none() {
+            // (Pipelined requests were counted when they went out.)
+            self.requests += frames.len() as u64;
+        }
         for f in frames {
             let by = self.case_id.clone();
             self.remember(f.sent.tid, by);
@@ -1624,7 +1681,11 @@ impl Runner {
                 .collect()
         });
         let judged_expected = expected_judged.as_deref().unwrap_or(&expected);
-        let decisions = self.shadow.take_decisions();
+        let mut decisions = self.shadow.take_decisions();
+        if self.presented.is_some() {
+            // A request sent with others in flight: its answer may be Server Busy (see `pipeline`).
+            decisions.push(pipeline::SERVER_BUSY);
+        }
         let counter_alternatives = self.shadow.take_counter_alternatives();
         let mut observed = Vec::new();
         let mut findings: Vec<Finding> = precondition;
@@ -1661,7 +1722,7 @@ impl Runner {
                     if expected.is_empty() && !self.cfg.is_sim && framing == Framing::Tcp {
                         self.silences.listened += 1;
                     }
-                    self.target.recv(wait)?
+                    self.recv_answer(frames, wait)?
                 }
             };
             if framing == Framing::Tcp {
@@ -2095,7 +2156,7 @@ fn canopen_answer_with_reserved(pdu: &[u8]) -> Option<Vec<u8>> {
 }
 
 #[cfg(test)]
-mod tests {
+pub(super) mod tests {
 
     #[test]
     fn inputs_agree_fails_two_inputs_that_differ_and_reports_one() {
@@ -2214,16 +2275,27 @@ mod tests {
     /// A runner against the generic reference drive with a real target's rules (silences proven by a
     /// sentinel).
     fn generic_runner() -> Runner {
+        generic_runner_choosing(&[])
+    }
+
+    /// As [`generic_runner`], the target's drive taking `choices` (`FREEDOM=VALUE`) where the reference
+    /// takes the reference's.
+    pub(super) fn generic_runner_choosing(choices: &[&str]) -> Runner {
         let p = drives::corpus::Corpus::Embedded
             .profile("generic")
             .expect("generic");
-        let station = || {
+        let requirements = drives::corpus::Corpus::Embedded
+            .requirements()
+            .expect("requirements");
+        let chosen = drives::Choices::parse_all(choices, &requirements, &p).expect("choices");
+        let station = |choices: drives::Choices| {
             let unit = p.device.default_unit;
             drives::Station::new(
-                drives::build(p.clone(), drives::FaultSet::none()),
+                drives::build_with(p.clone(), drives::FaultSet::none(), choices.clone()),
                 drives::FaultSet::none(),
                 unit,
             )
+            .with_choices(choices)
         };
         let cfg = RunConfig {
             unit: 1,
@@ -2232,12 +2304,13 @@ mod tests {
             is_sim: false,
         };
         Runner::new(
-            Box::new(SimTarget::new(station())),
-            SimTarget::new(station()),
+            Box::new(SimTarget::new(station(chosen))),
+            SimTarget::new(station(drives::Choices::reference())),
             p.clone(),
             cfg,
             Expectations::default(),
         )
+        .with_requirements(Arc::new(requirements))
     }
 
     /// The traffic beside the cases (restore reads and writes, liveness probes, sentinels) never takes the

@@ -97,6 +97,33 @@ fn pipelined_campaigns_send_the_same_cases_and_find_nothing_on_healthy_drives() 
     }
 }
 
+/// A drive that closes the connection on a PDU too short for its function, or ignores it, as the freedom
+/// `truncated-pdu` allows: no finding pipelined either. After a close, the requests that were in flight
+/// behind it are sent again (without, their cases would see the close and FAIL); a silence is proven by the
+/// answers of the requests behind it.
+#[test]
+fn a_drive_that_closes_or_ignores_a_truncated_pdu_is_not_blamed_pipelined() {
+    for choice in ["truncated-pdu=close", "truncated-pdu=silence"] {
+        let sim = SimProcess::start(&[
+            "--profile",
+            "generic",
+            "--listen",
+            "127.0.0.1:0",
+            "--choose",
+            choice,
+        ]);
+        let dir = TempDir::new("pipeline-truncated");
+        let (code, out, err) = fuzz(&sim.tcp_url(), "generic", "3000", &dir, &[]);
+        assert_eq!(code, 0, "{choice}: {out}\n{err}");
+        let (_, pipelined, _, _) = summary(&out);
+        assert!(pipelined > 1000, "{choice}: {out}\n{err}");
+        assert!(
+            !err.contains("one request at a time from here"),
+            "{choice}: {err}"
+        );
+    }
+}
+
 #[test]
 fn answers_out_of_request_order_are_taken_by_transaction_id() {
     let sim = SimProcess::start(&[

@@ -199,6 +199,9 @@ pub struct Runner {
     /// wire already, in case order, and the answers to them that arrived while an earlier case listened.
     ahead: std::collections::VecDeque<pipeline::Ahead>,
     stash: Vec<Received>,
+    /// The target closed the connection while requests were ahead: they are lost and go out again, one at
+    /// a time, when their cases' turns come.
+    ahead_lost: bool,
     /// The step's request went out before the step began (pipelined), at this time of the target's.
     presented: Option<Duration>,
 }
@@ -301,6 +304,7 @@ impl Runner {
             resync_rtu: false,
             ahead: std::collections::VecDeque::new(),
             stash: Vec::new(),
+            ahead_lost: false,
             presented: None,
         }
     }
@@ -1515,7 +1519,8 @@ impl Runner {
         // A pipelined case's request went out ahead of it (see [`pipeline`]).
         if self.ahead.front().is_some_and(|a| a.case == self.case_id) {
             let a = self.ahead.pop_front()?;
-            self.presented = Some(a.at);
+            // Lost with a closed connection: sent again, now.
+            self.presented = (!self.ahead_lost).then_some(a.at);
             let piece = vec![(a.frame.bytes.clone(), Duration::ZERO)];
             return Some((vec![a.frame], piece));
         }
@@ -1681,11 +1686,7 @@ impl Runner {
                 .collect()
         });
         let judged_expected = expected_judged.as_deref().unwrap_or(&expected);
-        let mut decisions = self.shadow.take_decisions();
-        if self.presented.is_some() {
-            // A request sent with others in flight: its answer may be Server Busy (see `pipeline`).
-            decisions.push(pipeline::SERVER_BUSY);
-        }
+        let decisions = self.shadow.take_decisions();
         let counter_alternatives = self.shadow.take_counter_alternatives();
         let mut observed = Vec::new();
         let mut findings: Vec<Finding> = precondition;
@@ -1711,7 +1712,9 @@ impl Runner {
                 self.cfg.timing.timeout
             };
             let start = self.target.now();
-            let proven = if expected.is_empty() {
+            // Pipelined: no sentinel, which would go out behind the requests ahead (the window is listened
+            // out).
+            let proven = if expected.is_empty() && self.ahead.is_empty() {
                 self.prove_silence_if_possible(frames, reference_closed, &mut findings, wire)?
             } else {
                 None
@@ -1764,7 +1767,7 @@ impl Runner {
                 });
             let request = Request::decode(&sent.pdu).ok();
             // In a batch, the freedoms that decided this frame's answer (and those about the batch).
-            let decided: Vec<drives::Decision> = match self.frame_decisions.get(j) {
+            let mut decided: Vec<drives::Decision> = match self.frame_decisions.get(j) {
                 Some(own) => own
                     .iter()
                     .chain(decisions.iter().filter(|d| d.starts_with("pipelined")))
@@ -1772,6 +1775,15 @@ impl Runner {
                     .collect(),
                 None => decisions.clone(),
             };
+            // A request sent with others in flight and refused Server Busy: the freedom decided it (see
+            // `pipeline`). Only then: the freedom's other value would admit any served answer.
+            let mut decisions = std::borrow::Cow::Borrowed(&decisions);
+            if self.presented.is_some()
+                && matches!(&got, Received::Frame { bytes, .. } if busy_refusal(bytes))
+            {
+                decided.push(pipeline::SERVER_BUSY);
+                decisions.to_mut().push(pipeline::SERVER_BUSY);
+            }
             let cx = StepContext {
                 request: request.as_ref(),
                 pdu: &sent.pdu,

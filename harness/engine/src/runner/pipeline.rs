@@ -4,10 +4,17 @@
 //! requests one at a time in case order, and the oracle judges each case as it judges one sent alone.
 //!
 //! Only where the target showed that it answers requests sent together ([`Runner::discover_pipelining`]:
-//! a burst of known-good reads in one write, every one answered normally), and only for plain reads of the
-//! data tables to the run's unit ([`Runner::pipelinable`]). A request that changes state, that may go
-//! unanswered, or that the drive may still be reading when the next arrives (a malformed frame) goes one at
+//! a burst of known-good reads in one write, every one answered normally), and only for cases whose every
+//! step is one complete Modbus/TCP ADU to the run's unit that writes nothing ([`Runner::pipelinable`]): a
+//! request as generated, or with its PDU altered and framed with the length it has. A frame whose MBAP
+//! length is not its size (the drive may still be reading when the next arrives), a write, FC 08 (a restart
+//! or listen-only mode silences the drive), a request to another unit, a wait or a new connection go one at
 //! a time, as do the liveness probes and the silence sentinels.
+//!
+//! Each step waits for its own answer as long as when alone (where the reference stays silent, no sentinel
+//! follows a pipelined request: the window is listened out). A drive that closes the connection (a freedom
+//! may allow it for a malformed request) has dropped the requests behind it: they are sent again, one at a
+//! time, when their cases' turns come.
 
 use std::time::Duration;
 
@@ -15,7 +22,7 @@ use super::{Framed, Runner, busy_refusal};
 use crate::cases::{Case, Compare, Level, Outgoing, Step, Tag, Verdict};
 use crate::observe::CaseResult;
 use crate::targets::{Received, TargetError};
-use codec::{Framing, Request};
+use codec::Framing;
 
 /// A request of a case still to run, on the wire already.
 pub(super) struct Ahead {
@@ -74,6 +81,19 @@ fn burst_case(profile: &drives::profile::Profile, depth: usize) -> Case {
     }
 }
 
+/// The PDU a step sends as one complete Modbus/TCP ADU (its MBAP length its size) to the run's unit, where
+/// it does: a PDU as it is, or altered by a PDU-level mutation (framed with the length it then has); not
+/// empty, not over 253 bytes (a drive may skip such an ADU once its bytes are in), not FC 08 (a restart or
+/// listen-only mode silences the drive).
+fn complete_pdu(send: &Outgoing) -> Option<Vec<u8>> {
+    let pdu = match send {
+        Outgoing::Pdu(p) => p.clone(),
+        Outgoing::Mutated { pdu, mutation } => mutation.apply_to_pdu(pdu)?,
+        _ => return None,
+    };
+    (!pdu.is_empty() && pdu.len() <= codec::MAX_PDU_LEN && pdu[0] != 0x08).then_some(pdu)
+}
+
 /// The transaction id of a Modbus/TCP frame.
 fn tid_of(r: &Received) -> Option<u16> {
     match r {
@@ -98,25 +118,23 @@ impl Runner {
         }
     }
 
-    /// Whether `case` may go out with other cases' requests in flight: one exchange, a read of a data table
-    /// (FC 01-04) that decodes, to the run's unit, nothing captured, on a run that can pipeline at all.
+    /// Whether `case` may go out with other cases' requests in flight: every step an exchange of one complete
+    /// ADU to the run's unit (see [`complete_pdu`]), nothing captured, no write, on a run that can pipeline
+    /// at all.
     pub fn pipelinable(&self, case: &Case) -> bool {
-        let [
-            Step::Exchange {
-                send: Outgoing::Pdu(pdu),
-                capture: None,
-                ..
-            },
-        ] = case.steps.as_slice()
-        else {
-            return false;
-        };
-        !case.has(Tag::Write)
+        !case.steps.is_empty()
+            && case.steps.len() <= MAX_IN_FLIGHT
+            && !case.has(Tag::Write)
             && !case.has(Tag::Motion)
             && !case.has(Tag::Destructive)
-            && pdu.first() != Some(&0x08)
-            && pdu.len() <= codec::MAX_PDU_LEN
-            && Request::decode(pdu).is_ok()
+            && case.steps.iter().all(|s| match s {
+                Step::Exchange {
+                    send,
+                    capture: None,
+                    ..
+                } => complete_pdu(send).is_some(),
+                _ => false,
+            })
             && self.pipeline_unavailable().is_none()
     }
 
@@ -188,6 +206,7 @@ impl Runner {
         self.ahead.clear();
         self.stash.clear();
         self.presented = None;
+        self.ahead_lost = false;
         results
     }
 
@@ -195,30 +214,37 @@ impl Runner {
         let (late, stale) = self.take_stale();
         let at = self.target.now();
         let mut bytes = Vec::new();
-        for case in cases.iter().take(MAX_IN_FLIGHT) {
-            let [Step::Exchange { send, .. }] = case.steps.as_slice() else {
-                break;
-            };
-            if !self.pipelinable(case) {
+        'cases: for case in cases {
+            if !self.pipelinable(case) || self.ahead.len() + case.steps.len() > MAX_IN_FLIGHT {
                 break;
             }
             self.case_id.clone_from(&case.id);
             self.case_tags.clone_from(&case.tags);
-            let Some((mut frames, _)) = self.outgoing(send) else {
-                break;
-            };
-            // The safety assertion, on the bytes that go out, before any does (as for a case sent alone).
-            if frames.len() != 1 || self.refusal(&frames).is_some() {
-                break;
+            let mut framed = Vec::new();
+            for step in &case.steps {
+                let Step::Exchange { send, .. } = step else {
+                    break 'cases;
+                };
+                let Some((mut frames, _)) = self.outgoing(send) else {
+                    break 'cases;
+                };
+                // The safety assertion, on the bytes that go out, before any does (as for a case sent
+                // alone).
+                if frames.len() != 1 || self.refusal(&frames).is_some() {
+                    break 'cases;
+                }
+                framed.push(frames.remove(0));
             }
-            let frame = frames.remove(0);
-            bytes.extend_from_slice(&frame.bytes);
-            self.ahead.push_back(Ahead {
-                case: case.id.clone(),
-                frame,
-                at,
-            });
+            for frame in framed {
+                bytes.extend_from_slice(&frame.bytes);
+                self.ahead.push_back(Ahead {
+                    case: case.id.clone(),
+                    frame,
+                    at,
+                });
+            }
         }
+        self.ahead_lost = false;
         if !self.ahead.is_empty() {
             self.target.send(&bytes)?;
             self.requests += self.ahead.len() as u64;
@@ -227,15 +253,16 @@ impl Runner {
         let mut results = Vec::with_capacity(cases.len());
         for case in cases {
             let (late, wire) = first.take().unwrap_or_default();
+            let ahead = self.ahead.front().is_some_and(|a| a.case == case.id);
             let result = self.run_case_after(case, late, wire)?;
-            results.push((result, self.presented.is_some()));
+            results.push((result, ahead));
         }
         Ok(results)
     }
 
     /// The next answer for `frames` (the step's requests): one kept for them already, else what the target
     /// sends within `wait`. Answers to the requests of the cases still ahead are kept for those, bounded by
-    /// their number and by `wait`.
+    /// their number and by `wait`. A close ends them too: their requests are sent again (see `ahead_lost`).
     pub(super) fn recv_answer(
         &mut self,
         frames: &[Framed],
@@ -255,6 +282,10 @@ impl Runner {
             let theirs = tid_of(&got)
                 .is_some_and(|t| self.ahead.iter().any(|a| a.frame.sent.tid == Some(t)));
             if !theirs || ours(&got) {
+                if matches!(got, Received::Closed { .. }) {
+                    // The requests behind the step's are gone with the connection.
+                    self.ahead_lost = true;
+                }
                 return Ok(got);
             }
             self.stash.push(got);
@@ -382,3 +413,4 @@ mod tests {
         assert_eq!((p.depth, burst.is_none()), (1, true));
     }
 }
+

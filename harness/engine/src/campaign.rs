@@ -550,11 +550,11 @@ fn fuzz_loop(
                 vec![(case, result, false)]
             } else {
                 let results = runner.run_pipelined(&batch)?;
-            batch
-                .into_iter()
-                .zip(results)
-                .map(|(c, (r, p))| (c, r, p))
-                .collect()
+                batch
+                    .into_iter()
+                    .zip(results)
+                    .map(|(c, (r, p))| (c, r, p))
+                    .collect()
             }
         } else {
             vec![run_one(runner, keeper.as_deref_mut(), case, profile, log)?]

@@ -15,7 +15,9 @@ fn summary(out: &str) -> (u64, u64, u64, u64) {
         .find(|l| l.starts_with("fuzz: "))
         .unwrap_or_else(|| panic!("no summary in {out}"));
     let number_before = |word: &str| -> u64 {
-        let at = line.find(word).unwrap_or_else(|| panic!("no {word} in {line}"));
+        let at = line
+            .find(word)
+            .unwrap_or_else(|| panic!("no {word} in {line}"));
         line[..at]
             .split(|c: char| !c.is_ascii_digit())
             .rfind(|w| !w.is_empty())
@@ -37,7 +39,13 @@ fn summary(out: &str) -> (u64, u64, u64, u64) {
 
 /// `fuzz` against `url` with profile `profile`, seed 3, up to `cases` cases, reproducers into `dir`, and
 /// `extra`; returns (exit code, stdout, stderr).
-fn fuzz(url: &str, profile: &str, cases: &str, dir: &TempDir, extra: &[&str]) -> (i32, String, String) {
+fn fuzz(
+    url: &str,
+    profile: &str,
+    cases: &str,
+    dir: &TempDir,
+    extra: &[&str],
+) -> (i32, String, String) {
     let regressions = dir.path().join("regressions");
     let mut args = vec![
         "fuzz",

@@ -1,7 +1,7 @@
-//! Pipelined cases (issue 17): over Modbus/TCP, the requests of several one-request cases go out in one
-//! write, and each case is then run as if it were alone. Its answer is taken by transaction id (answers to
-//! the requests of the cases after it that arrive first are kept for them), the reference drive gets the
-//! requests one at a time in case order, and the oracle judges each case as it judges one sent alone.
+//! Pipelined cases (issue 17): over Modbus/TCP, the requests of several cases go out in one write, and each
+//! case is then run as if it were alone. Each step's answer is taken by transaction id (answers to the
+//! requests after it that arrive first are kept for them), the reference drive gets the requests one at a
+//! time in case order, and the oracle judges each case as it judges one sent alone.
 //!
 //! Only where the target showed that it answers requests sent together ([`Runner::discover_pipelining`]:
 //! a burst of known-good reads in one write, every one answered normally), and only for cases whose every
@@ -150,7 +150,10 @@ impl Runner {
     ) -> Result<(Pipelining, Option<(Case, CaseResult)>), TargetError> {
         let depth = depth.min(MAX_IN_FLIGHT);
         if depth < 2 {
-            return Ok((Pipelining::off("one request at a time (--pipeline 1)"), None));
+            return Ok((
+                Pipelining::off("one request at a time (--pipeline 1)"),
+                None,
+            ));
         }
         if let Some(why) = self.pipeline_unavailable() {
             return Ok((Pipelining::off(why), None));
@@ -192,10 +195,10 @@ impl Runner {
         Ok((p, Some((case, result))))
     }
 
-    /// Run `cases` in order, one result per case with whether its request went out pipelined: the requests of the leading pipelinable ones (at most
-    /// [`MAX_IN_FLIGHT`]) go out together in one write first, then each case runs as if alone; the cases
-    /// after the first that cannot be pipelined run one at a time behind them. Call it only once pipelining
-    /// was found to work ([`Runner::discover_pipelining`]).
+    /// Run `cases` in order; one result per case, with whether its requests went out pipelined. The requests
+    /// of the leading pipelinable cases (at most [`MAX_IN_FLIGHT`]) go out together in one write first, then
+    /// each case runs as if alone; the cases after the first that cannot be pipelined run one at a time
+    /// behind them. Call it only once pipelining was found to work ([`Runner::discover_pipelining`]).
     pub fn run_pipelined(
         &mut self,
         cases: &[Case],
@@ -268,7 +271,8 @@ impl Runner {
         frames: &[Framed],
         wait: Duration,
     ) -> Result<Received, TargetError> {
-        let ours = |r: &Received| tid_of(r).is_some_and(|t| frames.iter().any(|f| f.sent.tid == Some(t)));
+        let ours =
+            |r: &Received| tid_of(r).is_some_and(|t| frames.iter().any(|f| f.sent.tid == Some(t)));
         if let Some(k) = self.stash.iter().position(ours) {
             return Ok(self.stash.remove(k));
         }
@@ -342,7 +346,9 @@ mod tests {
             .iter()
             .flat_map(|s| &s.observed)
             .map(|o| match o {
-                Received::Frame { bytes, .. } => (tid_of(o), bytes[codec::tcp::MBAP_LEN..].to_vec()),
+                Received::Frame { bytes, .. } => {
+                    (tid_of(o), bytes[codec::tcp::MBAP_LEN..].to_vec())
+                }
                 other => (None, format!("{other:?}").into_bytes()),
             })
             .collect()
@@ -381,7 +387,10 @@ mod tests {
     fn a_pipelined_read_refused_as_busy_is_admitted() {
         let mut runner = generic_runner_choosing(&["pipelined-server-busy=exception-06"]);
         let results = runner.run_pipelined(&reads()[..3]).expect("pipelined");
-        let busy: Vec<bool> = results.iter().map(|(r, _)| super::super::busy_refusal(&observed_adu(r))).collect();
+        let busy: Vec<bool> = results
+            .iter()
+            .map(|(r, _)| super::super::busy_refusal(&observed_adu(r)))
+            .collect();
         assert_eq!(busy, [false, true, true], "{results:#?}");
         for (r, in_flight) in &results {
             assert!(in_flight);
@@ -400,17 +409,23 @@ mod tests {
     /// ones behind the first Server Busy; off, and a FAIL, for one that answers only the first.
     #[test]
     fn the_burst_decides_whether_to_pipeline() {
-        let (p, burst) = generic_runner_choosing(&[]).discover_pipelining(8).expect("burst");
+        let (p, burst) = generic_runner_choosing(&[])
+            .discover_pipelining(8)
+            .expect("burst");
         assert_eq!(p.depth, 8, "{p:?}");
         assert_eq!(burst.expect("sent").1.verdict, Verdict::Pass);
         let (p, burst) = generic_runner_choosing(&["pipelined-server-busy=exception-06"])
             .discover_pipelining(8)
             .expect("burst");
         assert_eq!(p.depth, 1, "{p:?}");
-        assert!(p.why.contains("answered 1 normally and 7 with Server Busy"), "{p:?}");
+        assert!(
+            p.why.contains("answered 1 normally and 7 with Server Busy"),
+            "{p:?}"
+        );
         assert_eq!(burst.expect("sent").1.verdict, Verdict::Pass);
-        let (p, burst) = generic_runner_choosing(&[]).discover_pipelining(1).expect("burst");
+        let (p, burst) = generic_runner_choosing(&[])
+            .discover_pipelining(1)
+            .expect("burst");
         assert_eq!((p.depth, burst.is_none()), (1, true));
     }
 }
-

@@ -404,18 +404,7 @@ fn signature(kind: FindingKind, case_id: &str, first: &str) -> String {
 
 /// True when a step expected an answer and got silence or a close: the drive may have stopped answering.
 fn unanswered(result: &crate::observe::CaseResult) -> bool {
-    // Part of a frame before the silence (an answer whose MBAP length promises a byte more than it has,
-    // say) is an answer, wrong: judged as the case's FAIL, not probed as a drive that stopped.
-    result.steps.iter().any(|s| {
-        s.expected.is_some()
-            && s.observed.iter().any(|o| {
-                matches!(
-                    o,
-                    crate::targets::Received::Silence { partial, .. }
-                        | crate::targets::Received::Closed { partial, .. } if partial.is_empty()
-                )
-            })
-    })
+    result.unanswered()
 }
 
 /// True when any bytes came back in the case: a frame, garbage, part of a frame before a silence or a
@@ -607,6 +596,15 @@ fn fuzz_loop(
                 break;
             }
             history.clear();
+        }
+        if depth > 1
+            && let Some(id) = runner.pipeline_failed()
+        {
+            depth = 1;
+            let _ = writeln!(
+                log,
+                "fuzz: one request at a time from here: {id} went unanswered with other requests in flight, and was asked again alone (judged so)"
+            );
         }
         // A pipelined case that FAILs or was refused as busy ends the pipelining: from here one request at a
         // time, so that every later finding is one of a request sent alone. (A silence or a close the oracle

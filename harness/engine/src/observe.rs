@@ -61,6 +61,21 @@ pub struct CaseResult {
 }
 
 impl CaseResult {
+    /// True when a step expected an answer and got silence or a close (nothing of a frame before it: part
+    /// of a frame is an answer, wrong).
+    pub fn unanswered(&self) -> bool {
+        self.steps.iter().any(|s| {
+            s.expected.is_some()
+                && s.observed.iter().any(|o| {
+                    matches!(
+                        o,
+                        crate::targets::Received::Silence { partial, .. }
+                            | crate::targets::Received::Closed { partial, .. } if partial.is_empty()
+                    )
+                })
+        })
+    }
+
     /// The result of a case that was not run, and why.
     pub fn skipped(id: &str, reason: String) -> Self {
         CaseResult {

@@ -89,7 +89,7 @@ fn pipelined_campaigns_send_the_same_cases_and_find_nothing_on_healthy_drives() 
         let (cases, pipelined, probes, requests) = summary(&out);
         assert_eq!(cases, 3000, "{name}: {out}");
         assert!(
-            pipelined > 1000,
+            pipelined > 500,
             "{name}: only {pipelined} of {cases} cases pipelined: {out}"
         );
         let (code, out1, err1) = fuzz(&url, name, "3000", &dir, &["--pipeline", "1"]);
@@ -106,9 +106,9 @@ fn pipelined_campaigns_send_the_same_cases_and_find_nothing_on_healthy_drives() 
 }
 
 /// A drive that closes the connection on a PDU too short for its function, or ignores it, as the freedom
-/// `truncated-pdu` allows: no finding pipelined either. After a close, the requests that were in flight
-/// behind it are sent again (without, their cases would see the close and FAIL); a silence is proven by the
-/// answers of the requests behind it.
+/// `truncated-pdu` allows: no finding pipelined either, and pipelining goes on (such requests go one at a
+/// time: a server cutting requests by the function's length rules would read the next request's bytes
+/// as the rest of a short one).
 #[test]
 fn a_drive_that_closes_or_ignores_a_truncated_pdu_is_not_blamed_pipelined() {
     for choice in ["truncated-pdu=close", "truncated-pdu=silence"] {
@@ -124,7 +124,7 @@ fn a_drive_that_closes_or_ignores_a_truncated_pdu_is_not_blamed_pipelined() {
         let (code, out, err) = fuzz(&sim.tcp_url(), "generic", "3000", &dir, &[]);
         assert_eq!(code, 0, "{choice}: {out}\n{err}");
         let (_, pipelined, _, _) = summary(&out);
-        assert!(pipelined > 1000, "{choice}: {out}\n{err}");
+        assert!(pipelined > 500, "{choice}: {out}\n{err}");
         assert!(
             !err.contains("one request at a time from here"),
             "{choice}: {err}"
@@ -146,7 +146,7 @@ fn answers_out_of_request_order_are_taken_by_transaction_id() {
     let (code, out, err) = fuzz(&sim.tcp_url(), "generic", "3000", &dir, &[]);
     assert_eq!(code, 0, "{out}\n{err}");
     let (_, pipelined, _, _) = summary(&out);
-    assert!(pipelined > 1000, "{out}\n{err}");
+    assert!(pipelined > 500, "{out}\n{err}");
 }
 
 #[test]
@@ -231,7 +231,53 @@ fn faults_in_answers_to_reads_are_found_on_the_same_case_pipelined() {
         }
     }
     assert!(
-        found_in_flight >= 3,
+        found_in_flight >= 2,
         "only {found_in_flight} of the faults were found on a pipelined request"
     );
+}
+
+/// The finding ids of a campaign's summary (`FAIL after ID: ...` and the other kinds), in order.
+fn finding_ids(out: &str) -> Vec<String> {
+    out.lines()
+        .filter_map(|l| {
+            [
+                "FAIL after ",
+                "STOPPED ANSWERING after ",
+                "PROBE ANSWERED WRONGLY OR LATE after ",
+            ]
+            .iter()
+            .find_map(|k| l.strip_prefix(k))
+        })
+        .filter_map(|l| l.split(':').next())
+        .map(str::to_string)
+        .collect()
+}
+
+/// A server of independent authorship that drops what arrives behind a request it refuses: libmodbus
+/// answers most exceptions after sleeping its response timeout and then flushes its input, so the requests
+/// in flight behind it are never read. The pipelined campaign asks the first of them that went unanswered
+/// again alone, judges it so, and pipelines no more: its findings are those of one request at a time.
+#[test]
+fn a_server_that_flushes_behind_a_refused_request_is_not_blamed() {
+    if !test_support::libmodbus_or_skip(
+        "a_server_that_flushes_behind_a_refused_request_is_not_blamed",
+    ) {
+        return;
+    }
+    let run = |depth: &str| {
+        let server = test_support::peer_servers::PeerServer::libmodbus();
+        let dir = TempDir::new(&format!("pipeline-libmodbus-{depth}"));
+        let url = format!("tcp://{}", server.addr);
+        let extra = ["--pipeline", depth, "--keep-going", "--max-findings", "3"];
+        let (code, out, err) = fuzz(&url, "generic", "60", &dir, &extra);
+        assert_eq!(code, 1, "--pipeline {depth}: {out}\n{err}");
+        (finding_ids(&out), err)
+    };
+    let (piped, err) = run("8");
+    let (alone, _) = run("1");
+    assert!(
+        err.contains("went unanswered with other requests in flight, and was asked again alone"),
+        "{err}"
+    );
+    assert_eq!(piped, alone, "{err}");
 }

@@ -202,6 +202,8 @@ pub struct Runner {
     /// The target closed the connection while requests were ahead: they are lost and go out again, one at
     /// a time, when their cases' turns come.
     ahead_lost: bool,
+    /// A pipelined case went unanswered and was asked again alone (its id): pipelining is over.
+    pipeline_failed: Option<String>,
     /// The step's request went out before the step began (pipelined), at this time of the target's.
     presented: Option<Duration>,
 }
@@ -305,6 +307,7 @@ impl Runner {
             ahead: std::collections::VecDeque::new(),
             stash: Vec::new(),
             ahead_lost: false,
+            pipeline_failed: None,
             presented: None,
         }
     }

@@ -5,16 +5,19 @@
 //!
 //! Only where the target showed that it answers requests sent together ([`Runner::discover_pipelining`]:
 //! a burst of known-good reads in one write, every one answered normally), and only for cases whose every
-//! step is one complete Modbus/TCP ADU to the run's unit that writes nothing ([`Runner::pipelinable`]): a
-//! request as generated, or with its PDU altered and framed with the length it has. A frame whose MBAP
-//! length is not its size (the drive may still be reading when the next arrives), a write, FC 08 (a restart
-//! or listen-only mode silences the drive), a request to another unit, a wait or a new connection go one at
-//! a time, as do the liveness probes and the silence sentinels.
+//! step is a request to the run's unit that any server cuts from the stream where it ends
+//! ([`Runner::pipelinable`], [`complete_pdu`]): reads of FC 01-04 and the one-byte FC 07, 0B, 0C, 11, as
+//! generated or altered (a bit flipped) so long as they still decode strictly. A server that cuts requests
+//! by the function's length rules instead of the MBAP length (libmodbus) would take the bytes after a
+//! malformed or unknown request for part of it, and the next request, innocent, would go unanswered: such
+//! requests, writes, FC 08 (a restart or listen-only mode silences the drive), a request to another unit, a
+//! wait or a new connection go one at a time, as do the liveness probes and the silence sentinels.
 //!
 //! Each step waits for its own answer as long as when alone (where the reference stays silent, no sentinel
-//! follows a pipelined request: the window is listened out). A drive that closes the connection (a freedom
-//! may allow it for a malformed request) has dropped the requests behind it: they are sent again, one at a
-//! time, when their cases' turns come.
+//! follows a pipelined request: the window is listened out). A drive that closes the connection has
+//! dropped the requests behind it: they are sent again, one at a time, when their cases' turns come. A
+//! pipelined case left without an answer where one was due is asked again alone before it is judged (a
+//! server may drop what arrives behind a request it refuses), and pipelining ends there.
 
 use std::time::Duration;
 
@@ -81,17 +84,24 @@ fn burst_case(profile: &drives::profile::Profile, depth: usize) -> Case {
     }
 }
 
-/// The PDU a step sends as one complete Modbus/TCP ADU (its MBAP length its size) to the run's unit, where
-/// it does: a PDU as it is, or altered by a PDU-level mutation (framed with the length it then has); not
-/// empty, not over 253 bytes (a drive may skip such an ADU once its bytes are in), not FC 08 (a restart or
-/// listen-only mode silences the drive).
+/// The PDU a step sends to the run's unit where any server cuts it from the stream where it ends, whether
+/// it goes by the MBAP length (as the guide says) or by the function's length rules (libmodbus does, and
+/// then reads the bytes a function it does not know leaves as the start of the next request): a PDU as it
+/// is, or altered by a PDU-level mutation, that decodes strictly as a read of FC 01-04 (5 bytes) or as
+/// FC 07, 0B, 0C or 11 (the function code alone). Not FC 08 (a restart or listen-only mode silences the
+/// drive), no write, nothing whose length a server could read otherwise.
 fn complete_pdu(send: &Outgoing) -> Option<Vec<u8>> {
     let pdu = match send {
         Outgoing::Pdu(p) => p.clone(),
         Outgoing::Mutated { pdu, mutation } => mutation.apply_to_pdu(pdu)?,
         _ => return None,
     };
-    (!pdu.is_empty() && pdu.len() <= codec::MAX_PDU_LEN && pdu[0] != 0x08).then_some(pdu)
+    let framed_alike = match pdu.first() {
+        Some(0x01..=0x04) => pdu.len() == 5,
+        Some(0x07 | 0x0B | 0x0C | 0x11) => pdu.len() == 1,
+        _ => false,
+    };
+    (framed_alike && codec::Request::decode(&pdu).is_ok()).then_some(pdu)
 }
 
 /// The transaction id of a Modbus/TCP frame.
@@ -118,9 +128,9 @@ impl Runner {
         }
     }
 
-    /// Whether `case` may go out with other cases' requests in flight: every step an exchange of one complete
-    /// ADU to the run's unit (see [`complete_pdu`]), nothing captured, no write, on a run that can pipeline
-    /// at all.
+    /// Whether `case` may go out with other cases' requests in flight: every step an exchange of a request
+    /// any server cuts where it ends (see [`complete_pdu`]), nothing captured, no write, on a run that can
+    /// pipeline at all.
     pub fn pipelinable(&self, case: &Case) -> bool {
         !case.steps.is_empty()
             && case.steps.len() <= MAX_IN_FLIGHT
@@ -256,11 +266,31 @@ impl Runner {
         let mut results = Vec::with_capacity(cases.len());
         for case in cases {
             let (late, wire) = first.take().unwrap_or_default();
-            let ahead = self.ahead.front().is_some_and(|a| a.case == case.id);
+            let ahead = self.ahead.front().is_some_and(|a| a.case == case.id) && !self.ahead_lost;
+            let before = ahead.then(|| self.shadow.clone());
             let result = self.run_case_after(case, late, wire)?;
-            results.push((result, ahead));
+            match before {
+                Some(before) if result.unanswered() => {
+                    // No answer where one was due, with other requests in flight: a server that drops what
+                    // arrives behind a request it refuses (libmodbus flushes its input after most
+                    // exceptions) does that to innocent requests. The case is asked again alone, from the
+                    // reference's state before it, and judged so; the requests still ahead go again, one at
+                    // a time; the campaign pipelines no more (`pipeline_failed`).
+                    self.ahead_lost = true;
+                    self.pipeline_failed = Some(case.id.clone());
+                    self.shadow = before;
+                    let alone = self.run_case(case)?;
+                    results.push((alone, false));
+                }
+                _ => results.push((result, ahead)),
+            }
         }
         Ok(results)
+    }
+
+    /// The pipelined case that went unanswered and was asked again alone, if one did (see `run_ahead`).
+    pub fn pipeline_failed(&self) -> Option<&str> {
+        self.pipeline_failed.as_deref()
     }
 
     /// The next answer for `frames` (the step's requests): one kept for them already, else what the target

@@ -89,9 +89,10 @@ pub struct FuzzArgs {
     max_findings: usize,
     /// Modbus/TCP: put up to N generated reads in flight at once, when the target answers a burst of N
     /// known-good reads sent in one write normally (sent before the first case; a FAIL of it is a finding).
-    /// Only plain reads (FC 01-04) of well-formed requests are pipelined; each is still judged alone, its
-    /// answer taken by transaction id. After a pipelined case FAILs, goes unanswered or is refused as busy,
-    /// the rest of the campaign sends one request at a time. 1: one request at a time throughout.
+    /// Only well-formed reads of FC 01-04 and the one-byte FC 07, 0B, 0C, 11 are pipelined; each is still
+    /// judged alone, its answer taken by transaction id. A pipelined case left unanswered is asked again
+    /// alone and judged so; after that, or after a pipelined case FAILs or is refused as busy, the rest of
+    /// the campaign sends one request at a time. 1: one request at a time throughout.
     #[arg(long, default_value_t = 8, value_name = "N", value_parser = clap::value_parser!(u16).range(1..=64))]
     pipeline: u16,
     /// With --allow-writes against a real drive: the state journal of the parameters read before the first

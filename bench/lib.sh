@@ -66,3 +66,30 @@ bench_parse() {
 bench_need_bins() {
   [ ${#BINS[@]} -gt 0 ] || bench_fail "$1" "give at least one LABEL=BINARY"
 }
+
+# bench_start SCRIPT WORK NAME CMD...: start CMD in the background pinned as the caller's array `pin` says
+# (a server), its output in WORK/NAME.out and its pid appended to WORK/pids (the caller's cleanup stops
+# them); wait (at most 5 s) for its "listening ... HOST:PORT" line and print HOST:PORT, or say SCRIPT could
+# not start it and exit 1.
+bench_start() {
+  local script=$1 work=$2 name=$3 a
+  shift 3
+  "${pin[@]}" "$@" >"$work/$name.out" 2>&1 &
+  echo $! >>"$work/pids"
+  for _ in $(seq 100); do
+    a=$(grep -oE 'listening[^0-9]*[0-9.]+:[0-9]+' "$work/$name.out" | grep -oE '[0-9.]+:[0-9]+$' | head -1 || true)
+    if [ -n "$a" ]; then echo "$a"; return; fi
+    sleep 0.05
+  done
+  echo "$script: $name did not start: $(cat "$work/$name.out")" >&2
+  exit 1
+}
+
+# bench_servers_workdir SCRIPT: set `work` to a new temporary directory for SCRIPT's servers (see
+# bench_start), and at exit stop every process whose pid is in $work/pids and remove it; INT and TERM exit
+# 130 (through the EXIT trap).
+bench_servers_workdir() {
+  work=$(mktemp -d "${TMPDIR:-/tmp}/${1%.sh}.XXXXXX")
+  trap '[ -f "$work/pids" ] && while read -r p; do kill "$p" 2>/dev/null || true; done <"$work/pids"; rm -rf "$work"' EXIT
+  trap 'exit 130' INT TERM
+}

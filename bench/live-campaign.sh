@@ -32,40 +32,19 @@ bench_parse live-campaign.sh 2,18 --seconds=SECS --rounds=ROUNDS --profile=PROFI
   LABEL=BINARY -- "$@"
 bench_need_bins live-campaign.sh
 [ -n "$SIM" ] || SIM=${BINS[-1]#*=}
-work=$(mktemp -d "${TMPDIR:-/tmp}/live-campaign.XXXXXX")
-# Servers are started inside $(...): their pids go to a file.
-cleanup() {
-  [ -f "$work/pids" ] && while read -r p; do kill "$p" 2>/dev/null || true; done <"$work/pids"
-  rm -rf "$work"
-}
-trap cleanup EXIT
-trap 'exit 130' INT TERM
+# Servers are started inside $(...) (bench_start): their pids go to a file, stopped at exit.
+bench_servers_workdir live-campaign.sh
 pin=(taskset -c "$CORE")
 limit=$(python3 -c "print(int($SECS) + 30)")
 
 gcc -O2 -Wall -o "$work/peers" "$here/peers.c" $(pkg-config --cflags --libs libmodbus)
 
-# start NAME CMD...: a pinned server; waits for its "listening HOST:PORT" line and prints the address.
-start() {
-  local name=$1; shift
-  "${pin[@]}" "$@" >"$work/$name.out" 2>&1 &
-  echo $! >>"$work/pids"
-  for _ in $(seq 100); do
-    local a
-    a=$(grep -oE 'listening[^0-9]*[0-9.]+:[0-9]+' "$work/$name.out" | grep -oE '[0-9.]+:[0-9]+$' | head -1 || true)
-    if [ -n "$a" ]; then echo "$a"; return; fi
-    sleep 0.05
-  done
-  echo "live-campaign.sh: $name did not start: $(cat "$work/$name.out")" >&2
-  exit 1
-}
-
 results="$work/results.tsv"
 : >"$results"
-pp=$(start pingpong "$work/peers" pp-server 0)
+pp=$(bench_start live-campaign.sh "$work" pingpong "$work/peers" pp-server 0)
 load_before=$(cut -d' ' -f1-3 /proc/loadavg)
 for round in $(seq "$ROUNDS"); do
-  sim=$(start "sim$round" "$SIM" simulate --profile "$PROFILE" --listen 127.0.0.1:0)
+  sim=$(bench_start live-campaign.sh "$work" "sim$round" "$SIM" simulate --profile "$PROFILE" --listen 127.0.0.1:0)
   floor=$(timeout "$limit" "${pin[@]}" "$work/peers" pp-client "${pp%:*}" "${pp##*:}" "$SECS" \
     | sed -n 's/^RESULT .*rps=\([0-9.]*\).*/\1/p')
   printf 'floor\t%s\n' "$floor" >>"$results"

@@ -38,40 +38,20 @@ done
 bench_parse pipeline-latency.sh 2,19 --seconds=SECS --rounds=ROUNDS --profile=PROFILE --core=CORE \
   --delays=DELAYS --depths=DEPTHS -- "${args[@]+"${args[@]}"}"
 [ -n "$BIN" ] || bench_fail pipeline-latency.sh "give the modbus-harness binary"
-work=$(mktemp -d "${TMPDIR:-/tmp}/pipeline-latency.XXXXXX")
-cleanup() {
-  [ -f "$work/pids" ] && while read -r p; do kill "$p" 2>/dev/null || true; done <"$work/pids"
-  rm -rf "$work"
-}
-trap cleanup EXIT
-trap 'exit 130' INT TERM
+# Servers are started inside $(...) (bench_start): their pids go to a file, stopped at exit.
+bench_servers_workdir pipeline-latency.sh
 pin=(taskset -c "$CORE")
 limit=$(python3 -c "print(int($SECS) + 30)")
-
-# start NAME CMD...: a pinned server; waits for its listening line and prints the address.
-start() {
-  local name=$1; shift
-  "${pin[@]}" "$@" >"$work/$name.out" 2>&1 &
-  echo $! >>"$work/pids"
-  for _ in $(seq 100); do
-    local a
-    a=$(grep -oE 'listening[^0-9]*[0-9.]+:[0-9]+' "$work/$name.out" | grep -oE '[0-9.]+:[0-9]+$' | head -1 || true)
-    if [ -n "$a" ]; then echo "$a"; return; fi
-    sleep 0.05
-  done
-  echo "pipeline-latency.sh: $name did not start: $(cat "$work/$name.out")" >&2
-  exit 1
-}
 
 results="$work/results.tsv"
 : >"$results"
 load_before=$(cut -d' ' -f1-3 /proc/loadavg)
 for round in $(seq "$ROUNDS"); do
-  sim=$(start "sim$round" "$BIN" simulate --profile "$PROFILE" --listen 127.0.0.1:0)
+  sim=$(bench_start pipeline-latency.sh "$work" "sim$round" "$BIN" simulate --profile "$PROFILE" --listen 127.0.0.1:0)
   for delay in $DELAYS; do
     target=$sim
     if [ "$delay" != 0 ]; then
-      target=$(start "proxy$round-$delay" python3 "$here/delay-proxy.py" --to "$sim" --delay-ms "$delay")
+      target=$(bench_start pipeline-latency.sh "$work" "proxy$round-$delay" python3 "$here/delay-proxy.py" --to "$sim" --delay-ms "$delay")
     fi
     for depth in $DEPTHS; do
       line=$(timeout "$limit" "${pin[@]}" "$BIN" fuzz --target "tcp://$target" --profile "$PROFILE" --seed 1 \

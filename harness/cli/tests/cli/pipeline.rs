@@ -66,6 +66,18 @@ fn fuzz(
     harness(&args)
 }
 
+/// `simulate --profile generic` on loopback, taking `choice` (`FREEDOM=VALUE`).
+fn generic_choosing(choice: &str) -> SimProcess {
+    SimProcess::start(&[
+        "--profile",
+        "generic",
+        "--listen",
+        "127.0.0.1:0",
+        "--choose",
+        choice,
+    ])
+}
+
 /// The case of the first finding (`FAIL after CASE: ...`).
 fn first_fail(out: &str) -> Option<String> {
     out.lines()
@@ -112,14 +124,7 @@ fn pipelined_campaigns_send_the_same_cases_and_find_nothing_on_healthy_drives() 
 #[test]
 fn a_drive_that_closes_or_ignores_a_truncated_pdu_is_not_blamed_pipelined() {
     for choice in ["truncated-pdu=close", "truncated-pdu=silence"] {
-        let sim = SimProcess::start(&[
-            "--profile",
-            "generic",
-            "--listen",
-            "127.0.0.1:0",
-            "--choose",
-            choice,
-        ]);
+        let sim = generic_choosing(choice);
         let dir = TempDir::new("pipeline-truncated");
         let (code, out, err) = fuzz(&sim.tcp_url(), "generic", "3000", &dir, &[]);
         assert_eq!(code, 0, "{choice}: {out}\n{err}");
@@ -134,14 +139,7 @@ fn a_drive_that_closes_or_ignores_a_truncated_pdu_is_not_blamed_pipelined() {
 
 #[test]
 fn answers_out_of_request_order_are_taken_by_transaction_id() {
-    let sim = SimProcess::start(&[
-        "--profile",
-        "generic",
-        "--listen",
-        "127.0.0.1:0",
-        "--choose",
-        "pipelined-response-order=transaction-id",
-    ]);
+    let sim = generic_choosing("pipelined-response-order=transaction-id");
     let dir = TempDir::new("pipeline-reversed");
     let (code, out, err) = fuzz(&sim.tcp_url(), "generic", "3000", &dir, &[]);
     assert_eq!(code, 0, "{out}\n{err}");
@@ -151,14 +149,7 @@ fn answers_out_of_request_order_are_taken_by_transaction_id() {
 
 #[test]
 fn a_server_with_one_transaction_is_not_pipelined_and_not_blamed() {
-    let sim = SimProcess::start(&[
-        "--profile",
-        "generic",
-        "--listen",
-        "127.0.0.1:0",
-        "--choose",
-        "pipelined-server-busy=exception-06",
-    ]);
+    let sim = generic_choosing("pipelined-server-busy=exception-06");
     let dir = TempDir::new("pipeline-busy");
     let (code, out, err) = fuzz(&sim.tcp_url(), "generic", "1000", &dir, &[]);
     assert_eq!(code, 0, "{out}\n{err}");

@@ -193,7 +193,7 @@ for round in $(seq "$ROUNDS"); do
   # The live campaign (issue 17): `fuzz` over TCP against the simulator, generated cases, reads only,
   # silences proven; its summary line gives cases and exec/s (each case one or more requests).
   figure fuzz-live-sim bash -c '"$1" fuzz --target "tcp://$2" --profile generic --seed 1 --duration "$3" 2>&1 \
-    | sed -n "s/^fuzz: \([0-9]*\) cases, [0-9]* probes in \([0-9.]*\) s (\([0-9]*\) exec\/s).*/RESULT requests=\1 seconds=\2 rps=\3 p50_us=0 p99_us=0/p"' \
+    | sed -n "s/^fuzz: \([0-9]*\) cases\( ([^)]*)\)\{0,1\}, [0-9]* probes in \([0-9.]*\) s (\([0-9]*\) exec\/s).*/RESULT requests=\1 seconds=\3 rps=\4 p50_us=0 p99_us=0/p"' \
     _ "$mh" "$sim_addr" "$(python3 -c "print(max(1, int($S * 1000)))")ms"
 done
 stop_all

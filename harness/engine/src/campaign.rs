@@ -402,11 +402,6 @@ fn signature(kind: FindingKind, case_id: &str, first: &str) -> String {
     format!("{kind:?} {family} {text}")
 }
 
-/// True when a step expected an answer and got silence or a close: the drive may have stopped answering.
-fn unanswered(result: &crate::observe::CaseResult) -> bool {
-    result.unanswered()
-}
-
 /// True when any bytes came back in the case: a frame, garbage, part of a frame before a silence or a
 /// close, or a late answer to an earlier request (on the wire, not taken for a step's answer).
 fn heard_anything(result: &crate::observe::CaseResult) -> bool {
@@ -553,7 +548,7 @@ fn fuzz_loop(
         history.extend(ran.iter().map(|r| r.0.clone()));
         // A liveness probe right after a case whose due answer did not come (before judging it: a drive
         // that stopped answering is that finding, not a wrong answer), and every N cases.
-        if ran.iter().any(|r| unanswered(&r.1)) || cases % opts.probe_every.max(1) == 0 {
+        if ran.iter().any(|r| r.1.unanswered()) || cases % opts.probe_every.max(1) == 0 {
             probes += 1;
             let p = runner.run_case(&probe)?;
             if p.verdict == Verdict::Fail {
@@ -735,7 +730,6 @@ fn run_one(
 /// True when an answer of the case was exception 06, Server Busy.
 fn busy(result: &crate::observe::CaseResult) -> bool {
     result.steps.iter().flat_map(|s| &s.observed).any(|o| {
-        matches!(o, crate::targets::Received::Frame { bytes, .. }
-            if matches!(bytes.get(codec::tcp::MBAP_LEN..), Some([fc, 0x06]) if fc & 0x80 != 0))
+        matches!(o, crate::targets::Received::Frame { bytes, .. } if crate::runner::busy_refusal(bytes))
     })
 }

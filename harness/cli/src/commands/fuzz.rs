@@ -93,7 +93,7 @@ pub struct FuzzArgs {
     /// judged alone, its answer taken by transaction id. A pipelined case left unanswered is asked again
     /// alone and judged so; after that, or after a pipelined case FAILs or is refused as busy, the rest of
     /// the campaign sends one request at a time. 1: one request at a time throughout.
-    #[arg(long, default_value_t = 8, value_name = "N", value_parser = clap::value_parser!(u16).range(1..=64))]
+    #[arg(long, default_value_t = 8, value_name = "N", value_parser = clap::value_parser!(u16).range(1..=engine::runner::MAX_IN_FLIGHT as i64))]
     pipeline: u16,
     /// With --allow-writes against a real drive: the state journal of the parameters read before the first
     /// write (default: a file in the temporary directory, named in the output, removed once every parameter

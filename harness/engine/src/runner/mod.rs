@@ -2022,7 +2022,7 @@ impl crate::restore::Link for ReferenceLink<'_> {
 }
 
 /// True when a Modbus/TCP answer is exception 06, Server Busy.
-fn busy_refusal(adu: &[u8]) -> bool {
+pub(crate) fn busy_refusal(adu: &[u8]) -> bool {
     matches!(adu.get(tcp::MBAP_LEN..), Some([fc, 0x06]) if fc & 0x80 != 0)
 }
 

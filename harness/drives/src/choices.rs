@@ -343,6 +343,45 @@ impl Choices {
     }
 }
 
+/// A drive model's side of the freedoms: the choices it takes where they leave one, and the freedoms that
+/// decided the answer being given (drained per request). Every model keeps one; [`crate::DriveModel`]'s
+/// `adopt` and `take_decisions` act on it.
+#[derive(Clone, Debug)]
+pub struct Freedoms {
+    choices: Choices,
+    decisions: Vec<Decision>,
+}
+
+impl Freedoms {
+    /// Taking `choices`, with nothing decided yet.
+    pub fn new(choices: Choices) -> Self {
+        Self {
+            choices,
+            decisions: Vec::new(),
+        }
+    }
+
+    /// The choices taken.
+    pub fn choices(&self) -> &Choices {
+        &self.choices
+    }
+
+    /// Take `choices` from now on (see [`crate::DriveModel::adopt`]).
+    pub fn adopt(&mut self, choices: &Choices) {
+        self.choices = choices.clone();
+    }
+
+    /// Note that `freedom` decided the answer being given.
+    pub fn decided(&mut self, freedom: Decision) {
+        self.decisions.push(freedom);
+    }
+
+    /// The freedoms that decided answers since the last call.
+    pub fn take_decisions(&mut self) -> Vec<Decision> {
+        std::mem::take(&mut self.decisions)
+    }
+}
+
 impl fmt::Display for Choices {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         if self.values.is_empty() {

@@ -27,9 +27,9 @@
 use std::collections::BTreeMap;
 use std::sync::Arc;
 
-use super::data_model::DataModel;
 pub use super::data_model::{BitTable, RegTable};
-use crate::choices::{Choices, Rejection, ids};
+use super::data_model::{DataModel, range_end};
+use crate::choices::{Choices, Decision, Freedoms, Rejection, ids};
 use crate::faults::{Fault, FaultSet};
 use crate::profile::{Access, Profile, Register, Table, WordOrder};
 use codec::ExceptionCode;
@@ -100,10 +100,9 @@ pub struct RegisterBank {
     range_unchecked: bool,
     /// `Fault::RangeCodeInconsistent`: the range error's code by the register's address, 03 or 04.
     range_code_inconsistent: bool,
-    /// The exception codes chosen where the freedoms leave a choice.
-    choices: Choices,
-    /// Freedoms that decided the answer being given (drained per request).
-    decisions: Vec<crate::choices::Decision>,
+    /// The exception codes chosen where the freedoms leave a choice, and the freedoms that decided the
+    /// answer being given.
+    freedoms: Freedoms,
     /// FC 07: the status byte and the coils that drive outputs 0, 1, ...
     exception_status: (u8, Vec<u16>),
     exception_status_reversed: bool,
@@ -196,8 +195,7 @@ impl RegisterBank {
             read_only_writable: faults.has(Fault::ReadOnlyWritable),
             range_unchecked: faults.has(Fault::RangeUnchecked),
             range_code_inconsistent: faults.has(Fault::RangeCodeInconsistent),
-            choices: choices.clone(),
-            decisions: Vec::new(),
+            freedoms: Freedoms::new(choices.clone()),
             exception_status: profile
                 .exception_status
                 .as_ref()
@@ -208,14 +206,14 @@ impl RegisterBank {
         }
     }
 
-    /// The freedoms that decided answers since the last call.
-    /// Take `choices` from now on (see [`super::DriveModel::adopt`]).
-    pub fn adopt(&mut self, choices: &Choices) {
-        self.choices = choices.clone();
+    /// The values taken where the freedoms leave a choice.
+    pub fn choices(&self) -> &Choices {
+        self.freedoms.choices()
     }
 
-    pub fn take_decisions(&mut self) -> Vec<crate::choices::Decision> {
-        std::mem::take(&mut self.decisions)
+    /// The choices taken and the freedoms that decided answers; a model over the bank keeps its own there.
+    pub fn freedoms(&mut self) -> &mut Freedoms {
+        &mut self.freedoms
     }
 
     /// The word order 32-bit registers travel in (the profile's, or the opposite under `Fault::WordOrder`).
@@ -277,11 +275,7 @@ impl RegisterBank {
         address: u16,
         quantity: u16,
     ) -> Result<Vec<u16>, Rejection> {
-        let end = u32::from(address) + u32::from(quantity);
-        if end > 0x1_0000 {
-            // Modbus spec state diagrams: starting address + quantity must be a valid address range.
-            return Err(ExceptionCode::ILLEGAL_DATA_ADDRESS.into());
-        }
+        let end = range_end(address, usize::from(quantity))?;
         let map = self.map(table);
         let mut out = Vec::with_capacity(usize::from(quantity));
         for a in u32::from(address)..end {
@@ -316,14 +310,11 @@ impl RegisterBank {
     /// Validate a holding-register write of `words` at `address` without applying it: address/access errors
     /// (02) first for the whole range, then value errors (03).
     pub fn plan_write(&self, address: u16, words: &[u16]) -> Result<Vec<Change>, Rejection> {
-        let end = u32::from(address) + words.len() as u32;
-        if end > 0x1_0000 {
-            return Err(ExceptionCode::ILLEGAL_DATA_ADDRESS.into());
-        }
+        let end = range_end(address, words.len())?;
         // Pass 1: every address belongs to a writable register that the range covers completely (or, for a
         // drive that takes half of a 32-bit register, partly: the freedom `partial-register-write`).
         let takes_halves = self
-            .choices
+            .choices()
             .name(ids::PARTIAL_REGISTER_WRITE)
             .is_some_and(|v| v == "response");
         let mut spans = Vec::new();
@@ -336,14 +327,14 @@ impl RegisterBank {
                 return Err(ExceptionCode::ILLEGAL_DATA_ADDRESS.into());
             };
             if (u32::from(slot.reg.address) != a || slot.reg.end() > end) && !takes_halves {
-                return Err(self.choices.reject(
+                return Err(self.choices().reject(
                     ids::PARTIAL_REGISTER_WRITE,
                     ExceptionCode::ILLEGAL_DATA_ADDRESS,
                 ));
             }
             if !slot.reg.access.writable() && !self.read_only_writable {
                 return Err(self
-                    .choices
+                    .choices()
                     .reject(ids::WRITE_READ_ONLY, ExceptionCode::ILLEGAL_DATA_ADDRESS));
             }
             spans.push(idx);
@@ -378,7 +369,7 @@ impl RegisterBank {
                     return Err(Rejection::by(ids::VALUE_OUT_OF_RANGE, code));
                 }
                 return Err(self
-                    .choices
+                    .choices()
                     .reject(ids::VALUE_OUT_OF_RANGE, ExceptionCode::ILLEGAL_DATA_VALUE));
             }
             changes.push(Change {
@@ -510,10 +501,7 @@ impl RegisterBank {
         address: u16,
         quantity: u16,
     ) -> Result<Vec<u8>, Rejection> {
-        let end = u32::from(address) + u32::from(quantity);
-        if end > 0x1_0000 {
-            return Err(ExceptionCode::ILLEGAL_DATA_ADDRESS.into());
-        }
+        let end = range_end(address, usize::from(quantity))?;
         let (map, states) = self.bits(table);
         let mut out = vec![0u8; usize::from(quantity).div_ceil(8)];
         for (i, a) in (u32::from(address)..end).enumerate() {
@@ -532,16 +520,13 @@ impl RegisterBank {
 
     /// Write coils from `address` on (FC 05/0F): all or nothing; unmapped or read-only coils give 02.
     pub fn write_coils(&mut self, address: u16, states: &[bool]) -> Result<(), Rejection> {
-        let end = u32::from(address) + states.len() as u32;
-        if end > 0x1_0000 {
-            return Err(ExceptionCode::ILLEGAL_DATA_ADDRESS.into());
-        }
+        let end = range_end(address, states.len())?;
         for a in u32::from(address)..end {
             match self.layout.coils.get(&(a as u16)) {
                 Some(c) if c.access.writable() || self.read_only_writable => {}
                 Some(_) => {
                     return Err(self
-                        .choices
+                        .choices()
                         .reject(ids::WRITE_READ_ONLY, ExceptionCode::ILLEGAL_DATA_ADDRESS));
                 }
                 None => return Err(ExceptionCode::ILLEGAL_DATA_ADDRESS.into()),
@@ -635,8 +620,8 @@ impl DataModel for RegisterBank {
         RegisterBank::plan_write(self, address, words)
     }
 
-    fn decided(&mut self, freedom: crate::choices::Decision) {
-        self.decisions.push(freedom);
+    fn decided(&mut self, freedom: Decision) {
+        self.freedoms.decided(freedom);
     }
 
     fn commit(&mut self, plan: Vec<Change>) {

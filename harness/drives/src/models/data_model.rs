@@ -93,6 +93,16 @@ pub trait DataModel {
     }
 }
 
+/// The end (exclusive) of `count` addresses from `address`, or exception 02 when they run past 0xFFFF: in the
+/// state diagrams of spec section 6, starting address + quantity must be a valid address range.
+pub(crate) fn range_end(address: u16, count: usize) -> Result<u32, ExceptionCode> {
+    u32::try_from(count)
+        .ok()
+        .and_then(|n| u32::from(address).checked_add(n))
+        .filter(|&e| e <= 0x1_0000)
+        .ok_or(ExceptionCode::ILLEGAL_DATA_ADDRESS)
+}
+
 /// Spec 6.16: Result = (Current Contents AND And_Mask) OR (Or_Mask AND (NOT And_Mask)). The AND mask keeps
 /// the bits it sets, the OR mask sets the others.
 pub fn mask_write(current: u16, and_mask: u16, or_mask: u16) -> u16 {

@@ -14,7 +14,7 @@ use std::time::Duration;
 use super::DriveModel;
 use super::bank::RegisterBank;
 use super::data_model;
-use crate::choices::{Choices, Decision};
+use crate::choices::{Choices, Freedoms};
 use crate::faults::{Fault, FaultSet};
 use crate::profile::{Access, Profile};
 use codec::codes::{MAX_FIFO_COUNT, file};
@@ -342,15 +342,11 @@ impl DriveModel for Generic {
         &self.profile
     }
 
-    fn adopt(&mut self, choices: &Choices) {
-        self.bank.adopt(choices);
-    }
-
     /// A plain server has no state that evolves on its own.
     fn advance(&mut self, _now: Duration) {}
 
-    fn take_decisions(&mut self) -> Vec<Decision> {
-        self.bank.take_decisions()
+    fn freedoms(&mut self) -> &mut Freedoms {
+        self.bank.freedoms()
     }
 
     fn handle(&mut self, _now: Duration, _unit: u8, request: &Request) -> Option<Response> {

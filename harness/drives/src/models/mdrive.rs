@@ -61,7 +61,7 @@ use super::DriveModel;
 use super::bank::{BitIndex, Change, RegIndex, RegisterBank};
 use super::data_model::{self, BitTable, DataModel, RegTable};
 use super::generic::read_device_id;
-use crate::choices::{Choices, Decision, Rejection, ids};
+use crate::choices::{Choices, Decision, Freedoms, Rejection, ids};
 use crate::faults::{Fault, FaultSet};
 use crate::profile::{Profile, VendorMnemonic};
 use codec::{ExceptionCode, FunctionCode, Mnemonic, Request, Response};
@@ -564,10 +564,6 @@ pub struct Mdrive {
     params: Arc<BTreeMap<String, Vec<String>>>,
     program: Program,
     nvm_writes: u32,
-    /// The values taken where the freedoms leave a choice.
-    choices: Choices,
-    /// Freedoms that decided the answer being given (drained per request).
-    decisions: Vec<Decision>,
     /// `Fault::WriteOnlyReadable`: FC 0x41 of a write-only mnemonic is answered.
     write_only_readable: bool,
     /// `Fault::MnemonicParamsUnchecked`: FC 0x42 parameters the mnemonic does not take are "written".
@@ -636,8 +632,6 @@ impl Mdrive {
             params: Arc::new(params),
             program: Program::Idle,
             nvm_writes: 0,
-            choices,
-            decisions: Vec::new(),
             write_only_readable: faults.has(Fault::WriteOnlyReadable),
             params_unchecked: faults.has(Fault::MnemonicParamsUnchecked),
             write_not_applied: faults.has(Fault::VendorWriteNotApplied),
@@ -768,7 +762,8 @@ impl Mdrive {
         }
         // A dependent limit is a range too: the value is outside what the drive accepts now.
         let out_of_range = self
-            .choices
+            .bank
+            .choices()
             .reject(ids::VALUE_OUT_OF_RANGE, ExceptionCode::ILLEGAL_DATA_VALUE);
         let new = |addr: Option<u16>| {
             let a = addr?;
@@ -879,10 +874,10 @@ impl Mdrive {
     fn vendor_read(&mut self, mnemonic: &Mnemonic) -> Response {
         let fc = FunctionCode::VENDOR_READ;
         // The width of the byte count is the station's (it encodes the response).
-        self.decisions.push(ids::FC41_BYTE_COUNT_WIDTH);
+        self.decided(ids::FC41_BYTE_COUNT_WIDTH);
         if let Some(key) = self.program_control(mnemonic) {
             // A drive following the sections (000 line 873): FC 0x41 runs E, EX, PS, RS; nothing is read.
-            self.decisions.push(ids::MDRIVE_PROGRAM_CONTROL_FUNCTION);
+            self.decided(ids::MDRIVE_PROGRAM_CONTROL_FUNCTION);
             let _ = self.run_command(&key, "", false);
             return Response::VendorRead { params: Vec::new() };
         }
@@ -922,8 +917,8 @@ impl Mdrive {
         {
             *first = v.to_string();
         }
-        self.decisions.push(ids::FC41_READ_BACK_FORMAT);
-        let params = if self.choices.name(ids::FC41_READ_BACK_FORMAT) == Some("as-written") {
+        self.decided(ids::FC41_READ_BACK_FORMAT);
+        let params = if self.bank.choices().name(ids::FC41_READ_BACK_FORMAT) == Some("as-written") {
             // "Written or read in normal sequence" (000 line 727): as a setting is written, "=0,1,0".
             format!("={}", values.join(","))
         } else {
@@ -941,7 +936,7 @@ impl Mdrive {
         if self.program_control(mnemonic).is_some() {
             // A drive following the sections runs E, EX, PS, RS by FC 0x41 and refuses them by 0x42, as it
             // refuses any other FC 0x42 of a mnemonic it reads (the access freedom decides the code).
-            self.decisions.push(ids::MDRIVE_PROGRAM_CONTROL_FUNCTION);
+            self.decided(ids::MDRIVE_PROGRAM_CONTROL_FUNCTION);
             return self.refuse(
                 fc,
                 ids::MNEMONIC_ACCESS,
@@ -953,9 +948,9 @@ impl Mdrive {
         if self.profile.device.id == "lmd"
             && (Some(*mnemonic) == escape || *mnemonic == printed_escape)
         {
-            self.decisions.push(ids::LMD_ESC_WIRE_FORM);
+            self.decided(ids::LMD_ESC_WIRE_FORM);
         }
-        let mnemonic = &match self.choices.name(ids::LMD_ESC_WIRE_FORM) {
+        let mnemonic = &match self.bank.choices().name(ids::LMD_ESC_WIRE_FORM) {
             // A drive that knows ESC as printed (001 lines 1054, 1256) takes 20 20 1B 20 for it, and the
             // reversal rule's 20 20 20 1B for no mnemonic it knows.
             Some("20 20 1B 20") if Some(*mnemonic) == escape => {
@@ -982,7 +977,7 @@ impl Mdrive {
             })
         {
             // With or without a byte count (the station reads the request as the drive does).
-            self.decisions.push(ids::FC42_PARAMETERLESS_BYTE_COUNT);
+            self.decided(ids::FC42_PARAMETERLESS_BYTE_COUNT);
         }
         let writable = m.write || (kind == VendorKind::Status && self.bank.read_only_writable());
         if !writable {
@@ -1024,8 +1019,8 @@ impl Mdrive {
                     self.nvm_writes = self.nvm_writes.saturating_add(1);
                 }
                 self.refresh();
-                self.decisions.push(ids::FC42_BYTES_WRITTEN);
-                let written = match self.choices.name(ids::FC42_BYTES_WRITTEN) {
+                self.decided(ids::FC42_BYTES_WRITTEN);
+                let written = match self.bank.choices().name(ids::FC42_BYTES_WRITTEN) {
                     Some("parameter-bytes") => u8::try_from(params.len()).unwrap_or(u8::MAX),
                     _ => BYTES_WRITTEN,
                 };
@@ -1046,7 +1041,12 @@ impl Mdrive {
     /// The command key when `mnemonic` is one of E, EX, PS, RS and the drive runs them by FC 0x41
     /// (`mdrive-program-control-function=fc41`).
     fn program_control(&self, mnemonic: &Mnemonic) -> Option<String> {
-        if self.choices.name(ids::MDRIVE_PROGRAM_CONTROL_FUNCTION) != Some("fc41") {
+        if self
+            .bank
+            .choices()
+            .name(ids::MDRIVE_PROGRAM_CONTROL_FUNCTION)
+            != Some("fc41")
+        {
             return None;
         }
         let key = mnemonic.name().to_ascii_uppercase();
@@ -1062,8 +1062,8 @@ impl Mdrive {
         freedom: Decision,
         reference: ExceptionCode,
     ) -> Response {
-        self.decisions.push(freedom);
-        Response::exception(fc, self.choices.code(freedom, reference))
+        self.decided(freedom);
+        Response::exception(fc, self.bank.choices().code(freedom, reference))
     }
 
     fn run_command(
@@ -1181,7 +1181,7 @@ impl DataModel for Mdrive {
     }
 
     fn decided(&mut self, freedom: Decision) {
-        self.decisions.push(freedom);
+        self.bank.freedoms().decided(freedom);
     }
 
     fn commit(&mut self, changes: Vec<Change>) {
@@ -1219,13 +1219,8 @@ impl DriveModel for Mdrive {
         &self.profile
     }
 
-    fn take_decisions(&mut self) -> Vec<Decision> {
-        std::mem::take(&mut self.decisions)
-    }
-
-    fn adopt(&mut self, choices: &Choices) {
-        self.choices = choices.clone();
-        self.bank.adopt(choices);
+    fn freedoms(&mut self) -> &mut Freedoms {
+        self.bank.freedoms()
     }
 
     fn advance(&mut self, now: Duration) {

@@ -15,7 +15,7 @@ use std::time::Duration;
 use crate::profile::Profile;
 use codec::{Request, Response};
 
-use crate::choices::{Choices, Decision};
+use crate::choices::{Choices, Decision, Freedoms};
 use crate::faults::FaultSet;
 
 /// An executable model of a drive: what a conforming drive answers, and its state over time.
@@ -30,9 +30,12 @@ pub trait DriveModel: Send + BoxClone {
     /// `None` means the drive stays silent. Broadcasts are handled too; the station drops their answer.
     fn handle(&mut self, now: Duration, unit: u8, request: &Request) -> Option<Response>;
 
+    /// The choices the model takes and the freedoms that decided its answers (see [`crate::choices`]).
+    fn freedoms(&mut self) -> &mut Freedoms;
+
     /// The freedoms that decided the answers since the last call (see [`crate::choices`]).
     fn take_decisions(&mut self) -> Vec<Decision> {
-        Vec::new()
+        self.freedoms().take_decisions()
     }
 
     /// Take `choices` from now on where they act at run time (a refusal or an answer where a freedom
@@ -40,7 +43,9 @@ pub trait DriveModel: Send + BoxClone {
     /// test showed it chose, so that the two keep the same state (a half of a 32-bit register the drive
     /// took is taken by the reference too). Choices that shape the model (access, word order, addressing)
     /// are fixed when it is built and stay as they are.
-    fn adopt(&mut self, _choices: &Choices) {}
+    fn adopt(&mut self, choices: &Choices) {
+        self.freedoms().adopt(choices);
+    }
 }
 
 /// A copy of a model in its present state, which then evolves on its own: every model that is `Clone` has

@@ -46,8 +46,8 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use super::DriveModel;
-use super::data_model::{self, DataModel, RegTable};
-use crate::choices::{Choices, Decision, Rejection, ids};
+use super::data_model::{self, DataModel, RegTable, range_end};
+use crate::choices::{Choices, Decision, Freedoms, Rejection, ids};
 use crate::faults::Fault;
 use crate::faults::FaultSet;
 use crate::profile::{Access, ObjectType, Profile, WordOrder};
@@ -332,10 +332,8 @@ pub struct Sd2x {
     error_code: u16,
     /// When the watchdog expires; `None` when it is off or has tripped.
     watchdog_deadline: Option<Duration>,
-    /// The values taken where the freedoms leave a choice.
-    choices: Choices,
-    /// Freedoms that decided the answer being given (drained per request).
-    decisions: Vec<Decision>,
+    /// The values taken where the freedoms leave a choice, and the freedoms that decided the answer being given.
+    freedoms: Freedoms,
     /// Until when a fault reaction lasts at least (`sd2x-watchdog-trip-state=fault-reaction-active`).
     reaction_until: Duration,
 }
@@ -387,8 +385,7 @@ impl Sd2x {
             speed_fine: 0,
             error_code: 0,
             watchdog_deadline: None,
-            choices,
-            decisions: Vec::new(),
+            freedoms: Freedoms::new(choices),
             reaction_until: Duration::ZERO,
         };
         let unmapped: Vec<((u16, u8), u32)> = model
@@ -453,7 +450,7 @@ impl Sd2x {
     /// True when the drive sets the status-word bits outside 0x006F its own way (`sd2x-status-word-bits`).
     fn status_bits_own(&self) -> bool {
         matches!(
-            self.choices.get(STATUS_WORD_BITS),
+            self.freedoms.choices().get(STATUS_WORD_BITS),
             Some(crate::requirements::FreedomValue::Int(m)) if *m == i64::from(status::STATE_MASK)
         )
     }
@@ -555,18 +552,19 @@ impl Sd2x {
             // Already faulted: the first fault's code stays.
             return;
         }
-        self.error_code = if self.choices.name(WATCHDOG_ERROR_CODE) == Some("any-nonzero") {
-            // Another non-zero code: the first of CiA 301's device-specific range.
-            OTHER_WATCHDOG_ERROR_CODE
-        } else {
-            self.profile
-                .watchdog
-                .as_ref()
-                .and_then(|w| w.fault_error_code)
-                .unwrap_or(DEFAULT_WATCHDOG_ERROR_CODE)
-        };
+        self.error_code =
+            if self.freedoms.choices().name(WATCHDOG_ERROR_CODE) == Some("any-nonzero") {
+                // Another non-zero code: the first of CiA 301's device-specific range.
+                OTHER_WATCHDOG_ERROR_CODE
+            } else {
+                self.profile
+                    .watchdog
+                    .as_ref()
+                    .and_then(|w| w.fault_error_code)
+                    .unwrap_or(DEFAULT_WATCHDOG_ERROR_CODE)
+            };
         self.state = Ds402State::FaultReactionActive;
-        if self.choices.name(WATCHDOG_TRIP_STATE) == Some("fault-reaction-active") {
+        if self.freedoms.choices().name(WATCHDOG_TRIP_STATE) == Some("fault-reaction-active") {
             // A drive whose fault reaction takes its time even from standstill (a brake to apply, the
             // power stage to switch off): the manual gives no stopping time (line 870).
             self.reaction_until = self.now.saturating_add(FAULT_REACTION_TIME);
@@ -710,10 +708,7 @@ impl Sd2x {
 
     /// Read `quantity` registers from `address`; any unreadable one fails the whole read with 02.
     fn read_block(&self, address: u16, quantity: u16) -> Result<Vec<u16>, ExceptionCode> {
-        let end = u32::from(address) + u32::from(quantity);
-        if end > 0x1_0000 {
-            return Err(ExceptionCode::ILLEGAL_DATA_ADDRESS);
-        }
+        let end = range_end(address, usize::from(quantity))?;
         (u32::from(address)..end)
             .map(|a| self.read_word(a as u16))
             .collect()
@@ -722,11 +717,7 @@ impl Sd2x {
     /// Validate a write of `values` from `address` and return the new raw value of every register touched.
     /// Nothing is changed: a request is written whole or not at all.
     fn stage_write(&self, address: u16, values: &[u16]) -> Result<Vec<(u16, u32)>, Rejection> {
-        let end = u32::try_from(values.len())
-            .ok()
-            .and_then(|n| u32::from(address).checked_add(n))
-            .filter(|&e| e <= 0x1_0000)
-            .ok_or(ExceptionCode::ILLEGAL_DATA_ADDRESS)?;
+        let end = range_end(address, values.len())?;
         let order = self.word_order();
         let mut staged: BTreeMap<u16, (Slot, u32)> = BTreeMap::new();
         for (a, &v) in (u32::from(address)..end).zip(values) {
@@ -735,7 +726,8 @@ impl Sd2x {
             if !slot.access.writable() && !self.has(Fault::ReadOnlyWritable) {
                 // The TxPDO is the input-register image (line 726): not a valid address to write (line 672).
                 return Err(self
-                    .choices
+                    .freedoms
+                    .choices()
                     .reject(ids::WRITE_READ_ONLY, ExceptionCode::ILLEGAL_DATA_ADDRESS));
             }
             let entry = staged
@@ -844,8 +836,8 @@ impl Sd2x {
         } else {
             return None;
         };
-        self.decisions.push(ids::SDO_LENGTH_ERROR);
-        Some(match self.choices.get(ids::SDO_LENGTH_ERROR) {
+        self.decided(ids::SDO_LENGTH_ERROR);
+        Some(match self.freedoms.choices().get(ids::SDO_LENGTH_ERROR) {
             Some(crate::requirements::FreedomValue::Int(c)) => {
                 u32::try_from(*c).unwrap_or(reference)
             }
@@ -942,7 +934,7 @@ impl DataModel for Sd2x {
     }
 
     fn decided(&mut self, freedom: Decision) {
-        self.decisions.push(freedom);
+        self.freedoms.decided(freedom);
     }
 
     fn commit(&mut self, plan: Self::Plan) {
@@ -955,12 +947,8 @@ impl DriveModel for Sd2x {
         &self.profile
     }
 
-    fn take_decisions(&mut self) -> Vec<Decision> {
-        std::mem::take(&mut self.decisions)
-    }
-
-    fn adopt(&mut self, choices: &Choices) {
-        self.choices = choices.clone();
+    fn freedoms(&mut self) -> &mut Freedoms {
+        &mut self.freedoms
     }
 
     fn advance(&mut self, now: Duration) {

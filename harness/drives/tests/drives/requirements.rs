@@ -310,108 +310,82 @@ fn unit_ids_are_a_range() {
 
 #[test]
 fn malformed_files_are_rejected_with_file_line_and_reason() {
-    let cases: &[(&str, &str, &str, &str)] = &[
-        // (requirements, freedoms, cites, expected "file:line: reason" fragment)
+    // Each case breaks one of the three files and keeps the other two as they are.
+    let doc = |d: String| [d, FREEDOMS.to_string(), CITES.to_string()];
+    let freedoms = |f: String| [DOC.to_string(), f, CITES.to_string()];
+    let cites = |c: String| [DOC.to_string(), FREEDOMS.to_string(), c];
+    let cases: &[([String; 3], &str)] = &[
+        // (requirements, freedoms, cites; expected "file:line: reason" fragment)
         (
-            &DOC.replace("level = \"must\"", "level = \"shall\""),
-            FREEDOMS,
-            CITES,
+            doc(DOC.replace("level = \"must\"", "level = \"shall\"")),
             "m.toml:11: unknown variant `shall`",
         ),
         (
-            &format!(
+            doc(format!(
                 "{DOC}\n[[requirement]]\nid = \"m/1/a\"\nsection = \"1\"\nline = 4\nlevel = \"may\"\ntext = \"B.\"\n"
-            ),
-            FREEDOMS,
-            CITES,
+            )),
             "m.toml:15: requirement `m/1/a` is already defined in m.toml:7",
         ),
         (
-            &DOC.replace("line = 3\n", ""),
-            FREEDOMS,
-            CITES,
+            doc(DOC.replace("line = 3\n", "")),
             "m.toml:7: requirement `m/1/a`: a manual's requirement cites its `line`",
         ),
         (
-            &DOC.replace("id = \"m/1/a\"", "id = \"x/1/a\""),
-            FREEDOMS,
-            CITES,
+            doc(DOC.replace("id = \"m/1/a\"", "id = \"x/1/a\"")),
             "m.toml:8: requirement id `x/1/a`: must start with `m/`",
         ),
         (
-            DOC,
-            &FREEDOMS.replace("exception-code", "exception-kode"),
-            CITES,
+            freedoms(FREEDOMS.replace("exception-code", "exception-kode")),
             "f.toml:4: unknown variant `exception-kode`",
         ),
         (
-            DOC,
-            &FREEDOMS.replace("values = [3, 4]", "values = []"),
-            CITES,
+            freedoms(FREEDOMS.replace("values = [3, 4]", "values = []")),
             "f.toml:6: freedom `f` (exception-code): `values` is empty",
         ),
         (
-            DOC,
-            &FREEDOMS.replace("values = [3, 4]", "values = [3, \"four\"]"),
-            CITES,
+            freedoms(FREEDOMS.replace("values = [3, 4]", "values = [3, \"four\"]")),
             "f.toml:6: freedom `f` (exception-code): value `four` is not a number",
         ),
         (
-            DOC,
-            &FREEDOMS.replace("profiles = [\"all\"]", "profiles = [\"q\"]"),
-            CITES,
+            freedoms(FREEDOMS.replace("profiles = [\"all\"]", "profiles = [\"q\"]")),
             "f.toml:5: freedom `f`: unknown profile `q`",
         ),
         (
-            DOC,
-            &FREEDOMS.replace("doc = \"m\"", "doc = \"nodoc\""),
-            CITES,
+            freedoms(FREEDOMS.replace("doc = \"m\"", "doc = \"nodoc\"")),
             "f.toml:8: freedom `f`, source: unknown document `nodoc`",
         ),
         (
-            DOC,
-            &FREEDOMS.replace(
+            freedoms(FREEDOMS.replace(
                 "values = [3, 4]\n",
                 "values = [3, 4]\ngolden = [\"p/1/y/request\"]\n",
-            ),
-            CITES,
+            )),
             "f.toml:7: freedom `f`: no golden frame `p/1/y/request`",
         ),
         (
-            DOC,
-            &FREEDOMS.replace("exception-code", "unit-ids").replace(
+            freedoms(FREEDOMS.replace("exception-code", "unit-ids").replace(
                 "values = [3, 4]",
                 "values = [\"answer\", \"silence\"]\nunits = [247, 1]",
-            ),
-            CITES,
+            )),
             "freedom `f` (unit-ids): needs `units` = [first, last], an inclusive range",
         ),
         (
-            DOC,
-            FREEDOMS,
-            &CITES.replace("[\"m/1/a\"]", "[\"m/1/b\"]"),
+            cites(CITES.replace("[\"m/1/a\"]", "[\"m/1/b\"]")),
             "cases.toml:3: cite `spec/*`: no requirement `m/1/b`",
         ),
         (
-            DOC,
-            FREEDOMS,
-            &CITES.replace("[\"f\"]", "[\"g\"]"),
+            cites(CITES.replace("[\"f\"]", "[\"g\"]")),
             "cases.toml:4: cite `spec/*`: no freedom `g`",
         ),
         (
-            DOC,
-            FREEDOMS,
-            &format!("{CITES}\n[[cite]]\ncases = \"x\"\n"),
+            cites(format!("{CITES}\n[[cite]]\ncases = \"x\"\n")),
             "cases.toml:6: cite `x`: cites neither requirements nor freedoms",
         ),
         (
-            DOC,
-            FREEDOMS,
-            &CITES.replace("cases = \"spec/*\"", "cases = \"spec/*\"\nkase = 1"),
+            cites(CITES.replace("cases = \"spec/*\"", "cases = \"spec/*\"\nkase = 1")),
             "cases.toml:3: unknown field `kase`",
         ),
     ];
-    for (doc, fr, ci, want) in cases {
+    for ([doc, fr, ci], want) in cases {
         let err = parse(doc, fr, ci).expect_err(want);
         assert!(err.contains(want), "expected `{want}`, got `{err}`");
     }

@@ -58,6 +58,37 @@ pub fn skip(test: &str, why: &str) {
     let _ = writeln!(std::io::stderr().lock(), "SKIPPED {test}: {why}");
 }
 
+/// The name of the function it stands in, without its module path: in a test, the test's own name, so that
+/// a test names itself once (in its `fn`). Taken from the type name of a function item declared in place;
+/// the `{{closure}}` segments of an async body (what `#[tokio::test]` makes of one) are passed over.
+#[macro_export]
+macro_rules! test_name {
+    () => {{
+        fn here() {}
+        $crate::enclosing_fn_name(::std::any::type_name_of_val(&here))
+    }};
+}
+
+/// The function a `path::to::the_fn::{{closure}}::here` type name ([`test_name!`]) stands in: `the_fn`.
+#[doc(hidden)]
+pub fn enclosing_fn_name(here: &'static str) -> &'static str {
+    here.rsplit("::")
+        .filter(|segment| *segment != "{{closure}}")
+        .nth(1)
+        .unwrap_or_else(|| panic!("no enclosing function in {here:?}"))
+}
+
+/// Return from the calling test, after a visible skip naming it (`SKIPPED <test>: <why>`), unless `check`
+/// (one of the `*_or_skip` functions, given the test's name by [`test_name!`]) finds what the test needs.
+#[macro_export]
+macro_rules! skip_unless {
+    ($check:expr) => {
+        if !$check($crate::test_name!()) {
+            return;
+        }
+    };
+}
+
 /// True when `cmd args...` runs and exits 0.
 pub fn runs(cmd: &str, args: &[&str]) -> bool {
     Command::new(cmd)
@@ -214,9 +245,16 @@ pub fn sim_run_reported(
     target: &str,
     extra: &[&str],
 ) -> (TempDir, PathBuf, (i32, String, String)) {
+    harness_reported(tag, &sim_run_args(target, extra))
+}
+
+/// [`harness`] `ARGS... --report REPORT`, the report in a fresh temporary directory tagged `tag`: that
+/// directory (removed when dropped), the report's path (`DIR/report`), and the run's (exit code, stdout,
+/// stderr).
+pub fn harness_reported(tag: &str, args: &[&str]) -> (TempDir, PathBuf, (i32, String, String)) {
     let dir = TempDir::new(tag);
     let report = dir.path().join("report");
-    let mut args = sim_run_args(target, extra);
+    let mut args = args.to_vec();
     args.extend(["--report", report.to_str().expect("utf-8 path")]);
     let ran = harness(&args);
     (dir, report, ran)
@@ -281,6 +319,18 @@ impl Drop for ChildGuard {
     }
 }
 
+/// Start `cmd` as a child with stdin closed and the given stdout and stderr, killed on drop; panics naming
+/// `cmd` when it does not start.
+pub fn spawn_guarded(cmd: &mut Command, stdout: Stdio, stderr: Stdio) -> ChildGuard {
+    let child = cmd
+        .stdin(Stdio::null())
+        .stdout(stdout)
+        .stderr(stderr)
+        .spawn()
+        .unwrap_or_else(|e| panic!("spawn {cmd:?}: {e}"));
+    ChildGuard(child)
+}
+
 /// Wait for `child` to exit, at most `limit`; kill it and panic, naming `what`, past that.
 pub fn wait_bounded(child: &mut Child, limit: Duration, what: &str) -> ExitStatus {
     let give_up = Instant::now() + limit;
@@ -300,17 +350,12 @@ pub fn wait_bounded(child: &mut Child, limit: Duration, what: &str) -> ExitStatu
 /// socat run with `-d -d` between `a` and `b` (socat address specs), killed on drop; returns once it runs
 /// its transfer loop (bounded, see `wait_socat_ready`), with its log so far.
 fn start_socat(a: String, b: String, what: &str) -> (ChildGuard, Vec<String>) {
-    let mut child = Command::new("socat")
-        .args(["-d", "-d"])
-        .arg(a)
-        .arg(b)
-        .stdin(Stdio::null())
-        .stdout(Stdio::null())
-        .stderr(Stdio::piped())
-        .spawn()
-        .expect("spawn socat");
-    let stderr = child.stderr.take().expect("socat stderr");
-    let guard = ChildGuard(child);
+    let mut guard = spawn_guarded(
+        Command::new("socat").args(["-d", "-d"]).arg(a).arg(b),
+        Stdio::null(),
+        Stdio::piped(),
+    );
+    let stderr = guard.0.stderr.take().expect("socat stderr");
     // socat logs "starting data transfer loop" once both addresses are set up; the reader thread keeps
     // draining its stderr afterwards so it never blocks on a full pipe.
     let log = wait_socat_ready(stderr, what);
@@ -406,18 +451,15 @@ impl SimProcess {
             .filter(|a| ["--listen", "--rtu-over-tcp", "--serial"].contains(a))
             .count();
         assert!(want > 0, "no endpoint in {args:?}");
-        let mut child = Command::new(harness_bin())
-            .arg("simulate")
-            .args(args)
-            .stdin(Stdio::null())
-            .stdout(Stdio::piped())
-            .stderr(Stdio::piped())
-            .spawn()
-            .expect("spawn modbus-harness simulate");
-        let out = line_reader(child.stdout.take().expect("stdout"));
-        let stderr = line_reader(child.stderr.take().expect("stderr"));
+        let mut child = spawn_guarded(
+            Command::new(harness_bin()).arg("simulate").args(args),
+            Stdio::piped(),
+            Stdio::piped(),
+        );
+        let out = line_reader(child.0.stdout.take().expect("stdout"));
+        let stderr = line_reader(child.0.stderr.take().expect("stderr"));
         let mut sim = Self {
-            child: ChildGuard(child),
+            child,
             tcp: None,
             rtu_over_tcp: None,
             serial: None,
@@ -523,7 +565,6 @@ pub fn loopback_tcp_and_rtu() -> ServerConfig {
     }
 }
 
-/// A serial endpoint at 19200 8N1 on `path`.
 /// The harness's conformance runs over a pty use 2400 baud: a pty has no line, and socat relays bytes in
 /// pieces; at 2400 baud t3.5 is 16 ms, so a busy machine's stalls do not cut a request in two, while the
 /// framing is still the real RTU silence framing.
@@ -537,6 +578,7 @@ pub fn serial_run_8n1(path: &Path) -> SerialConfig {
     }
 }
 
+/// A serial endpoint at 19200 8N1 on `path`.
 pub fn serial_19200_8n1(path: &Path) -> SerialConfig {
     SerialConfig {
         path: path.to_path_buf(),
@@ -922,5 +964,21 @@ impl Drop for RecordingProxy {
         self.stop.store(true, Ordering::SeqCst);
         // Wake the accept loop so that it sees the flag.
         let _ = std::net::TcpStream::connect_timeout(&self.addr, Duration::from_millis(200));
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    #[test]
+    fn test_name_is_the_enclosing_test_fn() {
+        assert_eq!(test_name!(), "test_name_is_the_enclosing_test_fn");
+    }
+
+    #[tokio::test]
+    async fn test_name_passes_over_the_async_body_of_a_tokio_test() {
+        assert_eq!(
+            test_name!(),
+            "test_name_passes_over_the_async_body_of_a_tokio_test"
+        );
     }
 }

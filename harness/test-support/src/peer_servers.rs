@@ -6,7 +6,7 @@ use std::path::PathBuf;
 use std::process::{Command, ExitStatus, Stdio};
 use std::sync::OnceLock;
 
-use super::{ChildGuard, STEP, line_reader, peer_file, wait_bounded};
+use super::{ChildGuard, STEP, line_reader, peer_file, spawn_guarded, wait_bounded};
 
 /// A peer server of tests/peers/ running as a child (killed on drop if a test panics first).
 pub struct PeerServer {
@@ -17,14 +17,8 @@ pub struct PeerServer {
 impl PeerServer {
     /// Start `cmd` (a server in `tcp 127.0.0.1 0` mode) and wait, bounded, for its `listening tcp ADDR` line.
     pub fn start(mut cmd: Command) -> Self {
-        let mut child = cmd
-            .stdin(Stdio::null())
-            .stdout(Stdio::piped())
-            .stderr(Stdio::null())
-            .spawn()
-            .unwrap_or_else(|e| panic!("spawn {cmd:?}: {e}"));
-        let stdout = child.stdout.take().expect("stdout");
-        let guard = ChildGuard(child);
+        let mut guard = spawn_guarded(&mut cmd, Stdio::piped(), Stdio::null());
+        let stdout = guard.0.stdout.take().expect("stdout");
         let rx = line_reader(stdout);
         let line = rx
             .recv_timeout(STEP)

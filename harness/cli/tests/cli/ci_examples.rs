@@ -5,7 +5,7 @@
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
-use test_support::{runs, skip};
+use test_support::{runs, skip, test_name};
 
 fn workspace() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("../..")
@@ -67,7 +67,7 @@ fn ci_examples_parse_and_run_only_commands_the_cli_has() {
             "PyYAML is missing in CI: .ci/python-peers installs it"
         );
         skip(
-            "ci_examples_parse_and_run_only_commands_the_cli_has",
+            test_name!(),
             "python3 has no yaml module (pip install pyyaml)",
         );
         return;

@@ -50,17 +50,37 @@ fn decode_rtu_status_read() {
     assert!(!out.contains("error"), "{out}");
 }
 
+/// `decode ARGS` of a frame that breaks a rule: exit code 1, the row `field` shows each of `row_shows`, and
+/// the `error:` line gives the offset (`at byte AT_BYTE`) and each of `error_names`. Returns stdout.
+fn rejected(
+    args: &[&str],
+    field: &str,
+    row_shows: &[&str],
+    at_byte: usize,
+    error_names: &[&str],
+) -> String {
+    let (code, out, err) = run(args);
+    assert_eq!(code, 1, "stdout:\n{out}\nstderr:\n{err}");
+    let shown = row(&out, field).unwrap_or_default();
+    for want in row_shows {
+        assert!(shown.contains(want), "row {field} lacks {want}:\n{out}");
+    }
+    let error = error_line(&out);
+    let at = format!("at byte {at_byte}");
+    for want in std::iter::once(at.as_str()).chain(error_names.iter().copied()) {
+        assert!(error.contains(want), "error line lacks {want}:\n{out}");
+    }
+    out
+}
+
 #[test]
 fn decode_rtu_bad_crc() {
-    let (code, out, err) = run(&["decode", "--rtu", "010307D000018488"]);
-    assert_eq!(code, 1, "stdout:\n{out}\nstderr:\n{err}");
-    let crc = row(&out, "CRC").unwrap_or_default();
-    assert!(crc.contains("0x8884") && crc.contains("0x8784"), "{out}");
-    assert!(crc.contains("MISMATCH"), "{out}");
-    let error = error_line(&out);
-    assert!(
-        error.contains("at byte 6") && error.contains("0x8784") && error.contains("0x8884"),
-        "{out}"
+    let out = rejected(
+        &["decode", "--rtu", "010307D000018488"],
+        "CRC",
+        &["0x8884", "0x8784", "MISMATCH"],
+        6,
+        &["0x8784", "0x8884"],
     );
     // what the frame meant is still shown
     assert_eq!(row(&out, "address"), Some("2000 (0x7D0)"), "{out}");
@@ -68,14 +88,12 @@ fn decode_rtu_bad_crc() {
 
 #[test]
 fn decode_tcp_with_protocol_id_1() {
-    let (code, out, err) = run(&["decode", "--tcp", "00 01 00 01 00 06 01 03 07 D0 00 01"]);
-    assert_eq!(code, 1, "stdout:\n{out}\nstderr:\n{err}");
-    let pid = row(&out, "protocol id").unwrap_or_default();
-    assert!(pid.contains("0x0001") && pid.contains("must be 0"), "{out}");
-    let error = error_line(&out);
-    assert!(
-        error.contains("at byte 2") && error.contains("protocol id is 0x0001"),
-        "{out}"
+    rejected(
+        &["decode", "--tcp", "00 01 00 01 00 06 01 03 07 D0 00 01"],
+        "protocol id",
+        &["0x0001", "must be 0"],
+        2,
+        &["protocol id is 0x0001"],
     );
 }
 

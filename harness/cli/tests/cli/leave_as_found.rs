@@ -18,7 +18,7 @@ use drives::tell::apply_presets;
 use drives::{DriveModel, FaultSet};
 use test_support::{
     ChildGuard, SimProcess, TempDir, harness, harness_bin, kept_registers, read_json, run_args,
-    wait_bounded,
+    spawn_guarded, wait_bounded,
 };
 
 const RUN_LIMIT: Duration = Duration::from_secs(120);
@@ -414,14 +414,7 @@ impl PresetDrive {
 /// `modbus-harness ARGS` started as a child with stdin closed and the given stdout and stderr, killed on
 /// drop: a run the test interrupts.
 fn spawn_harness(args: &[&str], stdout: Stdio, stderr: Stdio) -> ChildGuard {
-    let child = Command::new(harness_bin())
-        .args(args)
-        .stdin(Stdio::null())
-        .stdout(stdout)
-        .stderr(stderr)
-        .spawn()
-        .expect("spawn run");
-    ChildGuard(child)
+    spawn_guarded(Command::new(harness_bin()).args(args), stdout, stderr)
 }
 
 /// A file for a child's output.

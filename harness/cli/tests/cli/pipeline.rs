@@ -6,7 +6,7 @@
 //! pipelined and gives no finding, one that drops pipelined requests is a finding and is not pipelined,
 //! and faults in the answers to reads are found on the same case as one request at a time.
 
-use test_support::{SimProcess, TempDir, harness};
+use test_support::{SimProcess, TempDir, harness, skip_unless};
 
 /// What a campaign's summary line says: (cases, pipelined, probes, requests).
 fn summary(out: &str) -> (u64, u64, u64, u64) {
@@ -66,16 +66,21 @@ fn fuzz(
     harness(&args)
 }
 
-/// `simulate --profile generic` on loopback, taking `choice` (`FREEDOM=VALUE`).
-fn generic_choosing(choice: &str) -> SimProcess {
-    SimProcess::start(&[
+/// `fuzz` with up to `cases` cases against `simulate --profile generic` on loopback taking `choice`
+/// (`FREEDOM=VALUE`, an answer the spec allows): it must find nothing (exit 0). Returns (stdout, stderr).
+fn fuzz_generic_choosing(choice: &str, cases: &str) -> (String, String) {
+    let sim = SimProcess::start(&[
         "--profile",
         "generic",
         "--listen",
         "127.0.0.1:0",
         "--choose",
         choice,
-    ])
+    ]);
+    let dir = TempDir::new("pipeline-choice");
+    let (code, out, err) = fuzz(&sim.tcp_url(), "generic", cases, &dir, &[]);
+    assert_eq!(code, 0, "{choice}: {out}\n{err}");
+    (out, err)
 }
 
 /// The case of the first finding (`FAIL after CASE: ...`).
@@ -124,10 +129,7 @@ fn pipelined_campaigns_send_the_same_cases_and_find_nothing_on_healthy_drives() 
 #[test]
 fn a_drive_that_closes_or_ignores_a_truncated_pdu_is_not_blamed_pipelined() {
     for choice in ["truncated-pdu=close", "truncated-pdu=silence"] {
-        let sim = generic_choosing(choice);
-        let dir = TempDir::new("pipeline-truncated");
-        let (code, out, err) = fuzz(&sim.tcp_url(), "generic", "3000", &dir, &[]);
-        assert_eq!(code, 0, "{choice}: {out}\n{err}");
+        let (out, err) = fuzz_generic_choosing(choice, "3000");
         let (_, pipelined, _, _) = summary(&out);
         assert!(pipelined > 500, "{choice}: {out}\n{err}");
         assert!(
@@ -139,20 +141,14 @@ fn a_drive_that_closes_or_ignores_a_truncated_pdu_is_not_blamed_pipelined() {
 
 #[test]
 fn answers_out_of_request_order_are_taken_by_transaction_id() {
-    let sim = generic_choosing("pipelined-response-order=transaction-id");
-    let dir = TempDir::new("pipeline-reversed");
-    let (code, out, err) = fuzz(&sim.tcp_url(), "generic", "3000", &dir, &[]);
-    assert_eq!(code, 0, "{out}\n{err}");
+    let (out, err) = fuzz_generic_choosing("pipelined-response-order=transaction-id", "3000");
     let (_, pipelined, _, _) = summary(&out);
     assert!(pipelined > 500, "{out}\n{err}");
 }
 
 #[test]
 fn a_server_with_one_transaction_is_not_pipelined_and_not_blamed() {
-    let sim = generic_choosing("pipelined-server-busy=exception-06");
-    let dir = TempDir::new("pipeline-busy");
-    let (code, out, err) = fuzz(&sim.tcp_url(), "generic", "1000", &dir, &[]);
-    assert_eq!(code, 0, "{out}\n{err}");
+    let (out, err) = fuzz_generic_choosing("pipelined-server-busy=exception-06", "1000");
     assert!(
         err.contains("one request at a time (of 8 known-good reads sent in one write, the target answered 1 normally and 7 with Server Busy"),
         "{err}"
@@ -250,11 +246,7 @@ fn finding_ids(out: &str) -> Vec<String> {
 /// again alone, judges it so, and pipelines no more: its findings are those of one request at a time.
 #[test]
 fn a_server_that_flushes_behind_a_refused_request_is_not_blamed() {
-    if !test_support::libmodbus_or_skip(
-        "a_server_that_flushes_behind_a_refused_request_is_not_blamed",
-    ) {
-        return;
-    }
+    skip_unless!(test_support::libmodbus_or_skip);
     let run = |depth: &str| {
         let server = test_support::peer_servers::PeerServer::libmodbus();
         let dir = TempDir::new(&format!("pipeline-libmodbus-{depth}"));

@@ -5,27 +5,15 @@
 //! which took it with the next request as one garbled frame: the healthy simulator "failed" the following
 //! liveness read (seed 1, case gen/1/123/read-reg-bytecount).
 
-use test_support::{SimProcess, TempDir, harness, read_json, run_args};
+use test_support::{SimProcess, harness_reported, read_json, run_args};
 
 #[test]
 fn generated_cases_over_rtu_over_tcp_pass_on_a_healthy_simulator() {
     let sim = SimProcess::start(&["--profile", "generic", "--rtu-over-tcp", "127.0.0.1:0"]);
     let url = sim.rtu_over_tcp_url();
-    let dir = TempDir::new("rtu-resync");
-    let report = dir.path().join("report");
-    let (code, out, err) = harness(&run_args(
-        &url,
-        "generic",
-        &[
-            "--generated",
-            "130",
-            "--seed",
-            "1",
-            "--no-shrink",
-            "--report",
-            report.to_str().expect("path"),
-        ],
-    ));
+    let extra = ["--generated", "130", "--seed", "1", "--no-shrink"];
+    let (_dir, report, (code, out, err)) =
+        harness_reported("rtu-resync", &run_args(&url, "generic", &extra));
     assert_eq!(code, 0, "{out}\n{err}");
     let index = read_json(&report.join("index.json"));
     let case = index["cases"]

@@ -3,6 +3,7 @@
 //! the drive models are in; the exception checks are the station's own.
 
 use test_support::peers::{Peer, Scenario, Via, run};
+use test_support::test_name;
 
 #[tokio::test]
 async fn libmodbus_tcp_sd2x_status_word() {
@@ -10,7 +11,7 @@ async fn libmodbus_tcp_sd2x_status_word() {
         Peer::Libmodbus,
         Scenario::Sd2xStatusWord,
         Via::Tcp,
-        "libmodbus_tcp_sd2x_status_word",
+        test_name!(),
     )
     .await;
 }
@@ -21,7 +22,7 @@ async fn libmodbus_rtu_pty_sd2x_status_word() {
         Peer::Libmodbus,
         Scenario::Sd2xStatusWord,
         Via::Pty,
-        "libmodbus_rtu_pty_sd2x_status_word",
+        test_name!(),
     )
     .await;
 }
@@ -32,7 +33,7 @@ async fn libmodbus_tcp_sd2x_illegal_function() {
         Peer::Libmodbus,
         Scenario::Sd2xIllegalFunction,
         Via::Tcp,
-        "libmodbus_tcp_sd2x_illegal_function",
+        test_name!(),
     )
     .await;
 }
@@ -43,7 +44,7 @@ async fn libmodbus_rtu_pty_sd2x_illegal_function() {
         Peer::Libmodbus,
         Scenario::Sd2xIllegalFunction,
         Via::Pty,
-        "libmodbus_rtu_pty_sd2x_illegal_function",
+        test_name!(),
     )
     .await;
 }
@@ -54,7 +55,7 @@ async fn libmodbus_tcp_mdrive_max_velocity() {
         Peer::Libmodbus,
         Scenario::MdriveMaxVelocity,
         Via::Tcp,
-        "libmodbus_tcp_mdrive_max_velocity",
+        test_name!(),
     )
     .await;
 }
@@ -65,7 +66,7 @@ async fn libmodbus_tcp_generic_round_trip() {
         Peer::Libmodbus,
         Scenario::GenericRoundTrip,
         Via::Tcp,
-        "libmodbus_tcp_generic_round_trip",
+        test_name!(),
     )
     .await;
 }
@@ -76,7 +77,7 @@ async fn libmodbus_rtu_pty_generic_round_trip() {
         Peer::Libmodbus,
         Scenario::GenericRoundTrip,
         Via::Pty,
-        "libmodbus_rtu_pty_generic_round_trip",
+        test_name!(),
     )
     .await;
 }

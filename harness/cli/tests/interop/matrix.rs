@@ -69,19 +69,13 @@ async fn serves_the_generic_map_and_stops_on_sigterm(server: PeerServer, who: &s
 
 #[tokio::test]
 async fn pymodbus_server_serves_the_generic_map_and_stops_on_sigterm() {
-    let test = "pymodbus_server_serves_the_generic_map_and_stops_on_sigterm";
-    if !pymodbus_or_skip(test) {
-        return;
-    }
+    skip_unless!(pymodbus_or_skip);
     serves_the_generic_map_and_stops_on_sigterm(PeerServer::pymodbus(), "pymodbus").await;
 }
 
 #[tokio::test]
 async fn libmodbus_server_serves_the_generic_map_and_stops_on_sigterm() {
-    let test = "libmodbus_server_serves_the_generic_map_and_stops_on_sigterm";
-    if !libmodbus_or_skip(test) {
-        return;
-    }
+    skip_unless!(libmodbus_or_skip);
     serves_the_generic_map_and_stops_on_sigterm(PeerServer::libmodbus(), "libmodbus").await;
 }
 
@@ -138,10 +132,7 @@ fn run_pymodbus(expect: &Path) -> (i32, String, String) {
 
 #[test]
 fn a_missing_expectation_fails_the_run_against_the_pymodbus_server() {
-    let test = "a_missing_expectation_fails_the_run_against_the_pymodbus_server";
-    if !pymodbus_or_skip(test) {
-        return;
-    }
+    skip_unless!(pymodbus_or_skip);
     let full = repo().join("tests/expect/pymodbus-tcp.toml");
     let (code, out, err) = run_pymodbus(&full);
     assert_eq!(

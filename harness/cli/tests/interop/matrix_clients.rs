@@ -94,12 +94,12 @@ async fn lmd_tcp(peer: Peer, test: &str) {
 
 #[tokio::test]
 async fn libmodbus_tcp_lmd_manual_answers() {
-    lmd_tcp(Peer::Libmodbus, "libmodbus_tcp_lmd_manual_answers").await;
+    lmd_tcp(Peer::Libmodbus, test_name!()).await;
 }
 
 #[tokio::test]
 async fn pymodbus_tcp_lmd_manual_answers() {
-    lmd_tcp(Peer::Pymodbus, "pymodbus_tcp_lmd_manual_answers").await;
+    lmd_tcp(Peer::Pymodbus, test_name!()).await;
 }
 
 /// The same LMD answers through tokio-modbus.
@@ -146,10 +146,7 @@ async fn tokio_modbus_tcp_lmd_manual_answers() {
 /// first): 768000, then 600000 after mbpoll writes it; the three outputs read 1 0 1.
 #[tokio::test]
 async fn mbpoll_tcp_lmd_manual_answers() {
-    let test = "mbpoll_tcp_lmd_manual_answers";
-    if !mbpoll_or_skip(test) {
-        return;
-    }
+    skip_unless!(mbpoll_or_skip);
     let server = serve_on("lmd", false).await;
     let port = server.tcp_addr().expect("tcp addr").port();
     mbpoll_tcp_vm_768000_then_600000(port, &["-t", "4:int", "-r", "139"]).await;
@@ -244,30 +241,19 @@ async fn sd2x_rtu_over_tcp(peer: Peer, test: &str) {
 
 #[tokio::test]
 async fn libmodbus_rtu_over_tcp_sd2x_status_word_and_illegal_function() {
-    sd2x_rtu_over_tcp(
-        Peer::Libmodbus,
-        "libmodbus_rtu_over_tcp_sd2x_status_word_and_illegal_function",
-    )
-    .await;
+    sd2x_rtu_over_tcp(Peer::Libmodbus, test_name!()).await;
 }
 
 #[tokio::test]
 async fn pymodbus_rtu_over_tcp_sd2x_status_word_and_illegal_function() {
-    sd2x_rtu_over_tcp(
-        Peer::Pymodbus,
-        "pymodbus_rtu_over_tcp_sd2x_status_word_and_illegal_function",
-    )
-    .await;
+    sd2x_rtu_over_tcp(Peer::Pymodbus, test_name!()).await;
 }
 
 /// SD2x over RTU over TCP through mbpoll (on a socat pty bridged to the endpoint): 6.1, the watchdog, the
 /// 6.3 status word 28728 = 0x7038; FC 01 (not an SD2x function) fails with libmodbus' "Illegal function".
 #[tokio::test]
 async fn mbpoll_rtu_over_tcp_sd2x_status_word_and_illegal_function() {
-    let test = "mbpoll_rtu_over_tcp_sd2x_status_word_and_illegal_function";
-    if !socat_and_mbpoll_or_skip(test) {
-        return;
-    }
+    skip_unless!(socat_and_mbpoll_or_skip);
     let server = serve_on("sd2x", true).await;
     let bridge = PtyTcpBridge::new(server.rtu_over_tcp_addr().expect("rtu-over-tcp addr"));
     mbpoll_sd2x_61(&bridge.tty).await;

@@ -17,10 +17,7 @@ fn mdrive_over_tcp() -> (SimProcess, u16) {
 /// (input table) returns the manual's 0x7038 = 28728.
 #[tokio::test]
 async fn mbpoll_rtu_pty_sd2x_status_word() {
-    let test = "mbpoll_rtu_pty_sd2x_status_word";
-    if !socat_and_mbpoll_or_skip(test) {
-        return;
-    }
+    skip_unless!(socat_and_mbpoll_or_skip);
     let pty = PtyPair::start();
     let _sim = SimProcess::serial_19200_8n1(&pty.a, "sd2x", &["--stop", "1"]);
     mbpoll_sd2x_61(&pty.b).await;
@@ -49,10 +46,7 @@ async fn mbpoll_rtu_pty_sd2x_status_word() {
 /// station answers this itself, whatever the model.
 #[tokio::test]
 async fn mbpoll_rtu_pty_sd2x_illegal_function() {
-    let test = "mbpoll_rtu_pty_sd2x_illegal_function";
-    if !socat_and_mbpoll_or_skip(test) {
-        return;
-    }
+    skip_unless!(socat_and_mbpoll_or_skip);
     let pty = PtyPair::start();
     let tty = pty.a.to_string_lossy().into_owned();
     let _sim = SimProcess::start(&["--profile", "sd2x", "--serial", &tty, "--parity", "none"]);
@@ -63,10 +57,7 @@ async fn mbpoll_rtu_pty_sd2x_illegal_function() {
 /// FC 03 example value 768000 (VM's default), then 600000 after mbpoll writes it (the FC 16 example).
 #[tokio::test]
 async fn mbpoll_tcp_mdrive_max_velocity() {
-    let test = "mbpoll_tcp_mdrive_max_velocity";
-    if !mbpoll_or_skip(test) {
-        return;
-    }
+    skip_unless!(mbpoll_or_skip);
     let (_sim, port) = mdrive_over_tcp();
     mbpoll_tcp_vm_768000_then_600000(port, &["-t", "4:int", "-B", "-r", "139"]).await;
 }
@@ -74,10 +65,7 @@ async fn mbpoll_tcp_mdrive_max_velocity() {
 /// mbpoll over TCP gets a well-formed exception from the simulator binary (MDrive lists no FC 04).
 #[tokio::test]
 async fn mbpoll_tcp_mdrive_illegal_function() {
-    let test = "mbpoll_tcp_mdrive_illegal_function";
-    if !mbpoll_or_skip(test) {
-        return;
-    }
+    skip_unless!(mbpoll_or_skip);
     let (_sim, port) = mdrive_over_tcp();
     let (ok, out, err) = run_client(&mut mbpoll_tcp(port, &["-t", "3", "-r", "0"], &[])).await;
     assert!(!ok, "FC 04 should fail on an MDrive:\n{out}");

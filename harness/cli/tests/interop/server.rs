@@ -2,7 +2,7 @@
 //! unrecoverable stream, delays, shutdown; and the `simulate` command line (faults on the wire, signals,
 //! argument errors). Raw bytes throughout, so nothing here depends on a client library's leniency.
 
-use std::process::Command as StdCommand;
+use std::process::{Command as StdCommand, Stdio};
 use std::time::{Duration, Instant};
 
 use codec::rtu::crc_ok;
@@ -247,9 +247,7 @@ async fn cli_fault_wrong_crc_over_rtu_over_tcp() {
 /// `--fault wrong-crc` on a serial line (socat pty pair): the reply's CRC is wrong.
 #[tokio::test]
 async fn cli_fault_wrong_crc_over_serial_pty() {
-    if !socat_or_skip("cli_fault_wrong_crc_over_serial_pty") {
-        return;
-    }
+    skip_unless!(socat_or_skip);
     let pty = PtyPair::start();
     let sim = SimProcess::serial_19200_8n1(&pty.a, "sd2x", &["--fault", "wrong-crc"]);
     assert_eq!(sim.serial.as_deref(), Some(pty.a.as_path()));
@@ -281,9 +279,7 @@ async fn cli_stops_cleanly_on_sigterm_and_sigint() {
 /// A simulator whose serial line goes away says so and exits with failure instead of lingering.
 #[tokio::test]
 async fn cli_exits_when_its_serial_line_goes_away() {
-    if !socat_or_skip("cli_exits_when_its_serial_line_goes_away") {
-        return;
-    }
+    skip_unless!(socat_or_skip);
     let mut pty = PtyPair::start();
     let tty = pty.a.to_string_lossy().into_owned();
     let mut sim = SimProcess::start(&["--profile", "sd2x", "--serial", &tty]);
@@ -294,15 +290,12 @@ async fn cli_exits_when_its_serial_line_goes_away() {
 
 /// Run `simulate ARGS` expecting it to exit by itself; returns (exit code, stdout, stderr).
 fn simulate_exits(args: &[&str]) -> (Option<i32>, String, String) {
-    let mut child = ChildGuard(
+    let mut child = spawn_guarded(
         StdCommand::new(env!("CARGO_BIN_EXE_modbus-harness"))
             .arg("simulate")
-            .args(args)
-            .stdin(std::process::Stdio::null())
-            .stdout(std::process::Stdio::piped())
-            .stderr(std::process::Stdio::piped())
-            .spawn()
-            .expect("spawn simulate"),
+            .args(args),
+        Stdio::piped(),
+        Stdio::piped(),
     );
     let status = wait_bounded(&mut child.0, STEP, "simulate");
     let mut out = String::new();

@@ -191,8 +191,7 @@ const FC43_TEMP_RESPONSE: [u8; 17] = [
 
 #[tokio::test]
 async fn rtu_pty_sd2x_fc43_temperature_golden() {
-    let test = "rtu_pty_sd2x_fc43_temperature_golden";
-    let Some((_pty, server, mut port)) = on_a_pty(test, "sd2x").await else {
+    let Some((_pty, server, mut port)) = on_a_pty(test_name!(), "sd2x").await else {
         return;
     };
     within("write", port.write_all(&FC43_TEMP_REQUEST))
@@ -236,8 +235,7 @@ async fn tcp_sd2x_fc43_temperature() {
 /// FC 08 sub-function 0 (return query data) echoes the request; answered by the station itself.
 #[tokio::test]
 async fn rtu_pty_diagnostics_echo() {
-    let test = "rtu_pty_diagnostics_echo";
-    let Some((_pty, server, mut port)) = on_a_pty(test, "sd2x").await else {
+    let Some((_pty, server, mut port)) = on_a_pty(test_name!(), "sd2x").await else {
         return;
     };
     let req = rtu_adu(1, &[0x08, 0x00, 0x00, 0xA5, 0x37]);
@@ -250,8 +248,7 @@ async fn rtu_pty_diagnostics_echo() {
 /// first) and read it back with FC 03.
 #[tokio::test]
 async fn tcp_mdrive_max_velocity_write_read() {
-    let Some(mut f) = fixture("tcp_mdrive_max_velocity_write_read", "mdrive", Via::Tcp).await
-    else {
+    let Some(mut f) = fixture(test_name!(), "mdrive", Via::Tcp).await else {
         return;
     };
     answered(

@@ -28,8 +28,8 @@ use quick_xml::Writer;
 use quick_xml::events::{BytesDecl, BytesEnd, BytesStart, BytesText, Event};
 
 use super::{
-    CASE_LINES_FILE, JUNIT_FILE, PCAP_FILE, RunInfo, Sink, Summary, iso8601_utc, outcome_text,
-    partial_path, promote, wire_line, with_path, xml_safe,
+    Buffered, CASE_LINES_FILE, JUNIT_FILE, PCAP_FILE, RunInfo, Sink, Stream, Summary, iso8601_utc,
+    outcome_text, promote, wire_line, with_path, xml_safe,
 };
 use crate::{Case, CaseResult, Verdict};
 use codec::hex_spaced;
@@ -37,9 +37,9 @@ use codec::hex_spaced;
 /// Writes `junit.xml`.
 pub struct JunitSink {
     dir: PathBuf,
-    partial: PathBuf,
     info: RunInfo,
-    xml: Option<Writer<BufWriter<File>>>,
+    /// The `<testcase>` elements, `junit.xml.partial`.
+    cases: Stream<Writer<BufWriter<File>>>,
     tests: usize,
     failures: usize,
     skipped: usize,
@@ -78,20 +78,21 @@ pub fn junit_names(id: &str) -> (String, &str) {
     }
 }
 
+impl Buffered for Writer<BufWriter<File>> {
+    fn buffer(&mut self) -> &mut BufWriter<File> {
+        self.get_mut()
+    }
+}
+
 impl JunitSink {
     /// Start `junit.xml.partial` in `dir`.
     pub fn create(dir: &Path, info: &RunInfo) -> io::Result<Self> {
-        let partial = partial_path(dir, JUNIT_FILE);
-        let file = File::create(&partial).map_err(with_path("cannot create", &partial))?;
         Ok(Self {
             dir: dir.to_path_buf(),
-            partial,
             info: info.clone(),
-            xml: Some(Writer::new_with_indent(
-                BufWriter::with_capacity(super::STREAM_BUFFER, file),
-                b' ',
-                2,
-            )),
+            cases: Stream::wrapping(dir, JUNIT_FILE, |out| {
+                io::Result::Ok(Writer::new_with_indent(out, b' ', 2))
+            })?,
             tests: 0,
             failures: 0,
             skipped: 0,
@@ -254,7 +255,7 @@ impl JunitSink {
             }
             xml.write_event(Event::End(BytesEnd::new("properties")))?;
             xml.get_mut().write_all(b"\n")?;
-            let mut cases = File::open(&self.partial)?;
+            let mut cases = File::open(self.cases.partial())?;
             io::copy(&mut cases, xml.get_mut())?;
             xml.create_element("system-out")
                 .write_text_content(BytesText::new(&xml_safe(&self.suite_out(summary))))?;
@@ -266,7 +267,8 @@ impl JunitSink {
         write(&mut xml).map_err(with_path("cannot write", &tmp))?;
         drop(xml);
         promote(&tmp, &self.dir.join(JUNIT_FILE))?;
-        fs::remove_file(&self.partial).map_err(with_path("cannot remove", &self.partial))
+        let partial = self.cases.partial();
+        fs::remove_file(partial).map_err(with_path("cannot remove", partial))
     }
 }
 
@@ -298,13 +300,9 @@ impl JunitSink {
 
 impl Sink for JunitSink {
     fn case(&mut self, case: &Case, result: &CaseResult) -> io::Result<()> {
-        let partial = self.partial.clone();
-        let xml = self.xml.as_mut().ok_or_else(|| {
-            io::Error::other(format!("{}: report already finished", partial.display()))
-        })?;
         let in_full = result.verdict != Verdict::Pass || self.passes < PASS_IN_FULL;
-        Self::write_case(xml, case, result, in_full)
-            .map_err(with_path("cannot write", &partial))?;
+        self.cases
+            .write(|xml| Self::write_case(xml, case, result, in_full))?;
         self.passes += usize::from(result.verdict == Verdict::Pass);
         self.tests += 1;
         match result.verdict {
@@ -322,26 +320,11 @@ impl Sink for JunitSink {
     }
 
     fn flush(&mut self) -> io::Result<()> {
-        match self.xml.as_mut() {
-            Some(xml) => xml
-                .get_mut()
-                .flush()
-                .map_err(with_path("cannot write", &self.partial)),
-            None => Ok(()),
-        }
+        self.cases.flush()
     }
 
     fn finish(&mut self, summary: &Summary) -> io::Result<()> {
-        let mut xml = self.xml.take().ok_or_else(|| {
-            io::Error::other(format!(
-                "{}: report already finished",
-                self.partial.display()
-            ))
-        })?;
-        xml.get_mut()
-            .flush()
-            .map_err(with_path("cannot write", &self.partial))?;
-        drop(xml);
+        self.cases.close()?;
         self.assemble(summary)
     }
 }

@@ -430,21 +430,49 @@ pub(crate) fn with_path(what: &'static str, path: &Path) -> impl FnOnce(io::Erro
     move |e| io::Error::new(e.kind(), format!("{what} {}: {e}", path.display()))
 }
 
-/// A streamed file: written through a [`STREAM_BUFFER`] to its `.partial` name; its sink completes it and
-/// gives it its final name.
-pub(crate) struct Stream {
+/// A streamed file: written through a [`STREAM_BUFFER`] to its `.partial` name, by `W` (the buffer itself, or
+/// a format's writer around it); its sink completes it and gives it its final name.
+pub(crate) struct Stream<W = BufWriter<File>> {
     partial: PathBuf,
-    out: Option<BufWriter<File>>,
+    out: Option<W>,
+}
+
+/// A writer whose bytes end in a stream's buffer.
+pub(crate) trait Buffered {
+    fn buffer(&mut self) -> &mut BufWriter<File>;
+}
+
+impl Buffered for BufWriter<File> {
+    fn buffer(&mut self) -> &mut BufWriter<File> {
+        self
+    }
 }
 
 impl Stream {
     /// Create `dir/name.partial`.
     pub(crate) fn create(dir: &Path, name: &str) -> io::Result<Self> {
+        Stream::wrapping(dir, name, io::Result::Ok)
+    }
+}
+
+impl<W: Buffered> Stream<W> {
+    /// Create `dir/name.partial`, written by what `wrap` makes of its buffer (`wrap`'s error names the
+    /// file).
+    pub(crate) fn wrapping<E>(
+        dir: &Path,
+        name: &str,
+        wrap: impl FnOnce(BufWriter<File>) -> Result<W, E>,
+    ) -> io::Result<Self>
+    where
+        io::Error: From<E>,
+    {
         let partial = partial_path(dir, name);
         let file = File::create(&partial).map_err(with_path("cannot create", &partial))?;
+        let out = wrap(BufWriter::with_capacity(STREAM_BUFFER, file))
+            .map_err(|e| with_path("cannot write", &partial)(e.into()))?;
         Ok(Self {
             partial,
-            out: Some(BufWriter::with_capacity(STREAM_BUFFER, file)),
+            out: Some(out),
         })
     }
 
@@ -454,12 +482,12 @@ impl Stream {
     }
 
     /// Write with `f`; an error names the file, and so does a write after [`Stream::close`].
-    pub(crate) fn write(
-        &mut self,
-        f: impl FnOnce(&mut BufWriter<File>) -> io::Result<()>,
-    ) -> io::Result<()> {
+    pub(crate) fn write<E>(&mut self, f: impl FnOnce(&mut W) -> Result<(), E>) -> io::Result<()>
+    where
+        io::Error: From<E>,
+    {
         match self.out.as_mut() {
-            Some(out) => f(out).map_err(with_path("cannot write", &self.partial)),
+            Some(out) => f(out).map_err(|e| with_path("cannot write", &self.partial)(e.into())),
             None => Err(io::Error::other(format!(
                 "{}: report already finished",
                 self.partial.display()
@@ -471,6 +499,7 @@ impl Stream {
     pub(crate) fn flush(&mut self) -> io::Result<()> {
         match self.out.as_mut() {
             Some(out) => out
+                .buffer()
                 .flush()
                 .map_err(with_path("cannot write", &self.partial)),
             None => Ok(()),
@@ -479,7 +508,7 @@ impl Stream {
 
     /// Flush and close the file; a second call is an error.
     pub(crate) fn close(&mut self) -> io::Result<()> {
-        self.write(|out| out.flush())?;
+        self.write(|out| out.buffer().flush())?;
         self.out = None;
         Ok(())
     }

@@ -16,7 +16,7 @@
 
 use std::borrow::Cow;
 use std::fs::File;
-use std::io::{self, BufWriter, Write};
+use std::io::{self, BufWriter};
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
@@ -29,8 +29,8 @@ use pcap_file::pcapng::blocks::interface_description::{
 use pcap_file::pcapng::blocks::section_header::{SectionHeaderBlock, SectionHeaderOption};
 
 use super::{
-    PCAP_FILE, RunInfo, Sink, Summary, Transport, partial_path, pcap_decode_args, pcap_server_port,
-    promote, with_path,
+    Buffered, PCAP_FILE, RunInfo, Sink, Stream, Summary, Transport, pcap_decode_args,
+    pcap_server_port, promote,
 };
 use crate::{Case, CaseResult, Dir, WireEvent};
 use codec::{Direction, Framing, decode_any, tcp};
@@ -49,8 +49,8 @@ const WINDOW: u16 = 65_535;
 /// Writes `session.pcapng`.
 pub struct PcapSink {
     dir: PathBuf,
-    partial: PathBuf,
-    pcap: Option<PcapNgWriter<BufWriter<File>>>,
+    /// `session.pcapng.partial`.
+    pcap: Stream<PcapNgWriter<BufWriter<File>>>,
     start: Duration,
     server_port: u16,
     framing: Framing,
@@ -156,8 +156,6 @@ struct Conn {
 impl PcapSink {
     /// Start `session.pcapng.partial` in `dir`: section header (with the run info) and one Ethernet interface.
     pub fn create(dir: &Path, info: &RunInfo) -> io::Result<Self> {
-        let partial = partial_path(dir, PCAP_FILE);
-        let file = File::create(&partial).map_err(with_path("cannot create", &partial))?;
         let comment = format!(
             "modbus-harness run: target {}, profile {}, transport {}, command line: {}{}; synthetic TCP, decode with: tshark -r {PCAP_FILE} {}",
             info.target,
@@ -177,11 +175,9 @@ impl PcapSink {
             ],
             ..Default::default()
         };
-        let mut pcap = PcapNgWriter::with_section_header(
-            BufWriter::with_capacity(super::STREAM_BUFFER, file),
-            section,
-        )
-        .map_err(pcap_error(&partial))?;
+        let mut pcap = Stream::wrapping(dir, PCAP_FILE, |out| {
+            PcapNgWriter::with_section_header(out, section).map_err(io_error)
+        })?;
         let interface = InterfaceDescriptionBlock {
             linktype: DataLink::ETHERNET,
             snaplen: 65_535,
@@ -191,16 +187,18 @@ impl PcapSink {
                 InterfaceDescriptionOption::IfTsResol(9),
             ],
         };
-        pcap.write_pcapng_block(interface)
-            .map_err(pcap_error(&partial))?;
+        pcap.write(|w| {
+            w.write_pcapng_block(interface)
+                .map(|_| ())
+                .map_err(io_error)
+        })?;
         let framing = match info.transport {
             Transport::Tcp => Framing::Tcp,
             Transport::Rtu | Transport::RtuOverTcp => Framing::Rtu,
         };
         Ok(Self {
             dir: dir.to_path_buf(),
-            partial,
-            pcap: Some(pcap),
+            pcap,
             start: Duration::from_millis(info.started_unix_ms),
             server_port: pcap_server_port(info),
             framing,
@@ -279,13 +277,8 @@ impl PcapSink {
                 .map(|c| vec![EnhancedPacketOption::Comment(Cow::Owned(c))])
                 .unwrap_or_default(),
         };
-        let partial = &self.partial;
-        let pcap = self.pcap.as_mut().ok_or_else(|| {
-            io::Error::other(format!("{}: report already finished", partial.display()))
-        })?;
-        pcap.write_pcapng_block(block)
-            .map(|_| ())
-            .map_err(pcap_error(partial))
+        self.pcap
+            .write(|w| w.write_pcapng_block(block).map(|_| ()).map_err(io_error))
     }
 
     /// The comment for a run of reads or writes in one direction that the codec rejects, if it does.
@@ -406,38 +399,26 @@ impl Sink for PcapSink {
     }
 
     fn flush(&mut self) -> io::Result<()> {
-        match self.pcap.as_mut() {
-            Some(pcap) => pcap
-                .get_mut()
-                .flush()
-                .map_err(with_path("cannot write", &self.partial)),
-            None => Ok(()),
-        }
+        self.pcap.flush()
     }
 
     fn finish(&mut self, _summary: &Summary) -> io::Result<()> {
-        let pcap = self.pcap.take().ok_or_else(|| {
-            io::Error::other(format!(
-                "{}: report already finished",
-                self.partial.display()
-            ))
-        })?;
-        let mut out = pcap.into_inner();
-        out.flush()
-            .map_err(with_path("cannot write", &self.partial))?;
-        drop(out);
-        promote(&self.partial, &self.dir.join(PCAP_FILE))
+        self.pcap.close()?;
+        promote(self.pcap.partial(), &self.dir.join(PCAP_FILE))
     }
 }
 
-fn pcap_error(path: &Path) -> impl FnOnce(pcap_file::PcapError) -> io::Error {
-    let path = path.to_path_buf();
-    move |e| {
-        let e = match e {
-            pcap_file::PcapError::IoError(e) => e,
-            other => io::Error::other(other.to_string()),
-        };
-        io::Error::new(e.kind(), format!("cannot write {}: {e}", path.display()))
+/// A pcap-file error as the I/O error it is (or wraps).
+fn io_error(e: pcap_file::PcapError) -> io::Error {
+    match e {
+        pcap_file::PcapError::IoError(e) => e,
+        other => io::Error::other(other.to_string()),
+    }
+}
+
+impl Buffered for PcapNgWriter<BufWriter<File>> {
+    fn buffer(&mut self) -> &mut BufWriter<File> {
+        self.get_mut()
     }
 }
 

@@ -349,16 +349,16 @@ fn known_divergence(
                 last_at: Duration::ZERO,
                 max_gap: Duration::ZERO,
             };
-            let findings = oracle::judge(
-                Framing::Tcp,
-                &sent,
-                Some(&expected),
-                &observed,
-                &Compare::Structure,
-                &profiles()[3],
-                false,
-                profiles()[3].device.word_order,
-            );
+            let observation = oracle::Observation {
+                framing: Framing::Tcp,
+                sent: &sent,
+                expected: Some(&expected),
+                observed: &observed,
+                compare: &Compare::Structure,
+                profile: &profiles()[3],
+                reference_closed: false,
+            };
+            let findings = oracle::judge(&observation, profiles()[3].device.word_order);
             assert!(
                 findings
                     .iter()

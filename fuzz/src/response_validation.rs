@@ -86,16 +86,16 @@ pub fn response_validation(data: &[u8]) {
         unit,
         pdu: request.to_vec(),
     };
-    let findings = oracle::judge(
+    let observation = oracle::Observation {
         framing,
-        &sent,
-        expected.as_deref(),
-        &received,
+        sent: &sent,
+        expected: expected.as_deref(),
+        observed: &received,
         compare,
         profile,
-        closed,
-        profile.device.word_order,
-    );
+        reference_closed: closed,
+    };
+    let findings = oracle::judge(&observation, profile.device.word_order);
     for level in [Level::Must, Level::Should, Level::Info] {
         let _ = oracle::verdict(&findings, level);
     }
@@ -120,16 +120,13 @@ pub fn response_validation(data: &[u8]) {
             max_gap: at,
         };
         for compare in &COMPARES {
-            let findings = oracle::judge(
-                framing,
-                &sent,
-                Some(e),
-                &own,
+            let itself = oracle::Observation {
+                expected: Some(e),
+                observed: &own,
                 compare,
-                profile,
-                closed,
-                profile.device.word_order,
-            );
+                ..observation
+            };
+            let findings = oracle::judge(&itself, profile.device.word_order);
             assert!(
                 findings.is_empty(),
                 "{} judged against itself ({compare:?}): {findings:?}",

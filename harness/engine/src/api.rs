@@ -98,12 +98,11 @@ use std::time::{Duration, Instant};
 use crate::expect::Expectations;
 use crate::runner::Runner;
 use crate::session::{self, Options, SessionError};
+use crate::targets::TargetUrl;
 use crate::targets::sim::SimTarget;
-use crate::targets::{Target, TargetUrl};
 use codec::Framing;
 use drives::corpus::Corpus;
 use drives::profile::Transport;
-use drives::{FaultSet, Station};
 
 pub use crate::cases::Verdict;
 pub use crate::observe::{CaseResult, StepResult};
@@ -309,12 +308,8 @@ impl SessionBuilder {
         }
         let cfg = session::config(&opts, &profile);
         let target = DeviceTarget::new(device, framing);
-        let reference = Station::new(
-            drives::build(profile.clone(), FaultSet::none()),
-            FaultSet::none(),
-            cfg.unit,
-        );
-        let shadow = SimTarget::with_framing(reference, framing, target.rtu_timing()).mirror();
+        let shadow =
+            SimTarget::reference(&profile, cfg.unit, drives::Choices::reference(), &target);
         let mut runner = Runner::new(
             Box::new(target),
             shadow,

@@ -574,13 +574,7 @@ pub(crate) fn open_runner(
         },
         opts.connect_timeout,
     )?;
-    let framing = target.framing();
-    let shadow_station = Station::new(
-        drives::build(profile.clone(), FaultSet::none()),
-        FaultSet::none(),
-        unit,
-    );
-    let shadow = SimTarget::with_framing(shadow_station, framing, target.rtu_timing()).mirror();
+    let shadow = SimTarget::reference(profile, unit, drives::Choices::reference(), target.as_ref());
     let mut runner = Runner::new(
         target,
         shadow,

@@ -15,7 +15,7 @@ use std::time::{Duration, Instant};
 use codec::{Direction, Framing, Request, Response, rtu, tcp};
 use drives::corpus::Corpus;
 use drives::profile::Profile;
-use drives::{self, FaultSet, Station, TcpConn};
+use drives::{self, Choices, FaultSet, Station, TcpConn};
 use engine::expect::Expectations;
 use engine::reports::{Reports, RunInfo, Tally, Transport};
 use engine::runner::{RunConfig, Runner, skip_reason};
@@ -228,13 +228,7 @@ pub fn generic_profile() -> Result<Profile, BenchError> {
 }
 
 fn runner_for(target: Box<dyn Target>, profile: &Profile) -> Runner {
-    let framing = target.framing();
-    let shadow_station = Station::new(
-        drives::build(profile.clone(), FaultSet::none()),
-        FaultSet::none(),
-        UNIT,
-    );
-    let shadow = SimTarget::with_framing(shadow_station, framing, target.rtu_timing()).mirror();
+    let shadow = SimTarget::reference(profile, UNIT, Choices::reference(), target.as_ref());
     let cfg = RunConfig {
         unit: UNIT,
         timing: engine::runner::Timing {

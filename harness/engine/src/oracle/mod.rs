@@ -94,26 +94,30 @@ fn field_diff(exp: &Pdu, obs: &Pdu) -> Vec<String> {
     out
 }
 
-/// Judge one observation against the reference answer (`None`: the reference drive stays silent), reading
-/// 32-bit register values in `order`.
-#[allow(clippy::too_many_arguments)]
-pub fn judge(
-    framing: Framing,
-    sent: &Sent,
-    expected: Option<&[u8]>,
-    observed: &Received,
-    compare: &Compare,
-    profile: &Profile,
-    reference_closed: bool,
-    order: WordOrder,
-) -> Vec<Finding> {
-    if *compare == Compare::RejectOrIgnore
-        && let Some(findings) = reject_or_ignore(framing, sent, expected, observed)
+/// What the oracle judges at one step: the request sent, the drive's answer and the reference drive's.
+#[derive(Clone, Copy, Debug)]
+pub struct Observation<'a> {
+    pub framing: Framing,
+    pub sent: &'a Sent,
+    /// The reference drive's answer; `None`: it stays silent.
+    pub expected: Option<&'a [u8]>,
+    /// What the drive did.
+    pub observed: &'a Received,
+    pub compare: &'a Compare,
+    pub profile: &'a Profile,
+    /// The reference drive closed the connection.
+    pub reference_closed: bool,
+}
+
+/// Judge one observation against the reference answer, reading 32-bit register values in `order`.
+pub fn judge(o: &Observation<'_>, order: WordOrder) -> Vec<Finding> {
+    if *o.compare == Compare::RejectOrIgnore
+        && let Some(findings) = reject_or_ignore(o.framing, o.sent, o.expected, o.observed)
     {
         return findings;
     }
-    match frames_to_compare(framing, expected, observed, reference_closed) {
-        Ok((exp, obs)) => compare_frames(framing, sent, exp, obs, compare, profile, order),
+    match frames_to_compare(o.framing, o.expected, o.observed, o.reference_closed) {
+        Ok((exp, obs)) => compare_frames(o.framing, o.sent, exp, obs, o.compare, o.profile, order),
         Err(findings) => findings,
     }
 }
@@ -154,18 +158,20 @@ fn fails(findings: &[Finding]) -> bool {
 
 /// Judge one observation against the reference answer, accepting what another admissible value of an
 /// applicable freedom gives (see [`freedoms`]).
-#[allow(clippy::too_many_arguments)]
 pub fn judge_admitting(
-    framing: Framing,
-    sent: &Sent,
-    expected: Option<&[u8]>,
-    observed: &Received,
-    compare: &Compare,
-    profile: &Profile,
-    reference_closed: bool,
+    o: &Observation<'_>,
     applicable: &[&Freedom],
     cx: &StepContext<'_>,
 ) -> Judged {
+    let Observation {
+        framing,
+        sent,
+        expected,
+        observed,
+        compare,
+        profile,
+        reference_closed,
+    } = *o;
     // Where the reference stays silent and an outcome freedom about the step lists `close`, a close is as
     // good as the reference's own (not "closed where the reference stays silent").
     let close_admitted = matches!(observed, Received::Closed { .. })
@@ -173,13 +179,10 @@ pub fn judge_admitting(
             .iter()
             .any(|f| freedoms::outcome_shown(f, cx, "close").is_some());
     let strict = judge(
-        framing,
-        sent,
-        expected,
-        observed,
-        compare,
-        profile,
-        reference_closed || close_admitted,
+        &Observation {
+            reference_closed: reference_closed || close_admitted,
+            ..*o
+        },
         profile.device.word_order,
     );
     let response = |b: &[u8]| match decode_any(b, framing, Direction::Response).map(|d| d.pdu) {
@@ -227,13 +230,10 @@ pub fn judge_admitting(
         && let Some(b) = frame_like(framing, Some(bytes), sent, &r)
     {
         let mut again = judge_admitting(
-            framing,
-            sent,
-            expected,
-            &Received::frame(b),
-            compare,
-            profile,
-            reference_closed,
+            &Observation {
+                observed: &Received::frame(b),
+                ..*o
+            },
             applicable,
             cx,
         );
@@ -254,16 +254,7 @@ pub fn judge_admitting(
                 WordOrder::HighFirst => WordOrder::LowFirst,
                 WordOrder::LowFirst => WordOrder::HighFirst,
             };
-            let again = judge(
-                framing,
-                sent,
-                expected,
-                observed,
-                compare,
-                profile,
-                reference_closed,
-                other,
-            );
+            let again = judge(o, other);
             if !fails(&again) {
                 let name = match other {
                     WordOrder::HighFirst => "high-first",
@@ -301,13 +292,13 @@ pub fn judge_admitting(
                 _ => observed.clone(),
             };
             let again = judge(
-                framing,
-                sent,
-                frame.as_deref(),
-                &observed_as,
-                &compare,
-                profile,
-                reference_closed || alt.closes(),
+                &Observation {
+                    expected: frame.as_deref(),
+                    observed: &observed_as,
+                    compare: &compare,
+                    reference_closed: reference_closed || alt.closes(),
+                    ..*o
+                },
                 profile.device.word_order,
             );
             if !fails(&again) {

@@ -12,10 +12,8 @@ use crate::oracle::{self, ChoiceLog, Finding, Sent, Severity, StepContext};
 use crate::targets::sim::SimTarget;
 use crate::targets::{Received, Target, TargetError};
 use codec::{Framing, Request, rtu, tcp};
-use drives::FaultSet;
 use drives::profile::{Profile, Table, WordOrder};
 use drives::requirements::{FreedomKind, Requirements};
-use drives::station::Station;
 use std::sync::Arc;
 
 mod pipeline;
@@ -481,15 +479,9 @@ impl Runner {
     /// in `learned`), given the reads the old one got then (its counters and event log agree with the
     /// target's again).
     fn rebuild_reference(&mut self) {
-        let station = Station::new(
-            drives::build_with(self.profile.clone(), FaultSet::none(), self.learned.clone()),
-            FaultSet::none(),
-            self.cfg.unit,
-        )
-        .with_choices(self.learned.clone());
+        let learned = self.learned.clone();
         self.shadow =
-            SimTarget::with_framing(station, self.target.framing(), self.target.rtu_timing())
-                .mirror();
+            SimTarget::reference(&self.profile, self.cfg.unit, learned, self.target.as_ref());
         let tid = self.next_tid;
         // As they were sent: in the form they had then, whatever was learned since.
         let fc43 = std::mem::take(&mut self.fc43_without_reserved);
@@ -1806,19 +1798,18 @@ impl Runner {
             let requirements = Arc::clone(&self.requirements);
             let applicable =
                 oracle::freedoms::applicable(&requirements, &cx, &decisions, &self.case_freedoms);
-            let judged = oracle::judge_admitting(
+            let observation = oracle::Observation {
                 framing,
-                &sent,
-                judged_expected.get(e).map(|v| v.as_slice()),
-                seen,
+                sent: &sent,
+                expected: judged_expected.get(e).map(|v| v.as_slice()),
+                observed: seen,
                 compare,
-                &self.profile,
+                profile: &self.profile,
                 reference_closed,
-                &applicable,
-                &cx,
-            )
-            // Where several freedoms explain the answer, the one that agrees with the drive's earlier choices.
-            .agreeing(|s| self.choices.agrees(s));
+            };
+            let judged = oracle::judge_admitting(&observation, &applicable, &cx)
+                // Where several freedoms explain the answer, the one that agrees with the drive's earlier choices.
+                .agreeing(|s| self.choices.agrees(s));
             let kind = oracle::outcome_kind(framing, seen);
             let mut judged = judged;
             judged.shown = oracle::freedoms::unambiguous(

@@ -6,8 +6,8 @@ use std::time::Duration;
 use super::line::{DriveEnd, TCP_LATENCY, VirtualLine};
 use super::{Received, Target, TargetError};
 use codec::{CharFormat, Framing, Parity, RtuTiming};
-use drives::profile::Transport;
-use drives::{RtuPort, Station, TcpConn};
+use drives::profile::{Profile, Transport};
+use drives::{Choices, FaultSet, RtuPort, Station, TcpConn};
 
 /// A reference drive in process. A clone is an independent copy in the same state (the runner keeps one to
 /// undo a request the drive was free to ignore).
@@ -58,6 +58,18 @@ impl SimTarget {
             line: VirtualLine::new(if rtu { Framing::Rtu } else { Framing::Tcp }, timing),
             line_time: true,
         }
+    }
+
+    /// The reference drive a runner judges `target` by: the profile's healthy model taking `choices`, on
+    /// `unit`, answering in the target's framing and RTU timing, in the oracle's mode ([`SimTarget::mirror`]).
+    pub fn reference(profile: &Profile, unit: u8, choices: Choices, target: &dyn Target) -> Self {
+        let station = Station::new(
+            drives::build_with(profile.clone(), FaultSet::none(), choices.clone()),
+            FaultSet::none(),
+            unit,
+        )
+        .with_choices(choices);
+        Self::with_framing(station, target.framing(), target.rtu_timing()).mirror()
     }
 
     /// The oracle's mode: time moves only when told (`idle`), never by modelled transmit times, so the

@@ -135,7 +135,7 @@ fn event_counter_may_count_the_clear_but_nothing_more() {
 #[test]
 fn a_close_is_the_outcome_close_not_silence() {
     use engine::cases::Compare;
-    use engine::oracle::{Judged, Sent, judge_admitting};
+    use engine::oracle::{Judged, Observation, Sent, judge_admitting};
     use engine::targets::Received;
     use std::time::Duration;
 
@@ -169,17 +169,16 @@ fn a_close_is_the_outcome_close_not_silence() {
                 closed: true,
                 short_of_length: false,
             };
-            judge_admitting(
-                Framing::Tcp,
-                &sent,
-                Some(&reference),
-                &closed,
-                &Compare::Exact,
-                &p,
-                false,
-                applicable,
-                &cx,
-            )
+            let observation = Observation {
+                framing: Framing::Tcp,
+                sent: &sent,
+                expected: Some(&reference),
+                observed: &closed,
+                compare: &Compare::Exact,
+                profile: &p,
+                reference_closed: false,
+            };
+            judge_admitting(&observation, applicable, &cx)
         };
     let admitted = judge(&[f], &[drives::choices::ids::TRUNCATED_PDU]);
     assert!(admitted.findings.is_empty(), "{:?}", admitted.findings);

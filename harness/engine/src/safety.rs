@@ -35,33 +35,20 @@ pub fn classify(p: &Profile, pdu: &[u8]) -> BTreeSet<Tag> {
     let be16 =
         |at: usize| -> Option<u16> { Some(u16::from_be_bytes([*pdu.get(at)?, *pdu.get(at + 1)?])) };
     let data_len = |from: usize| pdu.len().saturating_sub(from);
+    // How many items a multiple write whose address is at `at` (quantity, byte count and data after it) may
+    // touch: the most its quantity, its byte count and its data say (`per_bytes`: items in that many bytes).
+    let written = |at: usize, per_bytes: fn(usize) -> usize| {
+        let quantity = be16(at + 2).map_or(0, usize::from);
+        let count = pdu.get(at + 4).map_or(0, |b| per_bytes(usize::from(*b)));
+        quantity.max(count).max(per_bytes(data_len(at + 5))).max(1)
+    };
     match fc {
         0x05 => r.coils(p, be16(1), 1),
         0x06 | 0x16 => r.registers(p, be16(1), 1),
-        0x0F => {
-            let quantity = be16(3).map_or(0, usize::from);
-            let count = pdu.get(5).map_or(0, |b| usize::from(*b) * 8);
-            r.coils(p, be16(1), quantity.max(count).max(data_len(6) * 8).max(1));
-        }
-        0x10 => {
-            let quantity = be16(3).map_or(0, usize::from);
-            let count = pdu.get(5).map_or(0, |b| usize::from(*b).div_ceil(2));
-            r.registers(
-                p,
-                be16(1),
-                quantity.max(count).max(data_len(6).div_ceil(2)).max(1),
-            );
-        }
+        0x0F => r.coils(p, be16(1), written(1, |bytes| bytes * 8)),
+        0x10 => r.registers(p, be16(1), written(1, |bytes| bytes.div_ceil(2))),
         // FC 17 writes even with a write quantity of 0: a drive that does not check it writes what follows.
-        0x17 => {
-            let quantity = be16(7).map_or(0, usize::from);
-            let count = pdu.get(9).map_or(0, |b| usize::from(*b).div_ceil(2));
-            r.registers(
-                p,
-                be16(5),
-                quantity.max(count).max(data_len(10).div_ceil(2)).max(1),
-            );
-        }
+        0x17 => r.registers(p, be16(5), written(5, |bytes| bytes.div_ceil(2))),
         // File records are outside the register map: what a write to them does is unknown (often
         // non-volatile storage), and the harness does not read them back.
         0x15 => r.all(),
@@ -191,13 +178,18 @@ impl Rating {
         t
     }
 
-    /// A write to `n` holding registers from `address` (`None`: any register).
-    fn registers(&mut self, p: &Profile, address: Option<u16>, n: usize) {
+    /// A write to `n` items from `address` (`None`: any): the span `start..end` it may touch.
+    fn write_span(&mut self, address: Option<u16>, n: usize) -> (u32, u32) {
         self.write = true;
-        let (start, end) = match address {
+        match address {
             Some(a) => (u32::from(a), u32::from(a) + n as u32),
             None => (0, 0x1_0000),
-        };
+        }
+    }
+
+    /// A write to `n` holding registers from `address` (`None`: any register).
+    fn registers(&mut self, p: &Profile, address: Option<u16>, n: usize) {
+        let (start, end) = self.write_span(address, n);
         for r in p.registers.iter().map(|r| r.get_ref()) {
             let holding = !matches!(r.table, drives::profile::Table::Input);
             if holding && u32::from(r.address) < end && r.end() > start {
@@ -224,11 +216,7 @@ impl Rating {
 
     /// A write to `n` coils from `address` (`None`: any coil).
     fn coils(&mut self, p: &Profile, address: Option<u16>, n: usize) {
-        self.write = true;
-        let (start, end) = match address {
-            Some(a) => (u32::from(a), u32::from(a) + n as u32),
-            None => (0, 0x1_0000),
-        };
+        let (start, end) = self.write_span(address, n);
         for c in p.coils.iter().map(|c| c.get_ref()) {
             if (start..end).contains(&u32::from(c.address)) {
                 self.motion |= c.motion;

@@ -143,12 +143,16 @@ the quantity limits (the spec's), broadcast (false), which registers form 32-bit
         let _ = writeln!(s, "stop_bits = {}", format.stop_bits);
     }
 
-    let unsupported: Vec<String> = report
-        .functions
-        .iter()
-        .filter(|(_, sup)| *sup == Support::No)
-        .map(|(fc, _)| format!("0x{fc:02X}"))
-        .collect();
+    // The function codes whose support is `which`, as hex.
+    let functions = |which: fn(&Support) -> bool| -> Vec<String> {
+        report
+            .functions
+            .iter()
+            .filter(|(_, sup)| which(sup))
+            .map(|(fc, _)| format!("0x{fc:02X}"))
+            .collect()
+    };
+    let unsupported = functions(|sup| *sup == Support::No);
     let _ = writeln!(s, "\n[draft]");
     let _ = writeln!(s, "target = {}", q(&url.to_string()));
     let _ = writeln!(
@@ -161,18 +165,8 @@ the quantity limits (the spec's), broadcast (false), which registers form 32-bit
         "unsupported_functions = [{}]  # answered exception 01",
         unsupported.join(", ")
     );
-    let silent: Vec<String> = report
-        .functions
-        .iter()
-        .filter(|(_, sup)| *sup == Support::Silent)
-        .map(|(fc, _)| format!("0x{fc:02X}"))
-        .collect();
-    let not_probed: Vec<String> = report
-        .functions
-        .iter()
-        .filter(|(_, sup)| matches!(sup, Support::NotProbed(_)))
-        .map(|(fc, _)| format!("0x{fc:02X}"))
-        .collect();
+    let silent = functions(|sup| *sup == Support::Silent);
+    let not_probed = functions(|sup| matches!(sup, Support::NotProbed(_)));
     // FC 11 is answered with a server id whose length only the device's documentation gives: a profile that
     // lists it needs a [server_id] table the probe cannot write, so it is named here instead.
     let server_id_answered = report

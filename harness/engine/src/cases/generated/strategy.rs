@@ -16,7 +16,16 @@ use super::spec::{
 };
 
 /// The weighted alternatives of the request union, in union order.
-type Arms = Vec<(u32, BoxedStrategy<Req>)>;
+/// The weighted strategies of the request kinds the profile supports.
+#[derive(Default)]
+struct Arms(Vec<(u32, BoxedStrategy<Req>)>);
+
+impl Arms {
+    /// Add `strategy` with `weight`.
+    fn add(&mut self, weight: u32, strategy: impl Strategy<Value = Req> + 'static) {
+        self.0.push((weight, strategy.boxed()));
+    }
+}
 
 /// An address choice in a list of `n` addresses.
 fn edge(n: usize) -> BoxedStrategy<Edge> {
@@ -62,7 +71,7 @@ fn index(n: usize) -> BoxedStrategy<u16> {
 impl GenContext {
     /// Requests of every function code the profile supports, weighted toward the map's registers.
     pub fn req_strategy(&self) -> BoxedStrategy<Req> {
-        let mut arms: Arms = Vec::new();
+        let mut arms = Arms::default();
         // The order of these calls is the union's order.
         self.register_read_arms(&mut arms);
         self.register_write_arms(&mut arms);
@@ -73,10 +82,10 @@ impl GenContext {
         self.vendor_arms(&mut arms);
         self.public_fc_arms(&mut arms);
         self.unsupported_arm(&mut arms);
-        if arms.is_empty() {
+        if arms.0.is_empty() {
             return Just(Req::Unsupported { fc: 0, len: 0 }).boxed();
         }
-        Union::new_weighted(arms).boxed()
+        Union::new_weighted(arms.0).boxed()
     }
 
     /// Alterations: PDU-level ones on every transport, frame-level ones tagged for their transport.
@@ -130,13 +139,12 @@ impl GenContext {
             || self.supports(FunctionCode::READ_INPUT_REGISTERS);
         let (nr, nw) = (self.regs.len(), self.wide.len());
         if reads && nr > 0 {
-            arms.push((
+            arms.add(
                 4,
                 (index(nr), any::<bool>())
-                    .prop_map(|(reg, input)| Req::ReadRegister { reg, input })
-                    .boxed(),
-            ));
-            arms.push((
+                    .prop_map(|(reg, input)| Req::ReadRegister { reg, input }),
+            );
+            arms.add(
                 2,
                 (
                     edge(self.holding.len().max(self.input.len())),
@@ -147,16 +155,14 @@ impl GenContext {
                         at,
                         quantity,
                         input,
-                    })
-                    .boxed(),
-            ));
+                    }),
+            );
             if nw > 0 {
-                arms.push((
+                arms.add(
                     1,
                     (index(nw), any::<bool>())
-                        .prop_map(|(reg, second)| Req::ReadHalf { reg, second })
-                        .boxed(),
-                ));
+                        .prop_map(|(reg, second)| Req::ReadHalf { reg, second }),
+                );
             }
         }
     }
@@ -168,38 +174,37 @@ impl GenContext {
             || self.supports(FunctionCode::WRITE_MULTIPLE_REGISTERS))
             && nr > 0
         {
-            arms.push((
+            arms.add(
                 4,
-                (index(nr), value(), any::<bool>(), any::<bool>())
-                    .prop_map(|(reg, value, fc06, check)| Req::WriteRegister {
+                (index(nr), value(), any::<bool>(), any::<bool>()).prop_map(
+                    |(reg, value, fc06, check)| Req::WriteRegister {
                         reg,
                         value,
                         fc06,
                         check,
-                    })
-                    .boxed(),
-            ));
+                    },
+                ),
+            );
             if nw > 0 {
-                arms.push((
+                arms.add(
                     1,
-                    (index(nw), any::<bool>(), any::<u16>(), any::<bool>())
-                        .prop_map(|(reg, second, word, fc06)| Req::WriteHalf {
+                    (index(nw), any::<bool>(), any::<u16>(), any::<bool>()).prop_map(
+                        |(reg, second, word, fc06)| Req::WriteHalf {
                             reg,
                             second,
                             word,
                             fc06,
-                        })
-                        .boxed(),
-                ));
+                        },
+                    ),
+                );
             }
         }
         if self.supports(FunctionCode::WRITE_MULTIPLE_REGISTERS) && nr > 0 {
-            arms.push((
+            arms.add(
                 1,
                 (edge(self.holding.len()), quantity(), any::<u16>())
-                    .prop_map(|(at, quantity, word)| Req::WriteSpan { at, quantity, word })
-                    .boxed(),
-            ));
+                    .prop_map(|(at, quantity, word)| Req::WriteSpan { at, quantity, word }),
+            );
         }
     }
 
@@ -210,33 +215,29 @@ impl GenContext {
             (0x02, true, self.discretes.len()),
         ] {
             if self.supports(fc) {
-                arms.push((
+                arms.add(
                     1,
-                    (edge(n), quantity())
-                        .prop_map(move |(at, quantity)| Req::ReadBits {
-                            discrete,
-                            at,
-                            quantity,
-                        })
-                        .boxed(),
-                ));
+                    (edge(n), quantity()).prop_map(move |(at, quantity)| Req::ReadBits {
+                        discrete,
+                        at,
+                        quantity,
+                    }),
+                );
             }
         }
         if self.supports(FunctionCode::WRITE_SINGLE_COIL) {
-            arms.push((
+            arms.add(
                 1,
                 (index(self.coils.len()), any::<bool>(), any::<bool>())
-                    .prop_map(|(coil, on, check)| Req::WriteCoil { coil, on, check })
-                    .boxed(),
-            ));
+                    .prop_map(|(coil, on, check)| Req::WriteCoil { coil, on, check }),
+            );
         }
         if self.supports(FunctionCode::WRITE_MULTIPLE_COILS) {
-            arms.push((
+            arms.add(
                 1,
                 (edge(self.coils.len()), quantity(), any::<u32>())
-                    .prop_map(|(at, quantity, bits)| Req::WriteCoils { at, quantity, bits })
-                    .boxed(),
-            ));
+                    .prop_map(|(at, quantity, bits)| Req::WriteCoils { at, quantity, bits }),
+            );
         }
     }
 
@@ -244,37 +245,34 @@ impl GenContext {
     fn read_write_arm(&self, arms: &mut Arms) {
         let nr = self.regs.len();
         if self.supports(FunctionCode::READ_WRITE_MULTIPLE_REGISTERS) && nr > 0 {
-            arms.push((
+            arms.add(
                 1,
-                (edge(self.holding.len()), quantity(), index(nr), value())
-                    .prop_map(|(at, quantity, reg, value)| Req::ReadWrite {
+                (edge(self.holding.len()), quantity(), index(nr), value()).prop_map(
+                    |(at, quantity, reg, value)| Req::ReadWrite {
                         at,
                         quantity,
                         reg,
                         value,
-                    })
-                    .boxed(),
-            ));
+                    },
+                ),
+            );
         }
     }
 
     /// FC 08 and FC 43/14.
     fn diagnostic_and_id_arms(&self, arms: &mut Arms) {
         if self.supports(FunctionCode::DIAGNOSTICS) {
-            arms.push((
+            arms.add(
                 1,
                 (index(self.diagnostics.len() + 1), any::<u16>())
-                    .prop_map(|(sub, data)| Req::Diagnostic { sub, data })
-                    .boxed(),
-            ));
+                    .prop_map(|(sub, data)| Req::Diagnostic { sub, data }),
+            );
         }
         if self.supports(FunctionCode::ENCAPSULATED_INTERFACE) && !self.id_objects.is_empty() {
-            arms.push((
+            arms.add(
                 1,
-                (0u8..6, any::<u8>())
-                    .prop_map(|(code, object)| Req::DeviceId { code, object })
-                    .boxed(),
-            ));
+                (0u8..6, any::<u8>()).prop_map(|(code, object)| Req::DeviceId { code, object }),
+            );
         }
     }
 
@@ -282,38 +280,33 @@ impl GenContext {
     fn object_arms(&self, arms: &mut Arms) {
         if self.supports(FunctionCode::ENCAPSULATED_INTERFACE) && !self.objects.is_empty() {
             let n = self.objects.len();
-            arms.push((
+            arms.add(
                 2,
                 (index(n), proptest::option::weighted(0.25, 0u8..6))
-                    .prop_map(|(obj, count)| Req::ObjectRead { obj, count })
-                    .boxed(),
-            ));
-            arms.push((
+                    .prop_map(|(obj, count)| Req::ObjectRead { obj, count }),
+            );
+            arms.add(
                 1,
-                (index(n), value())
-                    .prop_map(|(obj, value)| Req::ObjectWrite { obj, value })
-                    .boxed(),
-            ));
+                (index(n), value()).prop_map(|(obj, value)| Req::ObjectWrite { obj, value }),
+            );
         }
     }
 
     /// FC 65 and FC 66.
     fn vendor_arms(&self, arms: &mut Arms) {
         if self.supports(FunctionCode::VENDOR_READ) {
-            arms.push((
+            arms.add(
                 1,
                 index(self.read_mnemonics.len() + 1)
-                    .prop_map(|mnemonic| Req::VendorRead { mnemonic })
-                    .boxed(),
-            ));
+                    .prop_map(|mnemonic| Req::VendorRead { mnemonic }),
+            );
         }
         if self.supports(FunctionCode::VENDOR_WRITE) && !self.write_mnemonics.is_empty() {
-            arms.push((
+            arms.add(
                 1,
                 index(self.write_mnemonics.len())
-                    .prop_map(|mnemonic| Req::VendorWrite { mnemonic })
-                    .boxed(),
-            ));
+                    .prop_map(|mnemonic| Req::VendorWrite { mnemonic }),
+            );
         }
     }
 
@@ -322,55 +315,51 @@ impl GenContext {
     /// tagged so by the classifier, so that a campaign sends them only where writes are allowed.
     fn public_fc_arms(&self, arms: &mut Arms) {
         if self.supports(FunctionCode::READ_EXCEPTION_STATUS) {
-            arms.push((
+            arms.add(
                 1,
                 proptest::option::of(any::<u8>())
-                    .prop_map(|pattern| Req::ExceptionStatus { pattern })
-                    .boxed(),
-            ));
+                    .prop_map(|pattern| Req::ExceptionStatus { pattern }),
+            );
         }
         if self.supports(FunctionCode::GET_COMM_EVENT_COUNTER)
             || self.supports(FunctionCode::GET_COMM_EVENT_LOG)
         {
-            arms.push((
+            arms.add(
                 1,
-                (any::<bool>(), 0u8..3)
-                    .prop_map(|(log, prelude)| Req::CommEvent { log, prelude })
-                    .boxed(),
-            ));
+                (any::<bool>(), 0u8..3).prop_map(|(log, prelude)| Req::CommEvent { log, prelude }),
+            );
         }
         if self.supports(FunctionCode::REPORT_SERVER_ID) {
-            arms.push((1, Just(Req::ServerId).boxed()));
+            arms.add(1, Just(Req::ServerId));
         }
         let group = || {
             (index(self.files.len()), any::<u16>(), any::<u8>())
                 .prop_map(|(file, record, len)| FileGroup { file, record, len })
         };
         if self.supports(FunctionCode::READ_FILE_RECORD) && !self.files.is_empty() {
-            arms.push((
+            arms.add(
                 1,
                 (group(), proptest::option::of(group()))
-                    .prop_map(|(first, second)| Req::FileRead { first, second })
-                    .boxed(),
-            ));
+                    .prop_map(|(first, second)| Req::FileRead { first, second }),
+            );
         }
         if self.supports(FunctionCode::WRITE_FILE_RECORD)
             && self.supports(FunctionCode::READ_FILE_RECORD)
             && self.files.iter().any(|f| f.2)
         {
-            arms.push((
+            arms.add(
                 1,
-                (group(), proptest::option::of(group()), any::<u16>())
-                    .prop_map(|(first, second, word)| Req::FileWrite {
+                (group(), proptest::option::of(group()), any::<u16>()).prop_map(
+                    |(first, second, word)| Req::FileWrite {
                         first,
                         second,
                         word,
-                    })
-                    .boxed(),
-            ));
+                    },
+                ),
+            );
         }
         if self.supports(FunctionCode::MASK_WRITE_REGISTER) && !self.mask_regs.is_empty() {
-            arms.push((
+            arms.add(
                 1,
                 (
                     index(self.mask_regs.len()),
@@ -383,29 +372,25 @@ impl GenContext {
                         current,
                         and,
                         or,
-                    })
-                    .boxed(),
-            ));
+                    }),
+            );
         }
         if self.supports(FunctionCode::READ_FIFO_QUEUE) && !self.fifos.is_empty() {
-            arms.push((
+            arms.add(
                 1,
-                index(self.fifos.len())
-                    .prop_map(|queue| Req::Fifo { queue })
-                    .boxed(),
-            ));
+                index(self.fifos.len()).prop_map(|queue| Req::Fifo { queue }),
+            );
         }
     }
 
     /// A function code the profile does not support.
     fn unsupported_arm(&self, arms: &mut Arms) {
         if !self.unsupported.is_empty() {
-            arms.push((
+            arms.add(
                 1,
                 (index(self.unsupported.len()), 0u8..5)
-                    .prop_map(|(fc, len)| Req::Unsupported { fc, len })
-                    .boxed(),
-            ));
+                    .prop_map(|(fc, len)| Req::Unsupported { fc, len }),
+            );
         }
     }
 }

@@ -229,7 +229,7 @@ impl Choices {
         let chosen = f
             .values
             .iter()
-            .find(|v| value_matches(v, value))
+            .find(|v| v.matches(value))
             .cloned()
             .ok_or_else(|| ChoiceError::NotAdmissible {
                 id: id.to_string(),
@@ -412,7 +412,7 @@ pub fn simulated(f: &Freedom, value: &FreedomValue) -> bool {
     }
     match f.kind {
         FreedomKind::Optional | FreedomKind::Access | FreedomKind::WordOrder => true,
-        FreedomKind::ServedExtra => value_matches(value, "served"),
+        FreedomKind::ServedExtra => value.matches("served"),
         _ if MODELLED.contains(&f.id.as_str()) => true,
         _ => ids::ALL.contains(&f.id.as_str()),
     }
@@ -424,7 +424,7 @@ const MODELLED: &[&str] = &[
     "sd2x-status-word-bits",
     "sd2x-watchdog-error-code",
     "sd2x-watchdog-trip-state",
-    crate::models::sd2x::FC43_RESERVED_BYTE,
+    "sd2x-fc43-reserved-byte",
     "lmd-discrete-input-addressing",
 ];
 
@@ -432,23 +432,7 @@ const MODELLED: &[&str] = &[
 /// an outcome `close` is not a choice it can make (on an RTU line a station chosen `close` keeps silent).
 pub fn simulated_on(f: &Freedom, value: &FreedomValue, profile: &Profile) -> bool {
     let tcp = profile.device.transports.contains(&Transport::Tcp);
-    simulated(f, value) && (tcp || !value_matches(value, "close"))
-}
-
-/// True when a value of the data is the one a user wrote (`4`, `0x04`, `04`, `exception-02`, a name).
-pub fn value_matches(v: &FreedomValue, written: &str) -> bool {
-    match v {
-        FreedomValue::Int(i) => parse_int(written) == Some(*i),
-        FreedomValue::Text(t) => t.eq_ignore_ascii_case(written),
-    }
-}
-
-fn parse_int(s: &str) -> Option<i64> {
-    let s = s.trim();
-    match s.strip_prefix("0x").or_else(|| s.strip_prefix("0X")) {
-        Some(h) => i64::from_str_radix(h, 16).ok(),
-        None => s.parse().ok(),
-    }
+    simulated(f, value) && (tcp || !value.matches("close"))
 }
 
 /// The freedoms of `kind` that apply to `profile`.

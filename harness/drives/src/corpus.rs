@@ -145,6 +145,18 @@ impl Corpus {
         }
     }
 
+    /// Every golden file of the corpus, sorted by name.
+    pub fn golden_files(&self) -> Result<Vec<GoldenFile>, CorpusError> {
+        let files = self.files("golden").map_err(|source| CorpusError::Read {
+            corpus: self.describe(),
+            source,
+        })?;
+        files
+            .iter()
+            .map(|(name, text)| Ok(GoldenFile::parse(name, text)?))
+            .collect()
+    }
+
     /// The golden frames of a profile's manual, if the corpus has them.
     pub fn golden(&self, profile: &str) -> Result<Option<GoldenFile>, CorpusError> {
         match self.file("golden", profile) {

@@ -336,11 +336,10 @@ pub fn check_frame(frame: &GoldenFrame, order: WordOrder) -> FrameCheck {
     }
 }
 
-/// The errata index of a corpus as Markdown: every frame whose printed bytes the project corrects or
-/// reads one of two ways, per manual, with the evidence. corpus/golden/README.md is this text.
-pub fn errata_markdown(
-    corpus: &crate::corpus::Corpus,
-) -> Result<String, crate::corpus::CorpusError> {
+/// The errata index of golden files (a corpus's: [`crate::corpus::Corpus::golden_files`]) as Markdown:
+/// every frame whose printed bytes the project corrects or reads one of two ways, per manual, with the
+/// evidence. corpus/golden/README.md is this text.
+pub fn errata_markdown(golden: &[GoldenFile]) -> String {
     use std::fmt::Write;
     let mut md = String::from(
         "# Golden frames and the errata of the manuals\n\n\
@@ -352,14 +351,7 @@ pub fn errata_markdown(
          tables and register maps (not only in frames) are in `ERRATA-mdrive.md`, `ERRATA-lmd.md` and\n\
          `ERRATA-sd2x.md`, with line numbers. Check any frame yourself with `modbus-harness decode --rtu|--pdu HEX`.\n\n",
     );
-    let files = corpus
-        .files("golden")
-        .map_err(|source| crate::corpus::CorpusError::Read {
-            corpus: corpus.describe(),
-            source,
-        })?;
-    for (name, text) in files {
-        let g = GoldenFile::parse(&name, &text)?;
+    for g in golden {
         let errata: Vec<&GoldenFrame> = g
             .frames
             .iter()
@@ -400,5 +392,5 @@ pub fn errata_markdown(
         }
         md.push('\n');
     }
-    Ok(md)
+    md
 }

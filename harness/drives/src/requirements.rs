@@ -163,6 +163,24 @@ pub enum FreedomValue {
     Text(String),
 }
 
+impl FreedomValue {
+    /// True when this is the value a user wrote (`4`, `0x04`, `04`, `exception-02`, a name).
+    pub fn matches(&self, written: &str) -> bool {
+        match self {
+            FreedomValue::Int(i) => parse_int(written) == Some(*i),
+            FreedomValue::Text(t) => t.eq_ignore_ascii_case(written),
+        }
+    }
+}
+
+fn parse_int(s: &str) -> Option<i64> {
+    let s = s.trim();
+    match s.strip_prefix("0x").or_else(|| s.strip_prefix("0X")) {
+        Some(h) => i64::from_str_radix(h, 16).ok(),
+        None => s.parse().ok(),
+    }
+}
+
 impl std::fmt::Display for FreedomValue {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         match self {
@@ -329,11 +347,9 @@ pub struct Freedom {
 }
 
 impl Freedom {
-    /// True when `value` is one of the admissible values (see [`crate::choices::value_matches`]).
+    /// True when `value` is one of the admissible values (see [`FreedomValue::matches`]).
     pub fn admits(&self, value: &str) -> bool {
-        self.values
-            .iter()
-            .any(|v| crate::choices::value_matches(v, value))
+        self.values.iter().any(|v| v.matches(value))
     }
 
     /// `unit-ids`: true when `unit` is in the freedom's range of unit ids (`units = [first, last]`).
@@ -1086,5 +1102,24 @@ impl Corpus {
     /// Load and validate the corpus's requirements, freedoms and citation map.
     pub fn requirements(&self) -> Result<Requirements, RequirementsError> {
         Requirements::load(self)
+    }
+
+    /// The requirements a run judges by: the corpus's own, or the built-in ones where a corpus directory
+    /// has none (a user's profiles only). The built-in ones are loaded once per process.
+    pub fn requirements_shared(&self) -> Result<std::sync::Arc<Requirements>, RequirementsError> {
+        use std::sync::{Arc, OnceLock};
+        static EMBEDDED: OnceLock<Arc<Requirements>> = OnceLock::new();
+        let embedded = || -> Result<Arc<Requirements>, RequirementsError> {
+            if let Some(r) = EMBEDDED.get() {
+                return Ok(Arc::clone(r));
+            }
+            let r = Arc::new(Corpus::Embedded.requirements()?);
+            Ok(Arc::clone(EMBEDDED.get_or_init(|| r)))
+        };
+        match self {
+            Corpus::Embedded => embedded(),
+            Corpus::Dir(d) if !d.join("requirements").is_dir() => embedded(),
+            Corpus::Dir(_) => Ok(Arc::new(self.requirements()?)),
+        }
     }
 }

@@ -700,7 +700,7 @@ impl Station {
             return true;
         }
         self.decisions.push(ids::TCP_UNIT_IDS);
-        !crate::choices::value_matches(value, "silence")
+        !value.matches("silence")
     }
 
     /// Answer one complete Modbus/TCP ADU (`None`: no response is sent).

@@ -166,7 +166,7 @@ pub fn placeholder(request: &[u8]) -> Option<Captured> {
 /// answer that reads nothing.
 pub fn captured(framing: Framing, request: &[u8], response: &[u8]) -> Option<Captured> {
     // FC 0x41 with a 2-byte byte count too (the other reading of `fc41-byte-count-width`).
-    let resp = crate::oracle::decode_response(framing, response)?;
+    let resp = crate::readings::decode_response(framing, response)?;
     let req = Request::decode(request).ok();
     match (req, resp) {
         (

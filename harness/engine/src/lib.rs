@@ -18,16 +18,18 @@ pub mod liveness;
 pub mod observe;
 pub mod oracle;
 pub mod probe;
+pub mod readings;
 pub mod reports;
 pub mod restore;
 pub mod runner;
-pub mod safety;
 pub mod servers;
 pub mod session;
 pub mod targets;
 pub mod timing;
 
 pub use api::{Device, Results, Session};
+/// The safety classifier and the policy's terms, at the top as every layer uses them.
+pub use cases::safety;
 pub use cases::{Case, Compare, Level, Mutation, Outgoing, Step, Tag, Verdict};
 pub use observe::{CaseResult, Dir, StepResult, WireEvent};
 pub use targets::Received;

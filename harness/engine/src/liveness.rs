@@ -66,7 +66,7 @@ pub fn ask(t: &mut dyn Target, request: &[u8], bound: Duration) -> Result<Heard,
         }
         match t.recv(left)? {
             Received::Frame { bytes, .. } => {
-                if crate::oracle::decode_response(framing, &bytes).is_some() {
+                if crate::readings::decode_response(framing, &bytes).is_some() {
                     return Ok(Heard::Modbus);
                 }
                 foreign.extend_from_slice(&bytes);

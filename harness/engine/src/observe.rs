@@ -95,6 +95,16 @@ impl CaseResult {
     }
 }
 
+impl crate::cases::shrink::Outcome for CaseResult {
+    fn fails(&self) -> bool {
+        self.verdict == Verdict::Fail
+    }
+
+    fn findings(&self) -> Vec<String> {
+        CaseResult::findings(self).cloned().collect()
+    }
+}
+
 fn micros<S: serde::Serializer>(d: &Duration, s: S) -> Result<S::Ok, S::Error> {
     s.serialize_u64(d.as_micros() as u64)
 }

@@ -16,8 +16,8 @@ use drives::tell::Written;
 use serde::{Deserialize, Serialize};
 
 use crate::capture::setting_params;
+use crate::cases::safety::Safety;
 use crate::cases::{Case, Outgoing, Step};
-use crate::runner::Safety;
 use crate::targets::TargetError;
 
 /// The exit code of a run (or `restore`) that could not leave the drive as found.

@@ -455,19 +455,7 @@ pub fn choices_of(
 /// The requirements, freedoms and citations of the run's corpus; a corpus directory without them (a user's
 /// profiles only) is judged with the built-in ones. The built-in ones are loaded once per process.
 pub fn requirements_of(corpus: &Corpus) -> Result<Arc<Requirements>, SessionError> {
-    static EMBEDDED: std::sync::OnceLock<Arc<Requirements>> = std::sync::OnceLock::new();
-    let embedded = || -> Result<Arc<Requirements>, SessionError> {
-        if let Some(r) = EMBEDDED.get() {
-            return Ok(Arc::clone(r));
-        }
-        let r = Arc::new(Corpus::Embedded.requirements()?);
-        Ok(Arc::clone(EMBEDDED.get_or_init(|| r)))
-    };
-    match corpus {
-        Corpus::Embedded => embedded(),
-        Corpus::Dir(d) if !d.join("requirements").is_dir() => embedded(),
-        Corpus::Dir(_) => Ok(Arc::new(corpus.requirements()?)),
-    }
+    Ok(corpus.requirements_shared()?)
 }
 
 /// The order a run takes its catalog cases in: as built, or shuffled with `seed`. Either way the cases that

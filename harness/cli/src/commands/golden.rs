@@ -93,7 +93,10 @@ pub fn run(dir: Option<&Path>, verbose: bool) -> ExitCode {
 /// Print the errata index (corpus/golden/README.md) generated from the golden files.
 pub fn markdown(dir: Option<&Path>) -> ExitCode {
     let corpus = Corpus::from_option(dir);
-    match drives::golden::errata_markdown(&corpus) {
+    match corpus
+        .golden_files()
+        .map(|g| drives::golden::errata_markdown(&g))
+    {
         Ok(md) => {
             print!("{md}");
             ExitCode::from(Exit::Ok)

@@ -3,6 +3,7 @@
 pub mod catalog;
 pub mod generated;
 pub mod regressions;
+pub mod safety;
 pub mod shrink;
 
 use std::collections::BTreeSet;
@@ -198,11 +199,11 @@ impl Case {
         self.tags.contains(&tag)
     }
 
-    /// The safety classifier's rating of every request the case sends ([`crate::safety::classify`]): fixed
+    /// The safety classifier's rating of every request the case sends ([`crate::cases::safety::classify`]): fixed
     /// requests as they go on the wire (PDU-level mutations applied, to their unit), restores as the write of
     /// what their capture step read.
     pub fn rated(&self, p: &drives::profile::Profile, run_unit: u8) -> BTreeSet<Tag> {
-        use crate::safety::classify_to_unit;
+        use crate::cases::safety::classify_to_unit;
         let mut captures: Vec<Option<&[u8]>> = vec![None; self.slots()];
         let mut out = BTreeSet::new();
         for step in &self.steps {

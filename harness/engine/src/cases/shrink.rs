@@ -10,8 +10,7 @@ use std::collections::HashMap;
 use std::time::{Duration, Instant};
 
 use crate::cases::generated::Generator;
-use crate::cases::{Case, Outgoing, Step, Verdict};
-use crate::observe::CaseResult;
+use crate::cases::{Case, Outgoing, Step};
 
 /// Candidates run at most while shrinking one case, by default.
 pub const DEFAULT_MAX_STEPS: usize = 200;
@@ -47,6 +46,14 @@ pub enum ShrinkStop {
     Time,
 }
 
+/// What the walk needs of a candidate's run (the session's is a [`crate::observe::CaseResult`]).
+pub trait Outcome {
+    /// The candidate FAILs.
+    fn fails(&self) -> bool;
+    /// The findings of its FAIL.
+    fn findings(&self) -> Vec<String>;
+}
+
 /// The result of shrinking one failing case.
 #[derive(Clone, Debug)]
 pub struct Shrunk {
@@ -66,20 +73,20 @@ pub struct Shrunk {
 
 /// Re-run generated case `index` through `run` and, if it FAILs, shrink it. `None` when the re-run does
 /// not FAIL (the failure needs the state earlier cases left behind).
-pub fn shrink<E>(
+pub fn shrink<R: Outcome, E>(
     generator: &Generator,
     index: u64,
     limits: &ShrinkLimits,
-    mut run: impl FnMut(&Case) -> Result<CaseResult, E>,
+    mut run: impl FnMut(&Case) -> Result<R, E>,
 ) -> Result<Option<Shrunk>, E> {
     let started = Instant::now();
     let mut tree = generator.tree(index);
     let original = generator.build(&tree.current(), index);
     let first = run(&original)?;
-    if first.verdict != Verdict::Fail {
+    if !first.fails() {
         return Ok(None);
     }
-    let mut best = (original.clone(), first.findings().cloned().collect());
+    let mut best = (original.clone(), first.findings());
     let mut steps = 1usize;
     let mut accepted = 0usize;
     let mut stop = ShrinkStop::Minimal;
@@ -105,9 +112,9 @@ pub fn shrink<E>(
                 None => {
                     steps += 1;
                     let r = run(&candidate)?;
-                    let f = r.verdict == Verdict::Fail;
+                    let f = r.fails();
                     if f {
-                        best = (candidate, r.findings().cloned().collect());
+                        best = (candidate, r.findings());
                     }
                     seen.insert(key, f);
                     f

@@ -190,7 +190,7 @@ fn shown_named(f: &Freedom, about: impl Into<String>, value: &str) -> Shown {
     let v = f
         .values
         .iter()
-        .find(|v| drives::choices::value_matches(v, value))
+        .find(|v| v.matches(value))
         .cloned()
         .unwrap_or(FreedomValue::Text(value.to_string()));
     shown(f, about, &v)
@@ -371,10 +371,7 @@ pub fn unambiguous(
             FreedomKind::Access if touches(f, cx) => {
                 // A drive taking the item as writable refuses a write by its value instead (with a code
                 // `value-out-of-range` lists): a second reason for the same exception.
-                let writable = f.values.iter().any(|v| {
-                    drives::choices::value_matches(v, "rw")
-                        || drives::choices::value_matches(v, "wo")
-                });
+                let writable = f.values.iter().any(|v| v.matches("rw") || v.matches("wo"));
                 let writes = cx.request.is_some_and(|r| {
                     registers_written(r).is_some() || matches!(r, Request::VendorWrite { .. })
                 });
@@ -1063,20 +1060,4 @@ fn reading_concerns(f: &Freedom, req: Option<&Request>, pdu: &[u8]) -> bool {
         ("fc41-byte-count-width", _) => false,
         (_, r) => r.is_some(),
     }
-}
-
-/// FC 0x41 responses with a 2-byte byte count (the other reading of `fc41-byte-count-width`), as the
-/// 1-byte form the codec decodes: `None` when the bytes are not such a response.
-pub fn fc41_two_byte_count(pdu: &[u8]) -> Option<Vec<u8>> {
-    let (&fc, rest) = pdu.split_first()?;
-    if fc != FunctionCode::VENDOR_READ.0 || rest.len() < 2 {
-        return None;
-    }
-    let count = usize::from(u16::from_be_bytes([rest[0], rest[1]]));
-    let params = &rest[2..];
-    (count == params.len() && count <= 255).then(|| {
-        let mut out = vec![fc, count as u8];
-        out.extend_from_slice(params);
-        out
-    })
 }

@@ -226,7 +226,7 @@ pub fn judge_admitting(
         && let Some(f) = applicable
             .iter()
             .find(|f| f.id == drives::choices::ids::FC41_BYTE_COUNT_WIDTH)
-        && let Some(r) = other_reading(framing, bytes)
+        && let Some(r) = crate::readings::other_reading(framing, bytes)
         && let Some(b) = frame_like(framing, Some(bytes), sent, &r)
     {
         let mut again = judge_admitting(
@@ -243,7 +243,9 @@ pub fn judge_admitting(
         }
     }
     let obs = match observed {
-        Received::Frame { bytes, .. } => response(bytes).or_else(|| other_reading(framing, bytes)),
+        Received::Frame { bytes, .. } => {
+            response(bytes).or_else(|| crate::readings::other_reading(framing, bytes))
+        }
         _ => None,
     };
     // Every alternative that admits the observation, in the order of the freedoms.
@@ -378,27 +380,6 @@ fn frame_like(
         }
     }
     Some(out)
-}
-
-/// A response frame as the codec decodes it, or else as another reading of a manual writes it (FC 0x41 with
-/// a 2-byte byte count): what every place that takes a drive's answer apart (captures for a restore, the
-/// probe, the liveness check) must read, so that a drive following the other reading is understood.
-pub fn decode_response(framing: Framing, bytes: &[u8]) -> Option<Response> {
-    match decode_any(bytes, framing, Direction::Response).map(|d| d.pdu) {
-        Ok(Pdu::Response(r)) => Some(r),
-        Ok(Pdu::Request(_)) => None,
-        Err(_) => other_reading(framing, bytes),
-    }
-}
-
-/// A response frame that only another reading of a manual decodes (FC 0x41 with a 2-byte byte count).
-fn other_reading(framing: Framing, bytes: &[u8]) -> Option<Response> {
-    let pdu = match framing {
-        Framing::Tcp => bytes.get(codec::tcp::MBAP_LEN..)?,
-        _ => bytes.get(1..bytes.len().checked_sub(2)?)?,
-    };
-    let one_byte = freedoms::fc41_two_byte_count(pdu)?;
-    Response::decode(&one_byte).ok()
 }
 
 /// A request that must be rejected or ignored: silence, a close (TCP) or any exception settles it; `None`

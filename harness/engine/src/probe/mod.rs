@@ -204,7 +204,7 @@ impl Prober<'_> {
     fn exchange_once(&mut self, unit: u8, pdu: &[u8]) -> Result<Option<Response>, TargetError> {
         // The safety assertion before sending: a read-only probe puts no write on the wire, whatever the
         // code above built.
-        if !self.writes && crate::safety::is_write(pdu) {
+        if !self.writes && crate::cases::safety::is_write(pdu) {
             self.refused.push(pdu.to_vec());
             return Ok(None);
         }
@@ -220,7 +220,7 @@ impl Prober<'_> {
         self.t.drain();
         self.t.send(&frame)?;
         match self.t.recv(self.timeout)? {
-            Received::Frame { bytes, .. } => Ok(crate::oracle::decode_response(framing, &bytes)),
+            Received::Frame { bytes, .. } => Ok(crate::readings::decode_response(framing, &bytes)),
             Received::Closed { .. } => {
                 self.t.reconnect()?;
                 Ok(None)

@@ -43,18 +43,7 @@ impl Default for Timing {
     }
 }
 
-/// What the safety policy lets a run do to a real drive (the in-process simulator is not protected).
-#[derive(Clone, Copy, Debug, Default, PartialEq)]
-pub struct Safety {
-    /// Cases that can move the motor or enable the power stage run.
-    pub allow_motion: bool,
-    /// Cases that change non-volatile state or leave the drive faulted run.
-    pub allow_destructive: bool,
-    /// No case that writes runs.
-    pub read_only: bool,
-    /// Requests per second at most.
-    pub max_rate: Option<f64>,
-}
+pub use crate::cases::safety::Safety;
 
 /// How a run behaves.
 #[derive(Clone, Debug)]
@@ -460,12 +449,7 @@ impl Runner {
         value: &str,
         origin: &str,
     ) {
-        let Some(v) = freedom
-            .values
-            .iter()
-            .find(|v| drives::choices::value_matches(v, value))
-            .cloned()
-        else {
+        let Some(v) = freedom.values.iter().find(|v| v.matches(value)).cloned() else {
             return;
         };
         let shown = crate::oracle::freedoms::shown_value(freedom, "", value);
@@ -1475,13 +1459,13 @@ impl Runner {
     /// catalog's tags are checked on every CI run.
     fn refusal(&self, frames: &[Framed]) -> Option<StepResult> {
         for f in frames {
-            let rated = crate::safety::classify_to_unit(
+            let rated = crate::cases::safety::classify_to_unit(
                 &self.profile,
                 &f.sent.pdu,
                 f.sent.unit,
                 self.cfg.unit,
             );
-            let missing = crate::safety::exceeds(&rated, &self.case_tags);
+            let missing = crate::cases::safety::exceeds(&rated, &self.case_tags);
             if !missing.is_empty() {
                 let names: Vec<String> = missing
                     .iter()
@@ -1833,11 +1817,8 @@ impl Runner {
                 .filter(|f| follows(f) && !judged.shown.iter().any(|s| s.freedom == f.id))
                 .filter_map(|f| {
                     let v = self.learned.get(&f.id)?;
-                    (f.values.first() != Some(v)
-                        && kind
-                            .as_deref()
-                            .is_some_and(|k| drives::choices::value_matches(v, k)))
-                    .then(|| oracle::freedoms::shown_value(f, "", &v.to_string()))
+                    (f.values.first() != Some(v) && kind.as_deref().is_some_and(|k| v.matches(k)))
+                        .then(|| oracle::freedoms::shown_value(f, "", &v.to_string()))
                 })
                 .collect();
             findings.extend(judged.findings);
@@ -1871,10 +1852,10 @@ impl Runner {
                     });
                 }
                 if let Some(f) = requirements.freedom(&s.freedom).filter(|f| follows(f))
-                    && let Some(v) = f.values.iter().find(|v| {
-                        drives::choices::value_matches(v, &s.value)
-                            && !drives::choices::value_matches(v, "close")
-                    })
+                    && let Some(v) = f
+                        .values
+                        .iter()
+                        .find(|v| v.matches(&s.value) && !v.matches("close"))
                     && self.learned.get(&f.id).or(f.values.first()) != Some(v)
                 {
                     self.follow.push((f.clone(), v.clone()));

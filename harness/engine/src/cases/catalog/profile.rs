@@ -655,8 +655,7 @@ pub(super) fn write_value(cx: &Ctx, r: &Register) -> i64 {
 /// True when a freedom of the corpus is about this register or mnemonic (a product may lack it, or give it
 /// another access): the cases below use entries every admissible drive has, as the manual gives them.
 fn freedom_item(register: Option<u16>, mnemonic: Option<&str>) -> bool {
-    let Ok(requirements) = crate::session::requirements_of(&drives::corpus::Corpus::Embedded)
-    else {
+    let Ok(requirements) = drives::corpus::Corpus::Embedded.requirements_shared() else {
         return true;
     };
     requirements.freedoms().iter().any(|f| {

@@ -953,9 +953,9 @@ fn byte_count_offset(pdu: &[u8]) -> Option<usize> {
 }
 
 /// Safety tags of a request PDU, from what it would do on a drive of profile `p`: the one classifier,
-/// [`crate::safety::classify`].
+/// [`crate::cases::safety::classify`].
 pub fn pdu_tags(p: &Profile, pdu: &[u8]) -> BTreeSet<Tag> {
-    crate::safety::classify(p, pdu)
+    crate::cases::safety::classify(p, pdu)
 }
 
 /// The tags of an altered PDU: the original's and the altered bytes' own (a malformed write is rated by

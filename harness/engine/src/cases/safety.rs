@@ -26,6 +26,19 @@ use drives::profile::Profile;
 
 use crate::cases::Tag;
 
+/// What the safety policy lets a run do to a real drive (the in-process simulator is not protected).
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct Safety {
+    /// Cases that can move the motor or enable the power stage run.
+    pub allow_motion: bool,
+    /// Cases that change non-volatile state or leave the drive faulted run.
+    pub allow_destructive: bool,
+    /// No case that writes runs.
+    pub read_only: bool,
+    /// Requests per second at most.
+    pub max_rate: Option<f64>,
+}
+
 /// The safety tags (`Write`, `Motion`, `Destructive`) of a request PDU sent to a drive of profile `p`.
 pub fn classify(p: &Profile, pdu: &[u8]) -> BTreeSet<Tag> {
     let mut r = Rating::default();

@@ -72,6 +72,11 @@ impl RtuTiming {
         }
     }
 
+    /// True for a serial line; false for [`RtuTiming::tcp_carrier`], where there is no line (baud 0).
+    pub fn is_line(&self) -> bool {
+        self.baud != 0
+    }
+
     /// Time to transmit `n` characters.
     pub fn transmit_time(&self, n: usize) -> Duration {
         self.char_time * n as u32

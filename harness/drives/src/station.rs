@@ -267,6 +267,18 @@ impl RtuPort {
     pub fn timing(&self) -> RtuTiming {
         self.framer.timing()
     }
+
+    /// The silence an answer keeps after the request's last byte: t3.5 on a serial line (serial line guide
+    /// 2.5.1.1); none over TCP, where there is no line and the carrier's long t3.5 only ends frames of
+    /// unknown length ([`RtuTiming::tcp_carrier`]): a gateway's drive answers after its own line's t3.5.
+    pub fn answer_silence(&self) -> Duration {
+        let timing = self.timing();
+        if timing.is_line() {
+            timing.t3_5
+        } else {
+            Duration::ZERO
+        }
+    }
 }
 
 /// A simulated drive on the wire. A clone is an independent copy in the same state (see
@@ -748,18 +760,19 @@ impl Station {
     /// Feed bytes received on an RTU line at `now`; returns replies for frames completed by them.
     pub fn serve_rtu(&mut self, now: Duration, port: &mut RtuPort, bytes: &[u8]) -> Vec<Wire> {
         let events = port.framer.push(now, bytes);
-        self.rtu_events(now, events, port.timing().t3_5)
+        self.rtu_events(now, events, port.answer_silence())
     }
 
     /// Let silence complete or discard what the port holds at `now`.
     pub fn poll_rtu(&mut self, now: Duration, port: &mut RtuPort) -> Vec<Wire> {
         let events = port.framer.poll(now);
-        self.rtu_events(now, events, port.timing().t3_5)
+        self.rtu_events(now, events, port.answer_silence())
     }
 
-    /// Answer the frames the port's framer delimited. An answer goes out no sooner than `t3_5` after the
-    /// request's last byte (serial line guide 2.5.1.1: frames are separated by at least 3.5 character
-    /// times), also when the framer cut the request by its length before that silence.
+    /// Answer the frames the port's framer delimited. An answer goes out no sooner than `t3_5` (the port's
+    /// [`RtuPort::answer_silence`]) after the request's last byte (serial line guide 2.5.1.1: frames are
+    /// separated by at least 3.5 character times), also when the framer cut the request by its length
+    /// before that silence.
     fn rtu_events(&mut self, now: Duration, events: Vec<FramerEvent>, t3_5: Duration) -> Vec<Wire> {
         let mut out = Vec::new();
         for ev in events {

@@ -175,6 +175,36 @@ fn broadcast_events() {
     );
 }
 
+/// On a serial line an answer keeps t3.5 of silence after the request's last byte (serial line guide 2.5.1.1),
+/// also when the framer cut the request by its length at once; over TCP (RTU over TCP) there is no line, and
+/// the carrier's 50 ms frame-ending silence must not hold the answer back.
+#[test]
+fn answer_silence_on_a_line_and_none_over_tcp() {
+    let mut frame = Vec::new();
+    rtu::encode_adu(1, &parse_hex("03 00 00 00 01").expect("hex"), &mut frame).expect("encodes");
+    let line = RtuTiming::new(
+        19200,
+        CharFormat {
+            parity: Parity::Even,
+            stop_bits: 1,
+        },
+    );
+    for (timing, silence) in [
+        (line, line.t3_5),
+        (RtuTiming::tcp_carrier(), Duration::ZERO),
+    ] {
+        let mut st = rtu_station(&[]);
+        let mut port = RtuPort::new(timing);
+        let replies = st.serve_rtu(Duration::from_millis(5), &mut port, &frame);
+        assert_eq!(
+            replies.len(),
+            1,
+            "{timing:?}: one answer, cut by its length"
+        );
+        assert_eq!(replies[0].delay, silence, "{timing:?}");
+    }
+}
+
 /// More bytes than an ADU without a boundary is a character overrun (08/12, receive event bit 4); 08/14 clears
 /// the counter, not the CRC error count.
 #[test]

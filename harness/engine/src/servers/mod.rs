@@ -27,8 +27,9 @@ use shutdown::Shutdown;
 /// How many connections one listener serves at once; further clients wait in the kernel's backlog.
 pub const MAX_CONNECTIONS: usize = 1024;
 
-/// The line timing assumed for RTU over TCP, where there is no line: 115200 8N1 (t3.5 = 1.75 ms). Frames
-/// are cut by their length and CRC; the silence only ends frames of function codes without a length rule.
+/// The timing of RTU over TCP, where there is no line ([`RtuTiming::tcp_carrier`]): frames are cut by their
+/// length and CRC; a silence of 50 ms only ends frames of function codes without a length rule; answers go out
+/// at once (no t3.5 to keep).
 pub fn rtu_over_tcp_timing() -> RtuTiming {
     RtuTiming::tcp_carrier()
 }

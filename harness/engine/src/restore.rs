@@ -660,6 +660,15 @@ impl Journal {
 pub trait Link {
     /// Send `req`, return the decoded answer (`None`: silence, a close, or an undecodable answer).
     fn transact(&mut self, req: &Request) -> Result<Option<Response>, TargetError>;
+
+    /// Whether [`read_all`] may read adjacent parameters in one request: true until the target did not
+    /// answer such a read as asked ([`Link::refuse_block_reads`]).
+    fn block_reads(&self) -> bool {
+        true
+    }
+
+    /// The target did not answer a read of several parameters as asked: one parameter a request from now on.
+    fn refuse_block_reads(&mut self) {}
 }
 
 /// Requests in a row without an answer after which the target counts as gone: a restore against a dead
@@ -673,6 +682,14 @@ struct Bounded<'a> {
 }
 
 impl Link for Bounded<'_> {
+    fn block_reads(&self) -> bool {
+        self.link.block_reads()
+    }
+
+    fn refuse_block_reads(&mut self) {
+        self.link.refuse_block_reads();
+    }
+
     fn transact(&mut self, req: &Request) -> Result<Option<Response>, TargetError> {
         let r = self.link.transact(req)?;
         if r.is_some() {
@@ -700,27 +717,146 @@ pub(crate) struct Counting<'a> {
 }
 
 impl Link for Counting<'_> {
+    fn block_reads(&self) -> bool {
+        self.link.block_reads()
+    }
+
+    fn refuse_block_reads(&mut self) {
+        self.link.refuse_block_reads();
+    }
+
     fn transact(&mut self, req: &Request) -> Result<Option<Response>, TargetError> {
         self.sent += 1;
         self.link.transact(req)
     }
 }
 
-/// Read `items` through `link`: each key with its value, `None` where the drive gave none.
+/// Registers or coils read in one request at most by [`read_all`] (FC 03 allows 125 registers; a coil
+/// block is held to the same count).
+const MAX_BLOCK: usize = 125;
+
+/// Read `items` through `link`: each key with its value, `None` where the drive gave none. Adjacent holding
+/// registers (or coils), in the order given, are read in one request while the link allows it; a block the
+/// target does not answer as asked is read again one parameter at a time, and so is everything after it.
 pub fn read_all(
     link: &mut dyn Link,
     items: &[Item],
 ) -> Result<BTreeMap<String, Option<Value>>, TargetError> {
     let link = &mut Bounded { link, silent: 0 };
     let mut out = BTreeMap::new();
-    for item in items {
+    let mut at = 0;
+    while at < items.len() {
+        let run = adjacent(&items[at..]);
+        if run.len() > 1 && link.block_reads() {
+            match read_block(link, run)? {
+                Some(values) => {
+                    for (item, v) in run.iter().zip(values) {
+                        out.insert(item.key.clone(), Some(v));
+                    }
+                    at += run.len();
+                    continue;
+                }
+                None => link.refuse_block_reads(),
+            }
+        }
+        let item = &items[at];
         let v = match read_request(item) {
             Some(req) => link.transact(&req)?.and_then(|r| value_of(item, &r)),
             None => None,
         };
         out.insert(item.key.clone(), v);
+        at += 1;
     }
     Ok(out)
+}
+
+/// The longest prefix of `items` that one read shows: holding registers each starting where the one before
+/// ends, or coils at consecutive addresses; at most [`MAX_BLOCK`] registers or coils.
+fn adjacent(items: &[Item]) -> &[Item] {
+    let next = |place: &Place| match place {
+        Place::Holding { address, width } => Some((0, u32::from(*address) + u32::from(*width))),
+        Place::Coil { address } => Some((1, u32::from(*address) + 1)),
+        _ => None,
+    };
+    let size = |place: &Place| match place {
+        Place::Holding { width, .. } => usize::from(*width),
+        _ => 1,
+    };
+    let start = |place: &Place| match place {
+        Place::Holding { address, .. } => Some((0, u32::from(*address))),
+        Place::Coil { address } => Some((1, u32::from(*address))),
+        _ => None,
+    };
+    let Some(first) = items.first() else {
+        return items;
+    };
+    let mut end = next(&first.place);
+    let mut count = size(&first.place);
+    let mut n = 1;
+    for item in &items[1..] {
+        if end.is_none() || start(&item.place) != end || count + size(&item.place) > MAX_BLOCK {
+            break;
+        }
+        end = next(&item.place);
+        count += size(&item.place);
+        n += 1;
+    }
+    &items[..n]
+}
+
+/// Read `run` (from [`adjacent`]) in one request: each item's value, or `None` when the target did not
+/// answer as asked (an exception, silence, another length).
+fn read_block(link: &mut dyn Link, run: &[Item]) -> Result<Option<Vec<Value>>, TargetError> {
+    let (req, holding) = match &run[0].place {
+        Place::Holding { address, .. } => {
+            let quantity = run
+                .iter()
+                .map(|i| match i.place {
+                    Place::Holding { width, .. } => u16::from(width),
+                    _ => 0,
+                })
+                .sum();
+            let req = Request::ReadHoldingRegisters {
+                address: *address,
+                quantity,
+            };
+            (req, true)
+        }
+        Place::Coil { address } => {
+            let quantity = run.len() as u16;
+            let req = Request::ReadCoils {
+                address: *address,
+                quantity,
+            };
+            (req, false)
+        }
+        _ => return Ok(None),
+    };
+    Ok(match link.transact(&req)? {
+        Some(Response::ReadHoldingRegisters { values }) if holding => {
+            let mut words = values.into_iter();
+            let mut out = Vec::new();
+            for item in run {
+                let Place::Holding { width, .. } = item.place else {
+                    return Ok(None);
+                };
+                let w: Vec<u16> = words.by_ref().take(usize::from(width)).collect();
+                if w.len() != usize::from(width) {
+                    return Ok(None);
+                }
+                out.push(Value::Words(w));
+            }
+            words.next().is_none().then_some(out)
+        }
+        Some(Response::ReadCoils { data }) if !holding && data.len() == run.len().div_ceil(8) => {
+            Some(
+                (0..run.len())
+                    .map(|i| Value::Bit(data[i / 8] >> (i % 8) & 1 == 1))
+                    .collect(),
+            )
+        }
+        _ => None,
+    })
 }
 
 /// Put back every item of `items` that differs from `snapshot` and verify by reading: the writes sent and
@@ -1122,6 +1258,10 @@ mod tests {
         dead: bool,
         stuck: Option<u16>,
         requests: usize,
+        /// Reads of more than one register are refused (exception 02), as some drives do across parameters.
+        one_at_a_time: bool,
+        /// The restore was told so (`Link::refuse_block_reads`).
+        refused: bool,
     }
 
     impl Fake {
@@ -1132,21 +1272,39 @@ mod tests {
                 dead: false,
                 stuck: None,
                 requests: 0,
+                one_at_a_time: false,
+                refused: false,
             }
         }
     }
 
     impl Link for Fake {
+        fn block_reads(&self) -> bool {
+            !self.refused
+        }
+
+        fn refuse_block_reads(&mut self) {
+            self.refused = true;
+        }
+
         fn transact(&mut self, req: &Request) -> Result<Option<Response>, TargetError> {
             self.requests += 1;
             if self.dead {
                 return Ok(None);
             }
             Ok(match req {
-                Request::ReadHoldingRegisters { address, .. } => self
-                    .regs
-                    .get(address)
-                    .map(|v| Response::ReadHoldingRegisters { values: vec![*v] }),
+                Request::ReadHoldingRegisters { quantity, .. }
+                    if self.one_at_a_time && *quantity > 1 =>
+                {
+                    Some(Response::exception(
+                        FunctionCode::READ_HOLDING_REGISTERS,
+                        codec::ExceptionCode::ILLEGAL_DATA_ADDRESS,
+                    ))
+                }
+                Request::ReadHoldingRegisters { address, quantity } => (0..*quantity)
+                    .map(|i| self.regs.get(&(address + i)).copied())
+                    .collect::<Option<Vec<u16>>>()
+                    .map(|values| Response::ReadHoldingRegisters { values }),
                 Request::WriteMultipleRegisters { address, values } => {
                     if self.stuck != Some(*address) {
                         self.regs.insert(*address, values[0]);
@@ -1159,6 +1317,47 @@ mod tests {
                 _ => None,
             })
         }
+    }
+
+    fn holding(address: u16, width: u8) -> Item {
+        item(
+            &format!("holding:{address}"),
+            Place::Holding { address, width },
+        )
+    }
+
+    /// Adjacent registers are read in one request, each parameter at its width; a gap or a coil starts
+    /// another read.
+    #[test]
+    fn adjacent_parameters_are_read_in_one_request() {
+        let mut fake = Fake::three();
+        fake.regs.extend([(3, 13), (7, 17)]);
+        let items = [holding(0, 2), holding(2, 1), holding(3, 1), holding(7, 1)];
+        let read = read_all(&mut fake, &items).expect("reads");
+        assert_eq!(fake.requests, 2, "0-3 in one read, 7 in another");
+        assert_eq!(read["holding:0"], Some(Value::Words(vec![10, 11])));
+        assert_eq!(read["holding:2"], Some(Value::Words(vec![12])));
+        assert_eq!(read["holding:3"], Some(Value::Words(vec![13])));
+        assert_eq!(read["holding:7"], Some(Value::Words(vec![17])));
+        assert!(!fake.refused);
+    }
+
+    /// A target that refuses a read of several parameters is read one at a time, the same values, and no
+    /// block read is tried on it again.
+    #[test]
+    fn a_target_refusing_block_reads_is_read_one_parameter_at_a_time() {
+        let mut fake = Fake::three();
+        fake.one_at_a_time = true;
+        let items = [holding(0, 1), holding(1, 1), holding(2, 1)];
+        let read = read_all(&mut fake, &items).expect("reads");
+        assert_eq!(fake.requests, 4, "the refused block, then one read each");
+        assert!(fake.refused);
+        for (a, v) in [(0, 10), (1, 11), (2, 12)] {
+            assert_eq!(read[&format!("holding:{a}")], Some(Value::Words(vec![v])));
+        }
+        fake.requests = 0;
+        read_all(&mut fake, &items).expect("reads");
+        assert_eq!(fake.requests, 3, "no block read again");
     }
 
     fn keeper_of(fake: &mut Fake, journal: &Path) -> Keeper {

@@ -770,93 +770,76 @@ pub fn read_all(
     Ok(out)
 }
 
+/// Where a parameter that a block read can cover lies: (holding register or coil, first address, registers
+/// or coils); `None` for the others.
+fn span(place: &Place) -> Option<(bool, u32, u32)> {
+    match place {
+        Place::Holding { address, width } => Some((true, u32::from(*address), u32::from(*width))),
+        Place::Coil { address } => Some((false, u32::from(*address), 1)),
+        _ => None,
+    }
+}
+
 /// The longest prefix of `items` that one read shows: holding registers each starting where the one before
 /// ends, or coils at consecutive addresses; at most [`MAX_BLOCK`] registers or coils.
 fn adjacent(items: &[Item]) -> &[Item] {
-    let next = |place: &Place| match place {
-        Place::Holding { address, width } => Some((0, u32::from(*address) + u32::from(*width))),
-        Place::Coil { address } => Some((1, u32::from(*address) + 1)),
-        _ => None,
+    let Some((holding, start, size)) = items.first().and_then(|i| span(&i.place)) else {
+        return &items[..items.len().min(1)];
     };
-    let size = |place: &Place| match place {
-        Place::Holding { width, .. } => usize::from(*width),
-        _ => 1,
-    };
-    let start = |place: &Place| match place {
-        Place::Holding { address, .. } => Some((0, u32::from(*address))),
-        Place::Coil { address } => Some((1, u32::from(*address))),
-        _ => None,
-    };
-    let Some(first) = items.first() else {
-        return items;
-    };
-    let mut end = next(&first.place);
-    let mut count = size(&first.place);
+    let mut end = start + size;
     let mut n = 1;
     for item in &items[1..] {
-        if end.is_none() || start(&item.place) != end || count + size(&item.place) > MAX_BLOCK {
-            break;
+        match span(&item.place) {
+            Some((h, s, z)) if h == holding && s == end && end + z - start <= MAX_BLOCK as u32 => {
+                end += z;
+                n += 1;
+            }
+            _ => break,
         }
-        end = next(&item.place);
-        count += size(&item.place);
-        n += 1;
     }
     &items[..n]
 }
 
-/// Read `run` (from [`adjacent`]) in one request: each item's value, or `None` when the target did not
-/// answer as asked (an exception, silence, another length).
+/// Read `run` (from [`adjacent`]) in one request: each item's value as its own read would show it
+/// ([`value_of`] of its part of the answer), or `None` when the target did not answer as asked (an
+/// exception, silence, another length).
 fn read_block(link: &mut dyn Link, run: &[Item]) -> Result<Option<Vec<Value>>, TargetError> {
-    let (req, holding) = match &run[0].place {
-        Place::Holding { address, .. } => {
-            let quantity = run
-                .iter()
-                .map(|i| match i.place {
-                    Place::Holding { width, .. } => u16::from(width),
-                    _ => 0,
-                })
-                .sum();
-            let req = Request::ReadHoldingRegisters {
-                address: *address,
-                quantity,
-            };
-            (req, true)
-        }
-        Place::Coil { address } => {
-            let quantity = run.len() as u16;
-            let req = Request::ReadCoils {
-                address: *address,
-                quantity,
-            };
-            (req, false)
-        }
-        _ => return Ok(None),
+    let spans: Vec<_> = run.iter().filter_map(|i| span(&i.place)).collect();
+    let Some(&(holding, first, _)) = spans.first() else {
+        return Ok(None);
     };
-    Ok(match link.transact(&req)? {
-        Some(Response::ReadHoldingRegisters { values }) if holding => {
-            let mut words = values.into_iter();
-            let mut out = Vec::new();
-            for item in run {
-                let Place::Holding { width, .. } = item.place else {
-                    return Ok(None);
-                };
-                let w: Vec<u16> = words.by_ref().take(usize::from(width)).collect();
-                if w.len() != usize::from(width) {
-                    return Ok(None);
+    let (address, quantity) = (first as u16, spans.iter().map(|s| s.2).sum::<u32>() as u16);
+    let req = if holding {
+        Request::ReadHoldingRegisters { address, quantity }
+    } else {
+        Request::ReadCoils { address, quantity }
+    };
+    let Some(answer) = link.transact(&req)? else {
+        return Ok(None);
+    };
+    let n = usize::from(quantity);
+    let mut out = Vec::with_capacity(run.len());
+    for (item, (_, at, size)) in run.iter().zip(&spans) {
+        let (at, size) = ((at - first) as usize, *size as usize);
+        let part = match &answer {
+            Response::ReadHoldingRegisters { values } if holding && values.len() == n => {
+                Response::ReadHoldingRegisters {
+                    values: values[at..at + size].to_vec(),
                 }
-                out.push(Value::Words(w));
             }
-            words.next().is_none().then_some(out)
-        }
-        Some(Response::ReadCoils { data }) if !holding && data.len() == run.len().div_ceil(8) => {
-            Some(
-                (0..run.len())
-                    .map(|i| Value::Bit(data[i / 8] >> (i % 8) & 1 == 1))
-                    .collect(),
-            )
-        }
-        _ => None,
-    })
+            Response::ReadCoils { data } if !holding && data.len() == n.div_ceil(8) => {
+                Response::ReadCoils {
+                    data: vec![data[at / 8] >> (at % 8) & 1],
+                }
+            }
+            _ => return Ok(None),
+        };
+        let Some(v) = value_of(item, &part) else {
+            return Ok(None);
+        };
+        out.push(v);
+    }
+    Ok(Some(out))
 }
 
 /// Put back every item of `items` that differs from `snapshot` and verify by reading: the writes sent and

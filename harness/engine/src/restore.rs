@@ -661,14 +661,24 @@ pub trait Link {
     /// Send `req`, return the decoded answer (`None`: silence, a close, or an undecodable answer).
     fn transact(&mut self, req: &Request) -> Result<Option<Response>, TargetError>;
 
-    /// Whether [`read_all`] may read adjacent parameters in one request: true until the target did not
-    /// answer such a read as asked ([`Link::refuse_block_reads`]).
-    fn block_reads(&self) -> bool {
+    /// Whether adjacent parameters may be read ([`read_all`]) or put back ([`restore`]) in one request:
+    /// true until the target did not take such a request as asked ([`Link::refuse_blocks`]).
+    fn blocks(&self, _kind: Block) -> bool {
         true
     }
 
-    /// The target did not answer a read of several parameters as asked: one parameter a request from now on.
-    fn refuse_block_reads(&mut self) {}
+    /// The target did not take a request of `kind` for several parameters as asked: one parameter a request
+    /// from now on.
+    fn refuse_blocks(&mut self, _kind: Block) {}
+}
+
+/// A request for several adjacent parameters at once (see [`Link::blocks`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Block {
+    /// One FC 03 or FC 01 read ([`read_all`]).
+    Read,
+    /// One FC 10 or FC 0F write putting them back ([`restore`]).
+    Write,
 }
 
 /// Requests in a row without an answer after which the target counts as gone: a restore against a dead
@@ -682,12 +692,12 @@ struct Bounded<'a> {
 }
 
 impl Link for Bounded<'_> {
-    fn block_reads(&self) -> bool {
-        self.link.block_reads()
+    fn blocks(&self, kind: Block) -> bool {
+        self.link.blocks(kind)
     }
 
-    fn refuse_block_reads(&mut self) {
-        self.link.refuse_block_reads();
+    fn refuse_blocks(&mut self, kind: Block) {
+        self.link.refuse_blocks(kind);
     }
 
     fn transact(&mut self, req: &Request) -> Result<Option<Response>, TargetError> {
@@ -717,12 +727,12 @@ pub(crate) struct Counting<'a> {
 }
 
 impl Link for Counting<'_> {
-    fn block_reads(&self) -> bool {
-        self.link.block_reads()
+    fn blocks(&self, kind: Block) -> bool {
+        self.link.blocks(kind)
     }
 
-    fn refuse_block_reads(&mut self) {
-        self.link.refuse_block_reads();
+    fn refuse_blocks(&mut self, kind: Block) {
+        self.link.refuse_blocks(kind);
     }
 
     fn transact(&mut self, req: &Request) -> Result<Option<Response>, TargetError> {
@@ -735,6 +745,10 @@ impl Link for Counting<'_> {
 /// block is held to the same count).
 const MAX_BLOCK: usize = 125;
 
+/// Registers or coils put back in one request at most by [`restore`] (FC 10 allows 123 registers; a coil
+/// block is held to the same count).
+const MAX_WRITE_BLOCK: usize = 123;
+
 /// Read `items` through `link`: each key with its value, `None` where the drive gave none. Adjacent holding
 /// registers (or coils), in the order given, are read in one request while the link allows it; a block the
 /// target does not answer as asked is read again one parameter at a time, and so is everything after it.
@@ -746,8 +760,8 @@ pub fn read_all(
     let mut out = BTreeMap::new();
     let mut at = 0;
     while at < items.len() {
-        let run = adjacent(&items[at..]);
-        if run.len() > 1 && link.block_reads() {
+        let run = adjacent(&items[at..], MAX_BLOCK);
+        if run.len() > 1 && link.blocks(Block::Read) {
             match read_block(link, run)? {
                 Some(values) => {
                     for (item, v) in run.iter().zip(values) {
@@ -756,7 +770,7 @@ pub fn read_all(
                     at += run.len();
                     continue;
                 }
-                None => link.refuse_block_reads(),
+                None => link.refuse_blocks(Block::Read),
             }
         }
         let item = &items[at];
@@ -781,8 +795,8 @@ fn span(place: &Place) -> Option<(bool, u32, u32)> {
 }
 
 /// The longest prefix of `items` that one read shows: holding registers each starting where the one before
-/// ends, or coils at consecutive addresses; at most [`MAX_BLOCK`] registers or coils.
-fn adjacent(items: &[Item]) -> &[Item] {
+/// ends, or coils at consecutive addresses; at most `max` registers or coils.
+fn adjacent(items: &[Item], max: usize) -> &[Item] {
     let Some((holding, start, size)) = items.first().and_then(|i| span(&i.place)) else {
         return &items[..items.len().min(1)];
     };
@@ -790,7 +804,7 @@ fn adjacent(items: &[Item]) -> &[Item] {
     let mut n = 1;
     for item in &items[1..] {
         match span(&item.place) {
-            Some((h, s, z)) if h == holding && s == end && end + z - start <= MAX_BLOCK as u32 => {
+            Some((h, s, z)) if h == holding && s == end && end + z - start <= max as u32 => {
                 end += z;
                 n += 1;
             }
@@ -842,6 +856,75 @@ fn read_block(link: &mut dyn Link, run: &[Item]) -> Result<Option<Vec<Value>>, T
     Ok(Some(out))
 }
 
+/// One write putting the adjacent parameters `run` (from [`adjacent`]) back to `values`: FC 10 for holding
+/// registers, FC 0F for coils, where the profile has it; `None` otherwise, or when a value is not of its
+/// parameter's width.
+fn block_write_request(
+    run: &[Item],
+    values: &[&Value],
+    profile: Option<&Profile>,
+) -> Option<Request> {
+    let spans: Vec<_> = run.iter().map(|i| span(&i.place)).collect::<Option<_>>()?;
+    let &(holding, first, _) = spans.first()?;
+    let fc = if holding {
+        FunctionCode::WRITE_MULTIPLE_REGISTERS
+    } else {
+        FunctionCode::WRITE_MULTIPLE_COILS
+    };
+    if profile.is_some_and(|p| p.function(fc).is_none()) {
+        return None;
+    }
+    let address = u16::try_from(first).ok()?;
+    if holding {
+        let mut words = Vec::new();
+        for ((_, _, size), v) in spans.iter().zip(values) {
+            match v {
+                Value::Words(w) if w.len() == *size as usize => words.extend_from_slice(w),
+                _ => return None,
+            }
+        }
+        return Some(Request::WriteMultipleRegisters {
+            address,
+            values: words,
+        });
+    }
+    let mut data = vec![0u8; values.len().div_ceil(8)];
+    for (k, v) in values.iter().enumerate() {
+        match v {
+            Value::Bit(on) => data[k / 8] |= u8::from(*on) << (k % 8),
+            _ => return None,
+        }
+    }
+    Some(Request::WriteMultipleCoils {
+        address,
+        quantity: u16::try_from(values.len()).ok()?,
+        data,
+    })
+}
+
+/// Whether `answer` acknowledges the block write `req` as sent: its address and quantity echoed.
+fn acknowledges(req: &Request, answer: &Response) -> bool {
+    match (req, answer) {
+        (
+            Request::WriteMultipleRegisters { address, values },
+            Response::WriteMultipleRegisters {
+                address: a,
+                quantity,
+            },
+        ) => a == address && usize::from(*quantity) == values.len(),
+        (
+            Request::WriteMultipleCoils {
+                address, quantity, ..
+            },
+            Response::WriteMultipleCoils {
+                address: a,
+                quantity: q,
+            },
+        ) => a == address && q == quantity,
+        _ => false,
+    }
+}
+
 /// Put back every item of `items` that differs from `snapshot` and verify by reading: the writes sent and
 /// the items still differing after. Bounded: two write-and-verify rounds.
 pub fn restore(
@@ -859,30 +942,67 @@ pub fn restore(
         if diffs.is_empty() {
             break;
         }
+        let (differing, before): (Vec<Item>, Vec<&Value>) = diffs
+            .iter()
+            .filter_map(|d| Some((items.iter().find(|i| i.key == d.key)?.clone(), &d.before)))
+            .unzip();
         let mut changed = Vec::new();
-        for d in &diffs {
-            let Some(item) = items.iter().find(|i| i.key == d.key) else {
-                continue;
-            };
-            let Some(req) = write_request(item, &d.before, profile) else {
-                refused.insert(d.key.clone(), "no write puts this value back".into());
+        // Keys put back by a block write the target acknowledged.
+        let mut in_blocks = Vec::new();
+        let mut at = 0;
+        while at < differing.len() {
+            let run = adjacent(&differing[at..], MAX_WRITE_BLOCK);
+            if run.len() > 1
+                && link.blocks(Block::Write)
+                && let Some(req) = block_write_request(run, &before[at..at + run.len()], profile)
+            {
+                writes += 1;
+                if link.transact(&req)?.is_some_and(|r| acknowledges(&req, &r)) {
+                    for i in run {
+                        refused.remove(&i.key);
+                        in_blocks.push(i.key.clone());
+                    }
+                    changed.extend_from_slice(run);
+                    at += run.len();
+                    continue;
+                }
+                // Refused, unanswered or answered otherwise: each parameter alone, as without blocks.
+                link.refuse_blocks(Block::Write);
+            }
+            let (item, value) = (&differing[at], before[at]);
+            at += 1;
+            let Some(req) = write_request(item, value, profile) else {
+                refused.insert(item.key.clone(), "no write puts this value back".into());
                 continue;
             };
             writes += 1;
             match link.transact(&req)? {
                 Some(r) if !r.is_exception() => {
-                    refused.remove(&d.key);
+                    refused.remove(&item.key);
                 }
                 Some(r) => {
-                    refused.insert(d.key.clone(), format!("the drive refused the write: {r:?}"));
+                    refused.insert(
+                        item.key.clone(),
+                        format!("the drive refused the write: {r:?}"),
+                    );
                 }
                 None => {
-                    refused.insert(d.key.clone(), "no answer to the write".into());
+                    refused.insert(item.key.clone(), "no answer to the write".into());
                 }
             }
             changed.push(item.clone());
         }
         let again = read_all(link, &changed)?;
+        // A block write acknowledged but not read back as written (a drive that takes the first parameter of
+        // such a write only, say): the next round puts each parameter back alone, as without blocks.
+        let taken = |k: &String| {
+            again
+                .get(k)
+                .is_some_and(|v| v.as_ref().is_some_and(|v| v.same(&snapshot[k])))
+        };
+        if !in_blocks.iter().all(taken) {
+            link.refuse_blocks(Block::Write);
+        }
         now.extend(again);
     }
     let left = plan(items, snapshot, &now)
@@ -1243,8 +1363,12 @@ mod tests {
         requests: usize,
         /// Reads of more than one register are refused (exception 02), as some drives do across parameters.
         one_at_a_time: bool,
-        /// The restore was told so (`Link::refuse_block_reads`).
-        refused: bool,
+        /// Writes of more than one register are refused (exception 02).
+        writes_one_at_a_time: bool,
+        /// Writes of more than one register are acknowledged, but only the first register is written.
+        writes_first_only: bool,
+        /// The blocks the restore was told the target refuses (`Link::refuse_blocks`).
+        refused: Vec<Block>,
     }
 
     impl Fake {
@@ -1256,18 +1380,20 @@ mod tests {
                 stuck: None,
                 requests: 0,
                 one_at_a_time: false,
-                refused: false,
+                writes_one_at_a_time: false,
+                writes_first_only: false,
+                refused: Vec::new(),
             }
         }
     }
 
     impl Link for Fake {
-        fn block_reads(&self) -> bool {
-            !self.refused
+        fn blocks(&self, kind: Block) -> bool {
+            !self.refused.contains(&kind)
         }
 
-        fn refuse_block_reads(&mut self) {
-            self.refused = true;
+        fn refuse_blocks(&mut self, kind: Block) {
+            self.refused.push(kind);
         }
 
         fn transact(&mut self, req: &Request) -> Result<Option<Response>, TargetError> {
@@ -1288,13 +1414,28 @@ mod tests {
                     .map(|i| self.regs.get(&(address + i)).copied())
                     .collect::<Option<Vec<u16>>>()
                     .map(|values| Response::ReadHoldingRegisters { values }),
+                Request::WriteMultipleRegisters { values, .. }
+                    if self.writes_one_at_a_time && values.len() > 1 =>
+                {
+                    Some(Response::exception(
+                        FunctionCode::WRITE_MULTIPLE_REGISTERS,
+                        codec::ExceptionCode::ILLEGAL_DATA_ADDRESS,
+                    ))
+                }
                 Request::WriteMultipleRegisters { address, values } => {
-                    if self.stuck != Some(*address) {
-                        self.regs.insert(*address, values[0]);
+                    let taken = if self.writes_first_only {
+                        1
+                    } else {
+                        values.len()
+                    };
+                    for (a, v) in (*address..).zip(&values[..taken]) {
+                        if self.stuck != Some(a) {
+                            self.regs.insert(a, *v);
+                        }
                     }
                     Some(Response::WriteMultipleRegisters {
                         address: *address,
-                        quantity: 1,
+                        quantity: values.len() as u16,
                     })
                 }
                 _ => None,
@@ -1322,7 +1463,7 @@ mod tests {
         assert_eq!(read["holding:2"], Some(Value::Words(vec![12])));
         assert_eq!(read["holding:3"], Some(Value::Words(vec![13])));
         assert_eq!(read["holding:7"], Some(Value::Words(vec![17])));
-        assert!(!fake.refused);
+        assert!(fake.refused.is_empty());
     }
 
     /// A target that refuses a read of several parameters is read one at a time, the same values, and no
@@ -1334,13 +1475,121 @@ mod tests {
         let items = [holding(0, 1), holding(1, 1), holding(2, 1)];
         let read = read_all(&mut fake, &items).expect("reads");
         assert_eq!(fake.requests, 4, "the refused block, then one read each");
-        assert!(fake.refused);
+        assert_eq!(fake.refused, [Block::Read]);
         for (a, v) in [(0, 10), (1, 11), (2, 12)] {
             assert_eq!(read[&format!("holding:{a}")], Some(Value::Words(vec![v])));
         }
         fake.requests = 0;
         read_all(&mut fake, &items).expect("reads");
         assert_eq!(fake.requests, 3, "no block read again");
+    }
+
+    /// The snapshot of `fake`'s registers 0-2 (10, 11, 12) as three one-register parameters, and `fake` with
+    /// all three changed since.
+    fn three_changed(fake: &mut Fake) -> (Vec<Item>, BTreeMap<String, Value>) {
+        let items = vec![holding(0, 1), holding(1, 1), holding(2, 1)];
+        let snapshot = [(0, 10), (1, 11), (2, 12)]
+            .map(|(a, v)| (format!("holding:{a}"), Value::Words(vec![v])))
+            .into();
+        fake.regs.extend([(0, 90), (1, 91), (2, 92)]);
+        (items, snapshot)
+    }
+
+    /// Adjacent parameters that differ are put back with one FC 10 and verified with one read.
+    #[test]
+    fn adjacent_differing_parameters_are_put_back_in_one_write() {
+        let mut fake = Fake::three();
+        let (items, snapshot) = three_changed(&mut fake);
+        let (writes, left) = restore(&mut fake, &items, &snapshot, None).expect("restore");
+        assert!(left.is_empty(), "{left:?}");
+        assert_eq!(fake.regs, [(0, 10), (1, 11), (2, 12)].into());
+        assert_eq!(writes, 1);
+        assert_eq!(
+            fake.requests, 3,
+            "the read-back, one write, one verifying read"
+        );
+        assert!(fake.refused.is_empty());
+    }
+
+    /// A target that refuses a write of several parameters gets one write a parameter, and no block write
+    /// again.
+    #[test]
+    fn a_target_refusing_block_writes_is_put_back_one_parameter_at_a_time() {
+        let mut fake = Fake::three();
+        fake.writes_one_at_a_time = true;
+        let (items, snapshot) = three_changed(&mut fake);
+        let (writes, left) = restore(&mut fake, &items, &snapshot, None).expect("restore");
+        assert!(left.is_empty(), "{left:?}");
+        assert_eq!(fake.regs, [(0, 10), (1, 11), (2, 12)].into());
+        assert_eq!(writes, 4, "the refused block, then one write each");
+        assert_eq!(fake.refused, [Block::Write]);
+        let (items, snapshot) = three_changed(&mut fake);
+        fake.requests = 0;
+        restore(&mut fake, &items, &snapshot, None).expect("restore");
+        assert_eq!(
+            fake.requests, 5,
+            "the read-back, three writes, one verifying read"
+        );
+    }
+
+    /// A target that acknowledges a block write but takes its first register only is put back one parameter
+    /// at a time in the second round: nothing is left changed that single writes would have put back.
+    #[test]
+    fn a_block_write_acknowledged_but_not_taken_is_done_again_one_parameter_at_a_time() {
+        let mut fake = Fake::three();
+        fake.writes_first_only = true;
+        let (items, snapshot) = three_changed(&mut fake);
+        let (writes, left) = restore(&mut fake, &items, &snapshot, None).expect("restore");
+        assert!(left.is_empty(), "{left:?}");
+        assert_eq!(fake.regs, [(0, 10), (1, 11), (2, 12)].into());
+        assert_eq!(writes, 3, "the block, then registers 1 and 2 alone");
+        assert_eq!(fake.refused, [Block::Write]);
+    }
+
+    /// Adjacent coils go back with one FC 0F, bit k of the data for the k-th coil (spec 6.11); anything but
+    /// adjacent coils or holding registers, or a value not of its parameter's width, gets no block write.
+    #[test]
+    fn adjacent_coils_are_put_back_with_one_fc_0f() {
+        let coils: Vec<Item> = (4..14u16)
+            .map(|a| item(&format!("coil:{a}"), Place::Coil { address: a }))
+            .collect();
+        let (on, off) = (Value::Bit(true), Value::Bit(false));
+        let values: Vec<&Value> = (0..10)
+            .map(|k| if k % 3 == 0 { &on } else { &off })
+            .collect();
+        assert_eq!(adjacent(&coils, MAX_WRITE_BLOCK).len(), 10);
+        assert_eq!(
+            block_write_request(&coils, &values, None),
+            Some(Request::WriteMultipleCoils {
+                address: 4,
+                quantity: 10,
+                data: vec![0b0100_1001, 0b10],
+            })
+        );
+        let wide = [holding(0, 2), holding(2, 1)];
+        let one = Value::Words(vec![1]);
+        assert_eq!(block_write_request(&wide, &[&one, &one], None), None);
+        let m = item(
+            "m",
+            Place::Mnemonic {
+                mnemonic: "S1".into(),
+            },
+        );
+        assert_eq!(adjacent(&[m.clone(), m], MAX_WRITE_BLOCK).len(), 1);
+    }
+
+    /// A profile without FC 10 gets no block write.
+    #[test]
+    fn no_block_write_where_the_profile_has_no_fc_10() {
+        let run = [holding(0, 1), holding(1, 1)];
+        let v = Value::Words(vec![1]);
+        let mut p = drives::corpus::Corpus::Embedded
+            .load("generic")
+            .expect("generic");
+        assert!(block_write_request(&run, &[&v, &v], Some(&p)).is_some());
+        p.functions
+            .retain(|f| f.code != FunctionCode::WRITE_MULTIPLE_REGISTERS);
+        assert!(block_write_request(&run, &[&v, &v], Some(&p)).is_none());
     }
 
     fn keeper_of(fake: &mut Fake, journal: &Path) -> Keeper {

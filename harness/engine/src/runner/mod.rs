@@ -166,9 +166,9 @@ pub struct Runner {
     silences: Silences,
     /// Requests sent to the target: the cases', the sentinels, the liveness probes, the restore's.
     requests: u64,
-    /// The target did not answer a restore's read of several parameters as asked (see
-    /// [`crate::restore::read_all`]): the restore reads one parameter a request.
-    block_reads_refused: bool,
+    /// The restore's requests for several parameters at once (reads, writes) that the target did not take as
+    /// asked (see [`crate::restore::read_all`], [`crate::restore::restore`]): those go one parameter a request.
+    blocks_refused: Vec<crate::restore::Block>,
     /// The step being run is followed by a new connection (`Step::Reconnect`): its connection may be
     /// half-closed to prove a silence (see `prove_silence_by_close`).
     reconnect_next: bool,
@@ -292,7 +292,7 @@ impl Runner {
             follow: Vec::new(),
             silences: Silences::default(),
             requests: 0,
-            block_reads_refused: false,
+            blocks_refused: Vec::new(),
             reconnect_next: false,
             resync_rtu: false,
             ahead: std::collections::VecDeque::new(),
@@ -1903,12 +1903,14 @@ impl Runner {
 /// The restore's reads and writes (leave as found): sent to the target and to the reference drive, so that the
 /// reference follows what the target is put back to; not judged, not in the case reports.
 impl crate::restore::Link for Runner {
-    fn block_reads(&self) -> bool {
-        !self.block_reads_refused
+    fn blocks(&self, kind: crate::restore::Block) -> bool {
+        !self.blocks_refused.contains(&kind)
     }
 
-    fn refuse_block_reads(&mut self) {
-        self.block_reads_refused = true;
+    fn refuse_blocks(&mut self, kind: crate::restore::Block) {
+        if !self.blocks_refused.contains(&kind) {
+            self.blocks_refused.push(kind);
+        }
     }
 
     fn transact(&mut self, req: &Request) -> Result<Option<codec::Response>, TargetError> {

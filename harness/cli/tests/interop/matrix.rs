@@ -7,6 +7,8 @@
 //!   that goes missing, turns the matrix red.
 //! - The run against `modbus-harness simulate --fault wrong-exception-code` fails (exit code 1) where the
 //!   same run against the healthy simulator passes: a broken reference drive turns the matrix red.
+//! - A generated run that writes leaves the pymodbus and libmodbus servers' maps as it found them, and
+//!   `restore --journal` puts back a map changed everywhere, both checked by raw reads made here.
 
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
@@ -77,6 +79,139 @@ async fn pymodbus_server_serves_the_generic_map_and_stops_on_sigterm() {
 async fn libmodbus_server_serves_the_generic_map_and_stops_on_sigterm() {
     skip_unless!(libmodbus_or_skip);
     serves_the_generic_map_and_stops_on_sigterm(PeerServer::libmodbus(), "libmodbus").await;
+}
+
+/// The generic map's 100 holding registers and 100 coils set to a pattern (no value the profile starts
+/// with), by raw FC 10 and FC 0F requests built here.
+async fn set_pattern(addr: SocketAddr, who: &str) -> (Vec<u8>, Vec<u8>) {
+    let mut regs = vec![0x10, 0x00, 0x00, 0x00, 100, 200];
+    regs.extend((0..100u16).flat_map(|i| (0x1000 + i * 7).to_be_bytes()));
+    let mut coils = vec![0x0F, 0x00, 0x00, 0x00, 100, 13];
+    coils.extend((0..13).map(|k| (0..8).fold(0u8, |b, j| b | u8::from((k * 8 + j) % 3 == 0) << j)));
+    *coils.last_mut().expect("13 bytes") &= 0x0F;
+    for (tid, (pdu, what)) in [(&regs, "FC 10"), (&coils, "FC 0F")]
+        .into_iter()
+        .enumerate()
+    {
+        let reply = tcp_exchange(addr, &tcp_adu(tid as u16 + 1, 1, pdu)).await;
+        assert_eq!(
+            &reply[7..],
+            &pdu[..5],
+            "{who}: {what} of the pattern echoed"
+        );
+    }
+    (regs[6..].to_vec(), coils[6..].to_vec())
+}
+
+/// The map as read by raw FC 03 and FC 01 requests: (register bytes, coil bytes).
+async fn read_map(addr: SocketAddr, who: &str) -> (Vec<u8>, Vec<u8>) {
+    let mut out = Vec::new();
+    for (tid, (fc, len)) in [(0x03u8, 200usize), (0x01, 13)].into_iter().enumerate() {
+        let reply = tcp_exchange(addr, &tcp_adu(10 + tid as u16, 1, &[fc, 0, 0, 0, 100])).await;
+        assert_eq!(
+            reply[7..9],
+            [fc, len as u8],
+            "{who}: FC {fc:02X} of the map answered"
+        );
+        out.push(reply[9..].to_vec());
+    }
+    (out.remove(0), out.remove(0))
+}
+
+/// Leave as found against stacks nobody here wrote: the map is set to a pattern, a generated run (whose FC 10
+/// and FC 0F cases, malformed ones among them, write all over it) puts back what it changed, and afterwards
+/// every holding register and coil reads as set, by raw reads that share no code with the harness's restore.
+/// Then every parameter of the map is changed and `restore --journal` of that run puts all of it back (the 100 registers
+/// with one FC 10, the 100 coils with one FC 0F, where the server takes them), read back the same way.
+async fn leaves_the_map_as_found(server: PeerServer, who: &str, cases: &'static str) {
+    let addr = server.addr;
+    let set = set_pattern(addr, who).await;
+    let target = format!("tcp://{addr}");
+    let dir = TempDir::new("leave-as-found");
+    let journal = dir
+        .path()
+        .join("journal.json")
+        .to_string_lossy()
+        .into_owned();
+    let (t, j) = (target.clone(), journal.clone());
+    let (code, out, err) = tokio::task::spawn_blocking(move || {
+        harness_run(&t, &["--generated", cases, "--seed", "1", "--journal", &j])
+    })
+    .await
+    .expect("the run's thread");
+    assert!(
+        code == 0 || code == 1,
+        "{who}: the run ends with a verdict, not 3 (left changed) or an error:\n{out}\n{err}"
+    );
+    let account = err
+        .lines()
+        .chain(out.lines())
+        .find(|l| l.contains("parameter(s) kept"))
+        .unwrap_or_else(|| panic!("{who}: no leave-as-found account:\n{out}\n{err}"));
+    assert!(
+        account.contains("every kept parameter reads as before"),
+        "{who}: {account}"
+    );
+    // "... kept, 50 restore write(s) in 265 request(s), ..."
+    let writes: usize = account
+        .split(", ")
+        .find(|p| p.contains("restore write(s)"))
+        .and_then(|p| p.split_whitespace().next()?.parse().ok())
+        .unwrap_or(0);
+    assert!(
+        writes > 0,
+        "{who}: the run changed something to put back: {account}"
+    );
+    assert_eq!(
+        read_map(addr, who).await,
+        set,
+        "{who}: the map reads as it was set"
+    );
+
+    // Every register to 0 and every coil to the opposite of its value: all 200 parameters differ.
+    let mut flipped: Vec<u8> = set.1.iter().map(|b| !b).collect();
+    flipped[12] &= 0x0F;
+    let changed = [
+        [&[0x10, 0, 0, 0, 100, 200][..], &[0; 200]].concat(),
+        [&[0x0F, 0, 0, 0, 100, 13][..], &flipped].concat(),
+    ];
+    for (tid, pdu) in changed.iter().enumerate() {
+        let reply = tcp_exchange(addr, &tcp_adu(20 + tid as u16, 1, pdu)).await;
+        assert_eq!(&reply[7..], &pdu[..5], "{who}: the map changed");
+    }
+    let (code, out, err) = tokio::task::spawn_blocking(move || {
+        harness_bounded(
+            None,
+            &["restore", "--journal", &journal, "--target", &target],
+            RUN_LIMIT,
+        )
+    })
+    .await
+    .expect("the restore's thread");
+    assert_eq!(
+        code, 0,
+        "{who}: restore puts everything back:\n{out}\n{err}"
+    );
+    assert_eq!(
+        read_map(addr, who).await,
+        set,
+        "{who}: the map reads as set after the restore"
+    );
+    let status = server.terminate();
+    assert!(status.success(), "{who} server after SIGTERM: {status}");
+}
+
+#[tokio::test]
+async fn a_generated_run_leaves_the_pymodbus_server_as_found() {
+    skip_unless!(pymodbus_or_skip);
+    leaves_the_map_as_found(PeerServer::pymodbus(), "pymodbus", "400").await;
+}
+
+/// Fewer cases: the libmodbus server sleeps its response timeout (0.5 s) before most exceptions.
+#[tokio::test]
+async fn a_generated_run_leaves_the_libmodbus_server_as_found() {
+    skip_unless!(libmodbus_or_skip);
+    leaves_the_map_as_found(PeerServer::libmodbus(), "libmodbus", "80").await;
 }
 
 /// The expectations entry this test takes out, and the cases both runs select: that entry's case and the

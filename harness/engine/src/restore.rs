@@ -1495,14 +1495,20 @@ mod tests {
         (items, snapshot)
     }
 
+    /// Restore the three registers [`three_changed`] changed: each put back, none left over; the writes sent.
+    fn put_back_three(fake: &mut Fake) -> usize {
+        let (items, snapshot) = three_changed(fake);
+        let (writes, left) = restore(fake, &items, &snapshot, None).expect("restore");
+        assert!(left.is_empty(), "{left:?}");
+        assert_eq!(fake.regs, [(0, 10), (1, 11), (2, 12)].into());
+        writes
+    }
+
     /// Adjacent parameters that differ are put back with one FC 10 and verified with one read.
     #[test]
     fn adjacent_differing_parameters_are_put_back_in_one_write() {
         let mut fake = Fake::three();
-        let (items, snapshot) = three_changed(&mut fake);
-        let (writes, left) = restore(&mut fake, &items, &snapshot, None).expect("restore");
-        assert!(left.is_empty(), "{left:?}");
-        assert_eq!(fake.regs, [(0, 10), (1, 11), (2, 12)].into());
+        let writes = put_back_three(&mut fake);
         assert_eq!(writes, 1);
         assert_eq!(
             fake.requests, 3,
@@ -1517,10 +1523,7 @@ mod tests {
     fn a_target_refusing_block_writes_is_put_back_one_parameter_at_a_time() {
         let mut fake = Fake::three();
         fake.writes_one_at_a_time = true;
-        let (items, snapshot) = three_changed(&mut fake);
-        let (writes, left) = restore(&mut fake, &items, &snapshot, None).expect("restore");
-        assert!(left.is_empty(), "{left:?}");
-        assert_eq!(fake.regs, [(0, 10), (1, 11), (2, 12)].into());
+        let writes = put_back_three(&mut fake);
         assert_eq!(writes, 4, "the refused block, then one write each");
         assert_eq!(fake.refused, [Block::Write]);
         let (items, snapshot) = three_changed(&mut fake);
@@ -1538,10 +1541,7 @@ mod tests {
     fn a_block_write_acknowledged_but_not_taken_is_done_again_one_parameter_at_a_time() {
         let mut fake = Fake::three();
         fake.writes_first_only = true;
-        let (items, snapshot) = three_changed(&mut fake);
-        let (writes, left) = restore(&mut fake, &items, &snapshot, None).expect("restore");
-        assert!(left.is_empty(), "{left:?}");
-        assert_eq!(fake.regs, [(0, 10), (1, 11), (2, 12)].into());
+        let writes = put_back_three(&mut fake);
         assert_eq!(writes, 3, "the block, then registers 1 and 2 alone");
         assert_eq!(fake.refused, [Block::Write]);
     }

@@ -285,7 +285,15 @@ impl Target for TcpTarget {
 
     fn drain_stale(&mut self) -> Vec<u8> {
         let mut stale = self.reader.partial();
-        if let Some(s) = self.stream.as_ref() {
+        // Before every case: one system call when nothing is there (a non-blocking peek at one byte), where
+        // switching the socket to non-blocking mode and back took two more.
+        let waiting = self.stream.as_ref().is_some_and(|s| {
+            let mut probe = [MaybeUninit::<u8>::uninit(); 1];
+            socket2::SockRef::from(s)
+                .recv_with_flags(&mut probe, libc::MSG_PEEK | libc::MSG_DONTWAIT)
+                .is_ok()
+        });
+        if let Some(s) = self.stream.as_ref().filter(|_| waiting) {
             // Non-blocking for the while: what is there is taken, nothing is waited for.
             if s.set_nonblocking(true).is_ok() {
                 let mut chunk = [0u8; 1024];
@@ -351,5 +359,43 @@ mod tests {
             "the new connection was accepted"
         );
         drop(first);
+    }
+
+    /// What the peer sent unasked is taken before a case, all of it, and nothing is waited for when nothing
+    /// was sent; a close seen there is remembered.
+    #[test]
+    fn stale_bytes_are_taken_without_waiting() {
+        let listener = TcpListener::bind("127.0.0.1:0").expect("bind");
+        let addr = listener.local_addr().expect("addr");
+        let mut t = TcpTarget::connect("127.0.0.1", addr.port(), Duration::from_secs(2), false)
+            .expect("connect");
+        let (mut peer, _) = listener.accept().expect("accept");
+        let started = Instant::now();
+        assert!(t.drain_stale().is_empty(), "nothing was sent");
+        assert!(
+            started.elapsed() < Duration::from_millis(500),
+            "nothing is waited for"
+        );
+        // More than one receive's worth, in two writes.
+        let sent: Vec<u8> = (0..3000u32).map(|i| (i % 251) as u8).collect();
+        peer.write_all(&sent[..1500]).expect("write");
+        peer.write_all(&sent[1500..]).expect("write");
+        peer.flush().expect("flush");
+        // Bounded: the bytes are on loopback within 2 s.
+        let until = Instant::now() + Duration::from_secs(2);
+        let mut got = Vec::new();
+        while got.len() < sent.len() && Instant::now() < until {
+            got.extend(t.drain_stale());
+            std::thread::sleep(Duration::from_millis(5));
+        }
+        assert_eq!(got, sent, "every stale byte is taken, in order");
+        assert!(!t.closed);
+        drop(peer);
+        let until = Instant::now() + Duration::from_secs(2);
+        while !t.closed && Instant::now() < until {
+            assert!(t.drain_stale().is_empty());
+            std::thread::sleep(Duration::from_millis(5));
+        }
+        assert!(t.closed, "the close is seen");
     }
 }

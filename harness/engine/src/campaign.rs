@@ -720,6 +720,10 @@ fn run_one(
         );
         crate::session::align_reference(log, k, runner, profile);
     }
+    if let Some(why) = k.unrestorable(&case) {
+        let skipped = crate::observe::CaseResult::skipped(&case.id, why);
+        return Ok((case, skipped, false));
+    }
     let result = runner.run_case(&case)?;
     if !t.is_empty() {
         k.after_case(runner, &case.id, &t, profile)?;

@@ -499,6 +499,10 @@ pub struct Account {
     pub snapshot_taken: bool,
     /// The journal file, when one was written.
     pub journal: Option<PathBuf>,
+    /// Kept parameters no case may write: writing back the value read before the first write did not
+    /// put it back (a vendor setting whose FC 0x41 form the drive does not take in FC 0x42), with why.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub unwritable: Vec<Excluded>,
 }
 
 impl Account {
@@ -529,6 +533,17 @@ impl Account {
                 )
             }
         ));
+        if !self.unwritable.is_empty() {
+            out.push(format!(
+                "  {} parameter(s) that would not write back as read, so no case wrote them: {}",
+                self.unwritable.len(),
+                self.unwritable
+                    .iter()
+                    .map(|e| e.name.as_str())
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            ));
+        }
         for u in &self.unrestored {
             out.push(format!(
                 "  NOT RESTORED {} ({}): {}",
@@ -1035,6 +1050,8 @@ pub struct Keeper {
     /// The journal is the run's own file in the temporary directory (no `--journal`, no report directory):
     /// removed once every kept parameter reads as before, kept otherwise for `restore --journal`.
     scratch_journal: bool,
+    /// Kept parameters that would not write back as read (see [`Account::unwritable`]): no case writes them.
+    unwritable: Vec<Item>,
 }
 
 impl Keeper {
@@ -1061,6 +1078,7 @@ impl Keeper {
             pending: BTreeMap::new(),
             last_saved: None,
             scratch_journal: false,
+            unwritable: Vec::new(),
         }
     }
 
@@ -1086,6 +1104,28 @@ impl Keeper {
         touched(&self.inventory.items, case)
     }
 
+    /// Why `case` may not run once the snapshot is taken: it can write a parameter that would not write back
+    /// as read (see [`Account::unwritable`]). `None` when nothing stands in its way.
+    pub fn unrestorable(&self, case: &Case) -> Option<String> {
+        if self.unwritable.is_empty() {
+            return None;
+        }
+        let keys = touched(&self.unwritable, case);
+        let names: Vec<&str> = self
+            .account
+            .unwritable
+            .iter()
+            .filter(|e| keys.contains(&e.key))
+            .map(|e| e.name.as_str())
+            .collect();
+        (!names.is_empty()).then(|| {
+            format!(
+                "not run: it can change {}, which did not write back as read before the first write (leave as found; see the report)",
+                names.join(", ")
+            )
+        })
+    }
+
     /// Read every kept parameter and write the journal, before the first write. Items the drive does not
     /// read are left out with the reason.
     pub fn take_snapshot(&mut self, link: &mut dyn Link) -> Result<(), SnapshotError> {
@@ -1108,6 +1148,41 @@ impl Keeper {
                 }),
             }
         }
+        // A vendor setting goes back by writing what FC 0x41 read, in the form the drive reads it in, which is
+        // the drive's choice (freedom `fc41-read-back-format`): a drive may read a setting in a form its FC 0x42
+        // does not take (the setups of all lines where a write sets one). Before anything changes it, that
+        // write is tried with the value as found and read back; a setting it does not put back is written
+        // by no case. (Registers, coils and objects go back in the form the specification fixes.)
+        let sent = counting.sent;
+        for item in kept
+            .iter()
+            .filter(|i| matches!(i.place, Place::Mnemonic { .. }))
+        {
+            let found = &snapshot[&item.key];
+            let Some(req) = write_request(item, found, None) else {
+                continue;
+            };
+            let answer = counting.transact(&req)?;
+            let after = read_all(&mut counting, std::slice::from_ref(item))?;
+            let after = after.get(&item.key).cloned().flatten();
+            let why = match (&answer, &after) {
+                (None, _) => "no answer".to_string(),
+                (Some(Response::Exception { code, .. }), _) => format!("refused with {code}"),
+                (Some(r), _) if r.is_exception() => format!("refused: {r:?}"),
+                (_, Some(v)) if v.same(found) => continue,
+                (_, Some(v)) => format!("acknowledged, but it then read {v}"),
+                (_, None) => "acknowledged, but it then did not read back".to_string(),
+            };
+            self.account.unwritable.push(Excluded {
+                key: item.key.clone(),
+                name: item.name.clone(),
+                reason: format!(
+                    "writing back the value read first ({found}) did not put it back: {why}"
+                ),
+            });
+            self.unwritable.push(item.clone());
+        }
+        self.account.requests += counting.sent - sent;
         self.inventory.items = kept;
         self.account.kept = snapshot.len();
         self.account.excluded = self.inventory.excluded.clone();
@@ -1747,6 +1822,125 @@ mod tests {
         assert_eq!(touched(&items, &case(vec![0x06])).len(), 8);
         // A read touches nothing.
         assert!(touched(&items, &case(vec![0x03, 0, 0, 0, 8])).is_empty());
+    }
+
+    /// A drive of two vendor settings: S1 reads as `0, 1, 0` and takes `=0,1,0` back; OS reads the setups of
+    /// all its lines (`1,16,1;2,16,1`) where a write sets one line, so its FC 0x42 refuses what FC 0x41 read.
+    struct Settings {
+        s1: String,
+        os: String,
+        writes: Vec<String>,
+    }
+
+    impl Link for Settings {
+        fn transact(&mut self, req: &Request) -> Result<Option<Response>, TargetError> {
+            let name = |m: &Mnemonic| m.name().trim().to_string();
+            Ok(Some(match req {
+                Request::VendorRead { mnemonic } => Response::VendorRead {
+                    params: match name(mnemonic).as_str() {
+                        "S1" => self.s1.clone(),
+                        _ => self.os.clone(),
+                    }
+                    .into_bytes(),
+                },
+                Request::VendorWrite { mnemonic, params } => {
+                    let text = String::from_utf8_lossy(params).into_owned();
+                    self.writes.push(format!("{}{text}", name(mnemonic)));
+                    let values = text.trim_start_matches('=');
+                    match name(mnemonic).as_str() {
+                        "S1" => self.s1 = values.split(',').collect::<Vec<_>>().join(", "),
+                        _ if values.contains(';') => {
+                            return Ok(Some(Response::exception(
+                                FunctionCode::VENDOR_WRITE,
+                                codec::ExceptionCode::ILLEGAL_DATA_VALUE,
+                            )));
+                        }
+                        _ => {}
+                    }
+                    Response::VendorWrite {
+                        mnemonic: *mnemonic,
+                        written: params.len() as u8,
+                    }
+                }
+                _ => return Ok(None),
+            }))
+        }
+    }
+
+    /// A vendor setting whose value as read does not write back is found out before the first write, and
+    /// no case may write it; one that writes back as read is kept as usual.
+    #[test]
+    fn a_setting_that_does_not_write_back_as_read_is_written_by_no_case() {
+        let mnemonic = |m: &str| {
+            item(
+                &format!("mnemonic:{m}"),
+                Place::Mnemonic { mnemonic: m.into() },
+            )
+        };
+        let mut k = Keeper::new(
+            Inventory {
+                items: vec![mnemonic("S1"), mnemonic("OS")],
+                excluded: vec![],
+            },
+            "tcp://127.0.0.1:1".into(),
+            "lmd".into(),
+            1,
+            None,
+        );
+        let mut drive = Settings {
+            s1: "0, 1, 0".into(),
+            os: "1,16,1;2,16,1".into(),
+            writes: vec![],
+        };
+        k.take_snapshot(&mut drive).expect("snapshot");
+        // Each setting was written back as read, once, before anything changed it.
+        assert_eq!(drive.writes, ["S1=0,1,0", "OS=1,16,1;2,16,1"]);
+        assert_eq!(
+            (drive.s1.as_str(), drive.os.as_str()),
+            ("0, 1, 0", "1,16,1;2,16,1")
+        );
+        let a = k.account();
+        assert_eq!(a.kept, 2, "both are kept (and so verified at the end)");
+        let keys: Vec<&str> = a.unwritable.iter().map(|e| e.key.as_str()).collect();
+        assert_eq!(keys, ["mnemonic:OS"], "{a:?}");
+        assert!(a.unwritable[0].reason.contains("refused"), "{a:?}");
+        assert!(
+            a.lines()
+                .iter()
+                .any(|l| l.contains("so no case wrote them: mnemonic:OS"))
+        );
+        let case = |pdu: Vec<u8>| Case {
+            id: "t".into(),
+            title: String::new(),
+            reference: String::new(),
+            requirement: String::new(),
+            level: crate::cases::Level::Must,
+            tags: vec![],
+            steps: vec![Step::Exchange {
+                send: Outgoing::Pdu(pdu),
+                compare: crate::cases::Compare::Exact,
+                capture: None,
+                note: String::new(),
+            }],
+            requirements: vec![],
+            freedoms: vec![],
+        };
+        let write = |m: &str| {
+            let req = Request::VendorWrite {
+                mnemonic: Mnemonic::from_name(m).expect("mnemonic"),
+                params: b"=1,16,0".to_vec(),
+            };
+            case(req.to_bytes().expect("pdu"))
+        };
+        let read = Request::VendorRead {
+            mnemonic: Mnemonic::from_name("OS").expect("mnemonic"),
+        };
+        let why = k
+            .unrestorable(&write("OS"))
+            .expect("a write of OS may not run");
+        assert!(why.contains("mnemonic:OS"), "{why}");
+        assert_eq!(k.unrestorable(&write("S1")), None);
+        assert_eq!(k.unrestorable(&case(read.to_bytes().expect("pdu"))), None);
     }
 
     #[test]

@@ -972,6 +972,7 @@ pub fn run(
                     banner_done = true;
                     write_banner(log, &planned, &profile, opts.generated);
                 }
+                let mut unrestorable = None;
                 if let Some(k) = keeper.as_mut() {
                     let touched = k.touched(&case);
                     // The snapshot comes before the first case that may write anything.
@@ -980,11 +981,14 @@ pub fn run(
                         log_snapshot(log, k);
                         align_reference(log, k, &mut runner, &profile);
                     }
-                    if !touched.is_empty() {
+                    unrestorable = k.unrestorable(&case);
+                    if !touched.is_empty() && unrestorable.is_none() {
                         after = Some(touched);
                     }
                 }
-                match runner.run_case(&case) {
+                match unrestorable
+                    .map_or_else(|| runner.run_case(&case), |why| Ok(skipped(&case, why)))
+                {
                     Ok(mut r) => {
                         if let Some(w) = watch.as_mut() {
                             w.after_case(&mut runner, &mut r, log);
@@ -1230,6 +1234,13 @@ fn log_snapshot(log: &mut dyn Write, k: &crate::restore::Keeper) {
             .as_ref()
             .map_or_else(|| "none".to_string(), |p| p.display().to_string())
     );
+    for e in &a.unwritable {
+        let _ = writeln!(
+            log,
+            "leave as found: {} is written by no case: {}",
+            e.name, e.reason
+        );
+    }
 }
 
 /// The directory of a snapshot file (created when the file is to be written).
@@ -1493,5 +1504,6 @@ pub fn restore_journal(
         unrestored,
         snapshot_taken: true,
         journal: Some(path.to_path_buf()),
+        unwritable: Vec::new(),
     })
 }

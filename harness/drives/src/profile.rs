@@ -271,6 +271,9 @@ pub struct Register {
     pub signed: bool,
     pub min: Option<i64>,
     pub max: Option<i64>,
+    /// Where the manual gives the range two ways (`min`/`max` is then the widest reading): the values every
+    /// reading takes. The harness writes no other value inside the range; empty for a range read one way.
+    pub safe_values: Vec<i64>,
     pub default: Option<i64>,
     pub unit: Option<String>,
     pub table: Table,
@@ -315,6 +318,20 @@ impl Register {
     pub fn range(&self) -> (i64, i64) {
         let (lo, hi) = self.natural_range();
         (self.min.unwrap_or(lo), self.max.unwrap_or(hi))
+    }
+
+    /// `value` where every reading of the manual takes it: unchanged where the range is read one way, or
+    /// outside the widest reading (refused by every reading); otherwise one of `safe_values`, chosen by the
+    /// value (so that a spread of values gives each).
+    pub fn undisputed(&self, value: i64) -> i64 {
+        let (min, max) = self.range();
+        if self.safe_values.is_empty()
+            || !(min..=max).contains(&value)
+            || self.safe_values.contains(&value)
+        {
+            return value;
+        }
+        self.safe_values[value.unsigned_abs() as usize % self.safe_values.len()]
     }
 }
 
@@ -395,6 +412,10 @@ pub struct Diagnostic {
     /// figure 18). Off by default: the SD2x manual only says a data word is always sent.
     #[serde(default)]
     pub check_data: bool,
+    /// The size in bytes of the data field where the manual fixes it (the SD2x: "the diagnostics telegram has
+    /// always the same size", two data bytes): the catalog's return query data sends that many. Unset: any
+    /// number of words (6.8.1), and the catalog sends four bytes.
+    pub data_bytes: Option<u8>,
     /// `counter = "diagnostic_register"` only: the register's content at power-up and after a restart.
     pub value: Option<u16>,
     pub note: Option<String>,
@@ -862,6 +883,15 @@ impl Profile {
                     at,
                     format!(
                         "register 0x{:04X} `{}`: min {min} > max {max}",
+                        reg.address, reg.name
+                    ),
+                ));
+            }
+            if let Some(v) = reg.safe_values.iter().find(|v| !(min..=max).contains(*v)) {
+                return Err((
+                    at,
+                    format!(
+                        "register 0x{:04X} `{}`: safe value {v} is outside its range {min}..={max}",
                         reg.address, reg.name
                     ),
                 ));

@@ -34,6 +34,8 @@ pub(super) struct RegisterEntry {
     signed: bool,
     min: Option<i64>,
     max: Option<i64>,
+    #[serde(default)]
+    safe_values: Vec<i64>,
     default: Option<IntOrTemplate>,
     unit: Option<String>,
     #[serde(default)]
@@ -283,6 +285,7 @@ impl RegisterEntry {
                 signed: self.signed,
                 min: self.min,
                 max: self.max,
+                safe_values: self.safe_values.clone(),
                 default,
                 unit: self.unit.clone(),
                 table: self.table,

@@ -634,7 +634,9 @@ fn reg_slug(r: &Register) -> String {
 /// takes those of its table, so 255 next to the default 256 is refused); the reference drive says which.
 pub(super) fn write_value(cx: &Ctx, r: &Register) -> i64 {
     let (min, max) = r.range();
+    // Where the manual gives the range two ways, only a value every reading takes.
     let candidates: Vec<i64> = match r.default {
+        _ if !r.safe_values.is_empty() => r.safe_values.clone(),
         Some(d) => vec![d + 1, d - 1, d / 2, d.saturating_mul(2), min, max, d],
         None => vec![min + (max - min) / 2, min, max],
     };

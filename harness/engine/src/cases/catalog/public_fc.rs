@@ -192,20 +192,27 @@ fn diagnostics(cx: &mut Ctx) {
         return;
     }
     let read = super::known_good_read(cx.p);
-    if declares_sub(cx, diag::RETURN_QUERY_DATA) {
+    if let Some(echo) =
+        cx.p.diagnostics
+            .iter()
+            .find(|d| d.sub_function == diag::RETURN_QUERY_DATA)
+    {
+        // Four bytes, unless the manual fixes the size of the telegram (the SD2x: two).
+        let mut data = vec![0x5A, 0xA5, 0x12, 0x34];
+        data.truncate(echo.data_bytes.map_or(4, usize::from));
         cx.push(
             "spec/app-6.8.1/00-return-query-data".into(),
-            "FC 08/00 echoes data of any length",
+            "FC 08/00 echoes its data",
             format!("{APP}, section 6.8.1 (sub-function 00)"),
             "Return Query Data echoes the request's data field unchanged.",
             vec![],
             vec![exchange(
                 Outgoing::Pdu(pdu(&Request::Diagnostics {
                     sub_function: diag::RETURN_QUERY_DATA,
-                    data: vec![0x5A, 0xA5, 0x12, 0x34],
+                    data: data.clone(),
                 })),
                 Compare::Exact,
-                "data 5A A5 12 34",
+                format!("data {}", codec::hex_spaced(&data)),
             )],
         );
     }

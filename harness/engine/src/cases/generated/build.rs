@@ -559,7 +559,7 @@ fn write_register(cx: &GenContext, reg: u16, value: Value, fc06: bool, check: bo
         }
         .build(cx);
     };
-    let v = value_in(value, r.range(), r.natural_range());
+    let v = r.undisputed(value_in(value, r.range(), r.natural_range()));
     let values = r.words(p.device.word_order, v);
     let single = values.len() == 1
         && ((fc06 && cx.supports(FunctionCode::WRITE_SINGLE_REGISTER))
@@ -755,7 +755,7 @@ fn read_write(cx: &GenContext, at: Edge, quantity: Quantity, reg: u16, value: Va
     );
     let (write_address, values, label) = match pick(&cx.regs, reg) {
         Some(r) => {
-            let v = value_in(value, r.range(), r.natural_range());
+            let v = r.undisputed(value_in(value, r.range(), r.natural_range()));
             (
                 r.address,
                 r.words(p.device.word_order, v),

@@ -112,6 +112,12 @@ impl std::fmt::Display for Value {
 pub struct Inventory {
     pub items: Vec<Item>,
     pub excluded: Vec<Excluded>,
+    /// Keys of items kept only in case the drive takes a write the profile refuses: registers the profile
+    /// takes as read-only where a freedom of kind `access` says a drive may take writes (ST, say, which the
+    /// LMD manual gives no access). They are read before the first write, and put back and verified only
+    /// once a case has written to them: many are live values (inputs, status flags) that change by
+    /// themselves, which no restore should chase.
+    pub guarded: BTreeSet<String>,
 }
 
 fn gate(motion: bool, destructive: bool, safety: &Safety) -> Option<String> {
@@ -130,6 +136,8 @@ fn gate(motion: bool, destructive: bool, safety: &Safety) -> Option<String> {
 /// objects that mirror a register).
 pub fn inventory(profile: &Profile, safety: &Safety) -> Inventory {
     let mut inv = Inventory::default();
+    let writable_freedom = writable_by_freedom(profile);
+    let mut guarded = BTreeSet::new();
     // Kept, or left out with the reason.
     let mut file = |key: String, name: &str, reason: Option<String>, place: Place| match reason {
         Some(reason) => inv.excluded.push(Excluded {
@@ -148,9 +156,15 @@ pub fn inventory(profile: &Profile, safety: &Safety) -> Inventory {
             continue;
         }
         let draft = "unconfirmed draft entry: width and access unknown, never written";
-        let reason = access_reason((!r.confirmed).then_some(draft), r.access, || {
+        // Read-only by the profile, but a drive may take writes (see `Inventory::guarded`).
+        let guard = r.confirmed && r.access == Access::Ro && writable_freedom.contains(&r.address);
+        let access = if guard { Access::Rw } else { r.access };
+        let reason = access_reason((!r.confirmed).then_some(draft), access, || {
             gate(r.motion, r.destructive, safety)
         });
+        if guard && reason.is_none() {
+            guarded.insert(format!("holding:0x{:04X}", r.address));
+        }
         let place = Place::Holding {
             address: r.address,
             width: r.width.max(1),
@@ -206,7 +220,26 @@ pub fn inventory(profile: &Profile, safety: &Safety) -> Inventory {
             place,
         );
     }
+    inv.guarded = guarded;
     inv
+}
+
+/// The holding registers of `profile` that a freedom of kind `access` lets a drive take writes to ("rw"
+/// among its values), by address.
+fn writable_by_freedom(profile: &Profile) -> BTreeSet<u16> {
+    let Ok(requirements) = drives::corpus::Corpus::Embedded.requirements_shared() else {
+        return BTreeSet::new();
+    };
+    requirements
+        .freedoms()
+        .iter()
+        .filter(|f| {
+            f.kind == drives::requirements::FreedomKind::Access
+                && f.applies_to(&profile.device.id)
+                && f.admits("rw")
+        })
+        .flat_map(|f| f.items.iter().filter_map(|i| i.register))
+        .collect()
 }
 
 /// Why an entry is left out: `draft` (the reason, for a draft entry not confirmed), read-only, write-only (it
@@ -1052,6 +1085,9 @@ pub struct Keeper {
     scratch_journal: bool,
     /// Kept parameters that would not write back as read (see [`Account::unwritable`]): no case writes them.
     unwritable: Vec<Item>,
+    /// The guarded items (see [`Inventory::guarded`]) a case has written to: from then on they are put back
+    /// and verified like the others.
+    written: BTreeSet<String>,
 }
 
 impl Keeper {
@@ -1079,6 +1115,7 @@ impl Keeper {
             last_saved: None,
             scratch_journal: false,
             unwritable: Vec::new(),
+            written: BTreeSet::new(),
         }
     }
 
@@ -1097,6 +1134,14 @@ impl Keeper {
     /// True once the snapshot is taken.
     pub fn armed(&self) -> bool {
         self.snapshot.is_some()
+    }
+
+    /// The kept items the final restore puts back: all but the guarded ones no case has written to.
+    fn restored_items(&self) -> impl Iterator<Item = &Item> {
+        self.inventory
+            .items
+            .iter()
+            .filter(|i| !self.inventory.guarded.contains(&i.key) || self.written.contains(&i.key))
     }
 
     /// What `case` can change among the kept items.
@@ -1200,6 +1245,7 @@ impl Keeper {
                 .inventory
                 .items
                 .iter()
+                .filter(|i| !self.inventory.guarded.contains(&i.key))
                 .map(|i| JournalItem {
                     item: i.clone(),
                     before: snapshot[&i.key].clone(),
@@ -1230,11 +1276,10 @@ impl Keeper {
         let Some(snapshot) = &self.snapshot else {
             return Vec::new();
         };
-        match restore(link, &self.inventory.items, snapshot, Some(profile)) {
+        let items: Vec<Item> = self.restored_items().cloned().collect();
+        match restore(link, &items, snapshot, Some(profile)) {
             Ok((_, left)) => left,
-            Err(e) => self
-                .inventory
-                .items
+            Err(e) => items
                 .iter()
                 .filter_map(|i| {
                     Some(Unrestored {
@@ -1270,6 +1315,20 @@ impl Keeper {
         if items.is_empty() {
             return Ok(());
         }
+        for i in items
+            .iter()
+            .filter(|i| self.inventory.guarded.contains(&i.key))
+        {
+            if self.written.insert(i.key.clone())
+                && let Some(j) = self.journal.as_mut()
+            {
+                j.items.push(JournalItem {
+                    item: i.clone(),
+                    before: snapshot[&i.key].clone(),
+                });
+                self.last_saved = None;
+            }
+        }
         let mut counting = Counting { link, sent: 0 };
         let restored = restore(&mut counting, &items, snapshot, Some(profile));
         self.account.requests += counting.sent;
@@ -1303,13 +1362,9 @@ impl Keeper {
         let Some(snapshot) = self.snapshot.clone() else {
             return self.account.clone();
         };
+        let items: Vec<Item> = self.restored_items().cloned().collect();
         let mut counting = Counting { link, sent: 0 };
-        let restored = restore(
-            &mut counting,
-            &self.inventory.items,
-            &snapshot,
-            Some(profile),
-        );
+        let restored = restore(&mut counting, &items, &snapshot, Some(profile));
         self.account.requests += counting.sent;
         match restored {
             Ok((writes, left)) => {
@@ -1326,9 +1381,7 @@ impl Keeper {
                 }
             }
             Err(e) => {
-                self.account.unrestored = self
-                    .inventory
-                    .items
+                self.account.unrestored = items
                     .iter()
                     .map(|i| Unrestored {
                         key: i.key.clone(),
@@ -1682,7 +1735,7 @@ mod tests {
         let mut k = Keeper::new(
             Inventory {
                 items,
-                excluded: vec![],
+                ..Inventory::default()
             },
             "tcp://127.0.0.1:1".into(),
             "generic".into(),
@@ -1691,6 +1744,62 @@ mod tests {
         );
         k.take_snapshot(fake).expect("snapshot");
         k
+    }
+
+    /// A register the profile takes as read-only but a drive may take writes to (ST of the LMD) is kept,
+    /// and put back only once a case wrote to it: a live value that changes by itself is not chased.
+    #[test]
+    fn a_guarded_register_is_put_back_only_once_a_case_wrote_it() {
+        let lmd = drives::corpus::Corpus::Embedded.load("lmd").expect("lmd");
+        let inv = inventory(&lmd, &Safety::default());
+        assert!(
+            inv.guarded.contains("holding:0x007B"),
+            "ST: {:?}",
+            inv.guarded
+        );
+        assert!(inv.items.iter().any(|i| i.key == "holding:0x007B"));
+        assert!(
+            !inv.guarded.contains("holding:0x0000"),
+            "A is read/write by the profile"
+        );
+        let (dir, journal, p) = journal_and_generic("mbh-guarded");
+        let keeper = |fake: &mut Fake| {
+            let mut k = Keeper::new(
+                Inventory {
+                    items: (0..3u16).map(|a| holding(a, 1)).collect(),
+                    guarded: ["holding:2".to_string()].into(),
+                    ..Inventory::default()
+                },
+                "tcp://127.0.0.1:1".into(),
+                "generic".into(),
+                1,
+                Some(journal.clone()),
+            );
+            k.take_snapshot(fake).expect("snapshot");
+            k
+        };
+        // Changed by itself, no case wrote it: left alone, and not in the journal.
+        let mut fake = Fake::three();
+        let mut k = keeper(&mut fake);
+        assert_eq!(Journal::load(&journal).expect("journal").items.len(), 2);
+        fake.regs.insert(0, 99);
+        fake.regs.insert(2, 98);
+        let a = k.finish(&mut fake, &p);
+        assert_eq!((fake.regs[&0], fake.regs[&2]), (10, 98));
+        assert!(a.clean(), "{a:?}");
+        // Written by a case (the drive took it): put back after the case and verified at the end.
+        let mut fake = Fake::three();
+        let mut k = keeper(&mut fake);
+        fake.regs.insert(2, 97);
+        k.after_case(&mut fake, "c", &["holding:2".to_string()].into(), &p)
+            .expect("restore");
+        assert_eq!(fake.regs[&2], 12, "put back after the case");
+        assert_eq!(Journal::load(&journal).expect("journal").items.len(), 3);
+        fake.regs.insert(2, 96);
+        let a = k.finish(&mut fake, &p);
+        assert_eq!(fake.regs[&2], 12, "put back at the end");
+        assert!(a.clean(), "{a:?}");
+        let _ = std::fs::remove_dir_all(&dir);
     }
 
     /// A directory of this test process for a journal (its path), and the generic profile.
@@ -1880,7 +1989,7 @@ mod tests {
         let mut k = Keeper::new(
             Inventory {
                 items: vec![mnemonic("S1"), mnemonic("OS")],
-                excluded: vec![],
+                ..Inventory::default()
             },
             "tcp://127.0.0.1:1".into(),
             "lmd".into(),

@@ -4,6 +4,7 @@
 extern crate modbus_harness_engine as engine;
 
 mod api;
+mod disputed;
 mod fault_matrix;
 mod freedom_space;
 mod fuzz_campaign;

@@ -1108,6 +1108,32 @@ impl Station {
                 if self.dead {
                     return None;
                 }
+                // FC 0x41/0x42 whose length is wrong and whose mnemonic the drive may not know (not in the
+                // profile, or one a product may lack): refused either way, and which check comes first is the
+                // drive's (a drive that looks the mnemonic up first answers as to an unknown one).
+                if matches!(fc.0, 0x41 | 0x42)
+                    && pdu.get(1..5).is_some_and(|m| {
+                        let name = codec::Mnemonic(m.try_into().unwrap_or([0; 4])).name();
+                        let named = |i: &crate::requirements::Item| {
+                            i.mnemonic
+                                .as_deref()
+                                .is_some_and(|x| x.eq_ignore_ascii_case(name.trim()))
+                        };
+                        let id = &self.profile().device.id;
+                        let optional = crate::corpus::Corpus::Embedded
+                            .requirements_shared()
+                            .is_ok_and(|r| {
+                                r.freedoms().iter().any(|f| {
+                                    f.kind == FreedomKind::Optional
+                                        && f.applies_to(id)
+                                        && f.items.iter().any(named)
+                                })
+                            });
+                        optional || self.profile().mnemonic(&name).is_none()
+                    })
+                {
+                    self.decisions.push(ids::UNKNOWN_MNEMONIC);
+                }
                 if matches!(e.kind, DecodeErrorKind::Truncated { .. }) && !self.length_decided {
                     // Too short for its function code: 03 (the reference), or no answer, or on Modbus/TCP
                     // the connection closed (an RTU line has none to close: no answer there).

@@ -263,3 +263,25 @@ fn exception_check_order_2_checks_the_address_before_the_quantity() {
             .contains(&ids::EXCEPTION_CHECK_ORDER)
     );
 }
+
+/// An FC 0x41 one byte too long is refused (03) by the reference; where its mnemonic is one the drive may not
+/// know (none of the profile's, or MU, which an MDrive Plus2 lacks), a drive that looks the mnemonic up first
+/// answers as to an unknown mnemonic: the freedom `unknown-mnemonic-exception` decides the code. Not for a
+/// mnemonic every product has (S1).
+#[test]
+fn a_malformed_vendor_read_of_a_mnemonic_the_drive_may_lack_leaves_the_code_open() {
+    let u = unit("mdrive");
+    for (mnemonic, open) in [(b"  UM", true), (b"  QQ", true), (b"  1S", false)] {
+        let mut s = station("mdrive", &[]);
+        let mut pdu = vec![0x41];
+        pdu.extend_from_slice(mnemonic);
+        pdu.push(0x00);
+        let (replies, _) = serve(&mut s, &adu(1, u, &pdu));
+        assert_eq!(replies[0].1, "C1 03", "{mnemonic:?}");
+        assert_eq!(
+            s.take_decisions().contains(&ids::UNKNOWN_MNEMONIC),
+            open,
+            "{mnemonic:?}"
+        );
+    }
+}

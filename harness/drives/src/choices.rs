@@ -73,6 +73,8 @@ pub mod ids {
     pub const MBAP_LENGTH_LONG: &str = "mbap-length-long";
     /// Modbus/TCP, an MBAP length announcing a PDU over 253 bytes: close, silence or 03.
     pub const PDU_OVER_253: &str = "pdu-over-253";
+    /// The MDrive, a write to the output of an I/O point configured as an input: taken, or 04/03/02.
+    pub const MDRIVE_OUTPUT_WRITE_WHILE_INPUT: &str = "mdrive-output-write-while-input";
 
     /// Every id above.
     pub const ALL: &[&str] = &[
@@ -103,6 +105,7 @@ pub mod ids {
         MBAP_LENGTH_SHORT,
         MBAP_LENGTH_LONG,
         PDU_OVER_253,
+        MDRIVE_OUTPUT_WRITE_WHILE_INPUT,
     ];
 }
 

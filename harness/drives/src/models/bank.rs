@@ -520,7 +520,21 @@ impl RegisterBank {
 
     /// Write coils from `address` on (FC 05/0F): all or nothing; unmapped or read-only coils give 02.
     pub fn write_coils(&mut self, address: u16, states: &[bool]) -> Result<(), Rejection> {
-        let end = range_end(address, states.len())?;
+        let end = self.check_coil_write(address, states.len())?;
+        for (a, &s) in (u32::from(address)..end).zip(states) {
+            if let Some(c) = self.layout.coils.get(&(a as u16))
+                && let Some(state) = self.coil_states.get_mut(c.state)
+            {
+                *state = s;
+            }
+        }
+        Ok(())
+    }
+
+    /// What [`write_coils`](Self::write_coils) would refuse of a write of `count` coils from `address`, without
+    /// writing: the end (exclusive) of the coils written where it would take it.
+    pub fn check_coil_write(&self, address: u16, count: usize) -> Result<u32, Rejection> {
+        let end = range_end(address, count)?;
         for a in u32::from(address)..end {
             match self.layout.coils.get(&(a as u16)) {
                 Some(c) if c.access.writable() || self.read_only_writable => {}
@@ -532,14 +546,7 @@ impl RegisterBank {
                 None => return Err(ExceptionCode::ILLEGAL_DATA_ADDRESS.into()),
             }
         }
-        for (a, &s) in (u32::from(address)..end).zip(states) {
-            if let Some(c) = self.layout.coils.get(&(a as u16))
-                && let Some(state) = self.coil_states.get_mut(c.state)
-            {
-                *state = s;
-            }
-        }
-        Ok(())
+        Ok(end)
     }
 
     /// The state of one bit, if it exists.

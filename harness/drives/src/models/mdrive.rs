@@ -17,9 +17,12 @@
 //!   (outputs) hold the group as a binary-weighted value. The drive starts with inputs 1-4 = 1,1,0,1 and outputs
 //!   1-4 = 1,0,1,0 (the LMD has 3 outputs: 1,0,1) so that the manuals' FC 02 and FC 01 examples (000 lines
 //!   515-525, 557-567; 001 lines 751-767, 816-832) read back as printed on a fresh drive. The I/O point setup
-//!   (S1-S4, IS/OS) is stored but does not gate FC 01/02/05: the manuals do not say what a drive answers for a
-//!   point configured the other way, and on the MDrive (I/O points shared between inputs and outputs) the two
-//!   examples could not both hold otherwise.
+//!   (S1-S4, IS/OS) is stored but does not gate reads (FC 01/02, the mirrors): on the MDrive (I/O points
+//!   shared between inputs and outputs, inputs by default, 000 line 1263) the two examples could not both hold
+//!   otherwise. A write of an MDrive output (FC 05, O1-O4, OT/OL) while its point is configured as an input
+//!   (S1-S4 type below 16) is taken, as the freedom `mdrive-output-write-while-input` lets a drive do (000
+//!   lines 532, 579 say the outputs must be configured, not what a drive answers otherwise), or refused with
+//!   the code chosen for it; either way the answer is that freedom's decision.
 //! - **Motion**: writing MA (move absolute), MR (move relative) or SL (slew) starts a move over virtual time.
 //!   Point moves start at VI, accelerate at A to VM (or less, for a short move: triangular profile), cruise,
 //!   decelerate at D to VI and stop exactly on the target; slews ramp from the present velocity to the SL
@@ -570,6 +573,9 @@ pub struct Mdrive {
     params_unchecked: bool,
     /// `Fault::VendorWriteNotApplied`: an FC 0x42 write of a setting is acknowledged but not stored.
     write_not_applied: bool,
+    /// The I/O points are shared between inputs and outputs and set up with S1..Sn (the MDrive): output k
+    /// (coil k, register Ok) is point k, and OT/OL set them all.
+    shared_io: bool,
 }
 
 impl Mdrive {
@@ -617,6 +623,9 @@ impl Mdrive {
             }
         }
         let status = StatusSlots::new(&bank, &addrs, &inputs, &outputs);
+        let shared_io = !outputs.is_empty()
+            && outputs.len() == inputs.len()
+            && (1..=outputs.len()).all(|k| params.contains_key(&format!("S{k}")));
         let mut model = Self {
             profile: Arc::new(profile),
             bank,
@@ -635,6 +644,7 @@ impl Mdrive {
             write_only_readable: faults.has(Fault::WriteOnlyReadable),
             params_unchecked: faults.has(Fault::MnemonicParamsUnchecked),
             write_not_applied: faults.has(Fault::VendorWriteNotApplied),
+            shared_io,
         };
         model.refresh();
         model
@@ -753,6 +763,60 @@ impl Mdrive {
         let k = self.kinematics();
         self.rest = k.disp.round();
         self.motion = None;
+    }
+
+    /// True when a write setting the outputs of `points` (1-based) sets one whose I/O point is configured as
+    /// an input: S1-S4 type 0-11, the default (000 line 1263); outputs are types 16-25 (000 lines 743-759).
+    /// Never on a drive whose outputs are outputs of their own (the LMD).
+    fn sets_input_point(&self, points: impl IntoIterator<Item = usize>) -> bool {
+        self.shared_io
+            && points.into_iter().any(|k| {
+                self.params
+                    .get(&format!("S{k}"))
+                    .and_then(|v| v.first())
+                    .and_then(|t| t.parse::<f64>().ok())
+                    .is_none_or(|t| t < 16.0)
+            })
+    }
+
+    /// The points (1-based) a coil write of `count` coils from `address` sets.
+    fn coil_points(&self, address: u16, count: usize) -> Vec<usize> {
+        let end = u32::from(address) + u32::try_from(count).unwrap_or(u32::MAX);
+        self.outputs
+            .iter()
+            .enumerate()
+            .filter(|(_, a)| (u32::from(address)..end).contains(&u32::from(**a)))
+            .map(|(i, _)| i + 1)
+            .collect()
+    }
+
+    /// The points (1-based) a register write sets: Ok → point k, OT/OL → every point.
+    fn register_points(&self, changes: &[Change]) -> Vec<usize> {
+        let mut points = Vec::new();
+        for c in changes {
+            if self.addrs.output_groups.contains(&c.address) {
+                points.extend(1..=self.outputs.len());
+            } else if let Some(i) = self
+                .addrs
+                .outputs
+                .iter()
+                .position(|o| *o == Some(c.address))
+            {
+                points.push(i + 1);
+            }
+        }
+        points
+    }
+
+    /// The refusal this drive chose for a write of an output whose point is an input
+    /// (`mdrive-output-write-while-input=exception-XX`); `None` where it takes the write (the reference).
+    fn input_point_refusal(&self) -> Option<Rejection> {
+        let v = self
+            .bank
+            .choices()
+            .get(ids::MDRIVE_OUTPUT_WRITE_WHILE_INPUT)?;
+        Choices::exception_value(v)
+            .map(|code| Rejection::by(ids::MDRIVE_OUTPUT_WRITE_WHILE_INPUT, code))
     }
 
     /// The dependent limits a register write must respect (exception 03), beyond each register's own range.
@@ -1177,6 +1241,12 @@ impl DataModel for Mdrive {
         let changes = self.bank.plan_write(address, words)?;
         self.check_limits(&changes)?;
         self.check_motion(&changes)?;
+        // Last: a write the drive could not take anyway is refused for that (its own freedoms decide the code).
+        if self.sets_input_point(self.register_points(&changes))
+            && let Some(refusal) = self.input_point_refusal()
+        {
+            return Err(refusal);
+        }
         Ok(changes)
     }
 
@@ -1185,6 +1255,10 @@ impl DataModel for Mdrive {
     }
 
     fn commit(&mut self, changes: Vec<Change>) {
+        if self.sets_input_point(self.register_points(&changes)) {
+            // Taken although a point it sets is an input: a drive may refuse it (see `plan_write`).
+            self.decided(ids::MDRIVE_OUTPUT_WRITE_WHILE_INPUT);
+        }
         self.bank.commit(&changes);
         for c in &changes {
             self.apply(c);
@@ -1202,6 +1276,14 @@ impl DataModel for Mdrive {
     }
 
     fn write_coils(&mut self, address: u16, states: &[bool]) -> Result<(), Rejection> {
+        if self.sets_input_point(self.coil_points(address, states.len())) {
+            // Refused for the setup only where the bank would take it (an unmapped coil is 02 first).
+            self.bank.check_coil_write(address, states.len())?;
+            if let Some(refusal) = self.input_point_refusal() {
+                return Err(refusal);
+            }
+            self.decided(ids::MDRIVE_OUTPUT_WRITE_WHILE_INPUT);
+        }
         self.bank.write_coils(address, states)
     }
 

@@ -285,6 +285,15 @@ pub fn reference_shown(
                 _ => None,
             }
         }
+        // A write of an MDrive output whose point is an input, taken as the reference takes it: the drive's
+        // choice, held against a refusal of another such write (an outcome freedom's other values are shown
+        // by the answers that differ from the reference's, see `outcome_shown`).
+        FreedomKind::Outcome
+            if f.id == drives::choices::ids::MDRIVE_OUTPUT_WRITE_WHILE_INPUT && cx.decided(f) =>
+        {
+            let taken = !expected?.is_exception() && !observed?.is_exception();
+            taken.then(|| shown_named(f, "", "response"))
+        }
         FreedomKind::FieldValue if f.id == drives::choices::ids::FC42_BYTES_WRITTEN => {
             // Four parameter bytes read the same both ways: that shows no choice.
             let ambiguous = matches!(cx.request, Some(Request::VendorWrite { params, .. }) if params.len() == 4);
@@ -752,16 +761,31 @@ fn outcome(
             if exception_of(o).is_some() {
                 exception(o, fc)
             } else if has("response") && o.function() == fc && e.is_exception() {
-                vec![Alternative::values_free(
-                    Some(served_as_asked(request).unwrap_or_else(|| o.clone())),
-                    shown_named(f, "", "response"),
-                )]
+                // A write's echo is the request's (App 6.5, 6.6, 6.11, 6.12): compared as the step compares.
+                let echo = request
+                    .is_some_and(|r| registers_written(r).is_some() || is_coil_write(r))
+                    && !matches!(request, Some(Request::ReadWriteMultipleRegisters { .. }));
+                let served = Some(served_as_asked(request).unwrap_or_else(|| o.clone()));
+                let shown = shown_named(f, "", "response");
+                vec![if echo {
+                    Alternative::exact(served, shown)
+                } else {
+                    Alternative::values_free(served, shown)
+                }]
             } else {
                 vec![]
             }
         }
         _ => vec![],
     }
+}
+
+/// FC 05 or FC 0F.
+fn is_coil_write(r: &Request) -> bool {
+    matches!(
+        r,
+        Request::WriteSingleCoil { .. } | Request::WriteMultipleCoils { .. }
+    )
 }
 
 /// The shape of an answer that serves `request` as asked, where a drive may serve what the reference
@@ -776,6 +800,16 @@ fn served_as_asked(request: Option<&Request>) -> Option<Response> {
         Request::WriteSingleRegister { address, value } => Response::WriteSingleRegister {
             address: *address,
             value: *value,
+        },
+        Request::WriteSingleCoil { address, value } => Response::WriteSingleCoil {
+            address: *address,
+            value: *value,
+        },
+        Request::WriteMultipleCoils {
+            address, quantity, ..
+        } => Response::WriteMultipleCoils {
+            address: *address,
+            quantity: *quantity,
         },
         Request::ReadHoldingRegisters { quantity, .. } => Response::ReadHoldingRegisters {
             values: vec![0; usize::from(*quantity)],

@@ -573,3 +573,98 @@ fn the_reference_follows_a_drive_that_refuses_pipelined_writes_as_busy() {
         assert_eq!(shown, expected, "{choose}: choices recorded");
     }
 }
+
+/// The MDrive's I/O points are inputs by default (manual line 1263) and "the outputs must be configured as
+/// such" (lines 532, 579); a drive written from the manual refused FC 05 and FC 10 writes of an output whose
+/// point was an input with 04, where the reference takes them, and generated cases FAILed
+/// (`mdrive-output-write-while-input`). Each admissible refusal passes the generated cases of that run (seed
+/// 1, as found) and the catalog, and shows the choice; the catalog's `profile/mdrive/io-point/*` cases show it
+/// too.
+#[test]
+fn a_drive_refusing_writes_of_outputs_whose_points_are_inputs_passes() {
+    let jobs: Vec<(&str, bool)> = ["exception-04", "exception-03", "exception-02"]
+        .into_iter()
+        .flat_map(|v| [(v, false), (v, true)])
+        .collect();
+    assert_no_problems(jobs, |(value, catalog)| {
+        let choice = format!("mdrive-output-write-while-input={value}");
+        let (out, bad) = if catalog {
+            let mut o = options("sim:mdrive", std::slice::from_ref(&choice));
+            o.include = vec!["profile/mdrive/io-point/*".to_string()];
+            o.keep_verdicts = true;
+            let out = run_quietly(&o).expect("run");
+            let bad: Vec<String> = out
+                .verdicts
+                .iter()
+                .filter(|(_, v)| *v != Verdict::Pass)
+                .map(|(c, v)| format!("{c}: {v}"))
+                .collect();
+            (out, bad)
+        } else {
+            generated("sim:mdrive", std::slice::from_ref(&choice), 600, 1)
+        };
+        let mut problems = Vec::new();
+        if !bad.is_empty() {
+            problems.push(format!("--choose {choice} (catalog: {catalog}): {bad:?}"));
+        }
+        let shown = out
+            .summary
+            .choices
+            .iter()
+            .find(|c| c.freedom == "mdrive-output-write-while-input");
+        match shown {
+            Some(c) if c.value == value && c.changed.is_empty() => {}
+            other => problems.push(format!(
+                "--choose {choice} (catalog: {catalog}): the choice recorded is {other:?}"
+            )),
+        }
+        problems
+    });
+}
+
+/// The reference takes such writes, and the run records that as its choice (so that a drive taking one and
+/// refusing another is held to the first: NON-STRICT).
+#[test]
+fn the_reference_taking_writes_of_outputs_whose_points_are_inputs_is_recorded() {
+    let mut o = options("sim:mdrive", &[]);
+    o.include = vec!["profile/mdrive/io-point/*".to_string()];
+    let out = run_quietly(&o).expect("run");
+    let c = out
+        .summary
+        .choices
+        .iter()
+        .find(|c| c.freedom == "mdrive-output-write-while-input")
+        .expect("the choice recorded");
+    assert_eq!((c.value.as_str(), c.count), ("response", 4), "{c:?}");
+}
+
+/// The freedom is about points configured as inputs only: a drive that refuses with 04 a write of an output
+/// the harness configured as an output FAILs. Here the setup (FC 0x42 S1 = 16, a general purpose output) is
+/// acknowledged but not stored (`vendor-write-not-applied`), so the drive refusing writes of input points
+/// refuses the coil case's write; the reference, whose point 1 is an output, takes it. The same drive taking
+/// such writes passes the case.
+#[test]
+fn a_drive_refusing_a_write_of_an_output_configured_as_an_output_fails() {
+    let case = "profile/mdrive/coil/75-output-1";
+    for (choose, expected) in [
+        (vec![], Verdict::Pass),
+        (
+            vec!["mdrive-output-write-while-input=exception-04".to_string()],
+            Verdict::Fail,
+        ),
+    ] {
+        let mut o = options("sim:mdrive", &choose);
+        o.include = vec![case.to_string()];
+        o.faults = FaultSet::of(&[Fault::VendorWriteNotApplied]);
+        o.keep_verdicts = true;
+        let out = run_quietly(&o).expect("run");
+        assert_eq!(
+            out.verdicts
+                .iter()
+                .map(|(c, v)| (c.as_str(), *v))
+                .collect::<Vec<_>>(),
+            vec![(case, expected)],
+            "--choose {choose:?}"
+        );
+    }
+}

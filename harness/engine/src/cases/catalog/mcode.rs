@@ -14,6 +14,9 @@ use drives::profile::{Access, Profile, Register};
 /// FC 0x42 setup of an I/O point as a general purpose output, active low, sinking (000 lines 743-759).
 const OUTPUT_SETUP: &str = "=16,0,0";
 
+/// FC 0x42 setup of an I/O point as a general purpose input, active low, sinking: the default (000 line 1263).
+const INPUT_SETUP: &str = "=0,0,0";
+
 /// How long a one-step move (or the stop of a slew) is given to end before the next move command: a drive
 /// refuses a move while one runs. One step takes 1 ms at the reference's initial velocity (VI = 1000).
 const MOVE_SETTLE: Duration = Duration::from_millis(250);
@@ -71,9 +74,24 @@ impl IoPoints {
             .map_or_else(Vec::new, |k| vec![k])
     }
 
+    /// The points, 1-based, with their coils.
+    pub(super) fn points(&self) -> impl Iterator<Item = (usize, u16)> + '_ {
+        self.coils.iter().enumerate().map(|(i, a)| (i + 1, *a))
+    }
+
     /// Configure `points` as general purpose outputs for the case: keep each setup (FC 0x41), write the
     /// output setup (FC 0x42), and put the setups back after.
     pub(super) fn configure_outputs(&self, cx: &Ctx, a: &mut Around, points: &[usize]) {
+        self.configure(cx, a, points, OUTPUT_SETUP, "output");
+    }
+
+    /// Configure `points` as general purpose inputs (the default), kept and put back as
+    /// [`configure_outputs`](Self::configure_outputs) does.
+    pub(super) fn configure_inputs(&self, cx: &Ctx, a: &mut Around, points: &[usize]) {
+        self.configure(cx, a, points, INPUT_SETUP, "input");
+    }
+
+    fn configure(&self, cx: &Ctx, a: &mut Around, points: &[usize], setup: &str, what: &str) {
         for k in points {
             let name = format!("S{k}");
             let Some(mnemonic) = Mnemonic::from_name(&name) else {
@@ -83,12 +101,10 @@ impl IoPoints {
             a.set(exchange(
                 Outgoing::Pdu(pdu(&Request::VendorWrite {
                     mnemonic,
-                    params: OUTPUT_SETUP.as_bytes().to_vec(),
+                    params: setup.as_bytes().to_vec(),
                 })),
                 Compare::Structure,
-                format!(
-                    "configure I/O point {k} as a general purpose output ({name}{OUTPUT_SETUP})"
-                ),
+                format!("configure I/O point {k} as a general purpose {what} ({name}{setup})"),
             ));
         }
     }

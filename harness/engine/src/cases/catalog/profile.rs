@@ -18,6 +18,7 @@ pub(super) fn cases(cx: &mut Ctx) {
     half_registers(cx);
     reserved(cx);
     coils(cx);
+    outputs_of_input_points(cx);
     discrete_inputs(cx);
     mnemonics(cx);
     mnemonic_refusals(cx);
@@ -373,6 +374,81 @@ fn coils(cx: &mut Ctx) {
                 steps,
             );
         }
+    }
+}
+
+/// The MDrive's outputs while their I/O points are configured as inputs (the default, 000 line 1263): each
+/// output is written the state it reads, so that nothing changes whether the drive takes the write (the
+/// reference) or refuses it (04, 03 or 02: "the outputs must be configured as such", 000 lines 532, 579, and
+/// no more is said; freedom `mdrive-output-write-while-input`), and read back unchanged. First, with the
+/// point an output, the output is written the state it reads, so that the reference holds the drive's state
+/// whatever the drive answers later; the setup and the output are put back after (the output while the
+/// point is an output again).
+fn outputs_of_input_points(cx: &mut Ctx) {
+    let p = cx.p;
+    let pid = &p.device.id;
+    let Some(io) = IoPoints::of(p) else {
+        return;
+    };
+    if !cx.supports(FunctionCode::WRITE_SINGLE_COIL) || !cx.supports(FunctionCode::READ_COILS) {
+        return;
+    }
+    for (k, address) in io.points() {
+        let Some(c) = p
+            .coils
+            .iter()
+            .map(|c| c.get_ref())
+            .find(|c| c.address == address && c.confirmed && c.access.writable() && !c.motion)
+        else {
+            continue;
+        };
+        let read = || {
+            Outgoing::Pdu(pdu(&Request::ReadCoils {
+                address: c.address,
+                quantity: 1,
+            }))
+        };
+        let mut a = Around::new();
+        io.configure_outputs(cx, &mut a, &[k]);
+        let slot = a.slot();
+        a.set(capture(
+            read(),
+            Compare::Structure,
+            slot,
+            format!("read output {k} first"),
+        ));
+        a.set(exchange(
+            Outgoing::RestoreRead { slot },
+            Compare::Exact,
+            format!("write output {k} the state it has, point {k} an output"),
+        ));
+        a.undo(vec![exchange(
+            Outgoing::RestoreRead { slot },
+            Compare::Exact,
+            format!("put back output {k}"),
+        )]);
+        io.configure_inputs(cx, &mut a, &[k]);
+        let steps = a.wrap(vec![
+            exchange(
+                Outgoing::RestoreRead { slot },
+                Compare::Exact,
+                format!(
+                    "write output {k} the state it has, point {k} an input: taken, or refused with 04, 03 or 02"
+                ),
+            ),
+            exchange(read(), Compare::Exact, "read back: unchanged"),
+        ]);
+        cx.push(
+            format!("profile/{pid}/io-point/{k}/write-output-while-input"),
+            format!("write {} while I/O point {k} is an input", c.name),
+            format!(
+                "{}: coil {} {} with S{k} an input",
+                p.device.name, c.address, c.name
+            ),
+            "A write of an output whose I/O point is configured as an input is taken or refused (the manual leaves it open); the output reads back unchanged.",
+            vec![Tag::Write],
+            steps,
+        );
     }
 }
 

@@ -1908,7 +1908,19 @@ mod tests {
                 )
             })
             .collect();
-        let case = |pdu: Vec<u8>| Case {
+        let case = one_request_case;
+        // FC 16 at 2, quantity 1, byte count 4 (disagrees), two words of data: registers 2 and 3.
+        let t = touched(&items, &case(vec![0x10, 0, 2, 0, 1, 4, 0, 1, 0, 2]));
+        assert_eq!(t, ["h2", "h3"].map(String::from).into());
+        // FC 06 cut after its function code: the address is unknown, everything may have changed.
+        assert_eq!(touched(&items, &case(vec![0x06])).len(), 8);
+        // A read touches nothing.
+        assert!(touched(&items, &case(vec![0x03, 0, 0, 0, 8])).is_empty());
+    }
+
+    /// A case of one exchange sending `pdu`.
+    fn one_request_case(pdu: Vec<u8>) -> Case {
+        Case {
             id: "t".into(),
             title: String::new(),
             reference: String::new(),
@@ -1923,14 +1935,7 @@ mod tests {
             }],
             requirements: vec![],
             freedoms: vec![],
-        };
-        // FC 16 at 2, quantity 1, byte count 4 (disagrees), two words of data: registers 2 and 3.
-        let t = touched(&items, &case(vec![0x10, 0, 2, 0, 1, 4, 0, 1, 0, 2]));
-        assert_eq!(t, ["h2", "h3"].map(String::from).into());
-        // FC 06 cut after its function code: the address is unknown, everything may have changed.
-        assert_eq!(touched(&items, &case(vec![0x06])).len(), 8);
-        // A read touches nothing.
-        assert!(touched(&items, &case(vec![0x03, 0, 0, 0, 8])).is_empty());
+        }
     }
 
     /// A drive of two vendor settings: S1 reads as `0, 1, 0` and takes `=0,1,0` back; OS reads the setups of
@@ -2018,22 +2023,7 @@ mod tests {
                 .iter()
                 .any(|l| l.contains("so no case wrote them: mnemonic:OS"))
         );
-        let case = |pdu: Vec<u8>| Case {
-            id: "t".into(),
-            title: String::new(),
-            reference: String::new(),
-            requirement: String::new(),
-            level: crate::cases::Level::Must,
-            tags: vec![],
-            steps: vec![Step::Exchange {
-                send: Outgoing::Pdu(pdu),
-                compare: crate::cases::Compare::Exact,
-                capture: None,
-                note: String::new(),
-            }],
-            requirements: vec![],
-            freedoms: vec![],
-        };
+        let case = one_request_case;
         let write = |m: &str| {
             let req = Request::VendorWrite {
                 mnemonic: Mnemonic::from_name(m).expect("mnemonic"),

@@ -196,6 +196,8 @@ impl std::fmt::Display for FreedomValue {
 #[serde(deny_unknown_fields)]
 pub struct Item {
     pub register: Option<u16>,
+    /// A coil (FC 01/05/0F), by address.
+    pub coil: Option<u16>,
     pub mnemonic: Option<String>,
     pub object: Option<u16>,
     /// The item's name (a register's mnemonic).
@@ -206,9 +208,12 @@ pub struct Item {
 
 impl Item {
     /// True when the request reads or writes the item (a register by every address it occupies in the
-    /// profile, a mnemonic by name, an object by index).
+    /// profile, a coil by FC 01/05/0F covering it, a mnemonic by name, an object by index).
     pub fn touched_by(&self, req: &Request, profile: &crate::profile::Profile) -> bool {
         let item = self;
+        if let Some(c) = item.coil {
+            return coils_touched(req).is_some_and(|(a, q)| covers(a, q, c));
+        }
         if let Some(r) = item.register {
             let (read, written) = (registers_read(req), registers_written(req));
             // Whatever the width (at most 255 registers), a request that ends before `r` or starts past
@@ -244,9 +249,17 @@ impl Item {
     /// a mnemonic or an object, is all a request about it touches): a refusal of the request then has no
     /// other address to be about.
     pub fn covers_all_of(&self, req: &Request, profile: &crate::profile::Profile) -> bool {
+        if let Some(c) = self.coil {
+            return registers_read(req).is_none()
+                && registers_written(req).is_none()
+                && coils_touched(req).is_none_or(|(a, q)| a == c && q == 1);
+        }
         let Some(r) = self.register else {
             return true;
         };
+        if coils_touched(req).is_some() {
+            return false;
+        }
         let width = register_width(profile, r);
         let inside = |(a, q): (u16, u16)| {
             let (a, q, r) = (u32::from(a), u32::from(q), u32::from(r));
@@ -263,6 +276,18 @@ fn register_width(profile: &crate::profile::Profile, r: u16) -> u16 {
         .or_else(|| profile.register_at(r, true))
         .filter(|reg| reg.address == r)
         .map_or(1, |reg| u16::from(reg.width))
+}
+
+/// The (address, quantity) of coils a request reads or writes (FC 01, 05, 0F).
+pub fn coils_touched(req: &Request) -> Option<(u16, u16)> {
+    match req {
+        Request::ReadCoils { address, quantity } => Some((*address, *quantity)),
+        Request::WriteSingleCoil { address, .. } => Some((*address, 1)),
+        Request::WriteMultipleCoils {
+            address, quantity, ..
+        } => Some((*address, *quantity)),
+        _ => None,
+    }
 }
 
 /// The (address, quantity) a request reads, for register reads.
@@ -784,10 +809,18 @@ impl Requirements {
             _ => {}
         }
         for it in &items {
-            if it.register.is_none() && it.mnemonic.is_none() && it.object.is_none() {
+            let named = [
+                it.register.is_some(),
+                it.coil.is_some(),
+                it.mnemonic.is_some(),
+                it.object.is_some(),
+            ];
+            if named.iter().filter(|n| **n).count() != 1 {
                 return Err((
                     items_at,
-                    format!("freedom `{id}`: an item names a `register`, `mnemonic` or `object`"),
+                    format!(
+                        "freedom `{id}`: an item names one `register`, `coil`, `mnemonic` or `object`"
+                    ),
                 ));
             }
         }

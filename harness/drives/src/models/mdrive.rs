@@ -2,8 +2,8 @@
 //!
 //! Manuals: MDrive `000_b25109cd5b573b4c.txt` ("000"), LMD `001_aafa6838846abfce.txt` ("001"); line numbers
 //! below are lines of those files. The two drives share the register map layout, the motion variables and the
-//! vendor function codes; where they differ (I/O addresses, 3 outputs on the LMD, word order, mnemonics, VM
-//! maximum) the difference is data in `corpus/profiles/{mdrive,lmd}.toml`, not code here.
+//! vendor function codes; where they differ (I/O addresses, the LMD's optional output 4, word order, mnemonics,
+//! VM maximum) the difference is data in `corpus/profiles/{mdrive,lmd}.toml`, not code here.
 //!
 //! Behaviour and the choices made where the manuals are silent:
 //!
@@ -15,9 +15,9 @@
 //! - **I/O**: FC 01/05 act on the profile's coils and FC 02 on its discrete inputs; coil k (in address order)
 //!   is output k+1 and mirrors register Ok+1, input k mirrors register Ik+1, and IN/IL (inputs) and OT/OL
 //!   (outputs) hold the group as a binary-weighted value. The drive starts with inputs 1-4 = 1,1,0,1 and outputs
-//!   1-4 = 1,0,1,0 (the LMD has 3 outputs: 1,0,1) so that the manuals' FC 02 and FC 01 examples (000 lines
-//!   515-525, 557-567; 001 lines 751-767, 816-832) read back as printed on a fresh drive. The I/O point setup
-//!   (S1-S4, IS/OS) is stored but does not gate reads (FC 01/02, the mirrors): on the MDrive (I/O points
+//!   1-4 = 1,0,1,0 (the LMD's output 4, freedom `lmd-output-4`, has no register O4) so that the manuals' FC 02
+//!   and FC 01 examples (000 lines 515-525, 557-567; 001 lines 751-767, 816-832) read back as printed on a
+//!   fresh drive. The I/O point setup (S1-S4, IS/OS) is stored but does not gate reads (FC 01/02, the mirrors): on the MDrive (I/O points
 //!   shared between inputs and outputs, inputs by default, 000 line 1263) the two examples could not both hold
 //!   otherwise. A write of an MDrive output (FC 05, O1-O4, OT/OL) while its point is configured as an input
 //!   (S1-S4 type below 16) is taken, as the freedom `mdrive-output-write-while-input` lets a drive do (000

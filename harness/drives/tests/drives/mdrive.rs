@@ -483,13 +483,42 @@ fn io_coils_inputs_and_their_registers() {
     assert_eq!(s.ask("05 00 4B 12 34"), "85 03", "illegal coil value");
     assert_eq!(s.write16(0x002D, 0), "90 02", "inputs are read-only");
 
+    // The reference LMD has output 4 (coil 0x0003, freedom `lmd-output-4` = present): no register O4, OT bit 3.
     let mut s = Sim::new("lmd", &[]);
-    assert_eq!(s.ask("01 00 00 00 04"), "81 02", "the LMD has 3 outputs");
+    assert_eq!(s.ask("01 00 00 00 04"), "01 01 05", "the LMD's outputs 1-4");
+    assert_eq!(s.ask("01 00 04 00 01"), "81 02", "no output 5");
     assert_eq!(s.ask("01 00 00 00 03"), "01 01 05");
     assert_eq!(s.ask("02 00 00 00 04"), "02 01 0B");
     assert_eq!(s.ask("05 00 01 FF 00"), "05 00 01 FF 00");
     assert_eq!(s.read16(0x004C), 1, "LMD O2");
     assert_eq!(s.read16(0x0056), 7, "LMD OT");
+    assert_eq!(s.ask("05 00 03 FF 00"), "05 00 03 FF 00", "output 4 on");
+    assert_eq!(s.read16(0x0056), 15, "LMD OT with output 4");
+
+    // An LMD with three outputs (`lmd-output-4=exception-02`) refuses whatever covers coil 0x0003, alone.
+    let requirements = Corpus::Embedded.requirements().expect("requirements");
+    let choices = drives::Choices::parse_all(
+        &["lmd-output-4=exception-02"],
+        &requirements,
+        &profile("lmd"),
+    )
+    .expect("simulated");
+    s.station = drives::Station::new(
+        drives::build_with(profile("lmd"), FaultSet::none(), choices.clone()),
+        FaultSet::none(),
+        s.unit,
+    )
+    .with_choices(choices);
+    assert_eq!(s.ask("01 00 00 00 04"), "81 02", "a 3-output LMD");
+    assert_eq!(s.ask("01 00 03 00 01"), "81 02");
+    assert_eq!(s.ask("05 00 03 FF 00"), "85 02");
+    assert_eq!(
+        s.ask("0F 00 02 00 02 01 01"),
+        "8F 01",
+        "no FC 0F on the LMD: 01 first"
+    );
+    assert_eq!(s.ask("01 00 00 00 03"), "01 01 05", "outputs 1-3 served");
+    assert_eq!(s.ask("05 00 02 00 00"), "05 00 02 00 00");
 }
 
 #[test]

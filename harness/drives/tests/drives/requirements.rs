@@ -448,3 +448,62 @@ fn every_decision_site_is_a_freedom_of_the_corpus() {
         );
     }
 }
+
+/// A coil item (the LMD's output 4, `lmd-output-4`) is touched by FC 01/05/0F covering its address only,
+/// and a request covers all of it only where it touches that coil alone.
+#[test]
+fn a_coil_item_is_touched_by_the_coil_requests_covering_it() {
+    use codec::Request;
+    let r = embedded();
+    let f = r.freedom("lmd-output-4").expect("lmd-output-4");
+    let [item] = f.items.as_slice() else {
+        panic!("lmd-output-4: one item expected, got {:?}", f.items);
+    };
+    assert_eq!(item.coil, Some(0x0003));
+    let p = Corpus::Embedded.profile("lmd").unwrap();
+    assert!(
+        p.coils.iter().any(|c| c.get_ref().address == 0x0003),
+        "the lmd profile has coil 0x0003"
+    );
+    let read = |address, quantity| Request::ReadCoils { address, quantity };
+    let write = |address| Request::WriteSingleCoil {
+        address,
+        value: 0xFF00,
+    };
+    let multiple = |address, quantity: u16| Request::WriteMultipleCoils {
+        address,
+        quantity,
+        data: vec![0; usize::from(quantity).div_ceil(8)],
+    };
+    for (req, touched, alone) in [
+        (read(0, 4), true, false),
+        (read(0, 3), false, false),
+        (read(3, 1), true, true),
+        (read(4, 1), false, false),
+        (write(3), true, true),
+        (write(2), false, false),
+        (multiple(2, 2), true, false),
+        (multiple(0, 3), false, false),
+        (
+            Request::ReadHoldingRegisters {
+                address: 3,
+                quantity: 1,
+            },
+            false,
+            false,
+        ),
+        (
+            Request::ReadDiscreteInputs {
+                address: 3,
+                quantity: 1,
+            },
+            false,
+            false,
+        ),
+    ] {
+        assert_eq!(item.touched_by(&req, &p), touched, "touched_by {req:?}");
+        if touched {
+            assert_eq!(item.covers_all_of(&req, &p), alone, "covers_all_of {req:?}");
+        }
+    }
+}

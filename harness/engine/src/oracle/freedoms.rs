@@ -168,7 +168,9 @@ fn item_name(item: &Item) -> String {
         (None, Some(r), _, _) => format!("0x{r:04X}"),
         (None, None, Some(m), _) => m.clone(),
         (None, None, None, Some(o)) => format!("object {o}"),
-        _ => String::new(),
+        _ => item
+            .coil
+            .map_or_else(String::new, |c| format!("coil 0x{c:04X}")),
     }
 }
 
@@ -424,20 +426,28 @@ pub fn unambiguous(
         .collect()
 }
 
-/// True when a register at either end of the request's range (the addresses the reference tries for the
+/// True when a register (or coil) at either end of the request's range (the addresses the reference tries for the
 /// order of the checks: the first, and the last of at least one) is an item of an optional group or of an
 /// access the manual leaves open: whether the address is valid there is a choice of the drive's.
 fn range_ends_open(requirements: &Requirements, cx: &StepContext<'_>) -> bool {
-    let Some((a, q)) = cx
-        .request
-        .and_then(|r| registers_read(r).or_else(|| registers_written(r)))
+    let Some(req) = cx.request else {
+        return false;
+    };
+    let coils = drives::requirements::coils_touched(req);
+    let Some((a, q)) = coils.or_else(|| registers_read(req).or_else(|| registers_written(req)))
     else {
         return false;
     };
     let last = a.saturating_add(q.max(1) - 1);
-    let ends = [a, last].map(|address| Request::ReadHoldingRegisters {
-        address,
-        quantity: 1,
+    let ends = [a, last].map(|address| match coils {
+        Some(_) => Request::ReadCoils {
+            address,
+            quantity: 1,
+        },
+        None => Request::ReadHoldingRegisters {
+            address,
+            quantity: 1,
+        },
     });
     requirements.freedoms().iter().any(|f| {
         matches!(f.kind, FreedomKind::Optional | FreedomKind::Access)

@@ -353,6 +353,30 @@ fn generated_cases_admit_the_vendor_readings_and_extra_functions() {
     });
 }
 
+/// The LMD's output 4 (coil 0x0003, freedom `lmd-output-4`): FC 01/05 and OT speak of outputs 1-4, OS and
+/// O1-O3 of 1-3. A drive with three outputs refuses FC 01/05/0F requests covering coil 0x0003 with 02, and
+/// generated coil requests meet it (a drive with four outputs, the reference's choice, FAILed 21 of 3,000
+/// such cases before the freedom); both choices pass and the other one is recorded.
+#[test]
+fn generated_coil_requests_admit_the_lmd_without_output_4() {
+    let jobs: Vec<(&str, u64)> = vec![("present", 1), ("exception-02", 1)];
+    assert_no_problems(jobs, |(value, seed)| {
+        let choose = vec![format!("lmd-output-4={value}")];
+        let (out, bad) = generated("sim:lmd", &choose, 300, seed);
+        if !bad.is_empty() {
+            return Some(format!(
+                "sim:lmd --choose {choose:?} --generated 300 --seed {seed}: FAIL or NON-STRICT {bad:?}"
+            ));
+        }
+        let shown = out
+            .summary
+            .choices
+            .iter()
+            .any(|c| c.freedom == "lmd-output-4" && c.value == value);
+        (!shown).then(|| format!("sim:lmd --choose lmd-output-4={value}: the choice was not shown"))
+    });
+}
+
 /// A drive that takes a half of a 32-bit register (`partial-register-write=response`) changes state where
 /// the reference, refusing halves, does not: it took a half write of SL and slews, and refused the next MR
 /// with 04 (busy) where the standing reference took it. That FAILed `gen/3102/82/write-reg`. The reference

@@ -18,7 +18,8 @@ use proptest::prelude::*;
 use proptest::sample::{select, subsequence};
 
 use crate::support::{
-    MODEL_FAULTS, Sim, ascii_hex, assert_fault_shows, both, hex, profile, run_exchanges,
+    MODEL_FAULTS, Sim, ascii_hex, assert_fault_shows, both, chosen_station, hex, profile,
+    run_exchanges,
 };
 
 /// The MDrive/LMD registers and mnemonics through the client view.
@@ -496,19 +497,7 @@ fn io_coils_inputs_and_their_registers() {
     assert_eq!(s.read16(0x0056), 15, "LMD OT with output 4");
 
     // An LMD with three outputs (`lmd-output-4=exception-02`) refuses whatever covers coil 0x0003, alone.
-    let requirements = Corpus::Embedded.requirements().expect("requirements");
-    let choices = drives::Choices::parse_all(
-        &["lmd-output-4=exception-02"],
-        &requirements,
-        &profile("lmd"),
-    )
-    .expect("simulated");
-    s.station = drives::Station::new(
-        drives::build_with(profile("lmd"), FaultSet::none(), choices.clone()),
-        FaultSet::none(),
-        s.unit,
-    )
-    .with_choices(choices);
+    s.station = chosen_station("lmd", &["lmd-output-4=exception-02"]);
     assert_eq!(s.ask("01 00 00 00 04"), "81 02", "a 3-output LMD");
     assert_eq!(s.ask("01 00 03 00 01"), "81 02");
     assert_eq!(s.ask("05 00 03 FF 00"), "85 02");
@@ -902,20 +891,8 @@ fn a_drive_taking_half_a_register_stores_that_half() {
     let mut reference = Sim::new("mdrive", &[]);
     assert_eq!(reference.ask("10 00 01 00 01 02 12 34"), "90 02");
     assert_eq!(reference.ask("03 00 00 00 02"), "03 04 00 0F 42 40");
-    let requirements = Corpus::Embedded.requirements().expect("requirements");
-    let choices = drives::Choices::parse_all(
-        &["partial-register-write=response"],
-        &requirements,
-        &profile("mdrive"),
-    )
-    .expect("simulated");
     let mut s = Sim::new("mdrive", &[]);
-    s.station = drives::Station::new(
-        drives::build_with(profile("mdrive"), FaultSet::none(), choices.clone()),
-        FaultSet::none(),
-        s.unit,
-    )
-    .with_choices(choices);
+    s.station = chosen_station("mdrive", &["partial-register-write=response"]);
     assert_eq!(s.ask("10 00 01 00 01 02 12 34"), "10 00 01 00 01");
     assert_eq!(
         s.ask("03 00 00 00 02"),

@@ -69,6 +69,21 @@ pub struct Sim {
     now: Duration,
 }
 
+/// A fault-free station of the corpus profile `stem` taking `choose` (`FREEDOM=VALUE`), as
+/// `simulate --choose` builds it.
+pub fn chosen_station(stem: &str, choose: &[&str]) -> Station {
+    let p = profile(stem);
+    let requirements = Corpus::Embedded.requirements().expect("requirements");
+    let choices = drives::Choices::parse_all(choose, &requirements, &p).expect("choices");
+    let unit = p.device.default_unit;
+    Station::new(
+        drives::build_with(p, FaultSet::none(), choices.clone()),
+        FaultSet::none(),
+        unit,
+    )
+    .with_choices(choices)
+}
+
 impl Sim {
     /// A station for `p` with `faults`, answering as the profile's default unit.
     pub fn with(p: Profile, faults: &[Fault]) -> Self {

@@ -9,22 +9,13 @@ use codec::{hex_spaced, rtu, tcp};
 use drives::choices::{ChoiceError, ids};
 use drives::corpus::Corpus;
 use drives::station::TcpOutput;
-use drives::{Choices, FaultSet, Station, TcpConn};
+use drives::{Choices, Station, TcpConn};
 
 use super::support::profile;
 
 /// A station of the corpus profile `stem` taking `choose` (`FREEDOM=VALUE`).
 fn station(stem: &str, choose: &[&str]) -> Station {
-    let p = profile(stem);
-    let requirements = Corpus::Embedded.requirements().expect("requirements");
-    let choices = Choices::parse_all(choose, &requirements, &p).expect("choices");
-    let unit = p.device.default_unit;
-    Station::new(
-        drives::build_with(p, FaultSet::none(), choices.clone()),
-        FaultSet::none(),
-        unit,
-    )
-    .with_choices(choices)
+    super::support::chosen_station(stem, choose)
 }
 
 /// `bytes` served once by the reference drive, which refuses them (exception 03), and by drives choosing

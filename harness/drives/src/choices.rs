@@ -75,6 +75,14 @@ pub mod ids {
     pub const PDU_OVER_253: &str = "pdu-over-253";
     /// The MDrive, a write to the output of an I/O point configured as an input: taken, or 04/03/02.
     pub const MDRIVE_OUTPUT_WRITE_WHILE_INPUT: &str = "mdrive-output-write-while-input";
+    /// SD2x FC 43, a read with byte count 0: the length error, the object at its size, or no data.
+    pub const SD2X_FC43_READ_ZERO_COUNT: &str = "sd2x-fc43-read-zero-count";
+    /// SD2x FC 43, a byte count above 4: the SDO length error or exception 03.
+    pub const SD2X_FC43_BYTE_COUNT_OVER_4: &str = "sd2x-fc43-byte-count-over-4";
+    /// SD2x FC 08/0A-0F with a non-zero data field: ignored, or exception 03.
+    pub const SD2X_DIAGNOSTIC_UNUSED_DATA: &str = "sd2x-diagnostic-unused-data";
+    /// SD2x FC 08/00 with a data field other than 2 bytes: echoed, exception 03, or silence.
+    pub const SD2X_DIAGNOSTIC_DATA_SIZE: &str = "sd2x-diagnostic-data-size";
 
     /// Every id above.
     pub const ALL: &[&str] = &[
@@ -106,6 +114,10 @@ pub mod ids {
         MBAP_LENGTH_LONG,
         PDU_OVER_253,
         MDRIVE_OUTPUT_WRITE_WHILE_INPUT,
+        SD2X_FC43_READ_ZERO_COUNT,
+        SD2X_FC43_BYTE_COUNT_OVER_4,
+        SD2X_DIAGNOSTIC_UNUSED_DATA,
+        SD2X_DIAGNOSTIC_DATA_SIZE,
     ];
 }
 

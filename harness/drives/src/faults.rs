@@ -61,6 +61,11 @@ pub enum Fault {
     WatchdogFromFirstWrite,
     ListedFunctionRefused,
     InputBitsReversed,
+    ZeroCountPartial,
+    ByteCountOver4Served,
+    UnusedDiagDataRefused02,
+    QueryDataCut,
+    UnusedDiagDataInconsistent,
 }
 
 impl Fault {
@@ -330,6 +335,31 @@ impl Fault {
             Fault::InputBitsReversed,
             "input-bits-reversed",
             "FC 02: the inputs asked for are packed in reverse order (the last one in bit 0 of the first byte), padding bits still 0",
+        ),
+        (
+            Fault::ZeroCountPartial,
+            "zero-count-partial",
+            "SD2x FC 43: a read with byte count 0 is answered with the object's first byte only (byte count 1): neither the length error, nor the object, nor no data",
+        ),
+        (
+            Fault::ByteCountOver4Served,
+            "byte-count-over-4-served",
+            "SD2x FC 43: a byte count above 4 (outside the layout's 0..4) is taken for the object's size and served",
+        ),
+        (
+            Fault::UnusedDiagDataRefused02,
+            "unused-diag-data-refused-02",
+            "FC 08: a sub-function 0A-0F request whose unused data field is not 0000 is refused with 02 (ignoring it or 03 is admissible)",
+        ),
+        (
+            Fault::QueryDataCut,
+            "query-data-cut",
+            "FC 08/00: a data field of other than the manual's 2 bytes is echoed cut or padded to 2 bytes",
+        ),
+        (
+            Fault::UnusedDiagDataInconsistent,
+            "unused-diag-data-inconsistent",
+            "FC 08: a non-zero unused data field is ignored for sub-function 0B and refused with 03 for the others: each is admissible (sd2x-diagnostic-unused-data), the two together are not one choice",
         ),
     ];
 

@@ -108,7 +108,8 @@ pub struct Requirement {
 pub enum FreedomKind {
     /// Admissible exception codes for a condition (`values`: codes).
     ExceptionCode,
-    /// Admissible kinds of answer: `response`, `silence`, `close`, `exception-XX`.
+    /// Admissible kinds of answer: `response`, `silence`, `close`, `exception-XX`, `sdo-error` (the SD2x's
+    /// extended exception response to FC 43).
     Outcome,
     /// A response field read more than one way (`field`; `values`: numbers or named readings).
     FieldValue,
@@ -1110,7 +1111,7 @@ fn check_values(kind: FreedomKind, values: &[FreedomValue]) -> Result<(), String
         FreedomKind::ExceptionCode => ints(1, 0xFF),
         FreedomKind::SdoError => ints(0, 0xFFFF_FFFF),
         FreedomKind::StatusBits => ints(1, 0xFFFF),
-        FreedomKind::Outcome => text(&["response", "silence", "close"], true),
+        FreedomKind::Outcome => text(&["response", "silence", "close", "sdo-error"], true),
         FreedomKind::Optional => text(&["present", "silence"], true),
         FreedomKind::UnitIds => text(&["answer", "silence"], true),
         FreedomKind::ServedExtra => text(&["served"], true),

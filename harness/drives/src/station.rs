@@ -1613,6 +1613,35 @@ impl Station {
         let Request::Diagnostics { sub_function, data } = req else {
             return exc(ExceptionCode::ILLEGAL_FUNCTION);
         };
+        // A data field of another size than the manual fixes for every FC 08 telegram (the size of 00's):
+        // answered as 6.8.1 has it (00 echoes any data, a counter's is refused with 03, an unlisted
+        // sub-function with 01), refused with 03 whatever the sub-function, or not taken for a telegram
+        // (`sd2x-diagnostic-data-size`).
+        let fixed = self
+            .profile()
+            .diagnostic(diag::RETURN_QUERY_DATA)
+            .and_then(|d| d.data_bytes);
+        if fixed.is_some_and(|n| data.len() != usize::from(n)) {
+            if self.faults.has(Fault::QueryDataCut) && *sub_function == diag::RETURN_QUERY_DATA {
+                let mut cut = data.clone();
+                cut.resize(usize::from(fixed.unwrap_or(2)), 0);
+                return DiagOutcome::reply(Response::Diagnostics {
+                    sub_function: *sub_function,
+                    data: cut,
+                });
+            }
+            self.decisions.push(ids::SD2X_DIAGNOSTIC_DATA_SIZE);
+            match self.choices.name(ids::SD2X_DIAGNOSTIC_DATA_SIZE) {
+                Some("exception-03") => return exc(ExceptionCode::ILLEGAL_DATA_VALUE),
+                Some("silence") => {
+                    return DiagOutcome {
+                        resp: None,
+                        counted: false,
+                    };
+                }
+                _ => {}
+            }
+        }
         let Some((d, check_data)) = self
             .profile()
             .diagnostic(*sub_function)
@@ -1626,8 +1655,24 @@ impl Station {
         if d != DiagCounter::Echo && data.len() != 2 {
             return exc(ExceptionCode::ILLEGAL_DATA_VALUE);
         }
-        if check_data && !diag_data_ok(d, data) {
-            return exc(ExceptionCode::ILLEGAL_DATA_VALUE);
+        if !diag_data_ok(d, data) {
+            if check_data {
+                return exc(ExceptionCode::ILLEGAL_DATA_VALUE);
+            }
+            // Data the manual does not use, where 6.8.1 gives 00 00: ignored or refused
+            // (`sd2x-diagnostic-unused-data`).
+            if self.faults.has(Fault::UnusedDiagDataRefused02) {
+                return exc(ExceptionCode::ILLEGAL_DATA_ADDRESS);
+            }
+            self.decisions.push(ids::SD2X_DIAGNOSTIC_UNUSED_DATA);
+            let refuse = if self.faults.has(Fault::UnusedDiagDataInconsistent) {
+                *sub_function != diag::BUS_MESSAGE_COUNT
+            } else {
+                self.choices.name(ids::SD2X_DIAGNOSTIC_UNUSED_DATA) == Some("exception-03")
+            };
+            if refuse {
+                return exc(ExceptionCode::ILLEGAL_DATA_VALUE);
+            }
         }
         let echo = || {
             DiagOutcome::reply(Response::Diagnostics {

@@ -826,26 +826,45 @@ impl Sd2x {
 
     /// The SDO error for a byte count `n` against an object of `size` bytes, if any. Which of the length
     /// codes a drive gives is a freedom; the reference's are the most specific ones.
-    fn length_error(&mut self, n: usize, size: usize) -> Option<u32> {
+    fn length_error(&mut self, n: usize, size: usize) -> Result<(), ObjectError> {
         let reference = if n > 4 {
+            if self.has(Fault::ByteCountOver4Served) {
+                return Ok(());
+            }
             sdo::LENGTH_WRONG
         } else if n > size {
             sdo::LENGTH_TOO_LONG
         } else if n < size {
             sdo::LENGTH_TOO_SHORT
         } else {
-            return None;
+            return Ok(());
         };
         self.decided(ids::SDO_LENGTH_ERROR);
-        Some(match self.freedoms.choices().get(ids::SDO_LENGTH_ERROR) {
-            Some(crate::requirements::FreedomValue::Int(c)) => {
-                u32::try_from(*c).unwrap_or(reference)
-            }
-            _ => reference,
-        })
+        Err(ObjectError::Sdo(
+            match self.freedoms.choices().get(ids::SDO_LENGTH_ERROR) {
+                Some(crate::requirements::FreedomValue::Int(c)) => {
+                    u32::try_from(*c).unwrap_or(reference)
+                }
+                _ => reference,
+            },
+        ))
     }
 
     fn object_access(&mut self, unit: u8, a: &CanOpenAccess) -> Result<Response, ObjectError> {
+        // A byte count outside the layout's 0..4 (line 550): the reference answers the SDO length error once
+        // the other checks pass; a drive may refuse the field's value with 03 first, as the specification
+        // orders a quantity check before the address (`sd2x-fc43-byte-count-over-4`).
+        if a.byte_count > 4 && !self.has(Fault::ByteCountOver4Served) {
+            self.decided(ids::SD2X_FC43_BYTE_COUNT_OVER_4);
+            if self
+                .freedoms
+                .choices()
+                .name(ids::SD2X_FC43_BYTE_COUNT_OVER_4)
+                == Some("exception-03")
+            {
+                return Err(ObjectError::Exception(ExceptionCode::ILLEGAL_DATA_VALUE));
+            }
+        }
         // The node-ID is the slave address (line 613), 01h..7Fh (line 546).
         if a.node_id != unit || !(0x01..=0x7F).contains(&a.node_id) {
             return Err(ObjectError::Exception(ExceptionCode::ILLEGAL_DATA_ADDRESS));
@@ -876,9 +895,7 @@ impl Sd2x {
             if !o.access.writable() && !self.has(Fault::ReadOnlyWritable) {
                 return Err(ObjectError::Sdo(sdo::WRITE_READ_ONLY));
             }
-            if let Some(e) = self.length_error(a.data.len(), size) {
-                return Err(ObjectError::Sdo(e));
-            }
+            self.length_error(a.data.len(), size)?;
             let raw = a.value_le().unwrap_or(0);
             let signed = matches!(o.ty, ObjectType::I16 | ObjectType::I32);
             let v = signed_value(raw, size, signed);
@@ -905,13 +922,25 @@ impl Sd2x {
             if !o.access.readable() {
                 return Err(ObjectError::Sdo(sdo::READ_WRITE_ONLY));
             }
-            if let Some(e) = self.length_error(usize::from(a.byte_count), size) {
-                return Err(ObjectError::Sdo(e));
+            // A read of 0 bytes: the manual does not say what it answers (sd2x-fc43-read-zero-count).
+            let mut count = usize::from(a.byte_count);
+            if count == 0 && self.has(Fault::ZeroCountPartial) {
+                let raw = self.object_raw(a.index, a.subindex, &o);
+                return Ok(header(0, 1, raw.to_le_bytes()[..1].to_vec()));
             }
+            if count == 0 {
+                self.decided(ids::SD2X_FC43_READ_ZERO_COUNT);
+                match self.freedoms.choices().name(ids::SD2X_FC43_READ_ZERO_COUNT) {
+                    Some("object-size") => count = size,
+                    Some("zero") => return Ok(header(0, 0, Vec::new())),
+                    _ => {}
+                }
+            }
+            self.length_error(count, size)?;
             let raw = self.object_raw(a.index, a.subindex, &o);
             // Little-endian, unlike the rest of Modbus (line 638).
             let data = raw.to_le_bytes()[..size].to_vec();
-            Ok(header(0, a.byte_count, data))
+            Ok(header(0, size as u16, data))
         }
     }
 }

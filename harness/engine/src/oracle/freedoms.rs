@@ -131,6 +131,11 @@ fn touches(f: &Freedom, cx: &StepContext<'_>) -> bool {
     // The readings of the vendor functions, wherever such a request goes (generated and fuzz cases cite
     // nothing); the others where a case cites them (the LMD input addressing is learned before the cases).
     if f.kind == FreedomKind::Reading {
+        // The FC 43 layout cut by one byte is the example's form whole: a drive taking that form reads a
+        // request there (a decodable request's form is learned before the cases).
+        if f.id == "sd2x-fc43-reserved-byte" {
+            return cx.request.is_none() && canopen_example_form(cx.pdu);
+        }
         return matches!(
             f.id.as_str(),
             "fc42-parameterless-byte-count"
@@ -212,6 +217,14 @@ fn int_values(f: &Freedom) -> impl Iterator<Item = i64> + '_ {
         FreedomValue::Text(_) => None,
     })
 }
+
+/// Outcome freedoms whose reference value is recorded where a drive gives it, so that the run holds the drive
+/// to one answer (the SD2x's FC 43 byte count above 4 and FC 08 data fields).
+const HELD_OUTCOMES: &[&str] = &[
+    drives::choices::ids::SD2X_FC43_BYTE_COUNT_OVER_4,
+    drives::choices::ids::SD2X_DIAGNOSTIC_UNUSED_DATA,
+    drives::choices::ids::SD2X_DIAGNOSTIC_DATA_SIZE,
+];
 
 /// The value the reference drive took for a freedom that decided its answer, as shown by this step (for the
 /// record of choices). `None` when the step says nothing about the freedom's value.
@@ -296,6 +309,26 @@ pub fn reference_shown(
             let taken = !expected?.is_exception() && !observed?.is_exception();
             taken.then(|| shown_named(f, "", "response"))
         }
+        FreedomKind::FieldValue if f.id == drives::choices::ids::SD2X_FC43_READ_ZERO_COUNT => {
+            let value = match expected? {
+                Response::CanOpenError { .. } => "sdo-error",
+                Response::CanOpen(a) if a.byte_count == 0 => "zero",
+                Response::CanOpen(_) => "object-size",
+                _ => return None,
+            };
+            Some(shown_named(f, "", value))
+        }
+        // The SD2x's outcome freedoms a drive keeps to, whichever answer it gives: the reference's, shown
+        // where the drive gave it too (the other values are shown by `outcome_shown`).
+        FreedomKind::Outcome if HELD_OUTCOMES.contains(&f.id.as_str()) && cx.decided(f) => {
+            let value = match expected {
+                None => "silence".to_string(),
+                Some(Response::Exception { code, .. }) => format!("exception-{:02X}", code.0),
+                Some(Response::CanOpenError { .. }) => "sdo-error".to_string(),
+                Some(_) => "response".to_string(),
+            };
+            f.admits(&value).then(|| shown_named(f, "", &value))
+        }
         FreedomKind::FieldValue if f.id == drives::choices::ids::FC42_BYTES_WRITTEN => {
             // Four parameter bytes read the same both ways: that shows no choice.
             let ambiguous = matches!(cx.request, Some(Request::VendorWrite { params, .. }) if params.len() == 4);
@@ -357,6 +390,28 @@ pub fn unambiguous(
     } else {
         shown
     };
+    // A refusal of the FC 43 layout cut to the example's length shows that the drive takes that form too,
+    // not that it does not take the layout's (which one the cases use is learned before them).
+    let shown: Vec<Shown> = if cx.request.is_none() {
+        shown
+            .into_iter()
+            .filter(|s| s.freedom != "sd2x-fc43-reserved-byte")
+            .collect()
+    } else {
+        shown
+    };
+    // What a drive does with an FC 08 data field of another size is its choice for Return Query Data (00): a
+    // counter's or an unlisted sub-function's refusal is the reference's too.
+    let shown: Vec<Shown> = if cx.request.is_some_and(
+        |r| !matches!(r, Request::Diagnostics { sub_function, .. } if *sub_function == 0),
+    ) {
+        shown
+            .into_iter()
+            .filter(|s| s.freedom != drives::choices::ids::SD2X_DIAGNOSTIC_DATA_SIZE)
+            .collect()
+    } else {
+        shown
+    };
     // A drive skips an ADU over 253 bytes (silently or with 03) once its bytes are in: before that, it is
     // silent whichever it chose.
     let shown: Vec<Shown> = if cx.short_of_length && kind == Some("silence") {
@@ -399,11 +454,8 @@ pub fn unambiguous(
             {
                 "access"
             }
-            FreedomKind::ExceptionCode | FreedomKind::Outcome | FreedomKind::SdoError
-                if cx.decided(f) =>
-            {
-                f.id.as_str()
-            }
+            // An SDO error freedom is no reason for an exception: it chooses among SDO errors only.
+            FreedomKind::ExceptionCode | FreedomKind::Outcome if cx.decided(f) => f.id.as_str(),
             _ => continue,
         };
         if !reasons.contains(&reason) {
@@ -770,6 +822,18 @@ fn outcome(
             let fc = e.function().without_exception_bit();
             if exception_of(o).is_some() {
                 exception(o, fc)
+            } else if let Response::CanOpenError { sdo_code } = o {
+                // The SD2x's extended exception response where the reference refuses otherwise: a length
+                // error (the only SDO error an outcome freedom is about).
+                let length = matches!(*sdo_code, 0xFFFF_0011..=0xFFFF_0013);
+                if has("sdo-error") && length && !matches!(e, Response::CanOpenError { .. }) {
+                    vec![Alternative::exact(
+                        Some(o.clone()),
+                        shown_named(f, "", "sdo-error"),
+                    )]
+                } else {
+                    vec![]
+                }
             } else if has("response") && o.function() == fc && e.is_exception() {
                 // A write's echo is the request's (App 6.5, 6.6, 6.11, 6.12): compared as the step compares.
                 let echo = request
@@ -983,6 +1047,11 @@ fn field_value(
             },
             _,
         ) if es == os && *oc == ec.wrapping_add(1) => one(o.clone(), "counted"),
+        (drives::choices::ids::SD2X_FC43_READ_ZERO_COUNT, _, _, Some(Request::CanOpen(a)))
+            if !a.is_write() && a.byte_count == 0 =>
+        {
+            zero_count_read(f, cx, a, o)
+        }
         ("sd2x-watchdog-trip-state", _, _, Some(req)) => {
             // Fault (xxxx 1000 in bits 0-3 and 6) or fault reaction active (xxxx 1111).
             let Some((index, ev, ov)) = register_word(f, req, e, o) else {
@@ -1018,6 +1087,55 @@ fn field_value(
             with_word(e, index, ov)
                 .map(|a| one(a, &value))
                 .unwrap_or_default()
+        }
+        _ => vec![],
+    }
+}
+
+/// An FC 43 read of 0 bytes (`sd2x-fc43-read-zero-count`): the SDO length error for a count too short (or
+/// not correct), the object at its size, or no data; a response echoes the request's header. The data
+/// values are free (what the object holds is judged by the reads of its size).
+fn zero_count_read(
+    f: &Freedom,
+    cx: &StepContext<'_>,
+    asked: &codec::CanOpenAccess,
+    o: &Response,
+) -> Vec<Alternative> {
+    match o {
+        Response::CanOpenError { sdo_code } => {
+            const LENGTH_WRONG: u32 = 0xFFFF_0011;
+            const TOO_SHORT: u32 = 0xFFFF_0013;
+            if matches!(*sdo_code, LENGTH_WRONG | TOO_SHORT) {
+                vec![Alternative::exact(
+                    Some(o.clone()),
+                    shown_named(f, "", "sdo-error"),
+                )]
+            } else {
+                vec![]
+            }
+        }
+        Response::CanOpen(r) if !r.is_write() => {
+            let Some(size) = cx
+                .profile
+                .object(asked.index, asked.subindex)
+                .map(|ob| ob.ty.size())
+            else {
+                return vec![];
+            };
+            let (count, value) = match usize::from(r.byte_count) {
+                0 => (0, "zero"),
+                n if n == size => (size, "object-size"),
+                _ => return vec![],
+            };
+            let answer = codec::CanOpenAccess {
+                byte_count: count as u16,
+                data: vec![0; count],
+                ..asked.clone()
+            };
+            vec![Alternative::values_free(
+                Some(Response::CanOpen(answer)),
+                shown_named(f, "", value),
+            )]
         }
         _ => vec![],
     }
@@ -1061,22 +1179,46 @@ fn reading(
         Response::Exception { function, code } => {
             function.without_exception_bit().0 == fc && (1..=4).contains(&code.0)
         }
-        Response::CanOpenError { .. } => matches!(cx.request, Some(Request::CanOpen(_))),
+        Response::CanOpenError { .. } => {
+            matches!(cx.request, Some(Request::CanOpen(_))) || canopen_example_form(cx.pdu)
+        }
         _ => false,
     };
     if !refused {
         return vec![];
     }
+    let note = if cx.request.is_none() {
+        format!(
+            "cut to its length, the request is a whole one in the form of the manual's example; the drive \
+             refuses it as such ({}: {other})",
+            f.id
+        )
+    } else {
+        format!(
+            "the drive refuses the form of the request the project adopted; it may follow the other reading \
+             of the manual ({}: {other})",
+            f.id
+        )
+    };
     vec![Alternative {
         answer: Some(o.clone()),
         shown: shown_named(f, "", &other),
         values_free: false,
-        note: Some(format!(
-            "the drive refuses the form of the request the project adopted; it may follow the other reading \
-             of the manual ({}: {other})",
-            f.id
-        )),
+        note: Some(note),
     }]
+}
+
+/// True when `pdu` is a whole FC 43 / MEI 0x0D telegram in the form of the SD2x manual's example (the layout
+/// without its Reserved byte): control, node-ID, index, subindex, offset, byte count, and the data a write
+/// carries.
+fn canopen_example_form(pdu: &[u8]) -> bool {
+    match pdu {
+        [0x2B, 0x0D, control, _, _, _, _, _, _, hi, lo, data @ ..] => {
+            let count = usize::from(u16::from_be_bytes([*hi, *lo]));
+            data.len() == if control & 0x80 != 0 { count } else { 0 }
+        }
+        _ => false,
+    }
 }
 
 /// True when a request (decoded, or its PDU where the codec refuses it) is what a reading of the manual is
@@ -1084,6 +1226,7 @@ fn reading(
 fn reading_concerns(f: &Freedom, req: Option<&Request>, pdu: &[u8]) -> bool {
     match (f.id.as_str(), req) {
         ("sd2x-fc43-reserved-byte", Some(r)) => matches!(r, Request::CanOpen(_)),
+        ("sd2x-fc43-reserved-byte", None) => canopen_example_form(pdu),
         // The codec's parameterless command (byte count 0), or the 5-byte form without a count that a drive
         // following the other reading takes for one (the codec refuses it).
         ("fc42-parameterless-byte-count", r) => {

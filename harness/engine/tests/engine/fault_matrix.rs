@@ -10,6 +10,26 @@ use test_support::run_quietly;
 /// (fault, target, the case that must FAIL with it).
 pub(crate) const WITNESSES: &[(&str, &str, &str)] = &[
     (
+        "zero-count-partial",
+        "sim:sd2x",
+        "profile/sd2x/object/zero-count/read",
+    ),
+    (
+        "byte-count-over-4-served",
+        "sim:sd2x",
+        "profile/sd2x/object/count-over-4/read",
+    ),
+    (
+        "unused-diag-data-refused-02",
+        "sim:sd2x",
+        "profile/sd2x/fc08/unused-data/0x0C",
+    ),
+    (
+        "query-data-cut",
+        "sim:sd2x",
+        "profile/sd2x/fc08/return-query-data-size",
+    ),
+    (
         "wrong-exception-code",
         "sim:generic",
         "spec/app-7/unsupported-function/fc-0x09",
@@ -520,6 +540,11 @@ pub(crate) const CHOICE_WITNESSES: &[(&str, &str, &str)] = &[
         "range-code-inconsistent",
         "sim:lmd",
         "profile/lmd/write-out-of-range/*",
+    ),
+    (
+        "unused-diag-data-inconsistent",
+        "sim:sd2x",
+        "profile/sd2x/fc08/unused-data/*",
     ),
 ];
 

@@ -16,6 +16,7 @@ pub(super) fn cases(cx: &mut Ctx) {
     views_agree(cx);
     missing_object(cx);
     wrong_length(cx);
+    zero_count(cx);
 }
 
 /// Each object read, and each read-only one refused a write.
@@ -136,27 +137,89 @@ fn missing_object(cx: &mut Ctx) {
     );
 }
 
-/// A read whose byte count is not the object's size.
+/// A read whose byte count is not the object's size (3: the SDO length error), and one whose byte count is
+/// above the layout's 0..4 (line 550): the SDO length error or exception 03 (`sd2x-fc43-byte-count-over-4`).
 fn wrong_length(cx: &mut Ctx) {
     let p = cx.p;
     let node = cx.unit;
-    if let Some(o) = p
+    let Some(o) = p
         .objects
         .iter()
         .map(|o| o.get_ref())
         .find(|o| o.access.readable())
-    {
-        cx.push(
-            format!("profile/{}/object/wrong-length/read", p.device.id),
-            format!("FC 43/0x0D read of object {} with byte count 3", o.index),
-            MANUAL,
+    else {
+        return;
+    };
+    for (name, count, requirement) in [
+        (
+            "wrong-length",
+            3,
             "A read whose byte count does not match the object's size is answered with an SDO length error.",
+        ),
+        (
+            "count-over-4",
+            5,
+            "A byte count above 4, outside the layout's range, is refused: with an SDO length error or with exception 03.",
+        ),
+    ] {
+        cx.push(
+            format!("profile/{}/object/{name}/read", p.device.id),
+            format!(
+                "FC 43/0x0D read of object {} with byte count {count}",
+                o.index
+            ),
+            MANUAL,
+            requirement,
             vec![],
             vec![exchange(
-                Outgoing::Pdu(pdu(&Request::CanOpen(CanOpenAccess::read(node, o.index, o.subindex, 3)))),
+                Outgoing::Pdu(pdu(&Request::CanOpen(CanOpenAccess::read(
+                    node, o.index, o.subindex, count,
+                )))),
                 Compare::Exact,
-                "read 3 bytes",
+                format!("read {count} bytes"),
             )],
         );
     }
+}
+
+/// A read with byte count 0, which the layout allows (line 550) and no line explains: the length error, the
+/// object at its size, or no data (`sd2x-fc43-read-zero-count`), the same way for every object.
+fn zero_count(cx: &mut Ctx) {
+    let p = cx.p;
+    let node = cx.unit;
+    let readable: Vec<_> = p
+        .objects
+        .iter()
+        .map(|o| o.get_ref())
+        .filter(|o| o.access.readable())
+        .collect();
+    // One of each size, so that a drive answering the object shows its size.
+    let mut picked: Vec<&drives::profile::Object> = Vec::new();
+    for o in readable {
+        if !picked.iter().any(|q| q.ty.size() == o.ty.size()) {
+            picked.push(o);
+        }
+    }
+    if picked.is_empty() {
+        return;
+    }
+    cx.push(
+        format!("profile/{}/object/zero-count/read", p.device.id),
+        "FC 43/0x0D reads with byte count 0".to_string(),
+        MANUAL,
+        "A read of 0 bytes is answered with an SDO length error, with the object at its size, or with no data, the header echoed, the same way for every object.",
+        vec![],
+        picked
+            .iter()
+            .map(|o| {
+                exchange(
+                    Outgoing::Pdu(pdu(&Request::CanOpen(CanOpenAccess::read(
+                        node, o.index, o.subindex, 0,
+                    )))),
+                    Compare::Exact,
+                    format!("read object {} with byte count 0", o.index),
+                )
+            })
+            .collect(),
+    );
 }

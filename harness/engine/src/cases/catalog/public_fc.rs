@@ -215,6 +215,56 @@ fn diagnostics(cx: &mut Ctx) {
                 format!("data {}", codec::hex_spaced(&data)),
             )],
         );
+        // Where the manual fixes the size, a data field of another size: echoed (6.8.1 takes any), refused
+        // with 03, or not taken for a telegram (`sd2x-diagnostic-data-size`).
+        if let Some(n) = echo.data_bytes {
+            let sizes = [usize::from(n).saturating_sub(1), usize::from(n) + 2];
+            cx.push(
+                format!("profile/{}/fc08/return-query-data-size", cx.p.device.id),
+                format!("FC 08/00 with a data field of other than {n} bytes"),
+                format!("{APP}, section 6.8.1 (sub-function 00); the profile's manual (data field size)"),
+                "Return Query Data with a data field of another size than the manual fixes is echoed, refused with exception 03, or left unanswered, the same way each time.",
+                vec![],
+                sizes
+                    .iter()
+                    .map(|&len| {
+                        let data: Vec<u8> = (0..len).map(|i| 0xC3 ^ i as u8).collect();
+                        exchange(
+                            Outgoing::Pdu(pdu(&Request::Diagnostics {
+                                sub_function: diag::RETURN_QUERY_DATA,
+                                data,
+                            })),
+                            Compare::Exact,
+                            format!("{len} data byte(s)"),
+                        )
+                    })
+                    .collect(),
+            );
+        }
+    }
+    // Sub-functions whose data field the profile's manual does not use (6.8.1 gives 00 00), where the profile
+    // does not say the drive checks it: a non-zero field is ignored or refused with 03, the same way each
+    // time (`sd2x-diagnostic-unused-data`). Counter reads only: nothing changes.
+    let unchecked: Vec<u16> = (diag::BUS_MESSAGE_COUNT..=diag::SERVER_NO_RESPONSE_COUNT)
+        .filter(|&sub| {
+            cx.p.diagnostics
+                .iter()
+                .any(|d| d.sub_function == sub && !d.check_data)
+        })
+        .collect();
+    for sub in unchecked {
+        cx.push(
+            format!("profile/{}/fc08/unused-data/0x{sub:02X}", cx.p.device.id),
+            format!("FC 08/{sub:02X} with a non-zero data field"),
+            format!("{APP}, section 6.8.1 (data field 00 00) and figure 21; the profile's manual"),
+            "A counter read whose data field is not 00 00 is answered as with 00 00, or refused with exception 03, the same way for every sub-function.",
+            vec![],
+            vec![exchange(
+                Outgoing::Pdu(diag_pdu(sub, 0x0101)),
+                Compare::Structure,
+                format!("08/{sub:02X} with data 0x0101"),
+            )],
+        );
     }
     if declares_sub(cx, diag::RETURN_DIAGNOSTIC_REGISTER) {
         cx.push(

@@ -66,6 +66,7 @@ pub enum Fault {
     UnusedDiagDataRefused02,
     QueryDataCut,
     UnusedDiagDataInconsistent,
+    LetterCaseBusy,
 }
 
 impl Fault {
@@ -360,6 +361,11 @@ impl Fault {
             Fault::UnusedDiagDataInconsistent,
             "unused-diag-data-inconsistent",
             "FC 08: a non-zero unused data field is ignored for sub-function 0B and refused with 03 for the others: each is admissible (sd2x-diagnostic-unused-data), the two together are not one choice",
+        ),
+        (
+            Fault::LetterCaseBusy,
+            "letter-case-busy",
+            "MDrive/LMD FC 0x41/0x42: a known mnemonic named in lower case is answered with exception 06 (busy): neither served nor refused as unknown",
         ),
     ];
 

@@ -569,6 +569,8 @@ pub struct Mdrive {
     nvm_writes: u32,
     /// `Fault::WriteOnlyReadable`: FC 0x41 of a write-only mnemonic is answered.
     write_only_readable: bool,
+    /// `Fault::LetterCaseBusy`: a known mnemonic in lower case is answered with exception 06.
+    letter_case_busy: bool,
     /// `Fault::MnemonicParamsUnchecked`: FC 0x42 parameters the mnemonic does not take are "written".
     params_unchecked: bool,
     /// `Fault::VendorWriteNotApplied`: an FC 0x42 write of a setting is acknowledged but not stored.
@@ -642,6 +644,7 @@ impl Mdrive {
             program: Program::Idle,
             nvm_writes: 0,
             write_only_readable: faults.has(Fault::WriteOnlyReadable),
+            letter_case_busy: faults.has(Fault::LetterCaseBusy),
             params_unchecked: faults.has(Fault::MnemonicParamsUnchecked),
             write_not_applied: faults.has(Fault::VendorWriteNotApplied),
             shared_io,
@@ -934,6 +937,21 @@ impl Mdrive {
         self.profile.mnemonic(&mnemonic.name()).cloned()
     }
 
+    /// A known mnemonic named in lower or mixed case: served (the reference), or refused as unknown by a
+    /// drive that compares the bytes (`mnemonic-letter-case`).
+    fn letter_case_refusal(&mut self, fc: FunctionCode, mnemonic: &Mnemonic) -> Option<Response> {
+        let name = mnemonic.name();
+        if !name.bytes().any(|b| b.is_ascii_lowercase()) || self.vendor_entry(mnemonic).is_none() {
+            return None;
+        }
+        if self.letter_case_busy {
+            return Some(Response::exception(fc, ExceptionCode::SERVER_DEVICE_BUSY));
+        }
+        self.decided(ids::MNEMONIC_LETTER_CASE);
+        let code = Choices::exception_value(self.bank.choices().get(ids::MNEMONIC_LETTER_CASE)?)?;
+        Some(Response::exception(fc, code))
+    }
+
     /// FC 0x41: read a mnemonic's parameters.
     fn vendor_read(&mut self, mnemonic: &Mnemonic) -> Response {
         let fc = FunctionCode::VENDOR_READ;
@@ -944,6 +962,9 @@ impl Mdrive {
             self.decided(ids::MDRIVE_PROGRAM_CONTROL_FUNCTION);
             let _ = self.run_command(&key, "", false);
             return Response::VendorRead { params: Vec::new() };
+        }
+        if let Some(r) = self.letter_case_refusal(fc, mnemonic) {
+            return r;
         }
         let Some(m) = self.vendor_entry(mnemonic) else {
             return self.refuse(
@@ -1027,6 +1048,9 @@ impl Mdrive {
             Some("20 20 1B 20") if *mnemonic == printed_escape => escape.unwrap_or(*mnemonic),
             _ => *mnemonic,
         };
+        if let Some(r) = self.letter_case_refusal(fc, mnemonic) {
+            return r;
+        }
         let Some(m) = self.vendor_entry(mnemonic) else {
             return self.refuse(
                 fc,

@@ -10,6 +10,16 @@ use test_support::run_quietly;
 /// (fault, target, the case that must FAIL with it).
 pub(crate) const WITNESSES: &[(&str, &str, &str)] = &[
     (
+        "letter-case-busy",
+        "sim:mdrive",
+        "profile/mdrive/mnemonic/letter-case/read",
+    ),
+    (
+        "letter-case-busy",
+        "sim:lmd",
+        "profile/lmd/mnemonic/letter-case/read",
+    ),
+    (
         "zero-count-partial",
         "sim:sd2x",
         "profile/sd2x/object/zero-count/read",

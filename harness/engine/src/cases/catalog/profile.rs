@@ -657,6 +657,28 @@ fn mnemonics(cx: &mut Ctx) {
             )],
         );
     }
+    // A known mnemonic in lower case: served, or refused as unknown (`mnemonic-letter-case`). A read of
+    // a setting: nothing changes.
+    let lower = p
+        .mnemonics
+        .iter()
+        .map(|m| m.get_ref())
+        .filter(|m| m.read && !m.motion && !m.destructive)
+        .find_map(|m| Mnemonic::from_name(&m.name.to_ascii_lowercase()).map(|w| (m, w)));
+    if let Some((m, w)) = lower.filter(|_| cx.supports(FunctionCode::VENDOR_READ)) {
+        cx.push(
+            format!("profile/{pid}/mnemonic/letter-case/read"),
+            format!("FC 0x41 read of {} in lower case", m.name),
+            format!("{}: vendor FC 0x41, mnemonic {}", p.device.name, m.name),
+            "A known mnemonic named in lower case is read as in upper case, or refused as an unknown one, the same way each time.",
+            vec![],
+            vec![exchange(
+                Outgoing::Pdu(pdu(&Request::VendorRead { mnemonic: w })),
+                Compare::Structure,
+                format!("{} in lower case", m.name),
+            )],
+        );
+    }
 }
 
 /// Device identification: the basic and regular streams, and an object the device does not have (only when

@@ -75,6 +75,8 @@ pub mod ids {
     pub const PDU_OVER_253: &str = "pdu-over-253";
     /// The MDrive, a write to the output of an I/O point configured as an input: taken, or 04/03/02.
     pub const MDRIVE_OUTPUT_WRITE_WHILE_INPUT: &str = "mdrive-output-write-while-input";
+    /// The MDrive, a write of the outputs as a group (OT, OL) while a point is an input: taken, or 04/03/02.
+    pub const MDRIVE_OUTPUT_GROUP_WRITE_WHILE_INPUT: &str = "mdrive-output-group-write-while-input";
     /// FC 0x41/0x42 naming a known mnemonic in lower or mixed case: served, or refused as unknown.
     pub const MNEMONIC_LETTER_CASE: &str = "mnemonic-letter-case";
     /// SD2x FC 43, a read with byte count 0: the length error, the object at its size, or no data.
@@ -116,6 +118,7 @@ pub mod ids {
         MBAP_LENGTH_LONG,
         PDU_OVER_253,
         MDRIVE_OUTPUT_WRITE_WHILE_INPUT,
+        MDRIVE_OUTPUT_GROUP_WRITE_WHILE_INPUT,
         MNEMONIC_LETTER_CASE,
         SD2X_FC43_READ_ZERO_COUNT,
         SD2X_FC43_BYTE_COUNT_OVER_4,

@@ -67,6 +67,7 @@ pub enum Fault {
     QueryDataCut,
     UnusedDiagDataInconsistent,
     LetterCaseBusy,
+    GroupWriteClears,
 }
 
 impl Fault {
@@ -366,6 +367,11 @@ impl Fault {
             Fault::LetterCaseBusy,
             "letter-case-busy",
             "MDrive/LMD FC 0x41/0x42: a known mnemonic named in lower case is answered with exception 06 (busy): neither served nor refused as unknown",
+        ),
+        (
+            Fault::GroupWriteClears,
+            "group-write-clears",
+            "MDrive: OT/OL written while an I/O point is an input is acknowledged, and every output is cleared instead of set as written",
         ),
     ];
 

@@ -571,6 +571,8 @@ pub struct Mdrive {
     write_only_readable: bool,
     /// `Fault::LetterCaseBusy`: a known mnemonic in lower case is answered with exception 06.
     letter_case_busy: bool,
+    /// `Fault::GroupWriteClears`: OT/OL written while a point is an input clears every output.
+    group_write_clears: bool,
     /// `Fault::MnemonicParamsUnchecked`: FC 0x42 parameters the mnemonic does not take are "written".
     params_unchecked: bool,
     /// `Fault::VendorWriteNotApplied`: an FC 0x42 write of a setting is acknowledged but not stored.
@@ -645,6 +647,7 @@ impl Mdrive {
             nvm_writes: 0,
             write_only_readable: faults.has(Fault::WriteOnlyReadable),
             letter_case_busy: faults.has(Fault::LetterCaseBusy),
+            group_write_clears: faults.has(Fault::GroupWriteClears),
             params_unchecked: faults.has(Fault::MnemonicParamsUnchecked),
             write_not_applied: faults.has(Fault::VendorWriteNotApplied),
             shared_io,
@@ -793,12 +796,14 @@ impl Mdrive {
             .collect()
     }
 
-    /// The points (1-based) a register write sets: Ok → point k, OT/OL → every point.
-    fn register_points(&self, changes: &[Change]) -> Vec<usize> {
+    /// The points (1-based) a register write sets one by one (Ok → point k), and whether it sets them all
+    /// as a group (OT/OL).
+    fn register_points(&self, changes: &[Change]) -> (Vec<usize>, bool) {
         let mut points = Vec::new();
+        let mut group = false;
         for c in changes {
             if self.addrs.output_groups.contains(&c.address) {
-                points.extend(1..=self.outputs.len());
+                group = true;
             } else if let Some(i) = self
                 .addrs
                 .outputs
@@ -808,18 +813,29 @@ impl Mdrive {
                 points.push(i + 1);
             }
         }
-        points
+        (points, group)
     }
 
-    /// The refusal this drive chose for a write of an output whose point is an input
-    /// (`mdrive-output-write-while-input=exception-XX`); `None` where it takes the write (the reference).
-    fn input_point_refusal(&self) -> Option<Rejection> {
-        let v = self
-            .bank
-            .choices()
-            .get(ids::MDRIVE_OUTPUT_WRITE_WHILE_INPUT)?;
-        Choices::exception_value(v)
-            .map(|code| Rejection::by(ids::MDRIVE_OUTPUT_WRITE_WHILE_INPUT, code))
+    /// The freedoms a register write decides that sets the output of a point configured as an input: one
+    /// output (`mdrive-output-write-while-input`), all of them as a group
+    /// (`mdrive-output-group-write-while-input`).
+    fn input_point_freedoms(&self, changes: &[Change]) -> Vec<Decision> {
+        let (points, group) = self.register_points(changes);
+        let mut out = Vec::new();
+        if self.sets_input_point(points) {
+            out.push(ids::MDRIVE_OUTPUT_WRITE_WHILE_INPUT);
+        }
+        if group && self.sets_input_point(1..=self.outputs.len()) {
+            out.push(ids::MDRIVE_OUTPUT_GROUP_WRITE_WHILE_INPUT);
+        }
+        out
+    }
+
+    /// The refusal this drive chose under `freedom` for a write of an output whose point is an input
+    /// (`=exception-XX`); `None` where it takes the write (the reference).
+    fn input_point_refusal(&self, freedom: Decision) -> Option<Rejection> {
+        let v = self.bank.choices().get(freedom)?;
+        Choices::exception_value(v).map(|code| Rejection::by(freedom, code))
     }
 
     /// The dependent limits a register write must respect (exception 03), beyond each register's own range.
@@ -1266,10 +1282,23 @@ impl DataModel for Mdrive {
         self.check_limits(&changes)?;
         self.check_motion(&changes)?;
         // Last: a write the drive could not take anyway is refused for that (its own freedoms decide the code).
-        if self.sets_input_point(self.register_points(&changes))
-            && let Some(refusal) = self.input_point_refusal()
+        let freedoms = self.input_point_freedoms(&changes);
+        if self.group_write_clears && freedoms.contains(&ids::MDRIVE_OUTPUT_GROUP_WRITE_WHILE_INPUT)
         {
-            return Err(refusal);
+            // Acknowledged whatever the drive's choice, and every output cleared.
+            let mut changes = changes;
+            for c in changes
+                .iter_mut()
+                .filter(|c| self.addrs.output_groups.contains(&c.address))
+            {
+                c.value = 0;
+            }
+            return Ok(changes);
+        }
+        for freedom in &freedoms {
+            if let Some(refusal) = self.input_point_refusal(freedom) {
+                return Err(refusal);
+            }
         }
         Ok(changes)
     }
@@ -1279,9 +1308,9 @@ impl DataModel for Mdrive {
     }
 
     fn commit(&mut self, changes: Vec<Change>) {
-        if self.sets_input_point(self.register_points(&changes)) {
+        for freedom in self.input_point_freedoms(&changes) {
             // Taken although a point it sets is an input: a drive may refuse it (see `plan_write`).
-            self.decided(ids::MDRIVE_OUTPUT_WRITE_WHILE_INPUT);
+            self.decided(freedom);
         }
         self.bank.commit(&changes);
         for c in &changes {
@@ -1303,7 +1332,7 @@ impl DataModel for Mdrive {
         if self.sets_input_point(self.coil_points(address, states.len())) {
             // Refused for the setup only where the bank would take it (an unmapped coil is 02 first).
             self.bank.check_coil_write(address, states.len())?;
-            if let Some(refusal) = self.input_point_refusal() {
+            if let Some(refusal) = self.input_point_refusal(ids::MDRIVE_OUTPUT_WRITE_WHILE_INPUT) {
                 return Err(refusal);
             }
             self.decided(ids::MDRIVE_OUTPUT_WRITE_WHILE_INPUT);

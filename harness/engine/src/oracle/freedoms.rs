@@ -304,7 +304,9 @@ pub fn reference_shown(
         // choice, held against a refusal of another such write (an outcome freedom's other values are shown
         // by the answers that differ from the reference's, see `outcome_shown`).
         FreedomKind::Outcome
-            if f.id == drives::choices::ids::MDRIVE_OUTPUT_WRITE_WHILE_INPUT && cx.decided(f) =>
+            if (f.id == drives::choices::ids::MDRIVE_OUTPUT_WRITE_WHILE_INPUT
+                || f.id == drives::choices::ids::MDRIVE_OUTPUT_GROUP_WRITE_WHILE_INPUT)
+                && cx.decided(f) =>
         {
             let taken = !expected?.is_exception() && !observed?.is_exception();
             taken.then(|| shown_named(f, "", "response"))

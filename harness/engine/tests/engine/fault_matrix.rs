@@ -10,6 +10,11 @@ use test_support::run_quietly;
 /// (fault, target, the case that must FAIL with it).
 pub(crate) const WITNESSES: &[(&str, &str, &str)] = &[
     (
+        "group-write-clears",
+        "sim:mdrive",
+        "profile/mdrive/io-point/group/write-outputs-while-inputs",
+    ),
+    (
         "letter-case-busy",
         "sim:mdrive",
         "profile/mdrive/mnemonic/letter-case/read",

@@ -450,6 +450,76 @@ fn outputs_of_input_points(cx: &mut Ctx) {
             steps,
         );
     }
+    outputs_as_a_group_of_input_points(cx, &io);
+}
+
+/// The same for the outputs written as a group (OT, OL), every point an input: the group register is written
+/// the value it reads, taken or refused (freedom `mdrive-output-group-write-while-input`, a choice of its
+/// own), and read back unchanged.
+fn outputs_as_a_group_of_input_points(cx: &mut Ctx, io: &IoPoints) {
+    let p = cx.p;
+    let pid = &p.device.id;
+    if !cx.supports(FunctionCode::WRITE_MULTIPLE_REGISTERS) {
+        return;
+    }
+    let Some(r) = p.registers.iter().map(|r| r.get_ref()).find(|r| {
+        r.mnemonic
+            .as_deref()
+            .is_some_and(|m| m.eq_ignore_ascii_case("OT"))
+            && r.access.writable()
+            && !r.motion
+    }) else {
+        return;
+    };
+    let all: Vec<usize> = io.points().map(|(k, _)| k).collect();
+    let read = || {
+        Outgoing::Pdu(pdu(&Request::ReadHoldingRegisters {
+            address: r.address,
+            quantity: 1,
+        }))
+    };
+    let mut a = Around::new();
+    io.configure_outputs(cx, &mut a, &all);
+    let slot = a.slot();
+    a.set(capture(
+        read(),
+        Compare::Structure,
+        slot,
+        format!("read {} first", r.name),
+    ));
+    a.set(exchange(
+        Outgoing::RestoreRead { slot },
+        Compare::Exact,
+        "write the outputs the states they have, every point an output",
+    ));
+    a.undo(vec![exchange(
+        Outgoing::RestoreRead { slot },
+        Compare::Exact,
+        format!("put back {}", r.name),
+    )]);
+    io.configure_inputs(cx, &mut a, &all);
+    let steps = a.wrap(vec![
+        exchange(
+            Outgoing::RestoreRead { slot },
+            Compare::Exact,
+            "write the outputs as a group the states they have, every point an input: taken, or refused with 04, 03 or 02",
+        ),
+        exchange(read(), Compare::Exact, "read back: unchanged"),
+    ]);
+    cx.push(
+        format!("profile/{pid}/io-point/group/write-outputs-while-inputs"),
+        format!("write {} while every I/O point is an input", r.name),
+        format!(
+            "{}: register {:#06X} {} with S1-S{} inputs",
+            p.device.name,
+            r.address,
+            r.name,
+            all.len()
+        ),
+        "A write of the outputs as a group while the I/O points are configured as inputs is taken or refused (the manual leaves it open); the outputs read back unchanged.",
+        vec![Tag::Write],
+        steps,
+    );
 }
 
 /// Each discrete input is readable.

@@ -274,6 +274,10 @@ pub struct Register {
     /// Where the manual gives the range two ways (`min`/`max` is then the widest reading): the values every
     /// reading takes. The harness writes no other value inside the range; empty for a range read one way.
     pub safe_values: Vec<i64>,
+    /// The manual gives the register's width two ways (two addresses, two bytes): a drive may take a write
+    /// of its first register for a whole one. What a drive does with a half write of it is held apart from
+    /// the other registers' (freedom `partial-register-write`).
+    pub width_disputed: bool,
     pub default: Option<i64>,
     pub unit: Option<String>,
     pub table: Table,

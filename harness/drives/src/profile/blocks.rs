@@ -36,6 +36,8 @@ pub(super) struct RegisterEntry {
     max: Option<i64>,
     #[serde(default)]
     safe_values: Vec<i64>,
+    #[serde(default)]
+    width_disputed: bool,
     default: Option<IntOrTemplate>,
     unit: Option<String>,
     #[serde(default)]
@@ -286,6 +288,7 @@ impl RegisterEntry {
                 min: self.min,
                 max: self.max,
                 safe_values: self.safe_values.clone(),
+                width_disputed: self.width_disputed,
                 default,
                 unit: self.unit.clone(),
                 table: self.table,

@@ -377,6 +377,16 @@ pub fn unambiguous(
     kind: Option<&str>,
     requirements: &Requirements,
 ) -> Vec<Shown> {
+    // A half of a register whose width the manual gives two ways is a choice of its own (see `about_of`).
+    let shown: Vec<Shown> = shown
+        .into_iter()
+        .map(|mut s| {
+            if s.about.is_empty() {
+                s.about = about_of(&s.freedom, cx);
+            }
+            s
+        })
+        .collect();
     let value_codes = requirements.freedom(drives::choices::ids::VALUE_OUT_OF_RANGE);
     let item_bound = |id: &str| {
         applicable
@@ -520,6 +530,30 @@ pub fn outcome_shown(f: &Freedom, cx: &StepContext<'_>, kind: &str) -> Option<Sh
     let about = cx.decided(f) || cx.malformed || (cx.batch && f.id.starts_with("pipelined"));
     let listed = f.admits(kind);
     (f.kind == FreedomKind::Outcome && about && listed).then(|| shown_named(f, "", kind))
+}
+
+/// What a choice shown at this step is about within its freedom: for the answer to a read or write of part
+/// of a 32-bit register, the register whose width the manual gives two ways (a drive may take its first
+/// register for all of it, and keep to another choice for the others); otherwise the whole freedom ("").
+pub fn about_of(freedom: &str, cx: &StepContext<'_>) -> String {
+    use drives::choices::ids::{PARTIAL_REGISTER_READ, PARTIAL_REGISTER_WRITE};
+    if freedom != PARTIAL_REGISTER_WRITE && freedom != PARTIAL_REGISTER_READ {
+        return String::new();
+    }
+    let Some(req) = cx.request else {
+        return String::new();
+    };
+    let Some((address, quantity)) = registers_written(req).or_else(|| registers_read(req)) else {
+        return String::new();
+    };
+    let end = u32::from(address) + u32::from(quantity);
+    cx.profile
+        .registers
+        .iter()
+        .map(|r| r.get_ref())
+        .find(|r| r.width_disputed && u32::from(r.address) < end && r.end() > u32::from(address))
+        .map(|r| r.mnemonic.clone().unwrap_or_else(|| r.name.clone()))
+        .unwrap_or_default()
 }
 
 /// The alternative answers a freedom admits for a step whose reference answer is `expected` (`None`:
@@ -1248,5 +1282,69 @@ fn reading_concerns(f: &Freedom, req: Option<&Request>, pdu: &[u8]) -> bool {
         ),
         ("fc41-byte-count-width", _) => false,
         (_, r) => r.is_some(),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use drives::choices::ids::{PARTIAL_REGISTER_WRITE, UNKNOWN_MNEMONIC};
+
+    fn cx_for<'a>(
+        request: &'a Request,
+        pdu: &'a [u8],
+        profile: &'a drives::profile::Profile,
+    ) -> StepContext<'a> {
+        StepContext {
+            request: Some(request),
+            pdu,
+            unit: 1,
+            run_unit: 1,
+            profile,
+            malformed: false,
+            batch: false,
+            decided: &[],
+            counter_alternatives: &[],
+            closed: false,
+            short_of_length: false,
+        }
+    }
+
+    /// A half write of a register whose width the LMD manual gives two ways (LT: "0x009C-0x009D", "Bytes 2")
+    /// is a choice about that register; a half write of any other 32-bit register is about the whole
+    /// freedom, so a drive taking LT's first register alone and refusing other half writes keeps its choices.
+    #[test]
+    fn a_half_write_of_a_register_of_disputed_width_is_a_choice_of_its_own() {
+        let lmd = drives::corpus::Corpus::Embedded
+            .profile("lmd")
+            .expect("lmd");
+        let about = |address: u16, freedom: &str| {
+            let req = Request::WriteMultipleRegisters {
+                address,
+                values: vec![7],
+            };
+            let pdu = req.to_bytes().expect("pdu");
+            about_of(freedom, &cx_for(&req, &pdu, &lmd))
+        };
+        assert_eq!(about(0x009C, PARTIAL_REGISTER_WRITE), "LT");
+        assert_eq!(about(0x00A3, PARTIAL_REGISTER_WRITE), "TS");
+        // R2 (0x0061) and A (0x0000) are 32-bit one way only; other freedoms are about the whole freedom.
+        assert_eq!(about(0x0061, PARTIAL_REGISTER_WRITE), "");
+        assert_eq!(about(0x0000, PARTIAL_REGISTER_WRITE), "");
+        assert_eq!(about(0x009C, UNKNOWN_MNEMONIC), "");
+        let mut log = super::super::choices::ChoiceLog::default();
+        let requirements = drives::corpus::Corpus::Embedded
+            .requirements()
+            .expect("requirements");
+        let f = requirements
+            .freedom(PARTIAL_REGISTER_WRITE)
+            .expect("freedom");
+        let lt = shown_named(f, about(0x009C, PARTIAL_REGISTER_WRITE), "response");
+        let r2 = shown_named(f, about(0x0061, PARTIAL_REGISTER_WRITE), "exception-02");
+        let a = shown_named(f, about(0x0000, PARTIAL_REGISTER_WRITE), "response");
+        assert_eq!(log.record(&lt, "lt", &requirements), None);
+        assert_eq!(log.record(&r2, "r2", &requirements), None);
+        // Taking a half write of A after refusing R2's is a change of mind.
+        assert!(log.record(&a, "a", &requirements).is_some());
     }
 }

@@ -1822,7 +1822,13 @@ impl Runner {
                 .filter_map(|f| {
                     let v = self.learned.get(&f.id)?;
                     (f.values.first() != Some(v) && kind.as_deref().is_some_and(|k| v.matches(k)))
-                        .then(|| oracle::freedoms::shown_value(f, "", &v.to_string()))
+                        .then(|| {
+                            oracle::freedoms::shown_value(
+                                f,
+                                oracle::freedoms::about_of(&f.id, &cx),
+                                &v.to_string(),
+                            )
+                        })
                 })
                 .collect();
             findings.extend(judged.findings);

@@ -1,0 +1,47 @@
+#!/usr/bin/env bash
+# against.sh DRIVE PROFILE SCHEME [harness args...]: run the harness against one of the independent drives and
+# check that it is left as found. Starts DRIVE/sim.py on a free loopback port, dumps its state (SIGUSR1), runs
+# `modbus-harness run --target SCHEME://ADDR --profile PROFILE ARGS`, dumps the state again, prints the values
+# that differ (the FC 08 counters change with any traffic), stops the drive. Output under ${OUT:-/tmp/independent}.
+#
+#   tests/independent/against.sh sd2x sd2x rtu+tcp --generated 1500 --seed 2
+#   tests/independent/against.sh lmd lmd tcp --generated 3000 --seed 10
+#   PRESET=tests/independent/lmd/preset_output_function.py tests/independent/against.sh lmd lmd tcp
+set -u
+[ $# -ge 3 ] || { sed -n 2,9p "$0"; exit 2; }
+drive=$1 profile=$2 scheme=$3; shift 3
+here=$(cd "$(dirname "$0")" && pwd)
+repo=$(cd "$here/../.." && pwd)
+B=${B:-${CARGO_TARGET_DIR:-$repo/target}/release/modbus-harness}
+[ -x "$B" ] || { echo "no harness binary at $B: cargo build --release (or set B)" >&2; exit 2; }
+out=${OUT:-/tmp/independent}/$drive-$(date +%s%N); mkdir -p "$out"
+python3 "$here/$drive/sim.py" --listen 127.0.0.1:0 --state "$out/state.json" > "$out/sim.out" 2> "$out/sim.err" &
+pid=$!
+trap 'kill $pid 2>/dev/null; wait $pid 2>/dev/null' EXIT
+for _ in $(seq 50); do grep -q listening "$out/sim.out" && break; sleep 0.1; done
+addr=$(grep -oE '127\.0\.0\.1:[0-9]+' "$out/sim.out" | head -1)
+[ -n "$addr" ] || { echo "the drive did not start: $(cat "$out/sim.err")" >&2; exit 2; }
+[ -n "${PRESET:-}" ] && python3 "$PRESET" "$addr" > "$out/preset.out"
+kill -USR1 $pid; sleep 0.5; cp "$out/state.json" "$out/before.json"
+timeout 1800 "$B" run --target "$scheme://$addr" --profile "$profile" --report "$out/report" --no-progress "$@" \
+  > "$out/run.out" 2> "$out/run.err"
+echo "harness exit $?" >> "$out/run.out"
+kill -USR1 $pid; sleep 0.5; cp "$out/state.json" "$out/after.json"
+python3 - "$out" <<'PY'
+import json, sys
+d = sys.argv[1]
+a = json.load(open(d + '/before.json')); b = json.load(open(d + '/after.json'))
+def flat(x, p=''):
+    if isinstance(x, dict):
+        for k, v in x.items(): yield from flat(v, p + '/' + str(k))
+    elif isinstance(x, list):
+        for i, v in enumerate(x): yield from flat(v, p + '/' + str(i))
+    else: yield p, x
+fa = dict(flat(a)); fb = dict(flat(b))
+diff = [(k, fa.get(k), fb.get(k)) for k in sorted(set(fa) | set(fb))
+        if fa.get(k) != fb.get(k) and 'diagnostic_counters' not in k]
+print(f"state: {len(fa)} values, {len(diff)} differ after the run (FC 08 counters aside)")
+for k, x, y in diff[:60]: print(f"  {k}: {x!r} -> {y!r}")
+PY
+grep -E "^RESULT|harness exit" "$out/run.out"
+echo "dir: $out"

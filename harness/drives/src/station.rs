@@ -1620,11 +1620,12 @@ impl Station {
         let fixed = self
             .profile()
             .diagnostic(diag::RETURN_QUERY_DATA)
-            .and_then(|d| d.data_bytes);
-        if fixed.is_some_and(|n| data.len() != usize::from(n)) {
+            .and_then(|d| d.data_bytes)
+            .map(usize::from);
+        if let Some(n) = fixed.filter(|n| data.len() != *n) {
             if self.faults.has(Fault::QueryDataCut) && *sub_function == diag::RETURN_QUERY_DATA {
                 let mut cut = data.clone();
-                cut.resize(usize::from(fixed.unwrap_or(2)), 0);
+                cut.resize(n, 0);
                 return DiagOutcome::reply(Response::Diagnostics {
                     sub_function: *sub_function,
                     data: cut,

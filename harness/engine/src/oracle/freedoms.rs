@@ -403,27 +403,21 @@ pub fn unambiguous(
         shown
     };
     // A refusal of the FC 43 layout cut to the example's length shows that the drive takes that form too,
-    // not that it does not take the layout's (which one the cases use is learned before them).
-    let shown: Vec<Shown> = if cx.request.is_none() {
-        shown
-            .into_iter()
-            .filter(|s| s.freedom != "sd2x-fc43-reserved-byte")
-            .collect()
-    } else {
-        shown
-    };
-    // What a drive does with an FC 08 data field of another size is its choice for Return Query Data (00): a
-    // counter's or an unlisted sub-function's refusal is the reference's too.
-    let shown: Vec<Shown> = if cx.request.is_some_and(
+    // not that it does not take the layout's (which one the cases use is learned before them). What a drive
+    // does with an FC 08 data field of another size is its choice for Return Query Data (00): a counter's or
+    // an unlisted sub-function's refusal is the reference's too.
+    let not_query_data = cx.request.is_some_and(
         |r| !matches!(r, Request::Diagnostics { sub_function, .. } if *sub_function == 0),
-    ) {
-        shown
-            .into_iter()
-            .filter(|s| s.freedom != drives::choices::ids::SD2X_DIAGNOSTIC_DATA_SIZE)
-            .collect()
-    } else {
-        shown
-    };
+    );
+    let shown: Vec<Shown> = shown
+        .into_iter()
+        .filter(|s| {
+            let form = cx.request.is_none() && s.freedom == "sd2x-fc43-reserved-byte";
+            let size =
+                not_query_data && s.freedom == drives::choices::ids::SD2X_DIAGNOSTIC_DATA_SIZE;
+            !(form || size)
+        })
+        .collect();
     // A drive skips an ADU over 253 bytes (silently or with 03) once its bytes are in: before that, it is
     // silent whichever it chose.
     let shown: Vec<Shown> = if cx.short_of_length && kind == Some("silence") {
@@ -861,7 +855,8 @@ fn outcome(
             } else if let Response::CanOpenError { sdo_code } = o {
                 // The SD2x's extended exception response where the reference refuses otherwise: a length
                 // error (the only SDO error an outcome freedom is about).
-                let length = matches!(*sdo_code, 0xFFFF_0011..=0xFFFF_0013);
+                use drives::models::sd2x::sdo::{LENGTH_TOO_LONG, LENGTH_TOO_SHORT, LENGTH_WRONG};
+                let length = matches!(*sdo_code, LENGTH_WRONG | LENGTH_TOO_LONG | LENGTH_TOO_SHORT);
                 if has("sdo-error") && length && !matches!(e, Response::CanOpenError { .. }) {
                     vec![Alternative::exact(
                         Some(o.clone()),
@@ -1139,9 +1134,8 @@ fn zero_count_read(
 ) -> Vec<Alternative> {
     match o {
         Response::CanOpenError { sdo_code } => {
-            const LENGTH_WRONG: u32 = 0xFFFF_0011;
-            const TOO_SHORT: u32 = 0xFFFF_0013;
-            if matches!(*sdo_code, LENGTH_WRONG | TOO_SHORT) {
+            use drives::models::sd2x::sdo::{LENGTH_TOO_SHORT, LENGTH_WRONG};
+            if matches!(*sdo_code, LENGTH_WRONG | LENGTH_TOO_SHORT) {
                 vec![Alternative::exact(
                     Some(o.clone()),
                     shown_named(f, "", "sdo-error"),

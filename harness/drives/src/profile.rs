@@ -126,6 +126,11 @@ pub struct Device {
     pub broadcast: bool,
     #[serde(default = "default_max_pdu")]
     pub max_pdu: u16,
+    /// The drive's digital I/O points are shared between inputs and outputs, each set up as one or the other
+    /// with S1..Sn (FC 0x42), n being the number of its coils and of its discrete inputs (the MDrive, 000
+    /// lines 532, 1263). False: outputs are outputs of their own (the LMD), whatever mnemonics the profile has.
+    #[serde(default)]
+    pub shared_io_points: bool,
     pub note: Option<String>,
     pub line: Option<u32>,
 }
@@ -1019,6 +1024,31 @@ impl Profile {
                         format!("{what} {} defined twice", b.get_ref().address),
                     ));
                 }
+            }
+        }
+        if self.device.shared_io_points {
+            let n = self.coils.len();
+            if n == 0 || self.discrete_inputs.len() != n {
+                return Err((
+                    0,
+                    format!(
+                        "device.shared_io_points: needs as many discrete inputs as coils, at least one (has {n} coils, {} discrete inputs)",
+                        self.discrete_inputs.len()
+                    ),
+                ));
+            }
+            if let Some(k) = (1..=n).find(|k| {
+                !self
+                    .mnemonics
+                    .iter()
+                    .any(|m| m.get_ref().name == format!("S{k}") && m.get_ref().read && m.get_ref().write)
+            }) {
+                return Err((
+                    0,
+                    format!(
+                        "device.shared_io_points: point {k} has no read/write setup mnemonic `S{k}` (points 1..{n} are set up with S1..S{n})"
+                    ),
+                ));
             }
         }
         Ok(())

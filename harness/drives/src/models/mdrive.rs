@@ -627,7 +627,8 @@ impl Mdrive {
             }
         }
         let status = StatusSlots::new(&bank, &addrs, &inputs, &outputs);
-        let shared_io = !outputs.is_empty()
+        let shared_io = profile.device.shared_io_points
+            && !outputs.is_empty()
             && outputs.len() == inputs.len()
             && (1..=outputs.len()).all(|k| params.contains_key(&format!("S{k}")));
         let mut model = Self {

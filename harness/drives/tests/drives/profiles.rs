@@ -373,3 +373,38 @@ fn bad_profiles_name_the_file_the_line_and_the_reason() {
         );
     }
 }
+
+#[test]
+fn shared_io_points_need_a_setup_mnemonic_for_each_point_and_as_many_inputs_as_outputs() {
+    let coils = "\n[[coil]]\naddress = 0\ncount = 2\nname = \"Output {n}\"\n";
+    let inputs = "\n[[discrete_input]]\naddress = 0\ncount = 2\nname = \"Input {n}\"\n";
+    let setup = |k: u32| {
+        format!("\n[[mnemonic]]\nname = \"S{k}\"\nread = true\nwrite = true\nformat = \"=A,B,C\"\n")
+    };
+    let shared = "shared_io_points = true\n";
+    let whole = format!("{shared}{coils}{inputs}{}{}", setup(1), setup(2));
+    assert!(ok(&whole).device.shared_io_points);
+    assert!(!ok(&format!("{coils}{inputs}{}", setup(1))).device.shared_io_points);
+    for (body, want) in [
+        (
+            format!("{shared}{coils}{}{}", setup(1), setup(2)),
+            "needs as many discrete inputs as coils, at least one (has 2 coils, 0 discrete inputs)",
+        ),
+        (
+            format!("{shared}{coils}{inputs}{}", setup(1)),
+            "point 2 has no read/write setup mnemonic `S2`",
+        ),
+        (
+            whole.replace("name = \"S2\"\nread = true", "name = \"S2\"\nread = false"),
+            "point 2 has no read/write setup mnemonic `S2`",
+        ),
+    ] {
+        match parse(&body) {
+            Err(ProfileError::Invalid { line, reason, .. }) => {
+                assert!(reason.contains(want), "`{reason}` lacks `{want}`");
+                assert_eq!(line, 1, "{reason}: the error names [device]");
+            }
+            other => panic!("{body}\nnot refused: {other:?}"),
+        }
+    }
+}

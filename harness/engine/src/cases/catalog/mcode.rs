@@ -24,9 +24,9 @@ const MOVE_SETTLE: Duration = Duration::from_millis(250);
 /// The MDrive's I/O points, shared between inputs and outputs and configured with S1-S4 (FC 0x42): "The
 /// outputs must be configured as such" (000 lines 532, 579), "By default the I/O points are configured as
 /// general purpose inputs" (000 line 1263). Point k is coil k and discrete input k in address order, and
-/// registers Ik / Ok. A profile has them when it has a setup mnemonic S1..Sn for its n coils and n discrete
-/// inputs (the LMD's outputs are outputs of their own, set up per line with OS, which FC 0x41 cannot read
-/// back line by line: they are not reconfigured).
+/// registers Ik / Ok. A profile has them when it says so (`device.shared_io_points`) and has a setup mnemonic
+/// S1..Sn for its n coils and n discrete inputs (the LMD's outputs are outputs of their own, set up per line
+/// with OS, which FC 0x41 cannot read back line by line: they are not reconfigured; its S1-S4 set up inputs).
 pub(super) struct IoPoints {
     coils: Vec<u16>,
 }
@@ -38,6 +38,7 @@ impl IoPoints {
         coils.sort_unstable();
         let n = coils.len();
         let shared = n > 0
+            && p.device.shared_io_points
             && p.function(FunctionCode::VENDOR_READ).is_some()
             && p.function(FunctionCode::VENDOR_WRITE).is_some()
             && p.discrete_inputs.len() == n

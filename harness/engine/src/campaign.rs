@@ -726,6 +726,7 @@ fn run_one(
     }
     let result = runner.run_case(&case)?;
     if !t.is_empty() {
+        let t = k.taken(&case, runner.refused_writes());
         k.after_case(runner, &case.id, &t, profile)?;
     }
     Ok((case, result, false))

@@ -388,6 +388,11 @@ pub type Touched = BTreeSet<String>;
 /// What a case can have changed: items whose place its requests write, or everything when a request that
 /// may write cannot be decoded (malformed on purpose).
 pub fn touched(items: &[Item], case: &Case) -> BTreeSet<String> {
+    touched_by(items, case_pdus(case))
+}
+
+/// The request PDUs a case sends (restores aside: they write back what the case read before its writes).
+fn case_pdus(case: &Case) -> Vec<&[u8]> {
     let mut pdus: Vec<&[u8]> = Vec::new();
     for s in &case.steps {
         if let Step::Exchange { send, .. } = s {
@@ -400,6 +405,11 @@ pub fn touched(items: &[Item], case: &Case) -> BTreeSet<String> {
             }
         }
     }
+    pdus
+}
+
+/// The items that requests `pdus` can have written.
+fn touched_by(items: &[Item], pdus: Vec<&[u8]>) -> BTreeSet<String> {
     let mut keys = BTreeSet::new();
     for pdu in pdus {
         let written = match Request::decode(pdu) {
@@ -1149,6 +1159,33 @@ impl Keeper {
         touched(&self.inventory.items, case)
     }
 
+    /// What `case` can have changed, once it ran: [`touched`](Self::touched), less the guarded items (see
+    /// [`Inventory::guarded`]) that only writes the drive refused (`refused`, request PDUs answered with an
+    /// exception only: [`crate::runner::Runner::refused_writes`]) would have written. A refused write to a
+    /// status flag or an input changes nothing; were it counted, the flag would be put back from then on, and
+    /// a flag or input that changes by itself (the axis moving, a switch) would read as not restored.
+    pub fn taken(&self, case: &Case, refused: &[Vec<u8>]) -> Touched {
+        let all = self.touched(case);
+        let guarded: Vec<Item> = self
+            .inventory
+            .items
+            .iter()
+            .filter(|i| all.contains(&i.key) && self.inventory.guarded.contains(&i.key))
+            .cloned()
+            .collect();
+        if guarded.is_empty() || refused.is_empty() {
+            return all;
+        }
+        let pdus = case_pdus(case)
+            .into_iter()
+            .filter(|p| !refused.iter().any(|r| r.as_slice() == *p))
+            .collect();
+        let taken = touched_by(&guarded, pdus);
+        all.into_iter()
+            .filter(|k| !self.inventory.guarded.contains(k) || taken.contains(k))
+            .collect()
+    }
+
     /// Why `case` may not run once the snapshot is taken: it can write a parameter that would not write back
     /// as read (see [`Account::unwritable`]). `None` when nothing stands in its way.
     pub fn unrestorable(&self, case: &Case) -> Option<String> {
@@ -1799,6 +1836,48 @@ mod tests {
         let a = k.finish(&mut fake, &p);
         assert_eq!(fake.regs[&2], 12, "put back at the end");
         assert!(a.clean(), "{a:?}");
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    #[test]
+    fn a_guarded_register_whose_write_the_drive_refused_is_not_taken_as_written() {
+        let (dir, journal, _) = journal_and_generic("mbh-taken");
+        let mut fake = Fake::three();
+        let mut k = Keeper::new(
+            Inventory {
+                items: (0..3u16).map(|a| holding(a, 1)).collect(),
+                guarded: ["holding:2".to_string()].into(),
+                ..Inventory::default()
+            },
+            "tcp://127.0.0.1:1".into(),
+            "generic".into(),
+            1,
+            Some(journal),
+        );
+        k.take_snapshot(&mut fake).expect("snapshot");
+        let key = |a: u16| format!("holding:{a}");
+        // FC 16 of registers 1-2: one request writes a kept register and a guarded one.
+        let both = vec![0x10, 0, 1, 0, 2, 4, 0, 7, 0, 8];
+        let guarded_only = vec![0x06, 0, 2, 0, 9];
+        let other = vec![0x06, 0, 1, 0, 9];
+        let all: Touched = [key(1), key(2)].into();
+        let c = one_request_case(both.clone());
+        assert_eq!(k.taken(&c, &[]), all, "nothing refused: all it touches");
+        assert_eq!(
+            k.taken(&c, std::slice::from_ref(&both)),
+            [key(1)].into(),
+            "refused: the guarded register is not taken, the kept one is restored all the same"
+        );
+        let c = one_request_case(guarded_only.clone());
+        assert!(k.taken(&c, std::slice::from_ref(&guarded_only)).is_empty());
+        assert_eq!(k.taken(&c, std::slice::from_ref(&other)), [key(2)].into());
+        let mut two = one_request_case(guarded_only.clone());
+        two.steps.extend(one_request_case(both.clone()).steps);
+        assert_eq!(
+            k.taken(&two, std::slice::from_ref(&guarded_only)),
+            all,
+            "a second write of the guarded register was taken"
+        );
         let _ = std::fs::remove_dir_all(&dir);
     }
 

@@ -1013,6 +1013,10 @@ pub fn run(
         }
         progress(i + 1, total, &case.id, result.verdict);
         collected.record(opts, &case, &result, gen_index);
+        // A guarded status flag or input that the case only tried to write (refused) is not put back from now on.
+        if let (Some(k), Some(t)) = (keeper.as_ref(), after.as_mut()) {
+            *t = k.taken(&case, runner.refused_writes());
+        }
         let id = after.as_ref().map(|_| case.id.clone());
         // The case and its result go to the report writer as they are, not copied (the copy was the run
         // loop's share of what `--report` cost; BENCHMARKS.md, issue 17 item 3).

@@ -123,6 +123,9 @@ pub struct Runner {
     case_tags: Vec<Tag>,
     /// A request of the case was refused by that check: the case stops there.
     refused: bool,
+    /// The request PDUs of the case's steps that the target answered with an exception response and
+    /// nothing else: writes it did not take (see [`Runner::refused_writes`]).
+    refused_writes: Vec<Vec<u8>>,
     /// Transaction ids of the restore's traffic: a sequence of its own, so that the cases' ids (and the
     /// snapshots of their observations) are the same with or without leaving the drive as found.
     restore_tid: u16,
@@ -274,6 +277,7 @@ impl Runner {
             case_freedoms: Vec::new(),
             case_tags: Vec::new(),
             refused: false,
+            refused_writes: Vec::new(),
             restore_tid: 0xA000,
             case_order,
             input_offset: 0,
@@ -1143,6 +1147,13 @@ impl Runner {
         kept.restore(address, &self.profile)?.to_bytes().ok()
     }
 
+    /// The request PDUs of the last case run that the target answered only with an exception response: the
+    /// writes among them were not taken, so a parameter they alone would have written is unchanged by them
+    /// (see [`crate::restore::Keeper::taken`]).
+    pub fn refused_writes(&self) -> &[Vec<u8>] {
+        &self.refused_writes
+    }
+
     /// Run one case (already selected and allowed by the policy).
     pub fn run_case(&mut self, case: &Case) -> Result<CaseResult, TargetError> {
         // Requests of pipelined cases on the wire: what arrives is theirs, not stale.
@@ -1192,6 +1203,7 @@ impl Runner {
         self.case_freedoms.clone_from(&case.freedoms);
         self.case_tags.clone_from(&case.tags);
         self.refused = false;
+        self.refused_writes.clear();
         for (k, step) in case.steps.iter().enumerate() {
             if self.refused {
                 break;
@@ -1418,6 +1430,11 @@ impl Runner {
         let sent = self.send_pieces(&frames, &pieces, wire)?;
         let result =
             self.receive_and_judge(&frames, &pieces, sent, compare, capture, note, wire)?;
+        if let [f] = frames.as_slice()
+            && refused_only(self.target.framing(), &result.observed)
+        {
+            self.refused_writes.push(f.sent.pdu.clone());
+        }
         let follow = std::mem::take(&mut self.follow);
         for (f, v) in &follow {
             self.learned.choose(f, v.clone());
@@ -2088,6 +2105,19 @@ pub fn worse(a: Verdict, b: Verdict) -> Verdict {
 }
 
 /// A step that judged what earlier steps kept (no bytes of its own on the wire).
+/// True when the answers to one request were exception responses and nothing else (at least one): the
+/// target did not take the request.
+fn refused_only(framing: Framing, observed: &[Received]) -> bool {
+    !observed.is_empty()
+        && observed.iter().all(|o| {
+            matches!(o, Received::Frame { bytes, .. }
+            if matches!(
+                crate::readings::decode_response(framing, bytes),
+                Some(codec::Response::Exception { .. })
+            ))
+        })
+}
+
 fn step_of(note: String, verdict: Verdict, findings: Vec<String>) -> StepResult {
     StepResult {
         note,
@@ -2227,6 +2257,33 @@ pub(super) mod tests {
             );
             runner.silences = Silences::default();
         }
+    }
+
+    /// The runner tells the keeper which writes of a case the target refused (answered with an exception
+    /// only), so that a refused write to a status flag does not make the flag one to put back.
+    #[test]
+    fn the_writes_a_target_refused_are_told_apart_from_those_it_took() {
+        let mut runner = generic_runner();
+        let taken = vec![0x06, 0x00, 0x05, 0x00, 0x07];
+        let refused = vec![0x06, 0x01, 0x00, 0x00, 0x07];
+        let read = vec![0x03, 0x00, 0x00, 0x00, 0x01];
+        let mut case = protocol_id_case();
+        case.tags = vec![Tag::Write];
+        case.steps = [&taken, &refused, &read]
+            .into_iter()
+            .map(|pdu| Step::Exchange {
+                send: Outgoing::Pdu(pdu.clone()),
+                compare: Compare::Exact,
+                capture: None,
+                note: String::new(),
+            })
+            .collect();
+        let r = runner.run_case(&case).expect("run");
+        assert_eq!(r.verdict, Verdict::Pass, "{r:#?}");
+        assert_eq!(runner.refused_writes(), std::slice::from_ref(&refused));
+        case.steps.truncate(1);
+        runner.run_case(&case).expect("run");
+        assert!(runner.refused_writes().is_empty(), "cleared for each case");
     }
 
     /// A read sent with protocol id 1: the drive must not answer it (TCP guide 4.4.1).

@@ -1038,10 +1038,9 @@ impl Profile {
                 ));
             }
             if let Some(k) = (1..=n).find(|k| {
-                !self
-                    .mnemonics
-                    .iter()
-                    .any(|m| m.get_ref().name == format!("S{k}") && m.get_ref().read && m.get_ref().write)
+                !self.mnemonics.iter().any(|m| {
+                    m.get_ref().name == format!("S{k}") && m.get_ref().read && m.get_ref().write
+                })
             }) {
                 return Err((
                     0,

@@ -384,7 +384,11 @@ fn shared_io_points_need_a_setup_mnemonic_for_each_point_and_as_many_inputs_as_o
     let shared = "shared_io_points = true\n";
     let whole = format!("{shared}{coils}{inputs}{}{}", setup(1), setup(2));
     assert!(ok(&whole).device.shared_io_points);
-    assert!(!ok(&format!("{coils}{inputs}{}", setup(1))).device.shared_io_points);
+    assert!(
+        !ok(&format!("{coils}{inputs}{}", setup(1)))
+            .device
+            .shared_io_points
+    );
     for (body, want) in [
         (
             format!("{shared}{coils}{}{}", setup(1), setup(2)),

@@ -209,7 +209,10 @@ fn case_ops(p: &Profile, steps: &[Step]) -> Vec<u8> {
                 let ms = u16::try_from(d.as_millis()).unwrap_or(u16::MAX);
                 out.extend_from_slice(&ms.to_be_bytes());
             }
-            Step::Reconnect | Step::Agree { .. } | Step::EventLogShifted { .. } => {}
+            Step::Reconnect
+            | Step::Agree { .. }
+            | Step::EventLogShifted { .. }
+            | Step::Until { .. } => {}
         }
     }
     out

@@ -68,6 +68,7 @@ pub enum Fault {
     UnusedDiagDataInconsistent,
     LetterCaseBusy,
     GroupWriteClears,
+    HomingNeverEnds,
 }
 
 impl Fault {
@@ -372,6 +373,11 @@ impl Fault {
             Fault::GroupWriteClears,
             "group-write-clears",
             "MDrive: OT/OL written while an I/O point is an input is acknowledged, and every output is cleared instead of set as written",
+        ),
+        (
+            Fault::HomingNeverEnds,
+            "homing-never-ends",
+            "MDrive/LMD: a write of HM starts a homing that never ends: MV reads 1 from then on, and the axis never comes to rest",
         ),
     ];
 

@@ -303,6 +303,7 @@ struct Addrs {
     ms: Option<u16>,
     ht: Option<u16>,
     mt: Option<u16>,
+    hm: Option<u16>,
     /// Registers mirroring outputs 1.. (O1, O2, ...).
     outputs: Vec<Option<u16>>,
     /// Registers mirroring inputs 1.. (I1, I2, ...).
@@ -573,6 +574,10 @@ pub struct Mdrive {
     letter_case_busy: bool,
     /// `Fault::GroupWriteClears`: OT/OL written while a point is an input clears every output.
     group_write_clears: bool,
+    /// `Fault::HomingNeverEnds`: a write of HM starts a homing that never ends (`homing`).
+    homing_never_ends: bool,
+    /// MV reads 1 for good: a homing started under `Fault::HomingNeverEnds`.
+    homing: bool,
     /// `Fault::MnemonicParamsUnchecked`: FC 0x42 parameters the mnemonic does not take are "written".
     params_unchecked: bool,
     /// `Fault::VendorWriteNotApplied`: an FC 0x42 write of a setting is acknowledged but not stored.
@@ -607,6 +612,7 @@ impl Mdrive {
             ms: at("MS"),
             ht: at("HT"),
             mt: at("MT"),
+            hm: at("HM"),
             outputs: (1..=outputs.len()).map(|k| at(&format!("O{k}"))).collect(),
             inputs: (1..=inputs.len()).map(|k| at(&format!("I{k}"))).collect(),
             output_groups: ["OT", "OL"].iter().filter_map(|m| at(m)).collect(),
@@ -649,6 +655,8 @@ impl Mdrive {
             write_only_readable: faults.has(Fault::WriteOnlyReadable),
             letter_case_busy: faults.has(Fault::LetterCaseBusy),
             group_write_clears: faults.has(Fault::GroupWriteClears),
+            homing_never_ends: faults.has(Fault::HomingNeverEnds),
+            homing: false,
             params_unchecked: faults.has(Fault::MnemonicParamsUnchecked),
             write_not_applied: faults.has(Fault::VendorWriteNotApplied),
             shared_io,
@@ -744,7 +752,7 @@ impl Mdrive {
         set(s.p, self.p_origin.wrapping_add(d));
         set(s.c1, self.c1_origin.wrapping_add(d));
         set(s.v, steps(k.vel));
-        set(s.mv, i64::from(k.moving.is_some()));
+        set(s.mv, i64::from(k.moving.is_some() || self.homing));
         set(s.vc, i64::from(k.changing));
         set(s.mp, i64::from(k.moving == Some(MoveKind::Point)));
         for (table, bits, groups) in [
@@ -900,6 +908,9 @@ impl Mdrive {
     fn apply(&mut self, c: &Change) {
         let a = Some(c.address);
         let here = self.kinematics();
+        if self.homing_never_ends && a.is_some() && a == self.addrs.hm {
+            self.homing = true;
+        }
         if a == self.addrs.ma || a == self.addrs.mr {
             let dist = if a == self.addrs.ma {
                 c.value.wrapping_sub(self.position(here.disp))

@@ -138,6 +138,18 @@ pub enum Step {
     },
     /// Let time pass (virtual on `sim:`, real elsewhere) with the line idle.
     Wait(Duration),
+    /// Read one register with `read` (FC 03 or 04 of one register) every `every` until it reads `value`, for
+    /// at most `within`: a drive that may still be moving (a homing its manual leaves it free to start) is
+    /// given the time to come to rest before the case goes on and puts back what it changed. The reads reach
+    /// the reference too, as every request does, and are judged as a structure; the step FAILs when the
+    /// register never reads `value`, as the case then went on with the axis moving.
+    Until {
+        read: Vec<u8>,
+        value: u16,
+        every: Duration,
+        within: Duration,
+        note: String,
+    },
     /// Close and reopen the connection.
     Reconnect,
     /// The 32-bit value captured as a register pair (in the profile's word order) in slot `registers`

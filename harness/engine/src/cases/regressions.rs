@@ -50,6 +50,7 @@ pub enum StepKind {
     Reconnect,
     Agree,
     EventLogShifted,
+    Until,
 }
 
 fn is_exchange(k: &StepKind) -> bool {
@@ -92,6 +93,13 @@ pub struct StepFile {
     pub max_new: Option<usize>,
     #[serde(skip_serializing_if = "Option::is_none")]
     pub mutation: Option<Mutation>,
+    /// `until`: the value the register must come to, how often it is read and for how long at most.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub value: Option<u16>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub every_us: Option<u64>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub within_us: Option<u64>,
 }
 
 /// Where a reproducer came from (informational; the catalog ignores it).
@@ -166,6 +174,20 @@ fn step_file(step: &Step) -> StepFile {
             f.wait_us = Some(d.as_micros() as u64);
         }
         Step::Reconnect => f.kind = StepKind::Reconnect,
+        Step::Until {
+            read,
+            value,
+            every,
+            within,
+            note,
+        } => {
+            f.kind = StepKind::Until;
+            f.pdu = Some(hex_spaced(read));
+            f.value = Some(*value);
+            f.every_us = Some(every.as_micros() as u64);
+            f.within_us = Some(within.as_micros() as u64);
+            f.note = Some(note.clone());
+        }
         Step::Agree {
             registers,
             object,
@@ -226,6 +248,13 @@ fn step_of(i: usize, f: &StepFile) -> Result<Step, RegressionError> {
             f.wait_us.ok_or_else(|| at("a wait needs wait_us"))?,
         )),
         StepKind::Reconnect => Step::Reconnect,
+        StepKind::Until => Step::Until {
+            read: hex(f.pdu.as_deref().ok_or_else(|| at("until needs pdu"))?)?,
+            value: f.value.ok_or_else(|| at("until needs value"))?,
+            every: Duration::from_micros(f.every_us.ok_or_else(|| at("until needs every_us"))?),
+            within: Duration::from_micros(f.within_us.ok_or_else(|| at("until needs within_us"))?),
+            note: f.note.clone().unwrap_or_default(),
+        },
         StepKind::Agree => Step::Agree {
             registers: f.registers.ok_or_else(|| at("agree needs registers"))?,
             object: f.object.ok_or_else(|| at("agree needs object"))?,
@@ -485,6 +514,13 @@ mod tests {
                     note: "restore".into(),
                 },
                 Step::Wait(Duration::from_millis(5)),
+                Step::Until {
+                    read: vec![3, 0, 0x4A, 0, 1],
+                    value: 0,
+                    every: Duration::from_millis(50),
+                    within: Duration::from_secs(10),
+                    note: "at rest".into(),
+                },
                 Step::Reconnect,
                 Step::Agree {
                     registers: 0,

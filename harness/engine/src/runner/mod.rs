@@ -1218,6 +1218,16 @@ impl Runner {
                     self.target.reconnect()?;
                     self.shadow.reconnect()?;
                 }
+                Step::Until {
+                    read,
+                    value,
+                    every,
+                    within,
+                    note,
+                } => {
+                    let r = self.until(read, *value, *every, *within, note, &mut wire)?;
+                    steps.push(r);
+                }
                 Step::Agree {
                     registers,
                     object,
@@ -1471,6 +1481,62 @@ impl Runner {
             let _ = self.shadow.take_decisions();
         }
         Ok(result)
+    }
+
+    /// [`Step::Until`]: read with `read` every `every` until the register reads `value`, `within` at most.
+    /// The last read is the step's result; FAIL when the value never came.
+    fn until(
+        &mut self,
+        read: &[u8],
+        value: u16,
+        every: Duration,
+        within: Duration,
+        note: &str,
+        wire: &mut Vec<WireEvent>,
+    ) -> Result<StepResult, TargetError> {
+        let framing = self.target.framing();
+        let tries = within.as_micros() / every.as_micros().max(1) + 1;
+        let send = Outgoing::Pdu(read.to_vec());
+        let mut read_at = Duration::ZERO;
+        let mut k = 0u128;
+        loop {
+            let mut r = self.exchange(&send, &Compare::Structure, None, note, wire)?;
+            k += 1;
+            let got = r.observed.iter().rev().find_map(|o| match o {
+                Received::Frame { bytes, .. } => crate::readings::decode_response(framing, bytes),
+                _ => None,
+            });
+            let got = match got {
+                Some(
+                    codec::Response::ReadHoldingRegisters { values }
+                    | codec::Response::ReadInputRegisters { values },
+                ) => values.first().copied(),
+                _ => None,
+            };
+            match got {
+                // No value to wait on (refused, silent): the exchange judged it.
+                None => return Ok(r),
+                Some(v) if v == value => {
+                    if k > 1 {
+                        r.note = format!("{note}: {value} at read {k}, {} ms", read_at.as_millis());
+                    }
+                    return Ok(r);
+                }
+                Some(v) if k >= tries => {
+                    r.findings.push(format!(
+                        "still {v} (not {value}) after {k} reads over {} ms: the case went on with it so",
+                        read_at.as_millis()
+                    ));
+                    r.verdict = worse(r.verdict, Verdict::Fail);
+                    return Ok(r);
+                }
+                Some(_) => {
+                    self.target.idle(every);
+                    self.sync_shadow();
+                    read_at += every;
+                }
+            }
+        }
     }
 
     /// The safety assertion, immediately before sending: every frame is rated by the classifier on the bytes

@@ -9,6 +9,12 @@ use test_support::run_quietly;
 
 /// (fault, target, the case that must FAIL with it).
 pub(crate) const WITNESSES: &[(&str, &str, &str)] = &[
+    // The case waits for the axis to come to rest (`Step::Until`, MV = 0) before it goes on.
+    (
+        "homing-never-ends",
+        "sim:mdrive",
+        "profile/mdrive/write/0x002B-hm",
+    ),
     (
         "group-write-clears",
         "sim:mdrive",

@@ -23,12 +23,14 @@ const SEEDS: [u64; 3] = [1, 0x5EED, 0xDEAD_BEEF_CAFE];
 /// later exchange; a drive changing its choice is found in the cases after the first that showed the other
 /// value, whichever runs first. A drive reading the quantity's low byte shows such a change on the generic
 /// profile: FC 01 quantity 2001 (0x07D1) read as 209 runs past the map (02, `exception-check-order`) while
-/// FC 03 quantity 126 stays refused as a quantity (03).
-const ORDER_BOUND: [Fault; 4] = [
+/// FC 03 quantity 126 stays refused as a quantity (03). A homing that never ends keeps the axis moving for good:
+/// every case after the first HM write that waits for rest FAILs.
+const ORDER_BOUND: [Fault; 5] = [
     Fault::StopAfterMalformed,
     Fault::LateResponse,
     Fault::RangeCodeInconsistent,
     Fault::QuantityLowByte,
+    Fault::HomingNeverEnds,
 ];
 
 /// Case id -> verdict, and the ids in run order.

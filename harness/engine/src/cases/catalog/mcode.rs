@@ -137,9 +137,39 @@ fn write(cx: &Ctx, r: &Register, value: i64, note: impl Into<String>) -> Step {
     )
 }
 
-/// True for a register whose write starts a move: MA, MR, SL (000 lines 1072, 1074, 1114).
+/// True for a register whose write starts a move: MA, MR, SL (000 lines 1072, 1074, 1114), and HM, which
+/// may (freedom `mdrive-inferred-read-write`: "Sets the behavior of the axis for homing routines", no
+/// default, and the MCode homing instruction; 000 line 1055, 001 line 2104).
 pub(super) fn starts_move(r: &Register) -> bool {
-    ["MA", "MR", "SL"].iter().any(|m| is(r, m))
+    ["MA", "MR", "SL", "HM"].iter().any(|m| is(r, m))
+}
+
+/// How long the axis is given to come to rest after a move a case started, read every [`REST_POLL`]: a
+/// homing runs until its switch is found (000 line 1055), longer than any move of the catalog.
+const REST_WITHIN: Duration = Duration::from_secs(10);
+const REST_POLL: Duration = Duration::from_millis(50);
+
+/// Wait for the axis to come to rest: MV ("Moving", 000 line 1089) read until it is 0, [`REST_WITHIN`] at
+/// most. None where the profile has no readable MV.
+fn await_rest(cx: &Ctx) -> Option<Step> {
+    let mv = register(cx.p, "MV").filter(|r| r.access.readable() && r.width == 1)?;
+    let table = if mv.table == drives::profile::Table::Input {
+        drives::profile::Table::Input
+    } else {
+        drives::profile::Table::Holding
+    };
+    Some(Step::Until {
+        read: pdu(&cx.read_request(mv.address, 1, table)),
+        value: 0,
+        every: REST_POLL,
+        within: REST_WITHIN,
+        note: format!(
+            "the axis at rest: MV (0x{:04X}) reads 0 (read every {} ms, {} s at most)",
+            mv.address,
+            REST_POLL.as_millis(),
+            REST_WITHIN.as_secs()
+        ),
+    })
 }
 
 /// A move needs the drive enabled: the reference refuses MA/MR/SL while DE = 0 (exception 04). Keep DE,
@@ -154,10 +184,18 @@ pub(super) fn enable_drive(cx: &Ctx, a: &mut Around) {
 /// Around a write of `value` to a move register (after [`enable_drive`]): a point move (MA, MR) starts from a
 /// known position (P kept, then set to 0, the reference point of moves, 000 line 1097: the move is short on any
 /// drive) and moves back to it with MA 0, an absolute move that cannot add to any error of the first;
-/// SL stops (SL 0). The position counter is put back after.
+/// SL stops (SL 0). The position counter is put back after. A homing (HM, where the drive takes it as the
+/// instruction) ends by itself when its switch is found, and sets the position reference there: P is not
+/// written by the case (a write of P is destructive, 000 line 1097, and would make the case so); the keeper
+/// puts it back at the end of a run that allows destructive writes, and lists it as left out otherwise. After
+/// each, the case waits for the axis to come to rest (MV = 0) before it puts anything back: a drive refuses
+/// to change P or MS while it moves (exception 04), and the next case must not start with the axis moving.
 pub(super) fn undo_move(cx: &Ctx, a: &mut Around, r: &Register) {
     let settle = Step::Wait(MOVE_SETTLE);
-    if is(r, "MA") || is(r, "MR") {
+    let rest = await_rest(cx);
+    if is(r, "HM") {
+        a.undo(rest.into_iter().collect());
+    } else if is(r, "MA") || is(r, "MR") {
         let (Some(pos), Some(ma)) = (
             register(cx.p, "P").filter(|p| p.access == Access::Rw),
             register(cx.p, "MA").filter(|m| m.access.writable()),
@@ -171,17 +209,20 @@ pub(super) fn undo_move(cx: &Ctx, a: &mut Around, r: &Register) {
             0,
             "position counter P = 0 (the move is short)",
         ));
-        a.undo(vec![
+        let mut back = vec![
             settle.clone(),
             write(cx, ma, 0, "move back to position 0 (MA 0)"),
             settle,
-        ]);
+        ];
+        back.extend(rest);
+        a.undo(back);
     } else if is(r, "SL") {
         let mut stop = vec![write(cx, r, 0, "stop the slew (SL 0)")];
         match register(cx.p, "DE").filter(|d| d.access == Access::Rw) {
             Some(de) => stop.push(write(cx, de, 0, "stop the axis at once (DE = 0)")),
             None => stop.push(settle),
         }
+        stop.extend(rest);
         a.undo(stop);
     }
 }

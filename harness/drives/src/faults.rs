@@ -69,6 +69,7 @@ pub enum Fault {
     LetterCaseBusy,
     GroupWriteClears,
     HomingNeverEnds,
+    ProgramAbsentSilent,
 }
 
 impl Fault {
@@ -378,6 +379,11 @@ impl Fault {
             Fault::HomingNeverEnds,
             "homing-never-ends",
             "MDrive/LMD: a write of HM starts a homing that never ends: MV reads 1 from then on, and the axis never comes to rest",
+        ),
+        (
+            Fault::ProgramAbsentSilent,
+            "program-absent-silent",
+            "MDrive/LMD: FC 0x42 EX gets no answer: the program neither runs nor is refused as absent with a code the error tables allow (mcode-example-program-absent)",
         ),
     ];
 

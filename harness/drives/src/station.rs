@@ -1157,6 +1157,11 @@ impl Station {
             self.decisions.extend(e.freedom);
             let e = self.check_order(now, unit, &req, e);
             Some(Response::exception(fc, e.code))
+        } else if self.faults.has(Fault::ProgramAbsentSilent)
+            && matches!(&req, Request::VendorWrite { mnemonic, .. } if mnemonic.name().trim() == "EX")
+        {
+            // Neither runs the program nor refuses it, whatever the drive chose for the item.
+            None
         } else if let Some(code) = self.lacks(&req) {
             Some(Response::exception(fc, code))
         } else if let Some(r) = self.half_register_widened(&req) {

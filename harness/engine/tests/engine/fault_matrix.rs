@@ -16,6 +16,11 @@ pub(crate) const WITNESSES: &[(&str, &str, &str)] = &[
         "profile/mdrive/write/0x002B-hm",
     ),
     (
+        "program-absent-silent",
+        "sim:lmd",
+        "profile/lmd/mnemonic/ex/write",
+    ),
+    (
         "group-write-clears",
         "sim:mdrive",
         "profile/mdrive/io-point/group/write-outputs-while-inputs",

@@ -14,8 +14,10 @@ here=$(cd "$(dirname "$0")" && pwd)
 repo=$(cd "$here/../.." && pwd)
 B=${B:-${CARGO_TARGET_DIR:-$repo/target}/release/modbus-harness}
 [ -x "$B" ] || { echo "no harness binary at $B: cargo build --release (or set B)" >&2; exit 2; }
-out=${OUT:-/tmp/independent}/$drive-$(date +%s%N); mkdir -p "$out"
-python3 "$here/$drive/sim.py" --listen 127.0.0.1:0 --state "$out/state.json" > "$out/sim.out" 2> "$out/sim.err" &
+# DRIVE is one of this folder's drives, or the path of another drive's folder (its sim.py takes the same options).
+out=${OUT:-/tmp/independent}/$(basename "$drive")-$(date +%s%N); mkdir -p "$out"
+case $drive in */*) sim=$drive/sim.py; drive=$(basename "$drive") ;; *) sim=$here/$drive/sim.py ;; esac
+python3 "$sim" ${SIM_ARGS:-} --listen 127.0.0.1:0 --state "$out/state.json" > "$out/sim.out" 2> "$out/sim.err" &
 pid=$!
 trap 'kill $pid 2>/dev/null; wait $pid 2>/dev/null' EXIT
 for _ in $(seq 50); do grep -q listening "$out/sim.out" && break; sleep 0.1; done
@@ -23,7 +25,7 @@ addr=$(grep -oE '127\.0\.0\.1:[0-9]+' "$out/sim.out" | head -1)
 [ -n "$addr" ] || { echo "the drive did not start: $(cat "$out/sim.err")" >&2; exit 2; }
 [ -n "${PRESET:-}" ] && python3 "$PRESET" "$addr" > "$out/preset.out"
 kill -USR1 $pid; sleep 0.5; cp "$out/state.json" "$out/before.json"
-timeout 1800 "$B" run --target "$scheme://$addr" --profile "$profile" --report "$out/report" --no-progress "$@" \
+timeout 1800 "$B" run --target "$scheme://$addr" --profile "$profile" --report "$out/report" --regressions "$out/regressions" --no-progress "$@" \
   > "$out/run.out" 2> "$out/run.err"
 echo "harness exit $?" >> "$out/run.out"
 kill -USR1 $pid; sleep 0.5; cp "$out/state.json" "$out/after.json"

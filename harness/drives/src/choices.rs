@@ -60,6 +60,16 @@ pub mod ids {
     pub const TRUNCATED_PDU: &str = "truncated-pdu";
     /// Both the quantity and the address (range) wrong: 03 (quantity checked first) or 02 (address first).
     pub const EXCEPTION_CHECK_ORDER: &str = "exception-check-order";
+    /// A write of a value inside a register's widest range that is none of the values every reading of its
+    /// manual takes (`safe_values`): taken, or refused with 03.
+    pub const VALUE_MEANING_OPEN: &str = "value-meaning-open";
+    /// A PDU longer than its function's layout (the frame intact): 03, silence, a close, or the request
+    /// the layout's bytes make served and the rest ignored.
+    pub const TRAILING_BYTES: &str = "trailing-bytes";
+    /// FC 43 with an MEI type the drive does not serve: exception 01, 02 or 03.
+    pub const UNSUPPORTED_MEI_TYPE: &str = "unsupported-mei-type";
+    /// A request whose function code is 128-255, the codes of exception responses: 01, silence or a close.
+    pub const REQUEST_FC_OVER_127: &str = "request-fc-over-127";
     /// Modbus/TCP, a unit id in the freedom's `units` that is not the station's own (nor 0, 0xFF):
     /// answered or ignored.
     pub const TCP_UNIT_IDS: &str = "tcp-unit-ids";
@@ -77,12 +87,21 @@ pub mod ids {
     pub const MDRIVE_OUTPUT_WRITE_WHILE_INPUT: &str = "mdrive-output-write-while-input";
     /// The MDrive, a write of the outputs as a group (OT, OL) while a point is an input: taken, or 04/03/02.
     pub const MDRIVE_OUTPUT_GROUP_WRITE_WHILE_INPUT: &str = "mdrive-output-group-write-while-input";
+    /// FC 0x41/0x42 naming a known mnemonic padded with NUL where the manuals print spaces: refused as
+    /// unknown, or served as the mnemonic it pads.
+    pub const MNEMONIC_PADDING: &str = "mnemonic-padding";
     /// FC 0x41/0x42 naming a known mnemonic in lower or mixed case: served, or refused as unknown.
     pub const MNEMONIC_LETTER_CASE: &str = "mnemonic-letter-case";
     /// SD2x FC 43, a read with byte count 0: the length error, the object at its size, or no data.
     pub const SD2X_FC43_READ_ZERO_COUNT: &str = "sd2x-fc43-read-zero-count";
     /// SD2x FC 43, a byte count above 4: the SDO length error or exception 03.
     pub const SD2X_FC43_BYTE_COUNT_OVER_4: &str = "sd2x-fc43-byte-count-over-4";
+    /// SD2x FC 43 with control code bits 0-6 not zero ("set to zero"): the SDO error 0003, or exception 03.
+    pub const SD2X_FC43_CONTROL_BITS: &str = "sd2x-fc43-control-bits";
+    /// SD2x FC 43 with a reserved field not zero: ignored, or exception 03.
+    pub const SD2X_FC43_RESERVED_NONZERO: &str = "sd2x-fc43-reserved-nonzero";
+    /// SD2x FC 43 with an address offset not zero ("set to zero"): the SDO error 0008, or exception 03.
+    pub const SD2X_FC43_OFFSET_NONZERO: &str = "sd2x-fc43-offset-nonzero";
     /// SD2x FC 08/0A-0F with a non-zero data field: ignored, or exception 03.
     pub const SD2X_DIAGNOSTIC_UNUSED_DATA: &str = "sd2x-diagnostic-unused-data";
     /// SD2x FC 08/00 with a data field other than 2 bytes: echoed, exception 03, or silence.
@@ -110,6 +129,10 @@ pub mod ids {
         LMD_ESC_WIRE_FORM,
         MDRIVE_PROGRAM_CONTROL_FUNCTION,
         TRUNCATED_PDU,
+        TRAILING_BYTES,
+        VALUE_MEANING_OPEN,
+        REQUEST_FC_OVER_127,
+        UNSUPPORTED_MEI_TYPE,
         EXCEPTION_CHECK_ORDER,
         TCP_UNIT_IDS,
         PIPELINED_RESPONSE_ORDER,
@@ -120,8 +143,12 @@ pub mod ids {
         MDRIVE_OUTPUT_WRITE_WHILE_INPUT,
         MDRIVE_OUTPUT_GROUP_WRITE_WHILE_INPUT,
         MNEMONIC_LETTER_CASE,
+        MNEMONIC_PADDING,
         SD2X_FC43_READ_ZERO_COUNT,
         SD2X_FC43_BYTE_COUNT_OVER_4,
+        SD2X_FC43_CONTROL_BITS,
+        SD2X_FC43_RESERVED_NONZERO,
+        SD2X_FC43_OFFSET_NONZERO,
         SD2X_DIAGNOSTIC_UNUSED_DATA,
         SD2X_DIAGNOSTIC_DATA_SIZE,
     ];

@@ -28,3 +28,16 @@ pub mod control {
     /// Command "fault reset".
     pub const CMD_FAULT_RESET: u16 = 0x0080;
 }
+
+/// Status word (0x6041) coding of the CiA 402 state table.
+pub mod status {
+    /// The mask of the states in which the table leaves bit 5 (quick stop) open: not ready to switch on
+    /// (`x0xx 0000`), switch on disabled (`x1xx 0000`), fault reaction active (`x0xx 1111`) and fault
+    /// (`x0xx 1000`). In the other four states the table gives bit 5, and the mask is 0x006F.
+    pub const BIT5_OPEN_MASK: u16 = 0x004F;
+
+    /// True when `word` codes one of the states whose bit 5 the state table leaves open ([`BIT5_OPEN_MASK`]).
+    pub fn bit5_open(word: u16) -> bool {
+        matches!(word & BIT5_OPEN_MASK, 0x0000 | 0x0040 | 0x000F | 0x0008)
+    }
+}

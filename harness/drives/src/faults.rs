@@ -70,6 +70,12 @@ pub enum Fault {
     GroupWriteClears,
     HomingNeverEnds,
     ProgramAbsentSilent,
+    QuickStopBitClear,
+    ZeroFieldsBusy,
+    TrailingBytes04,
+    HighFunctionServed,
+    MeiTypeServed,
+    NulPaddingBusy,
 }
 
 impl Fault {
@@ -384,6 +390,36 @@ impl Fault {
             Fault::ProgramAbsentSilent,
             "program-absent-silent",
             "MDrive/LMD: FC 0x42 EX gets no answer: the program neither runs nor is refused as absent with a code the error tables allow (mcode-example-program-absent)",
+        ),
+        (
+            Fault::QuickStopBitClear,
+            "quick-stop-bit-clear",
+            "SD2x: the status word's bit 5 (quick stop) reads 0 in operation enabled, where the DS402 state table gives it as 1 (0 there reads as quick stop active)",
+        ),
+        (
+            Fault::ZeroFieldsBusy,
+            "zero-fields-busy",
+            "SD2x FC 43: a control code with bits 0-6 set, a reserved field or an address offset not zero is answered with exception 06 (busy): neither the SDO error or the field ignored, nor 03",
+        ),
+        (
+            Fault::TrailingBytes04,
+            "trailing-bytes-04",
+            "A request PDU longer than its function's layout (MBAP length or CRC consistent with it) is answered with exception 04 (server device failure), which App 7 keeps for a failure while performing a request: not 03, silence, a close, or the request served",
+        ),
+        (
+            Fault::HighFunctionServed,
+            "high-function-served",
+            "A request whose function code is 128-255 (the codes of exception responses, App 4.1) is served as the function with the high bit cleared: 0x83 read as FC 03",
+        ),
+        (
+            Fault::MeiTypeServed,
+            "mei-type-served",
+            "FC 43 with an MEI type the drive does not serve is answered with exception 04 (server device failure) instead of being refused as unsupported (01, 02 or 03)",
+        ),
+        (
+            Fault::NulPaddingBusy,
+            "nul-padding-busy",
+            "MDrive/LMD FC 0x41/0x42: a known mnemonic padded with NUL instead of spaces is answered with exception 06 (busy): neither refused as unknown nor served (mnemonic-padding)",
         ),
     ];
 

@@ -131,6 +131,13 @@ pub struct Device {
     /// lines 532, 1263). False: outputs are outputs of their own (the LMD), whatever mnemonics the profile has.
     #[serde(default)]
     pub shared_io_points: bool,
+    /// The device-specific contents the profile declares ([exception_status], [server_id], [[file]],
+    /// [[fifo]]: App 6.7, 6.13, 6.14, 6.18 leave them to the device) are the reference drive's own, not a
+    /// requirement on the target: a run against anything but `sim:` compares FC 07, 11, 18 and FC 14 (where the
+    /// case writes no record first) in format only, and takes a refusal with 02 or 03 of a queue or file the
+    /// device does not have. The generic profile, which stands for any Modbus server.
+    #[serde(default)]
+    pub reference_contents: bool,
     pub note: Option<String>,
     pub line: Option<u32>,
 }

@@ -1075,6 +1075,23 @@ impl Station {
                 false,
             ));
         }
+        if fc.is_exception() && self.faults.has(Fault::HighFunctionServed) {
+            let mut masked = pdu.to_vec();
+            masked[0] &= 0x7F;
+            return self.process(now, unit, FunctionCode(masked[0]), &masked, via);
+        }
+        if fc.is_exception() {
+            // 128-255 are exception responses' codes (App 4.1): 01, or no answer at all (`request-fc-over-127`).
+            self.decisions.push(ids::REQUEST_FC_OVER_127);
+            match self.choices.name(ids::REQUEST_FC_OVER_127) {
+                Some("silence") => return Some((None, false)),
+                Some("close") => {
+                    self.close_requested = via == Via::Tcp;
+                    return Some((None, false));
+                }
+                _ => {}
+            }
+        }
         if !supported && !served_extra {
             // A function the profile does not list: a drive may serve it anyway (a freedom of the spec).
             self.decisions.push(ids::SERVED_EXTRA_FUNCTION);
@@ -1103,10 +1120,44 @@ impl Station {
             .unwrap_or_else(|| Request::decode(pdu))
         {
             Ok(req) => req,
+            // Longer than the function's layout: the drive may serve what the layout's bytes ask and ignore
+            // the rest (`trailing-bytes`), as the reference does once it learned the drive does.
+            Err(codec::DecodeError {
+                kind: DecodeErrorKind::TrailingBytes { extra },
+                ..
+            }) if !self.faults.has(Fault::TrailingBytes04)
+                && self.choices.name(ids::TRAILING_BYTES) == Some("response")
+                && Request::decode(&pdu[..pdu.len().saturating_sub(extra)]).is_ok() =>
+            {
+                self.decisions.push(ids::TRAILING_BYTES);
+                Request::decode(&pdu[..pdu.len().saturating_sub(extra)]).ok()?
+            }
             Err(e) => {
                 self.malformed();
                 if self.dead {
                     return None;
+                }
+                if matches!(e.kind, DecodeErrorKind::TrailingBytes { .. }) {
+                    if self.faults.has(Fault::TrailingBytes04) {
+                        return Some((
+                            Some(Response::exception(
+                                fc,
+                                ExceptionCode::SERVER_DEVICE_FAILURE,
+                            )),
+                            false,
+                        ));
+                    }
+                    // Longer than its function's layout: 03 (the reference), no answer, or on Modbus/TCP
+                    // the connection closed.
+                    self.decisions.push(ids::TRAILING_BYTES);
+                    match self.choices.name(ids::TRAILING_BYTES) {
+                        Some("silence") => return Some((None, false)),
+                        Some("close") => {
+                            self.close_requested = via == Via::Tcp;
+                            return Some((None, false));
+                        }
+                        _ => {}
+                    }
                 }
                 // FC 0x41/0x42 whose length is wrong and whose mnemonic the drive may not know (not in the
                 // profile, or one a product may lack): refused either way, and which check comes first is the
@@ -1147,12 +1198,40 @@ impl Station {
                         _ => {}
                     }
                 }
+                // A malformed request whose address range is wrong too (a byte count off, cut short, a byte
+                // more): which check comes first is the drive's (`exception-check-order`; App 4.5, Figure 9,
+                // checks the address before the data value).
+                let code = header_range(pdu).map_or(ExceptionCode::ILLEGAL_DATA_VALUE, |range| {
+                    self.check_order(
+                        now,
+                        unit,
+                        &range,
+                        Rejection::fixed(ExceptionCode::ILLEGAL_DATA_VALUE),
+                    )
+                    .code
+                });
+                return Some((Some(Response::exception(fc, code)), false));
+            }
+        };
+        // FC 43 with an MEI type the codec does not know (neither 0x0D nor 0x0E): which code refuses it is the
+        // drive's (`unsupported-mei-type`; the reference: 01, as for a function it does not serve).
+        if matches!(&req, Request::Raw { function, .. } if *function == FunctionCode::ENCAPSULATED_INTERFACE)
+        {
+            if self.faults.has(Fault::MeiTypeServed) {
                 return Some((
-                    Some(Response::exception(fc, ExceptionCode::ILLEGAL_DATA_VALUE)),
+                    Some(Response::exception(
+                        fc,
+                        ExceptionCode::SERVER_DEVICE_FAILURE,
+                    )),
                     false,
                 ));
             }
-        };
+            self.decisions.push(ids::UNSUPPORTED_MEI_TYPE);
+            let code = self
+                .choices
+                .code(ids::UNSUPPORTED_MEI_TYPE, ExceptionCode::ILLEGAL_FUNCTION);
+            return Some((Some(Response::exception(fc, code)), false));
+        }
         let resp = if let Some(e) = self.spec_checks(&req) {
             self.decisions.extend(e.freedom);
             let e = self.check_order(now, unit, &req, e);
@@ -1847,4 +1926,19 @@ fn pad_with_ones(req: &Request, resp: Response) -> Response {
 /// commands a broadcast carries (serial line spec 2.1).
 fn writes_data_model(fc: u8) -> bool {
     matches!(fc, 0x05 | 0x06 | 0x0F | 0x10 | 0x15 | 0x16 | 0x17)
+}
+
+/// The range a malformed FC 01-04, 0F or 10 request names in its header (address and quantity, the first five
+/// bytes), as the read of that range whose ends the station probes ([`Station::check_order`]); `None` where
+/// the header is cut or the function has no range.
+fn header_range(pdu: &[u8]) -> Option<Request> {
+    let be16 = |at: usize| Some(u16::from_be_bytes([*pdu.get(at)?, *pdu.get(at + 1)?]));
+    let (address, quantity) = (be16(1)?, be16(3)?);
+    Some(match pdu.first()? {
+        0x01 | 0x0F => Request::ReadCoils { address, quantity },
+        0x02 => Request::ReadDiscreteInputs { address, quantity },
+        0x03 | 0x10 => Request::ReadHoldingRegisters { address, quantity },
+        0x04 => Request::ReadInputRegisters { address, quantity },
+        _ => return None,
+    })
 }

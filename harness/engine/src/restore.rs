@@ -395,7 +395,7 @@ pub fn touched(items: &[Item], case: &Case) -> BTreeSet<String> {
 fn case_pdus(case: &Case) -> Vec<&[u8]> {
     let mut pdus: Vec<&[u8]> = Vec::new();
     for s in &case.steps {
-        if let Step::Exchange { send, .. } = s {
+        if let Step::Exchange { send, .. } | Step::Persist { send, .. } = s {
             match send {
                 Outgoing::Pdu(p) => pdus.push(p),
                 Outgoing::PduToUnit { pdu, .. } | Outgoing::Mutated { pdu, .. } => pdus.push(pdu),
@@ -546,6 +546,11 @@ pub struct Account {
     /// put it back (a vendor setting whose FC 0x41 form the drive does not take in FC 0x42), with why.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub unwritable: Vec<Excluded>,
+    /// Kept parameters put back and verified before the cases that leave the drive changed for good (CP,
+    /// UG; [`Keeper::checkpoint`]) that the drive no longer let be read back or written after them, and that
+    /// no case since could write: not counted as unrestored, listed with what the drive answered.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub verified_before_irreversible: Vec<Unrestored>,
 }
 
 impl Account {
@@ -585,6 +590,14 @@ impl Account {
                     .map(|e| e.name.as_str())
                     .collect::<Vec<_>>()
                     .join(", ")
+            ));
+        }
+        if !self.verified_before_irreversible.is_empty() {
+            out.push(format!(
+                "  {} parameter(s) put back and verified before the cases that leave the drive changed for good, which no case wrote after them, that the drive no longer let be read or written after them (first: {}: {})",
+                self.verified_before_irreversible.len(),
+                self.verified_before_irreversible[0].name,
+                self.verified_before_irreversible[0].what()
             ));
         }
         for u in &self.unrestored {
@@ -1098,6 +1111,8 @@ pub struct Keeper {
     /// The guarded items (see [`Inventory::guarded`]) a case has written to: from then on they are put back
     /// and verified like the others.
     written: BTreeSet<String>,
+    /// After [`Keeper::checkpoint`]: the keys it left unrestored, and the keys cases wrote since.
+    checkpoint: Option<(BTreeSet<String>, BTreeSet<String>)>,
 }
 
 impl Keeper {
@@ -1126,6 +1141,7 @@ impl Keeper {
             scratch_journal: false,
             unwritable: Vec::new(),
             written: BTreeSet::new(),
+            checkpoint: None,
         }
     }
 
@@ -1342,6 +1358,9 @@ impl Keeper {
         let Some(snapshot) = &self.snapshot else {
             return Ok(());
         };
+        if let Some((_, since)) = self.checkpoint.as_mut() {
+            since.extend(keys.iter().cloned());
+        }
         let items: Vec<Item> = self
             .inventory
             .items
@@ -1392,6 +1411,35 @@ impl Keeper {
         Ok(())
     }
 
+    /// Before the first case that leaves the drive changed for good ([`crate::cases::Tag::Irreversible`]:
+    /// the LMD's CP clears the stored program, UG puts the drive in firmware-upgrade mode, where it may refuse
+    /// the reads and writes of a restore): everything that differs is put back and verified now, while the
+    /// drive still answers as it did. At the end, a parameter verified here that no case wrote since and that
+    /// the drive then no longer lets be read or written is listed apart
+    /// ([`Account::verified_before_irreversible`]), not as unrestored. True when everything read as before.
+    pub fn checkpoint(&mut self, link: &mut dyn Link, profile: &Profile) -> bool {
+        let Some(snapshot) = self.snapshot.clone() else {
+            return true;
+        };
+        if self.checkpoint.is_some() {
+            return true;
+        }
+        let items: Vec<Item> = self.restored_items().cloned().collect();
+        let mut counting = Counting { link, sent: 0 };
+        let restored = restore(&mut counting, &items, &snapshot, Some(profile));
+        self.account.requests += counting.sent;
+        let left: BTreeSet<String> = match restored {
+            Ok((writes, left)) => {
+                self.account.restore_writes += writes;
+                left.into_iter().map(|u| u.key).collect()
+            }
+            Err(_) => items.iter().map(|i| i.key.clone()).collect(),
+        };
+        let clean = left.is_empty();
+        self.checkpoint = Some((left, BTreeSet::new()));
+        clean
+    }
+
     /// At the end (or on an interrupt, an error, a dead target): restore everything that differs and verify.
     /// When the target no longer answers, every item is reported unrestored and the journal stays `running`
     /// for `restore --journal`.
@@ -1406,6 +1454,17 @@ impl Keeper {
         match restored {
             Ok((writes, left)) => {
                 self.account.restore_writes += writes;
+                // Verified before the irreversible cases, written by none since, refused now: the drive's
+                // state after those cases, not a parameter the run left changed.
+                let (apart, left): (Vec<Unrestored>, Vec<Unrestored>) =
+                    left.into_iter().partition(|u| {
+                        self.checkpoint.as_ref().is_some_and(|(bad, since)| {
+                            !bad.contains(&u.key)
+                                && !since.contains(&u.key)
+                                && (u.after.is_none() || u.reason.contains("refused"))
+                        })
+                    });
+                self.account.verified_before_irreversible = apart;
                 self.account.unrestored = left;
                 if let Some(j) = self.journal.as_mut() {
                     j.state = if self.account.unrestored.is_empty() {

@@ -955,6 +955,7 @@ pub fn run(
         .map(|(c, s)| (c.clone(), s.clone(), None))
         .chain(generated_cases);
     let mut keeper = keeper(opts, &profile, &cfg);
+    let mut checkpointed = false;
     // An error of the target mid-run: the drive is put back (as far as it answers) before it is returned.
     let mut failed: Option<SessionError> = None;
     for (i, (case, skip, gen_index)) in cases.enumerate() {
@@ -974,6 +975,21 @@ pub fn run(
                 }
                 let mut unrestorable = None;
                 if let Some(k) = keeper.as_mut() {
+                    // Before the first case that leaves the drive changed for good: everything put back
+                    // and verified while the drive still answers as it did.
+                    if case.has(Tag::Irreversible) && k.armed() && !checkpointed {
+                        checkpointed = true;
+                        let clean = k.checkpoint(&mut runner, &profile);
+                        let _ = writeln!(
+                            log,
+                            "leave as found: before the cases that leave the drive changed for good, every kept parameter {}",
+                            if clean {
+                                "put back and verified"
+                            } else {
+                                "put back as far as it would go (see the end of the run)"
+                            }
+                        );
+                    }
                     let touched = k.touched(&case);
                     // The snapshot comes before the first case that may write anything.
                     if (case.has(Tag::Write) || !touched.is_empty()) && !k.armed() {
@@ -1509,5 +1525,6 @@ pub fn restore_journal(
         snapshot_taken: true,
         journal: Some(path.to_path_buf()),
         unwritable: Vec::new(),
+        verified_before_irreversible: Vec::new(),
     })
 }

@@ -353,7 +353,9 @@ impl Proxy {
 
 #[test]
 fn a_drive_silent_for_3_s_is_waited_for_and_the_run_goes_on() {
-    let (sim, target) = Proxy::before_generic_sim(Mode::Pause(40, Duration::from_secs(3)));
+    // The 30th request: early in the catalog, among single-request read cases (a case of several requests
+    // would see the silence end before its liveness probe).
+    let (sim, target) = Proxy::before_generic_sim(Mode::Pause(30, Duration::from_secs(3)));
     let dir = TempDir::new("paused-target");
     let (report, (code, out, err, took)) = read_only_generic_run(&target, &dir, &[]);
     assert_eq!(

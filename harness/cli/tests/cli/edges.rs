@@ -47,6 +47,7 @@ fn a_committed_insta_snapshot_compares_clean_on_a_healthy_target_and_drifts_when
     let changed = dir.path().join("changed.snap");
     let (pos, _) = text
         .match_indices("\n== ")
+        .filter(|(at, _)| !text[at + 1..].starts_with("== choice/"))
         .nth(3)
         .expect("a fourth case block");
     let line_end = pos + 1 + text[pos + 1..].find('\n').expect("block line");

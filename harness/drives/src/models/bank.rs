@@ -372,6 +372,17 @@ impl RegisterBank {
                     .choices()
                     .reject(ids::VALUE_OUT_OF_RANGE, ExceptionCode::ILLEGAL_DATA_VALUE));
             }
+            // In range, but a value whose meaning the manual leaves open (`safe_values`): a drive may refuse
+            // it (`value-meaning-open`).
+            if !slot.reg.safe_values.is_empty()
+                && !slot.reg.safe_values.contains(&value)
+                && self.choices().name(ids::VALUE_MEANING_OPEN) == Some("exception-03")
+            {
+                return Err(Rejection::by(
+                    ids::VALUE_MEANING_OPEN,
+                    ExceptionCode::ILLEGAL_DATA_VALUE,
+                ));
+            }
             changes.push(Change {
                 address: slot.reg.address,
                 value,
@@ -382,6 +393,13 @@ impl RegisterBank {
 
     /// Store validated changes (from `plan_write`).
     pub fn commit(&mut self, changes: &[Change]) {
+        // Taken although the manual leaves what the value means open: a drive may refuse it.
+        if changes.iter().any(|c| {
+            self.register(c.address)
+                .is_some_and(|r| !r.safe_values.is_empty() && !r.safe_values.contains(&c.value))
+        }) {
+            self.freedoms.decided(ids::VALUE_MEANING_OPEN);
+        }
         for c in changes {
             self.set_value(c.address, c.value);
         }
@@ -454,6 +472,11 @@ impl RegisterBank {
         if let (Some(reg), Some(v)) = (self.layout.regs.get(at.0), self.values.get_mut(at.0)) {
             *v = wrap_to_width(reg, value);
         }
+    }
+
+    /// The value of the register at `at`, as [`value`](Self::value) reads it.
+    pub(crate) fn value_at(&self, at: RegIndex) -> i64 {
+        self.values.get(at.0).copied().unwrap_or(0)
     }
 
     /// The bit at `address` of `table`, as [`bit`](Self::bit) finds it.

@@ -292,6 +292,9 @@ struct Addrs {
     mv: Option<u16>,
     vc: Option<u16>,
     mp: Option<u16>,
+    /// The hybrid (hMTechnology) status AF and the hybrid mode AS it reports on.
+    af: Option<u16>,
+    as_: Option<u16>,
     vi: Option<u16>,
     vm: Option<u16>,
     a: Option<u16>,
@@ -324,6 +327,9 @@ struct StatusSlots {
     mv: Option<RegIndex>,
     vc: Option<RegIndex>,
     mp: Option<RegIndex>,
+    af: Option<RegIndex>,
+    as_: Option<RegIndex>,
+    de: Option<RegIndex>,
     /// Each input's bit and the register mirroring it, in input order.
     inputs: Vec<(Option<BitIndex>, Option<RegIndex>)>,
     input_groups: Vec<RegIndex>,
@@ -354,6 +360,9 @@ impl StatusSlots {
             mv: reg(addrs.mv),
             vc: reg(addrs.vc),
             mp: reg(addrs.mp),
+            af: reg(addrs.af),
+            as_: reg(addrs.as_),
+            de: reg(addrs.de),
             inputs: bits(BitTable::DiscreteInputs, inputs, &addrs.inputs),
             input_groups: groups(&addrs.input_groups),
             outputs: bits(BitTable::Coils, outputs, &addrs.outputs),
@@ -572,6 +581,8 @@ pub struct Mdrive {
     write_only_readable: bool,
     /// `Fault::LetterCaseBusy`: a known mnemonic in lower case is answered with exception 06.
     letter_case_busy: bool,
+    /// `Fault::NulPaddingBusy`: a known mnemonic padded with NUL is answered with exception 06.
+    padding_busy: bool,
     /// `Fault::GroupWriteClears`: OT/OL written while a point is an input clears every output.
     group_write_clears: bool,
     /// `Fault::HomingNeverEnds`: a write of HM starts a homing that never ends (`homing`).
@@ -601,6 +612,8 @@ impl Mdrive {
             mv: at("MV"),
             vc: at("VC"),
             mp: at("MP"),
+            af: at("AF"),
+            as_: at("AS"),
             vi: at("VI"),
             vm: at("VM"),
             a: at("A"),
@@ -654,6 +667,7 @@ impl Mdrive {
             nvm_writes: 0,
             write_only_readable: faults.has(Fault::WriteOnlyReadable),
             letter_case_busy: faults.has(Fault::LetterCaseBusy),
+            padding_busy: faults.has(Fault::NulPaddingBusy),
             group_write_clears: faults.has(Fault::GroupWriteClears),
             homing_never_ends: faults.has(Fault::HomingNeverEnds),
             homing: false,
@@ -755,6 +769,14 @@ impl Mdrive {
         set(s.mv, i64::from(k.moving.is_some() || self.homing));
         set(s.vc, i64::from(k.changing));
         set(s.mp, i64::from(k.moving == Some(MoveKind::Point)));
+        // AF, additive (000 line 1133): the model has no rotor to lead or lag and calibrates at once, so it
+        // is at zero (64) with its calibration complete (128), and hybrid mode is active (16) while AS is
+        // not 0 and the bridge enabled.
+        if let Some(af) = s.af {
+            let on = |at: Option<RegIndex>| at.is_none_or(|i| bank.value_at(i) != 0);
+            let active = s.as_.is_some() && on(s.as_) && on(s.de);
+            bank.set_value_at(af, 128 + 64 + if active { 16 } else { 0 });
+        }
         for (table, bits, groups) in [
             (BitTable::DiscreteInputs, &s.inputs, &s.input_groups),
             (BitTable::Coils, &s.outputs, &s.output_groups),
@@ -980,6 +1002,28 @@ impl Mdrive {
         Some(Response::exception(fc, code))
     }
 
+    /// A known mnemonic padded with NUL (0x00) where the manuals print spaces (0x20): refused as unknown (the
+    /// reference: the mnemonic as sent is none the drive knows), or read as the mnemonic it pads by a drive that
+    /// strips both (`mnemonic-padding`). `Ok`: the mnemonic to go on with.
+    fn padding(&mut self, fc: FunctionCode, mnemonic: &Mnemonic) -> Result<Mnemonic, Response> {
+        let Some(padded) = nul_padded(mnemonic).filter(|m| self.vendor_entry(m).is_some()) else {
+            return Ok(*mnemonic);
+        };
+        if self.padding_busy {
+            return Err(Response::exception(fc, ExceptionCode::SERVER_DEVICE_BUSY));
+        }
+        self.decided(ids::MNEMONIC_PADDING);
+        match self.bank.choices().get(ids::MNEMONIC_PADDING) {
+            Some(v) if v.matches("response") => Ok(padded),
+            Some(v) => match Choices::exception_value(v) {
+                // The reference's own: as an unknown mnemonic, whose code is `unknown-mnemonic`'s.
+                Some(ExceptionCode::ILLEGAL_DATA_ADDRESS) | None => Ok(*mnemonic),
+                Some(code) => Err(Response::exception(fc, code)),
+            },
+            None => Ok(*mnemonic),
+        }
+    }
+
     /// FC 0x41: read a mnemonic's parameters.
     fn vendor_read(&mut self, mnemonic: &Mnemonic) -> Response {
         let fc = FunctionCode::VENDOR_READ;
@@ -994,6 +1038,10 @@ impl Mdrive {
         if let Some(r) = self.letter_case_refusal(fc, mnemonic) {
             return r;
         }
+        let mnemonic = &match self.padding(fc, mnemonic) {
+            Ok(m) => m,
+            Err(r) => return r,
+        };
         let Some(m) = self.vendor_entry(mnemonic) else {
             return self.refuse(
                 fc,
@@ -1079,6 +1127,10 @@ impl Mdrive {
         if let Some(r) = self.letter_case_refusal(fc, mnemonic) {
             return r;
         }
+        let mnemonic = &match self.padding(fc, mnemonic) {
+            Ok(m) => m,
+            Err(r) => return r,
+        };
         let Some(m) = self.vendor_entry(mnemonic) else {
             return self.refuse(
                 fc,
@@ -1400,4 +1452,19 @@ impl DriveModel for Mdrive {
         self.refresh();
         Some(resp)
     }
+}
+
+/// The mnemonic `m` pads where a padding byte (the ones the manuals print as 0x20) is NUL instead: `m` with
+/// NULs and spaces stripped from both ends of its reading order, in the printed wire form. `None` where `m`
+/// has no NUL, or nothing is left.
+fn nul_padded(m: &Mnemonic) -> Option<Mnemonic> {
+    if !m.0.contains(&0) {
+        return None;
+    }
+    let name: String = m.0.iter().rev().map(|&b| b as char).collect();
+    let stripped = name.trim_matches(|c| c == ' ' || c == '\0');
+    if stripped.is_empty() || stripped.contains('\0') {
+        return None;
+    }
+    Mnemonic::from_name(stripped)
 }

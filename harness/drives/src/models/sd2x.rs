@@ -441,18 +441,36 @@ impl Sd2x {
         {
             s |= status::TARGET_REACHED;
         }
-        if self.status_bits_own() {
-            s = (s & status::STATE_MASK) | status::REMOTE;
+        match self.status_bits_own() {
+            Some(status::STATE_MASK) => s = (s & status::STATE_MASK) | status::REMOTE,
+            // As a drive written independently from the manual does: bit 5 set only in the states whose
+            // bit 5 the DS402 state table gives (switch on disabled reads 0x0650).
+            Some(crate::ds402::status::BIT5_OPEN_MASK) => {
+                s = (s & status::STATE_MASK) | status::REMOTE | status::VOLTAGE_ENABLED;
+                if crate::ds402::status::bit5_open(s) {
+                    s &= !status::QUICK_STOP;
+                }
+            }
+            _ => {}
+        }
+        if self.has(Fault::QuickStopBitClear) && self.state == Ds402State::OperationEnabled {
+            s &= !status::QUICK_STOP;
         }
         s
     }
 
-    /// True when the drive sets the status-word bits outside 0x006F its own way (`sd2x-status-word-bits`).
-    fn status_bits_own(&self) -> bool {
-        matches!(
-            self.freedoms.choices().get(STATUS_WORD_BITS),
-            Some(crate::requirements::FreedomValue::Int(m)) if *m == i64::from(status::STATE_MASK)
-        )
+    /// The mask of the status-word bits the drive keeps as the reference does, where it sets the others its
+    /// own way (`sd2x-status-word-bits`: 0x006F or 0x004F); `None` for the reference's word.
+    fn status_bits_own(&self) -> Option<u16> {
+        match self.freedoms.choices().get(STATUS_WORD_BITS) {
+            Some(crate::requirements::FreedomValue::Int(m))
+                if *m == i64::from(status::STATE_MASK)
+                    || *m == i64::from(crate::ds402::status::BIT5_OPEN_MASK) =>
+            {
+                Some(*m as u16)
+            }
+            _ => None,
+        }
     }
 
     fn has(&self, f: Fault) -> bool {
@@ -862,6 +880,29 @@ impl Sd2x {
                 .name(ids::SD2X_FC43_BYTE_COUNT_OVER_4)
                 == Some("exception-03")
             {
+                return Err(ObjectError::Exception(ExceptionCode::ILLEGAL_DATA_VALUE));
+            }
+        }
+        // Fields the manual says to set to zero (control bits 0-6, line 608; the reserved field, line 545; the
+        // address offset, line 627): the reference answers the SDO errors of the field (or ignores the
+        // reserved byte) after the other checks; a drive may refuse the value with 03 first
+        // (`sd2x-fc43-control-bits`, `sd2x-fc43-reserved-nonzero`, `sd2x-fc43-offset-nonzero`).
+        for (id, set) in [
+            (
+                ids::SD2X_FC43_CONTROL_BITS,
+                a.control & !CanOpenAccess::WRITE != 0,
+            ),
+            (ids::SD2X_FC43_RESERVED_NONZERO, a.reserved != 0),
+            (ids::SD2X_FC43_OFFSET_NONZERO, a.offset != 0),
+        ] {
+            if !set {
+                continue;
+            }
+            if self.has(Fault::ZeroFieldsBusy) {
+                return Err(ObjectError::Exception(ExceptionCode::SERVER_DEVICE_BUSY));
+            }
+            self.decided(id);
+            if self.freedoms.choices().name(id) == Some("exception-03") {
                 return Err(ObjectError::Exception(ExceptionCode::ILLEGAL_DATA_VALUE));
             }
         }

@@ -46,7 +46,7 @@ fn the_embedded_corpus_loads() {
     let f = r.freedom("lmd-word-order").unwrap();
     assert_eq!(f.values[0], FreedomValue::Text("low-first".into()));
     let f = r.freedom("sd2x-status-word-bits").unwrap();
-    assert_eq!(f.values.last(), Some(&FreedomValue::Int(0x006F)));
+    assert_eq!(f.values.last(), Some(&FreedomValue::Int(0x004F)));
     assert!(r.requirements().iter().any(|q| q.level == Level::Should));
 }
 

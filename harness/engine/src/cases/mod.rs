@@ -138,14 +138,35 @@ pub enum Step {
     },
     /// Let time pass (virtual on `sim:`, real elsewhere) with the line idle.
     Wait(Duration),
-    /// Read one register with `read` (FC 03 or 04 of one register) every `every` until it reads `value`, for
-    /// at most `within`: a drive that may still be moving (a homing its manual leaves it free to start) is
-    /// given the time to come to rest before the case goes on and puts back what it changed. The reads reach
-    /// the reference too, as every request does, and are judged as a structure; the step FAILs when the
-    /// register never reads `value`, as the case then went on with the axis moving.
+    /// Read one register with `read` (FC 03 or 04 of one register) every `every` until it reads `value` in
+    /// the bits of `mask`, for at most `within`: a drive that may still be moving (a homing its manual leaves
+    /// it free to start) is given the time to come to rest before the case goes on and puts back what it
+    /// changed. The reads reach the reference too, as every request does, and are judged as a structure; when
+    /// the register never reads `value` the step gets the verdict `timeout` (FAIL where the case would go on
+    /// with the axis moving; INFORMATIONAL where the manual leaves it open whether the drive reports the end).
+    ///
+    /// Where the value never comes and `stop` is not empty, the requests of `stop` are sent (each judged as a
+    /// structure) and the register is read again for `within` more: a move that does not end by itself is
+    /// stopped before the case puts anything back, and the step keeps its `timeout` verdict.
     Until {
         read: Vec<u8>,
+        mask: u16,
         value: u16,
+        timeout: Verdict,
+        stop: Vec<Vec<u8>>,
+        every: Duration,
+        within: Duration,
+        note: String,
+    },
+    /// Send `send` (a command a drive may refuse while it is busy: a move while it calibrates or still moves)
+    /// and, while the drive answers exception 04 (server device failure) or 06 (server device busy) where the
+    /// reference takes the request, wait `every` and send it again, `within` at most: a refused request
+    /// changed nothing, and the manuals leave a drive free to refuse a move it cannot start now. The
+    /// reference is put back to where it was before each refused attempt. The last answer is judged as an
+    /// [`Step::Exchange`] with `compare` would judge it.
+    Persist {
+        send: Outgoing,
+        compare: Compare,
         every: Duration,
         within: Duration,
         note: String,
@@ -219,8 +240,10 @@ impl Case {
         let mut captures: Vec<Option<&[u8]>> = vec![None; self.slots()];
         let mut out = BTreeSet::new();
         for step in &self.steps {
-            let Step::Exchange { send, capture, .. } = step else {
-                continue;
+            let (send, capture) = match step {
+                Step::Exchange { send, capture, .. } => (send, capture),
+                Step::Persist { send, .. } => (send, &None),
+                _ => continue,
             };
             let mut pdus: Vec<(Vec<u8>, u8)> = Vec::new();
             match send {

@@ -34,7 +34,7 @@ use std::time::Duration;
 use serde::{Deserialize, Serialize};
 
 use crate::cases::shrink::Shrunk;
-use crate::cases::{Case, Compare, Level, Mutation, Outgoing, Step, Tag};
+use crate::cases::{Case, Compare, Level, Mutation, Outgoing, Step, Tag, Verdict};
 use codec::{hex_spaced, parse_hex};
 
 /// The id prefix of replayed regression cases: `regression/<profile>/<name>`.
@@ -51,6 +51,7 @@ pub enum StepKind {
     Agree,
     EventLogShifted,
     Until,
+    Persist,
 }
 
 fn is_exchange(k: &StepKind) -> bool {
@@ -93,9 +94,14 @@ pub struct StepFile {
     pub max_new: Option<usize>,
     #[serde(skip_serializing_if = "Option::is_none")]
     pub mutation: Option<Mutation>,
-    /// `until`: the value the register must come to, how often it is read and for how long at most.
+    /// `until`: the value the register must come to (in the bits of `mask`, all of them where absent), the
+    /// verdict when it never does (FAIL where absent), how often it is read and for how long at most.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub value: Option<u16>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub mask: Option<u16>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub timeout: Option<Verdict>,
     #[serde(skip_serializing_if = "Option::is_none")]
     pub every_us: Option<u64>,
     #[serde(skip_serializing_if = "Option::is_none")]
@@ -176,17 +182,39 @@ fn step_file(step: &Step) -> StepFile {
         Step::Reconnect => f.kind = StepKind::Reconnect,
         Step::Until {
             read,
+            mask,
             value,
+            timeout,
+            stop,
             every,
             within,
             note,
         } => {
             f.kind = StepKind::Until;
             f.pdu = Some(hex_spaced(read));
+            f.batch = (!stop.is_empty()).then(|| stop.iter().map(|p| hex_spaced(p)).collect());
+            f.mask = (*mask != 0xFFFF).then_some(*mask);
+            f.timeout = (*timeout != Verdict::Fail).then_some(*timeout);
             f.value = Some(*value);
             f.every_us = Some(every.as_micros() as u64);
             f.within_us = Some(within.as_micros() as u64);
             f.note = Some(note.clone());
+        }
+        Step::Persist {
+            send,
+            compare,
+            every,
+            within,
+            note,
+        } => {
+            f.kind = StepKind::Persist;
+            f.compare = Some(compare.clone());
+            f.every_us = Some(every.as_micros() as u64);
+            f.within_us = Some(within.as_micros() as u64);
+            f.note = Some(note.clone());
+            if let Outgoing::Pdu(p) = send {
+                f.pdu = Some(hex_spaced(p));
+            }
         }
         Step::Agree {
             registers,
@@ -250,9 +278,29 @@ fn step_of(i: usize, f: &StepFile) -> Result<Step, RegressionError> {
         StepKind::Reconnect => Step::Reconnect,
         StepKind::Until => Step::Until {
             read: hex(f.pdu.as_deref().ok_or_else(|| at("until needs pdu"))?)?,
+            mask: f.mask.unwrap_or(0xFFFF),
             value: f.value.ok_or_else(|| at("until needs value"))?,
+            timeout: f.timeout.unwrap_or(Verdict::Fail),
+            stop: f
+                .batch
+                .iter()
+                .flatten()
+                .map(|p| hex(p))
+                .collect::<Result<_, _>>()?,
             every: Duration::from_micros(f.every_us.ok_or_else(|| at("until needs every_us"))?),
             within: Duration::from_micros(f.within_us.ok_or_else(|| at("until needs within_us"))?),
+            note: f.note.clone().unwrap_or_default(),
+        },
+        StepKind::Persist => Step::Persist {
+            send: Outgoing::Pdu(hex(f
+                .pdu
+                .as_deref()
+                .ok_or_else(|| at("persist needs pdu"))?)?),
+            compare: f.compare.clone().unwrap_or(Compare::Exact),
+            every: Duration::from_micros(f.every_us.ok_or_else(|| at("persist needs every_us"))?),
+            within: Duration::from_micros(
+                f.within_us.ok_or_else(|| at("persist needs within_us"))?,
+            ),
             note: f.note.clone().unwrap_or_default(),
         },
         StepKind::Agree => Step::Agree {
@@ -514,9 +562,19 @@ mod tests {
                     note: "restore".into(),
                 },
                 Step::Wait(Duration::from_millis(5)),
+                Step::Persist {
+                    send: Outgoing::Pdu(vec![0x10, 0, 0x43, 0, 2, 4, 0xFF, 0xFF, 0xFF, 0xFF]),
+                    compare: Compare::Exact,
+                    every: Duration::from_millis(50),
+                    within: Duration::from_secs(5),
+                    note: "move".into(),
+                },
                 Step::Until {
                     read: vec![3, 0, 0x4A, 0, 1],
+                    mask: 0x0080,
                     value: 0,
+                    timeout: Verdict::Informational,
+                    stop: vec![vec![0x10, 0, 0x1C, 0, 1, 2, 0, 0]],
                     every: Duration::from_millis(50),
                     within: Duration::from_secs(10),
                     note: "at rest".into(),

@@ -222,6 +222,9 @@ fn int_values(f: &Freedom) -> impl Iterator<Item = i64> + '_ {
 /// to one answer (the SD2x's FC 43 byte count above 4 and FC 08 data fields).
 const HELD_OUTCOMES: &[&str] = &[
     drives::choices::ids::SD2X_FC43_BYTE_COUNT_OVER_4,
+    drives::choices::ids::SD2X_FC43_CONTROL_BITS,
+    drives::choices::ids::SD2X_FC43_RESERVED_NONZERO,
+    drives::choices::ids::SD2X_FC43_OFFSET_NONZERO,
     drives::choices::ids::SD2X_DIAGNOSTIC_UNUSED_DATA,
     drives::choices::ids::SD2X_DIAGNOSTIC_DATA_SIZE,
 ];
@@ -530,7 +533,12 @@ pub fn outcome_shown(f: &Freedom, cx: &StepContext<'_>, kind: &str) -> Option<Sh
 /// of a 32-bit register, the register whose width the manual gives two ways (a drive may take its first
 /// register for all of it, and keep to another choice for the others); otherwise the whole freedom ("").
 pub fn about_of(freedom: &str, cx: &StepContext<'_>) -> String {
-    use drives::choices::ids::{PARTIAL_REGISTER_READ, PARTIAL_REGISTER_WRITE};
+    use drives::choices::ids::{PARTIAL_REGISTER_READ, PARTIAL_REGISTER_WRITE, VALUE_MEANING_OPEN};
+    // A value the manual gives no meaning: the drive's answer is about that register and that value (a
+    // drive taking DC with the address of a user variable refuses other values).
+    if freedom == VALUE_MEANING_OPEN {
+        return value_meaning_about(cx).unwrap_or_default();
+    }
     if freedom != PARTIAL_REGISTER_WRITE && freedom != PARTIAL_REGISTER_READ {
         return String::new();
     }
@@ -947,8 +955,13 @@ fn status_bits(
     if register_values(e).map(Vec::len) != register_values(o).map(Vec::len) {
         return vec![];
     }
-    // The tightest listed mask under which the two words agree.
-    let Some(mask) = int_values(f).find(|m| ev & (*m as u16) == ov & (*m as u16)) else {
+    // The tightest listed mask under which the two words agree. The DS402 mask that leaves bit 5 open
+    // applies only where the state table leaves it open, in the state the reference's word codes.
+    let Some(mask) = int_values(f).find(|m| {
+        let m = *m as u16;
+        ev & m == ov & m
+            && (m != drives::ds402::status::BIT5_OPEN_MASK || drives::ds402::status::bit5_open(ev))
+    }) else {
         return vec![];
     };
     let Some(answer) = with_word(e, index, ov) else {
@@ -1277,6 +1290,40 @@ fn reading_concerns(f: &Freedom, req: Option<&Request>, pdu: &[u8]) -> bool {
         ("fc41-byte-count-width", _) => false,
         (_, r) => r.is_some(),
     }
+}
+
+/// The register and value a write of a value without a meaning names: "TE=17".
+fn value_meaning_about(cx: &StepContext<'_>) -> Option<String> {
+    let (address, values) = match cx.request? {
+        Request::WriteSingleRegister { address, value } => (*address, vec![*value]),
+        Request::WriteMultipleRegisters { address, values } => (*address, values.clone()),
+        Request::ReadWriteMultipleRegisters {
+            write_address,
+            values,
+            ..
+        } => (*write_address, values.clone()),
+        _ => return None,
+    };
+    // One-register entries (every register with safe_values is one).
+    cx.profile
+        .registers
+        .iter()
+        .map(|r| r.get_ref())
+        .filter(|r| !r.safe_values.is_empty() && r.width == 1 && r.address >= address)
+        .find_map(|r| {
+            let w = *values.get(usize::from(r.address - address))?;
+            let v = if r.signed {
+                i64::from(w as i16)
+            } else {
+                i64::from(w)
+            };
+            (!r.safe_values.contains(&v)).then(|| {
+                format!(
+                    "{}={v}",
+                    r.mnemonic.clone().unwrap_or_else(|| r.name.clone())
+                )
+            })
+        })
 }
 
 #[cfg(test)]

@@ -77,6 +77,15 @@ pub fn skip_reason(case: &Case, cfg: &RunConfig, framing: Framing) -> Option<Str
         if case.has(Tag::Destructive) && !cfg.safety.allow_destructive {
             return Some("changes non-volatile state or leaves the drive faulted: pass --allow-destructive to run it".into());
         }
+        // A generated target, distance or velocity tests no axis, and a move it starts outlives the case (a
+        // random MA runs for minutes, and the writes behind it meet a drive busy with it); the catalog's
+        // motion cases start short moves and wait for the axis to come to rest.
+        if case.has(Tag::Motion) && crate::cases::generated::parse_id(&case.id).is_some() {
+            return Some(
+                "a generated case that can move the motor: on a real drive generated and fuzz cases start no move and enable no power stage, whatever the flags (the catalog's motion cases run with --allow-motion)"
+                    .into(),
+            );
+        }
     }
     None
 }
@@ -126,6 +135,12 @@ pub struct Runner {
     /// The request PDUs of the case's steps that the target answered with an exception response and
     /// nothing else: writes it did not take (see [`Runner::refused_writes`]).
     refused_writes: Vec<Vec<u8>>,
+    /// Function codes the drive answered with exception 01 where the reference serves them (UNIMPLEMENTED):
+    /// a later 01 to the same function is that again, whatever the reference answers to the request (silence
+    /// for a request it learned to ignore, say).
+    lacking: std::collections::BTreeSet<u8>,
+    /// The case being run sends an FC 15 (Write File Record): its FC 14 reads read back what it wrote.
+    case_writes_files: bool,
     /// Transaction ids of the restore's traffic: a sequence of its own, so that the cases' ids (and the
     /// snapshots of their observations) are the same with or without leaving the drive as found.
     restore_tid: u16,
@@ -278,6 +293,8 @@ impl Runner {
             case_tags: Vec::new(),
             refused: false,
             refused_writes: Vec::new(),
+            lacking: std::collections::BTreeSet::new(),
+            case_writes_files: false,
             restore_tid: 0xA000,
             case_order,
             input_offset: 0,
@@ -1165,6 +1182,38 @@ impl Runner {
         self.run_case_after(case, late, wire)
     }
 
+    /// The profile's device-specific contents are the reference's own and the target is not it
+    /// (`device.reference_contents`).
+    fn contents_free(&self) -> bool {
+        !self.cfg.is_sim && self.profile.device.reference_contents
+    }
+
+    /// A request whose answer holds device-specific contents (App 6.7 exception status outputs, 6.13 server id
+    /// and additional data, 6.18 queues, 6.14 file records where the case wrote none first).
+    fn device_specific(&self, fc: Option<&u8>) -> bool {
+        match fc {
+            Some(0x07 | 0x11 | 0x18) => true,
+            Some(0x14) => !self.case_writes_files,
+            _ => false,
+        }
+    }
+
+    /// Why `case` says nothing about this drive, as far as the run has learned it: an FC 43 request that sets
+    /// the layout's Reserved field, to a drive that takes FC 43 in the manual's example form, which has no
+    /// such field (freedom `sd2x-fc43-reserved-byte`; the request would go out as a plain one).
+    fn not_applicable(&self, case: &Case) -> Option<String> {
+        if !self.fc43_without_reserved {
+            return None;
+        }
+        case.steps.iter().any(|s| {
+            matches!(s, Step::Exchange { send: Outgoing::Pdu(p), .. }
+                if matches!(Request::decode(p), Ok(Request::CanOpen(a)) if a.reserved != 0))
+        })
+        .then(|| {
+            "sets the FC 43 Reserved field, which this drive's form of FC 43 (the manual's example, without it; sd2x-fc43-reserved-byte) does not have".to_string()
+        })
+    }
+
     /// Discard what arrived unasked before a case. Modbus/TCP: answers that came after their step gave up
     /// are attributed to their requests by transaction id, as notes for the case's first step, and kept for
     /// its wire log (on other framings they are only discarded).
@@ -1195,6 +1244,9 @@ impl Runner {
         late: Vec<String>,
         mut wire: Vec<WireEvent>,
     ) -> Result<CaseResult, TargetError> {
+        if let Some(reason) = self.not_applicable(case) {
+            return Ok(CaseResult::skipped(&case.id, reason));
+        }
         let started = self.target.now();
         let mut steps = Vec::new();
         // One empty slot per capture the case names; a restore of a slot nothing filled is SKIPPED.
@@ -1204,6 +1256,9 @@ impl Runner {
         self.case_tags.clone_from(&case.tags);
         self.refused = false;
         self.refused_writes.clear();
+        self.case_writes_files = case.steps.iter().any(|s| {
+            matches!(s, Step::Exchange { send: Outgoing::Pdu(p), .. } if p.first() == Some(&0x15))
+        });
         for (k, step) in case.steps.iter().enumerate() {
             if self.refused {
                 break;
@@ -1220,12 +1275,33 @@ impl Runner {
                 }
                 Step::Until {
                     read,
+                    mask,
                     value,
+                    timeout,
+                    stop,
                     every,
                     within,
                     note,
                 } => {
-                    let r = self.until(read, *value, *every, *within, note, &mut wire)?;
+                    let r = self.until_or_stop(
+                        read,
+                        (*mask, *value),
+                        *timeout,
+                        stop,
+                        (*every, *within),
+                        note,
+                        &mut wire,
+                    )?;
+                    steps.push(r);
+                }
+                Step::Persist {
+                    send,
+                    compare,
+                    every,
+                    within,
+                    note,
+                } => {
+                    let r = self.persist(send, compare, *every, *within, note, &mut wire)?;
                     steps.push(r);
                 }
                 Step::Agree {
@@ -1413,6 +1489,24 @@ impl Runner {
             self.refused = true;
             return Ok(refusal);
         }
+        // The device-specific contents of a profile that declares the reference's own
+        // (`device.reference_contents`): in format only against any other target.
+        let in_format;
+        let compare = match (frames.as_slice(), compare) {
+            ([f], Compare::Exact | Compare::InRange | Compare::Structure)
+                if self.contents_free() && self.device_specific(f.sent.pdu.first()) =>
+            {
+                // FC 11 and 18 answer as many bytes as the device has (its id and data, its queue); FC 07
+                // and 14 as many as the request asks.
+                in_format = if matches!(f.sent.pdu.first(), Some(0x11 | 0x18)) {
+                    Compare::Any
+                } else {
+                    Compare::Structure
+                };
+                &in_format
+            }
+            _ => compare,
+        };
         self.sync_shadow();
         // The reference as it was before the step, to do it again the drive's way where the drive admissibly
         // did otherwise: a request to another unit id, which a drive may ignore (`tcp-unit-ids`), and any
@@ -1483,14 +1577,123 @@ impl Runner {
         Ok(result)
     }
 
+    /// [`Step::Persist`]: send `send` until the drive takes it (no exception 04 or 06 where the reference
+    /// answers otherwise), every `every`, `within` at most; the reference is put back to its state before each
+    /// refused attempt. The last attempt is the step's result, with a note of the refusals before it.
+    fn persist(
+        &mut self,
+        send: &Outgoing,
+        compare: &Compare,
+        every: Duration,
+        within: Duration,
+        note: &str,
+        wire: &mut Vec<WireEvent>,
+    ) -> Result<StepResult, TargetError> {
+        let framing = self.target.framing();
+        let tries = within.as_micros() / every.as_micros().max(1) + 1;
+        let mut k = 0u128;
+        let mut codes: Vec<u8> = Vec::new();
+        loop {
+            let before = self.shadow.clone();
+            let mut r = self.exchange(send, compare, None, note, wire)?;
+            k += 1;
+            let busy = r.verdict == Verdict::Fail
+                && r.observed.iter().any(|o| match o {
+                    Received::Frame { bytes, .. } => matches!(
+                        crate::readings::decode_response(framing, bytes),
+                        Some(codec::Response::Exception { code, .. })
+                            if code == codec::ExceptionCode::SERVER_DEVICE_FAILURE
+                                || code == codec::ExceptionCode::SERVER_DEVICE_BUSY
+                    ),
+                    _ => false,
+                });
+            if !busy || k >= tries {
+                if !codes.is_empty() {
+                    codes.dedup();
+                    let codes: Vec<String> = codes.iter().map(|c| format!("{c:02X}")).collect();
+                    r.note = format!(
+                        "{note}: refused as busy ({}) {} time(s) over {} ms before this answer",
+                        codes.join(", "),
+                        k - 1,
+                        (every.as_micros() * (k - 1) / 1000)
+                    );
+                }
+                return Ok(r);
+            }
+            codes.extend(r.observed.iter().filter_map(|o| match o {
+                Received::Frame { bytes, .. } => {
+                    match crate::readings::decode_response(framing, bytes) {
+                        Some(codec::Response::Exception { code, .. }) => Some(code.0),
+                        _ => None,
+                    }
+                }
+                _ => None,
+            }));
+            // The drive did not take it: neither does the reference.
+            self.shadow = before;
+            self.sync_shadow();
+            self.target.idle(every);
+            self.sync_shadow();
+        }
+    }
+
+    /// [`Step::Until`], and where the value never came and `stop` is not empty, the requests of `stop` sent
+    /// and the register read again for `within`: nothing is put back on a moving axis. A drive that does not
+    /// come to the value after the stop FAILs.
+    #[allow(clippy::too_many_arguments)]
+    fn until_or_stop(
+        &mut self,
+        read: &[u8],
+        mask_value: (u16, u16),
+        timeout: Verdict,
+        stop: &[Vec<u8>],
+        timing: (Duration, Duration),
+        note: &str,
+        wire: &mut Vec<WireEvent>,
+    ) -> Result<StepResult, TargetError> {
+        let mut r = self.until(read, mask_value, timeout, timing, note, wire)?;
+        if r.verdict != timeout || timeout == Verdict::Pass || stop.is_empty() {
+            return Ok(r);
+        }
+        for pdu in stop {
+            let s = self.exchange(
+                &Outgoing::Pdu(pdu.clone()),
+                &Compare::Structure,
+                None,
+                "stop",
+                wire,
+            )?;
+            let answers: Vec<String> = s
+                .observed
+                .iter()
+                .map(|o| match o {
+                    Received::Frame { bytes, .. } => codec::hex_spaced(bytes),
+                    _ => "no answer".to_string(),
+                })
+                .collect();
+            r.findings.push(format!(
+                "sent {} to stop it: {}",
+                codec::hex_spaced(pdu),
+                answers.join(", ")
+            ));
+        }
+        let again = self.until(read, mask_value, timeout, timing, note, wire)?;
+        r.findings.extend(again.findings);
+        if again.verdict == timeout {
+            r.findings.push("it did not stop".into());
+            r.verdict = worse(r.verdict, Verdict::Fail);
+        }
+        Ok(r)
+    }
+
     /// [`Step::Until`]: read with `read` every `every` until the register reads `value`, `within` at most.
     /// The last read is the step's result; FAIL when the value never came.
     fn until(
         &mut self,
         read: &[u8],
-        value: u16,
-        every: Duration,
-        within: Duration,
+        (mask, value): (u16, u16),
+        timeout: Verdict,
+        (every, within): (Duration, Duration),
         note: &str,
         wire: &mut Vec<WireEvent>,
     ) -> Result<StepResult, TargetError> {
@@ -1516,18 +1719,23 @@ impl Runner {
             match got {
                 // No value to wait on (refused, silent): the exchange judged it.
                 None => return Ok(r),
-                Some(v) if v == value => {
+                Some(v) if v & mask == value => {
                     if k > 1 {
                         r.note = format!("{note}: {value} at read {k}, {} ms", read_at.as_millis());
                     }
                     return Ok(r);
                 }
                 Some(v) if k >= tries => {
+                    let wanted = if mask == 0xFFFF {
+                        format!("{value}")
+                    } else {
+                        format!("{value} in the bits 0x{mask:04X}")
+                    };
                     r.findings.push(format!(
-                        "still {v} (not {value}) after {k} reads over {} ms: the case went on with it so",
+                        "still {v} (not {wanted}) after {k} reads over {} ms: the case went on with it so",
                         read_at.as_millis()
                     ));
-                    r.verdict = worse(r.verdict, Verdict::Fail);
+                    r.verdict = worse(r.verdict, timeout);
                     return Ok(r);
                 }
                 Some(_) => {
@@ -1914,6 +2122,69 @@ impl Runner {
                         })
                 })
                 .collect();
+            // Exception 01 to a function the drive showed it lacks: UNIMPLEMENTED again, not a FAIL because the
+            // reference would have answered this request otherwise.
+            let illegal_function = match (seen, sent.pdu.first()) {
+                (Received::Frame { bytes, .. }, Some(&fc)) if fc < 0x80 => matches!(
+                    crate::readings::decode_response(framing, bytes),
+                    Some(codec::Response::Exception { function, code })
+                        if function.0 == fc | 0x80 && code == codec::ExceptionCode::ILLEGAL_FUNCTION
+                ),
+                _ => false,
+            };
+            // Not where the drive's manual lists the function: refusing it is a FAIL every time.
+            let listed = |fc: u8| {
+                self.profile
+                    .function(codec::FunctionCode(fc))
+                    .is_some_and(|f| f.line.is_some())
+            };
+            if illegal_function
+                && let Some(&fc) = sent.pdu.first()
+                && !listed(fc)
+            {
+                let mut judged_findings = std::mem::take(&mut judged.findings);
+                if judged_findings
+                    .iter()
+                    .any(|f| f.severity == Severity::Unimplemented)
+                {
+                    self.lacking.insert(fc);
+                } else if self.lacking.contains(&fc) {
+                    for f in &mut judged_findings {
+                        if f.severity == Severity::Must {
+                            f.severity = Severity::Unimplemented;
+                            f.text = format!(
+                                "{} (the drive answered 01 to function 0x{fc:02X} before: it lacks it)",
+                                f.text
+                            );
+                        }
+                    }
+                }
+                judged.findings = judged_findings;
+            }
+            // A queue or file the device does not have (its contents are its own, App 6.14, 6.15, 6.18):
+            // refused with 02 or 03 where the reference serves the profile's own.
+            // Or served where the reference refuses the profile's (a queue of more than 31, a file it lacks).
+            let refusal = |r: &codec::Response| matches!(r, codec::Response::Exception { code, .. } if (2..=3).contains(&code.0));
+            if self.contents_free()
+                && matches!(sent.pdu.first(), Some(0x14 | 0x15 | 0x18))
+                && judged.findings.iter().any(|f| f.severity == Severity::Must)
+                && let Received::Frame { bytes, .. } = seen
+                && let Some(o) = crate::readings::decode_response(framing, bytes)
+                && let Some(x) = judged_expected
+                    .get(e)
+                    .and_then(|b| crate::readings::decode_response(framing, b))
+                && o.function().without_exception_bit() == x.function().without_exception_bit()
+                && (refusal(&o) && !x.is_exception() || refusal(&x) && !o.is_exception())
+            {
+                judged.findings = vec![oracle::Finding {
+                    severity: Severity::Info,
+                    text: if o.is_exception() {
+                        "refused with 02 or 03 where the reference serves its own: this device has no such queue or file (device.reference_contents)".to_string()
+                    } else {
+                        "served where the reference refuses its own: this device has a queue or file there (device.reference_contents)".to_string()
+                    },
+                }];
+            }
             findings.extend(judged.findings);
             // An answer ahead of an earlier request's shows the drive pairing by transaction id only.
             let order = requirements
@@ -1953,6 +2224,24 @@ impl Runner {
                 {
                     self.follow.push((f.clone(), v.clone()));
                 }
+            }
+            // A request the drive refused where the reference took it, with no freedom the reference follows
+            // in: the drive did not perform it (App 7: 01, 02, 03 report a request not carried out), so the
+            // reference does not either. A function the drive lacks (01, UNIMPLEMENTED) leaves its
+            // registers as they were, and a refusal that FAILs is judged once, not again in every read after
+            // it; a drive that refuses yet performs the request shows it in those reads.
+            if frames.len() == 1
+                && self.follow.is_empty()
+                && let Received::Frame { bytes, .. } = seen
+                && let Some(codec::Response::Exception { code, .. }) =
+                    crate::readings::decode_response(framing, bytes)
+                && (1..=3).contains(&code.0)
+                && judged_expected
+                    .get(e)
+                    .and_then(|b| crate::readings::decode_response(framing, b))
+                    .is_some_and(|r| !r.is_exception())
+            {
+                self.unit_ignored = true;
             }
             // The silence before the answer, measured for the run's timing case (see `crate::timing`).
             if let (Some(t), Received::Frame { first_at, .. }, Some((last, _))) =

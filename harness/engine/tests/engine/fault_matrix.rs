@@ -26,6 +26,16 @@ pub(crate) const WITNESSES: &[(&str, &str, &str)] = &[
         "profile/mdrive/io-point/group/write-outputs-while-inputs",
     ),
     (
+        "nul-padding-busy",
+        "sim:mdrive",
+        "profile/mdrive/mnemonic/nul-padding/read",
+    ),
+    (
+        "nul-padding-busy",
+        "sim:lmd",
+        "profile/lmd/mnemonic/nul-padding/read",
+    ),
+    (
         "letter-case-busy",
         "sim:mdrive",
         "profile/mdrive/mnemonic/letter-case/read",
@@ -164,6 +174,58 @@ pub(crate) const WITNESSES: &[(&str, &str, &str)] = &[
         "ds402-enable-from-switch-on-disabled",
         "sim:sd2x",
         "profile/sd2x/ds402/enable-from-switch-on-disabled",
+    ),
+    // The status word's bit 5 where the DS402 state table gives it (sd2x-status-word-bits 0x004F leaves it
+    // open only in the states whose row has an x there).
+    (
+        "quick-stop-bit-clear",
+        "sim:sd2x",
+        "profile/sd2x/ds402/enable-sequence",
+    ),
+    (
+        "high-function-served",
+        "sim:generic",
+        "spec/app-4.1/request-fc-over-127/fc-0x83",
+    ),
+    (
+        "mei-type-served",
+        "sim:generic",
+        "spec/app-6.19/unsupported-mei-type/0x4E",
+    ),
+    (
+        "mei-type-served",
+        "sim:generic?transport=rtu",
+        "spec/app-6.19/unsupported-mei-type/0x4E",
+    ),
+    (
+        "high-function-served",
+        "sim:generic?transport=rtu",
+        "spec/app-4.1/request-fc-over-127/fc-0x83",
+    ),
+    (
+        "mei-type-served",
+        "sim:sd2x",
+        "spec/app-6.19/unsupported-mei-type/0x4E",
+    ),
+    (
+        "trailing-bytes-04",
+        "sim:generic",
+        "spec/app-6/trailing-bytes/read",
+    ),
+    (
+        "zero-fields-busy",
+        "sim:sd2x",
+        "profile/sd2x/object/control-bits/read",
+    ),
+    (
+        "zero-fields-busy",
+        "sim:sd2x",
+        "profile/sd2x/object/reserved-nonzero/read",
+    ),
+    (
+        "zero-fields-busy",
+        "sim:sd2x",
+        "profile/sd2x/object/offset-nonzero/read",
     ),
     (
         "speed-without-enable",
@@ -660,6 +722,12 @@ fn every_fault_has_a_witness() {
 
 /// Faults that exist on one transport only, with the reason: they need no witness on the others.
 const ONE_TRANSPORT: &[(&str, &str, &str)] = &[
+    (
+        "trailing-bytes-04",
+        "rtu",
+        "an RTU frame has no length field: a slave that frames a request by its function's layout reads a byte \
+         after it, with the CRC, as a frame in error; the catalog's case of a longer request runs on Modbus/TCP",
+    ),
     (
         "answer-inside-silence",
         "tcp",

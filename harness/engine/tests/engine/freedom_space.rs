@@ -46,6 +46,16 @@ const NOT_EXERCISED: &[(&str, &str)] = &[
     ("mdrive", "mnemonic-access-exception=1"),
     ("mdrive", "mnemonic-access-exception=3"),
     ("mdrive", "mnemonic-access-exception=4"),
+    // The catalog writes no value outside a register's `safe_values` (generated cases may): nothing shows
+    // a drive refusing one; generic and the SD2x have no such register.
+    ("generic", "value-meaning-open=exception-03"),
+    ("mdrive", "value-meaning-open=exception-03"),
+    ("lmd", "value-meaning-open=exception-03"),
+    ("sd2x", "value-meaning-open=exception-03"),
+    // An RTU frame has no length field: the catalog's case of a request longer than its layout runs on
+    // Modbus/TCP only (a slave framing by the layout reads the extra byte and the CRC as a frame in error).
+    ("sd2x", "trailing-bytes=silence"),
+    ("sd2x", "trailing-bytes=response"),
     // The SD2x's writable registers are motion registers and the watchdog: no half of one is written.
     ("sd2x", "partial-register-write=exception-03"),
     ("sd2x", "partial-register-write=exception-04"),
@@ -65,6 +75,13 @@ const NOT_EXERCISED: &[(&str, &str)] = &[
         "diagnostic-counter-semantics=slave-count-is-responses-sent",
     ),
 ];
+
+/// Witnesses a drive's choice makes inapplicable (SKIPPED by the runner, with the reason): (choice, case).
+/// A drive that takes FC 43 in the manual's example form has no Reserved field to set.
+const INAPPLICABLE: &[(&str, &str)] = &[(
+    "sd2x-fc43-reserved-byte=without-reserved-byte",
+    "profile/sd2x/object/reserved-nonzero/read",
+)];
 
 fn label(f: &Freedom, v: &FreedomValue) -> String {
     format!("{}={v}", f.id)
@@ -228,6 +245,12 @@ fn drives_taking_any_admissible_choice_pass_the_catalog_and_faults_still_fail_th
             o.keep_verdicts = true;
             let w = run_quietly(&o).unwrap_or_else(|e| panic!("{witness_target} {case}: {e}"));
             let verdict = w.verdicts.first().map(|(_, v)| *v);
+            let inapplicable = INAPPLICABLE
+                .iter()
+                .any(|(c, k)| choose.iter().any(|x| x == c) && k == case);
+            if inapplicable && verdict == Some(Verdict::Skipped) {
+                continue;
+            }
             if verdict != Some(Verdict::Fail) {
                 problems.push(format!(
                     "{witness_target} --choose {} --fault {fault}: witness {case} gives {verdict:?}, expected FAIL",

@@ -25,12 +25,19 @@ const SEEDS: [u64; 3] = [1, 0x5EED, 0xDEAD_BEEF_CAFE];
 /// profile: FC 01 quantity 2001 (0x07D1) read as 209 runs past the map (02, `exception-check-order`) while
 /// FC 03 quantity 126 stays refused as a quantity (03). A homing that never ends keeps the axis moving for good:
 /// every case after the first HM write that waits for rest FAILs.
-const ORDER_BOUND: [Fault; 5] = [
+const ORDER_BOUND: [Fault; 7] = [
     Fault::StopAfterMalformed,
     Fault::LateResponse,
     Fault::RangeCodeInconsistent,
     Fault::QuantityLowByte,
     Fault::HomingNeverEnds,
+    // Each of its answers is admissible; the first case to show one is the drive's choice and the others
+    // are held to it, so which cases are NON-STRICT depends on which comes first.
+    Fault::UnusedDiagDataInconsistent,
+    // The drive answers 02 to a read whose quantity is past the specification's (the address check comes
+    // first), 03 to a write whose byte count disagrees with its quantity (a decode error): both admissible
+    // (`exception-check-order`), the two together are a change of mind, found wherever the second comes.
+    Fault::QuantityUnchecked,
 ];
 
 /// Case id -> verdict, and the ids in run order.

@@ -18,6 +18,8 @@ pub(super) struct Around {
     before: Vec<Step>,
     /// In run order: new undo steps go first (the last change is the first undone).
     after: Vec<Step>,
+    /// After `after`, in the order added ([`Around::finally`]).
+    last: Vec<Step>,
     next_slot: usize,
 }
 
@@ -48,6 +50,12 @@ impl Around {
     /// Steps that undo what the case does, run before every restore kept so far.
     pub(super) fn undo(&mut self, steps: Vec<Step>) {
         self.after.splice(0..0, steps);
+    }
+
+    /// A step after every undo and restore: what the case must wait for once everything is back (a calibration
+    /// the restores started). Steps added later run later.
+    pub(super) fn finally(&mut self, step: Step) {
+        self.last.push(step);
     }
 
     /// Read `what` with `read`, keep the answer, and put it back after with `restore` (built from the slot).
@@ -179,7 +187,9 @@ impl Around {
 
     /// The steps before and the steps after a case's own.
     pub(super) fn split(self) -> (Vec<Step>, Vec<Step>) {
-        (self.before, self.after)
+        let mut after = self.after;
+        after.extend(self.last);
+        (self.before, after)
     }
 
     /// The case's steps with the precondition before them and the restores after.
@@ -217,10 +227,19 @@ pub(super) fn around_write(cx: &Ctx, req: &Request, a: &mut Around, tags: &mut V
                 }
                 if mcode::starts_move(r) {
                     mcode::enable_drive(cx, a);
+                } else if r.motion {
+                    mcode::keep_drive_enable(cx, a);
                 }
                 mcode::free_partner(cx, a, r);
+                mcode::await_calibration(cx, a, r);
             }
             a.keep_registers(cx, *address, n);
+            if regs.iter().any(|r| r.motion) {
+                let homing = regs
+                    .iter()
+                    .any(|r| r.mnemonic.as_deref().is_some_and(mcode::homes));
+                mcode::settle_motion(cx, a, homing);
+            }
         }
         Request::WriteSingleCoil { address, .. } | Request::WriteMultipleCoils { address, .. } => {
             let n = match req {
@@ -234,8 +253,16 @@ pub(super) fn around_write(cx: &Ctx, req: &Request, a: &mut Around, tags: &mut V
         }
         Request::VendorWrite { mnemonic, .. } => {
             let name = mnemonic.name();
+            let moves = p.mnemonic(&name).is_some_and(|m| m.motion);
+            let homing = mcode::homes(&name);
+            if moves {
+                mcode::keep_drive_enable(cx, a);
+            }
             a.keep_setting(cx, &name);
             mcode::program_command(cx, a, tags, &name);
+            if moves {
+                mcode::settle_motion(cx, a, homing);
+            }
         }
         Request::CanOpen(o) if o.is_write() => {
             if let Some(o) = p.object(o.index, o.subindex) {

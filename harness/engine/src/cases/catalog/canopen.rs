@@ -17,6 +17,7 @@ pub(super) fn cases(cx: &mut Ctx) {
     missing_object(cx);
     wrong_length(cx);
     zero_count(cx);
+    zero_fields(cx);
 }
 
 /// Each object read, and each read-only one refused a write.
@@ -222,4 +223,63 @@ fn zero_count(cx: &mut Ctx) {
             })
             .collect(),
     );
+}
+
+/// A read with one of the fields the manual says to set to zero set: control code bits 0-6 (line 608), the
+/// reserved field (line 545), the address offset (line 627). Refused with the field's SDO error (control
+/// bits: 0003; offset: 0008) or the reserved byte ignored, as the reference does, or with exception 03 where a
+/// drive checks the field's value first (`sd2x-fc43-control-bits`, `-reserved-nonzero`, `-offset-nonzero`).
+fn zero_fields(cx: &mut Ctx) {
+    let p = cx.p;
+    let node = cx.unit;
+    let Some(o) = p
+        .objects
+        .iter()
+        .map(|o| o.get_ref())
+        .find(|o| o.access.readable())
+    else {
+        return;
+    };
+    let size = u16::try_from(o.ty.size()).unwrap_or(4);
+    let read = CanOpenAccess::read(node, o.index, o.subindex, size);
+    for (name, access, requirement) in [
+        (
+            "control-bits",
+            CanOpenAccess {
+                control: 0x01,
+                ..read.clone()
+            },
+            "A control code with a bit of 0-6 set ('not used, set to zero') is refused: with SDO error 0xFFFF0003 or with exception 03.",
+        ),
+        (
+            "reserved-nonzero",
+            CanOpenAccess {
+                reserved: 0x01,
+                ..read.clone()
+            },
+            "A reserved field that is not zero is ignored (the object is read) or refused with exception 03.",
+        ),
+        (
+            "offset-nonzero",
+            CanOpenAccess {
+                offset: 0x0001,
+                ..read.clone()
+            },
+            "An address offset that is not zero ('set the address offset to zero') is refused: with SDO error 0xFFFF0008 or with exception 03.",
+        ),
+    ] {
+        cx.push(
+            format!("profile/{}/object/{name}/read", p.device.id),
+            format!("FC 43/0x0D read of object {} with {name}", o.index),
+            MANUAL,
+            requirement,
+            vec![],
+            // In structure: an object a drive serves holds the drive's value.
+            vec![exchange(
+                Outgoing::Pdu(pdu(&Request::CanOpen(access))),
+                Compare::Structure,
+                format!("read with {name}"),
+            )],
+        );
+    }
 }

@@ -144,14 +144,90 @@ pub(super) fn starts_move(r: &Register) -> bool {
     ["MA", "MR", "SL", "HM"].iter().any(|m| is(r, m))
 }
 
+/// How long a move command refused as busy (exception 04 or 06) is sent again, every [`REST_POLL`]: a
+/// drive may refuse a move while it still moves or calibrates (an MDrive Hybrid calibrates for CT ms after its
+/// bridge is re-enabled, its microstep resolution changed or hybrid mode enabled, 000 line 1134; CT's default
+/// is 200 ms, 000 line 1142), and the manuals leave it free to (exception 04, 000 lines 427-430).
+const BUSY_WITHIN: Duration = Duration::from_secs(5);
+
+/// The write of `value` to `r` as a case sends it: a command that starts a move ([`starts_move`]) is sent
+/// again while the drive refuses it as busy ([`Step::Persist`], [`BUSY_WITHIN`] at most); any other write
+/// once, compared exactly.
+pub(super) fn command(cx: &Ctx, r: &Register, value: i64, note: impl Into<String>) -> Step {
+    let step = write(cx, r, value, note);
+    match step {
+        Step::Exchange {
+            send,
+            compare,
+            capture: None,
+            note,
+        } if starts_move(r) => Step::Persist {
+            send,
+            compare,
+            every: REST_POLL,
+            within: BUSY_WITHIN,
+            note,
+        },
+        other => other,
+    }
+}
+
 /// How long the axis is given to come to rest after a move a case started, read every [`REST_POLL`]: a
 /// homing runs until its switch is found (000 line 1055), longer than any move of the catalog.
 const REST_WITHIN: Duration = Duration::from_secs(10);
 const REST_POLL: Duration = Duration::from_millis(50);
 
+/// What stops an axis that does not come to rest by itself (a homing whose switch or index mark is never
+/// found runs on, 000 line 1055): SL 0, which ramps a slew down (000 line 1114), then DE = 0, which disables
+/// the output bridge (000 line 1042) and so stops any motion. The case keeps DE and puts it back after.
+fn stop_requests(cx: &Ctx) -> Vec<Vec<u8>> {
+    let mut out = Vec::new();
+    if let Some(sl) = register(cx.p, "SL").filter(|r| r.access.writable()) {
+        out.push(pdu(
+            &cx.write_request(sl.address, sl.words(cx.p.device.word_order, 0))
+        ));
+    }
+    if let Some(de) = register(cx.p, "DE").filter(|r| r.access == Access::Rw) {
+        out.push(pdu(
+            &cx.write_request(de.address, de.words(cx.p.device.word_order, 0))
+        ));
+    }
+    out
+}
+
+/// Before a write that can start motion without being one of the move registers (a vendor function such as
+/// the LMD's HF, "home to index"): DE kept, so that the stop of [`settle_motion`] can be put back.
+pub(super) fn keep_drive_enable(cx: &Ctx, a: &mut Around) {
+    if let Some(de) = register(cx.p, "DE").filter(|r| r.access == Access::Rw) {
+        a.keep_register(cx, de, Compare::Structure);
+    }
+}
+
+/// After everything else is kept: the axis given the time to come to rest before anything is put back
+/// ([`await_rest`], stopping it if it does not). `homing`: the write may start a homing, which ends only
+/// where its switch or index mark is found.
+pub(super) fn settle_motion(cx: &Ctx, a: &mut Around, homing: bool) {
+    if let Some(rest) = await_rest(cx, homing) {
+        a.undo(vec![rest]);
+    }
+}
+
+/// True for a register or mnemonic whose write starts a homing: HM and HI ("home to index", 001 line 2101),
+/// HF ("home to index offset", 001 line 1843). A homing runs until its switch or the encoder's index mark
+/// is found (000 line 1055): a drive without one wired homes until it is stopped.
+pub(super) fn homes(name: &str) -> bool {
+    ["HM", "HI", "HF"]
+        .iter()
+        .any(|m| name.eq_ignore_ascii_case(m))
+}
+
 /// Wait for the axis to come to rest: MV ("Moving", 000 line 1089) read until it is 0, [`REST_WITHIN`] at
 /// most. None where the profile has no readable MV.
-fn await_rest(cx: &Ctx) -> Option<Step> {
+///
+/// Where it does not, the axis is stopped ([`stop_requests`]) and the step FAILs, except after a homing
+/// (`homing`), which ends only where its switch or index mark is found: INFORMATIONAL then. A drive that
+/// does not stop when told to FAILs either way.
+fn await_rest(cx: &Ctx, homing: bool) -> Option<Step> {
     let mv = register(cx.p, "MV").filter(|r| r.access.readable() && r.width == 1)?;
     let table = if mv.table == drives::profile::Table::Input {
         drives::profile::Table::Input
@@ -160,7 +236,14 @@ fn await_rest(cx: &Ctx) -> Option<Step> {
     };
     Some(Step::Until {
         read: pdu(&cx.read_request(mv.address, 1, table)),
+        mask: 0xFFFF,
         value: 0,
+        timeout: if homing {
+            crate::cases::Verdict::Informational
+        } else {
+            crate::cases::Verdict::Fail
+        },
+        stop: stop_requests(cx),
         every: REST_POLL,
         within: REST_WITHIN,
         note: format!(
@@ -170,6 +253,50 @@ fn await_rest(cx: &Ctx) -> Option<Step> {
             REST_WITHIN.as_secs()
         ),
     })
+}
+
+/// True for a register whose write may start a hybrid calibration: "Calibration [...] will occur
+/// automatically following these conditions: [...] Hybrid functionality enabled, Bridge re-enabled after
+/// being disabled, Microstep resolution is changed" (000 line 1134; 001 the same for hMTechnology): AS, DE,
+/// MS; and the instructions CF ("initiate a timed calibration", 000 line 1141) and SC ("Start calibration",
+/// 000 line 1150).
+fn starts_calibration(r: &Register) -> bool {
+    ["AS", "DE", "MS", "CF", "SC"].iter().any(|m| is(r, m))
+}
+
+/// How long a calibration a case started is waited for: CT, "the time in milliseconds which the hybrid
+/// circuitry will calibrate", defaults to 200 ms (000 line 1142); a drive whose CT was set longer is left
+/// calibrating, with a note.
+const CALIBRATION_WITHIN: Duration = Duration::from_secs(5);
+
+/// After a case that writes `r` (where it may start a calibration, [`starts_calibration`]) and has put
+/// everything back: read AF until its bit 7, "Calibration complete" (128, 000 line 1133), is set, so that the
+/// next case does not meet a drive busy calibrating (which refuses a move, as the manuals leave it free to)
+/// and the run does not end with one running. INFORMATIONAL, not FAIL, where the bit does not come: neither
+/// manual says that a drive without hybrid mode enabled sets it. Nothing where the profile has no readable AF
+/// (a drive that lacks it refuses the read, and the step goes on).
+pub(super) fn await_calibration(cx: &Ctx, a: &mut Around, r: &Register) {
+    if !starts_calibration(r) {
+        return;
+    }
+    let Some(af) = register(cx.p, "AF").filter(|r| r.access.readable() && r.width == 1) else {
+        return;
+    };
+    a.finally(Step::Until {
+        read: pdu(&cx.read_request(af.address, 1, drives::profile::Table::Holding)),
+        mask: 0x0080,
+        value: 0x0080,
+        timeout: crate::cases::Verdict::Informational,
+        stop: Vec::new(),
+        every: REST_POLL,
+        within: CALIBRATION_WITHIN,
+        note: format!(
+            "calibration complete: AF (0x{:04X}) bit 7 (128) set (read every {} ms, {} s at most)",
+            af.address,
+            REST_POLL.as_millis(),
+            CALIBRATION_WITHIN.as_secs()
+        ),
+    });
 }
 
 /// A move needs the drive enabled: the reference refuses MA/MR/SL while DE = 0 (exception 04). Keep DE,
@@ -192,7 +319,7 @@ pub(super) fn enable_drive(cx: &Ctx, a: &mut Around) {
 /// to change P or MS while it moves (exception 04), and the next case must not start with the axis moving.
 pub(super) fn undo_move(cx: &Ctx, a: &mut Around, r: &Register) {
     let settle = Step::Wait(MOVE_SETTLE);
-    let rest = await_rest(cx);
+    let rest = await_rest(cx, is(r, "HM"));
     if is(r, "HM") {
         a.undo(rest.into_iter().collect());
     } else if is(r, "MA") || is(r, "MR") {
@@ -211,13 +338,13 @@ pub(super) fn undo_move(cx: &Ctx, a: &mut Around, r: &Register) {
         ));
         let mut back = vec![
             settle.clone(),
-            write(cx, ma, 0, "move back to position 0 (MA 0)"),
+            command(cx, ma, 0, "move back to position 0 (MA 0)"),
             settle,
         ];
         back.extend(rest);
         a.undo(back);
     } else if is(r, "SL") {
-        let mut stop = vec![write(cx, r, 0, "stop the slew (SL 0)")];
+        let mut stop = vec![command(cx, r, 0, "stop the slew (SL 0)")];
         match register(cx.p, "DE").filter(|d| d.access == Access::Rw) {
             Some(de) => stop.push(write(cx, de, 0, "stop the axis at once (DE = 0)")),
             None => stop.push(settle),

@@ -233,9 +233,33 @@ pub fn build(p: &Profile, golden: Option<&GoldenFile>, framing: Framing, unit: u
 
 /// The cases with the [`Tag::RunTiming`] ones (which judge what the run measured) and then the
 /// [`Tag::Irreversible`] ones moved after all others, each group in its own order.
+///
+/// An irreversible case that sends what an earlier one sent (the LMD's UG, once as the manual's golden frame
+/// and once as the mnemonic's example) is left out: it would meet the state the first left (a drive in
+/// firmware-upgrade mode refusing every vendor request with 04), not the one it was written for.
 pub fn irreversible_last(cases: Vec<Case>) -> Vec<Case> {
     let (cases, last): (Vec<Case>, Vec<Case>) =
         cases.into_iter().partition(|c| !c.has(Tag::Irreversible));
+    let mut sent: Vec<Vec<crate::cases::Outgoing>> = Vec::new();
+    let last: Vec<Case> = last
+        .into_iter()
+        .filter(|c| {
+            let steps: Vec<crate::cases::Outgoing> = c
+                .steps
+                .iter()
+                .filter_map(|s| match s {
+                    crate::cases::Step::Exchange { send, .. }
+                    | crate::cases::Step::Persist { send, .. } => Some(send.clone()),
+                    _ => None,
+                })
+                .collect();
+            if sent.contains(&steps) {
+                return false;
+            }
+            sent.push(steps);
+            true
+        })
+        .collect();
     let (mut cases, timing): (Vec<Case>, Vec<Case>) =
         cases.into_iter().partition(|c| !c.has(Tag::RunTiming));
     cases.extend(timing);

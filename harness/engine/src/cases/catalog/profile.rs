@@ -156,6 +156,18 @@ fn write_precondition(cx: &Ctx, a: &mut Around, r: &Register) {
     }
     if mcode::starts_move(r) {
         mcode::enable_drive(cx, a);
+    } else if r.motion {
+        mcode::keep_drive_enable(cx, a);
+    }
+    mcode::await_calibration(cx, a, r);
+}
+
+/// After everything a write case keeps: a write to a `motion` register other than the move registers (whose
+/// undo waits already) is given the time to come to rest, and stopped if it does not (the LMD's HI homes).
+fn settle_after(cx: &Ctx, a: &mut Around, r: &Register) {
+    if r.motion && !mcode::starts_move(r) {
+        let homing = r.mnemonic.as_deref().is_some_and(mcode::homes);
+        mcode::settle_motion(cx, a, homing);
     }
 }
 
@@ -175,13 +187,8 @@ fn register_write(cx: &mut Ctx, r: &Register, read: &[u8], tags: &[Tag]) {
         mcode::undo_move(cx, &mut a, r);
     }
     mcode::undo_step_instruction(cx, &mut a, r, v);
-    let mut steps = vec![exchange(
-        Outgoing::Pdu(pdu(
-            &cx.write_request(r.address, r.words(p.device.word_order, v))
-        )),
-        Compare::Exact,
-        format!("write {v}"),
-    )];
+    settle_after(cx, &mut a, r);
+    let mut steps = vec![mcode::command(cx, r, v, format!("write {v}"))];
     if r.access.readable() {
         steps.push(exchange(
             Outgoing::Pdu(read.to_vec()),
@@ -223,13 +230,8 @@ fn register_write_out_of_range(cx: &mut Ctx, r: &Register, read: &[u8], tags: &[
         if mcode::starts_move(r) {
             mcode::undo_move(cx, &mut a, r);
         }
-        let mut steps = vec![exchange(
-            Outgoing::Pdu(pdu(
-                &cx.write_request(r.address, r.words(p.device.word_order, b))
-            )),
-            Compare::Exact,
-            format!("write {b}"),
-        )];
+        settle_after(cx, &mut a, r);
+        let mut steps = vec![mcode::command(cx, r, b, format!("write {b}"))];
         if r.access.readable() {
             steps.push(exchange(
                 Outgoing::Pdu(read.to_vec()),
@@ -670,8 +672,16 @@ fn mnemonics(cx: &mut Ctx) {
             // A setting is read first and put back after; a program command starts from no program running
             // and ends the program it started.
             let mut a = Around::new();
+            if m.motion {
+                mcode::keep_drive_enable(cx, &mut a);
+            }
             a.keep_setting(cx, &m.name);
             mcode::program_command(cx, &mut a, &mut tags, &m.name);
+            // A write that can move the motor (the LMD's HF homes) is given the time to come to rest, and
+            // stopped if it does not, before anything is put back.
+            if m.motion {
+                mcode::settle_motion(cx, &mut a, mcode::homes(&m.name));
+            }
             let mut steps = vec![exchange(
                 Outgoing::Pdu(pdu(&Request::VendorWrite {
                     mnemonic: w,
@@ -735,6 +745,32 @@ fn mnemonics(cx: &mut Ctx) {
         .map(|m| m.get_ref())
         .filter(|m| m.read && !m.motion && !m.destructive)
         .find_map(|m| Mnemonic::from_name(&m.name.to_ascii_lowercase()).map(|w| (m, w)));
+    // A known mnemonic padded with NUL where the manuals print spaces: refused as unknown, or read as the
+    // mnemonic it pads (`mnemonic-padding`). A read of a setting of fewer than four letters: nothing changes.
+    let padded = p
+        .mnemonics
+        .iter()
+        .map(|m| m.get_ref())
+        .filter(|m| m.read && !m.motion && !m.destructive && m.name.len() < 4)
+        .find_map(|m| {
+            let mut w = Mnemonic::from_name(&m.name)?;
+            w.0[0] = 0;
+            Some((m, w))
+        });
+    if let Some((m, w)) = padded.filter(|_| cx.supports(FunctionCode::VENDOR_READ)) {
+        cx.push(
+            format!("profile/{pid}/mnemonic/nul-padding/read"),
+            format!("FC 0x41 read of {} padded with NUL", m.name),
+            format!("{}: vendor FC 0x41, mnemonic {}", p.device.name, m.name),
+            "A known mnemonic padded with NUL instead of spaces is refused as an unknown one, or read as the mnemonic it pads, the same way each time.",
+            vec![],
+            vec![exchange(
+                Outgoing::Pdu(pdu(&Request::VendorRead { mnemonic: w })),
+                Compare::Structure,
+                format!("{} with a NUL in its padding", m.name),
+            )],
+        );
+    }
     if let Some((m, w)) = lower.filter(|_| cx.supports(FunctionCode::VENDOR_READ)) {
         cx.push(
             format!("profile/{pid}/mnemonic/letter-case/read"),

@@ -17,6 +17,9 @@ pub(super) fn cases(cx: &mut Ctx) {
     addresses_beyond_map(cx);
     byte_count_mismatches(cx);
     truncated_pdus(cx);
+    trailing_bytes(cx);
+    request_fc_over_127(cx);
+    unsupported_mei_type(cx);
     write_coil_illegal_value(cx);
     bit_padding(cx);
     no_partial_write(cx);
@@ -82,6 +85,50 @@ fn unsupported_functions(cx: &mut Ctx) {
             steps,
         );
     }
+}
+
+/// A request whose function code is 0x83, in the range App 4.1 reserves for exception responses: exception 01,
+/// no answer, or a close (`request-fc-over-127`), and the drive keeps answering. The body is a read's, so that
+/// a drive that masks the high bit reads, and writes nothing.
+fn request_fc_over_127(cx: &mut Ctx) {
+    cx.push(
+        "spec/app-4.1/request-fc-over-127/fc-0x83".into(),
+        "a request with function code 0x83, an exception response's code",
+        format!("{APP}, sections 4.1 and 7"),
+        "A request whose function code is in the range of exception responses (128-255) is refused with exception 01 or dropped, never served, and the drive keeps answering.",
+        vec![],
+        vec![
+            exchange(
+                Outgoing::Pdu(vec![0x83, 0x00, 0x00, 0x00, 0x01]),
+                Compare::Exact,
+                "FC 0x83",
+            ),
+            cx.liveness(),
+        ],
+    );
+}
+
+/// FC 43 with MEI type 0x4E, which no interface has (App 6.19), where the profile has FC 43: refused, with the
+/// code the drive keeps to (`unsupported-mei-type`: 01, 02 or 03).
+fn unsupported_mei_type(cx: &mut Ctx) {
+    if !cx.supports(FunctionCode::ENCAPSULATED_INTERFACE) {
+        return;
+    }
+    cx.push(
+        "spec/app-6.19/unsupported-mei-type/0x4E".into(),
+        "FC 43 with MEI type 0x4E, which no interface has",
+        format!("{APP}, sections 6.19 and 7"),
+        "FC 43 with an MEI type the server does not serve is refused with an exception (01, 02 or 03, the same each time), and the drive keeps answering.",
+        vec![],
+        vec![
+            exchange(
+                Outgoing::Pdu(vec![0x2B, 0x4E, 0x01, 0x00]),
+                Compare::Exact,
+                "MEI type 0x4E",
+            ),
+            cx.liveness(),
+        ],
+    );
 }
 
 /// The quantity-carrying functions, in the order their cases run.
@@ -457,6 +504,26 @@ fn byte_count_mismatches(cx: &mut Ctx) {
             steps,
         );
     }
+}
+
+/// A request one byte longer than its function's layout, on Modbus/TCP, whose MBAP length counts the byte
+/// (RTU has no length field: a slave that frames by the layout reads the byte and the CRC after it as a frame
+/// in error). Refused with 03 (the reference), dropped, the connection closed, or the request served with
+/// the byte ignored (`trailing-bytes`): a read, so that serving it changes nothing.
+fn trailing_bytes(cx: &mut Ctx) {
+    let mut read = super::known_good_read(cx.p);
+    read.push(0x00);
+    cx.push(
+        "spec/app-6/trailing-bytes/read".into(),
+        "a read with one byte after its layout",
+        format!("{APP}, sections 6 (request PDU layouts) and 7"),
+        "A request longer than its function's layout is refused (exception 03), ignored or served as the layout reads it, the same way each time; never answered otherwise, and the drive keeps answering.",
+        vec![Tag::TcpOnly],
+        vec![
+            exchange(Outgoing::Pdu(read), Compare::Exact, "one byte more"),
+            cx.liveness(),
+        ],
+    );
 }
 
 /// Truncated PDUs: a supported function code with data cut short.

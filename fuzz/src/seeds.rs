@@ -204,6 +204,12 @@ fn case_ops(p: &Profile, steps: &[Step]) -> Vec<u8> {
                 }
                 Outgoing::Restore { .. } | Outgoing::RestoreRead { .. } => {}
             },
+            // A command sent until the drive takes it: once, as the reference takes it at once.
+            Step::Persist {
+                send: Outgoing::Pdu(pdu),
+                ..
+            } => op_request(&mut out, default, default, pdu),
+            Step::Persist { .. } => {}
             Step::Wait(d) => {
                 out.push(OP_WAIT);
                 let ms = u16::try_from(d.as_millis()).unwrap_or(u16::MAX);

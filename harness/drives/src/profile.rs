@@ -1297,6 +1297,15 @@ impl Profile {
             .unwrap_or(125)
     }
 
+    /// The register whose MCode mnemonic is `name` (case-insensitive).
+    pub fn register_by_mnemonic(&self, name: &str) -> Option<&Register> {
+        self.registers.iter().map(|r| r.get_ref()).find(|r| {
+            r.mnemonic
+                .as_deref()
+                .is_some_and(|m| m.eq_ignore_ascii_case(name))
+        })
+    }
+
     /// The mnemonic entry named `name`.
     pub fn mnemonic(&self, name: &str) -> Option<&VendorMnemonic> {
         self.mnemonics

@@ -575,6 +575,7 @@ pub(crate) fn open_runner(
     runner.learn_word_order();
     runner.learn_fc43_form();
     runner.learn_input_addressing();
+    runner.learn_output_setup();
     Ok(runner)
 }
 

@@ -9,7 +9,7 @@ use std::process::Command;
 use std::time::{Duration, Instant};
 
 use test_support::peer_servers::PeerServer;
-use test_support::{TempDir, harness_bounded, run_args};
+use test_support::{PtyPair, TempDir, harness_bounded, run_args, socat_or_skip};
 
 /// Bound on one run against a simulator (3,000 generated cases take a few seconds).
 const RUN_LIMIT: Duration = Duration::from_secs(300);
@@ -219,4 +219,107 @@ fn generated_runs_leave_the_second_wave_as_found() {
     let (code, out) =
         run_leaving_as_found("sd2x-b", "rtu+tcp", &["--generated", "1000", "--seed", "2"]);
     assert_pass("sd2x-b", code, &out);
+    // With every flag: no generated move, and no generated CP or UG (seed 9 drew a UG, which put this
+    // LMD in upgrade mode mid-run: 410 FAIL and a user variable left changed, before generated cases
+    // stopped sending them).
+    let (code, out) = run_leaving_as_found(
+        "lmd-b",
+        "tcp",
+        &[
+            "--generated",
+            "3000",
+            "--seed",
+            "9",
+            "--allow-motion",
+            "--allow-destructive",
+        ],
+    );
+    assert_pass("lmd-b", code, &out);
+}
+
+/// An LMD whose output 2 is set up as a function output (OS = 2,17,0: "moving"), as a configured drive in
+/// a machine is (tests/independent/lmd/preset_output_function.py): the harness learns the setup before the
+/// cases and writes no output the drive drives (the cases that would are SKIPPED, saying why); the catalog
+/// PASSes against both LMDs, which refuse such writes with 04, and leaves them as found.
+#[test]
+fn an_lmd_with_a_function_output_is_not_written_and_passes() {
+    for drive in ["lmd", "lmd-b"] {
+        let sim = Independent::start(drive);
+        let preset = Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("../../tests/independent/lmd/preset_output_function.py");
+        let status = Command::new("python3")
+            .arg(&preset)
+            .arg(sim.server.addr.to_string())
+            .output()
+            .expect("preset");
+        assert!(
+            status.status.success(),
+            "{drive}: preset failed: {status:?}"
+        );
+        let before = sim.state();
+        let dir = TempDir::new("independent-function-output");
+        let report = dir.path().join("report");
+        let report_s = report.to_string_lossy().into_owned();
+        let (code, out, err) = harness_bounded(
+            None,
+            &run_args(&sim.target("tcp"), "lmd", &["--report", &report_s]),
+            RUN_LIMIT,
+        );
+        let after = sim.state();
+        let mut diff = Vec::new();
+        differences(&before, &after, "", &mut diff);
+        assert!(
+            diff.is_empty(),
+            "{drive}: left changed: {diff:?}\n{out}\n{err}"
+        );
+        assert_pass(drive, code, &out);
+        // The cases that write output 2 (FC 05 of coil 1, O2, OT) are SKIPPED, saying why.
+        let cases = std::fs::read_to_string(report.join("cases.jsonl")).expect("cases.jsonl");
+        for id in [
+            "profile/lmd/write/0x004C-o2",
+            "profile/lmd/write/0x0056-ot",
+            "profile/lmd/coil/1-output-2",
+        ] {
+            let line = cases
+                .lines()
+                .find(|l| l.contains(&format!("\"id\":\"{id}\"")))
+                .unwrap_or_else(|| panic!("{drive}: no {id} in the report"));
+            assert!(
+                line.contains("\"SKIPPED\"") && line.contains("set up for a drive function"),
+                "{drive}: {id}: {line}"
+            );
+        }
+    }
+}
+
+/// The second SD2x on a serial line (one end of a socat pty pair; it ends frames by the 3.5-character
+/// silence, as a real RTU slave does, at 19200 baud even parity): the catalog with every flag and 300
+/// generated cases PASS over `rtu://`, and the drive is left as found.
+#[test]
+fn the_sd2x_on_a_serial_line_passes_and_is_left_as_found() {
+    if !socat_or_skip("independent::the_sd2x_on_a_serial_line") {
+        return;
+    }
+    for extra in [
+        &["--allow-motion", "--allow-destructive"][..],
+        &["--generated", "300", "--seed", "3"][..],
+    ] {
+        let pty = PtyPair::start();
+        let a = pty.a.to_string_lossy().into_owned();
+        let sim = Independent::start_with(
+            "sd2x-b",
+            &["--serial", &a, "--baud", "19200", "--parity", "even"],
+        );
+        let before = sim.state();
+        let target = format!("rtu://{}?baud=19200&parity=even", pty.b.display());
+        let (code, out, err) = harness_bounded(None, &run_args(&target, "sd2x", extra), RUN_LIMIT);
+        let after = sim.state();
+        let mut diff = Vec::new();
+        differences(&before, &after, "", &mut diff);
+        assert!(
+            diff.is_empty(),
+            "sd2x-b {extra:?}: left changed: {diff:?}\n{out}\n{err}"
+        );
+        assert_pass("sd2x-b", code, &out);
+    }
 }

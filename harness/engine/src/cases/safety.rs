@@ -115,6 +115,22 @@ pub fn classify(p: &Profile, pdu: &[u8]) -> BTreeSet<Tag> {
     r.tags()
 }
 
+/// True for an MCode command that leaves the drive changed for good, beyond what any restore can put back:
+/// CP clears the stored program space, UG puts the drive in firmware-upgrade mode (LMD 001 sections 4.4.3,
+/// 4.4.27). The catalog runs its cases of them last (`Tag::Irreversible`); generated and fuzz cases never send
+/// them to a real drive.
+pub fn irreversible_mnemonic(name: &str) -> bool {
+    matches!(name.trim().to_ascii_uppercase().as_str(), "CP" | "UG")
+}
+
+/// True when `pdu` is an FC 0x42 write of an [`irreversible_mnemonic`].
+pub fn irreversible(pdu: &[u8]) -> bool {
+    pdu.first() == Some(&0x42)
+        && pdu
+            .get(1..5)
+            .is_some_and(|m| irreversible_mnemonic(&Mnemonic([m[0], m[1], m[2], m[3]]).name()))
+}
+
 /// [`classify`], and `destructive` for a write addressed to another unit than the run's: it may reach another
 /// drive on the bus (all of them, for a broadcast).
 pub fn classify_to_unit(p: &Profile, pdu: &[u8], unit: u8, run_unit: u8) -> BTreeSet<Tag> {

@@ -80,9 +80,31 @@ pub fn skip_reason(case: &Case, cfg: &RunConfig, framing: Framing) -> Option<Str
         // A generated target, distance or velocity tests no axis, and a move it starts outlives the case (a
         // random MA runs for minutes, and the writes behind it meet a drive busy with it); the catalog's
         // motion cases start short moves and wait for the axis to come to rest.
-        if case.has(Tag::Motion) && crate::cases::generated::parse_id(&case.id).is_some() {
+        let generated = crate::cases::generated::parse_id(&case.id).is_some();
+        if case.has(Tag::Motion) && generated {
             return Some(
                 "a generated case that can move the motor: on a real drive generated and fuzz cases start no move and enable no power stage, whatever the flags (the catalog's motion cases run with --allow-motion)"
+                    .into(),
+            );
+        }
+        // CP and UG leave the drive changed for good: mid-run, every case after them would meet a drive
+        // without its program or in upgrade mode (an LMD refuses every vendor request then).
+        let irreversible = case.steps.iter().any(|s| match s {
+            Step::Exchange { send, .. } | Step::Persist { send, .. } => match send {
+                Outgoing::Pdu(p) | Outgoing::PduToUnit { pdu: p, .. } => {
+                    crate::cases::safety::irreversible(p)
+                }
+                Outgoing::Mutated { pdu, mutation } => crate::cases::safety::irreversible(
+                    &mutation.apply_to_pdu(pdu).unwrap_or_else(|| pdu.clone()),
+                ),
+                Outgoing::Batch(ps) => ps.iter().any(|p| crate::cases::safety::irreversible(p)),
+                _ => false,
+            },
+            _ => false,
+        });
+        if irreversible && generated {
+            return Some(
+                "a generated case that sends CP or UG, which leave the drive changed for good (the stored program cleared, firmware-upgrade mode): generated and fuzz cases never send them to a real drive (the catalog runs its cases of them last, with --allow-destructive)"
                     .into(),
             );
         }
@@ -141,6 +163,9 @@ pub struct Runner {
     lacking: std::collections::BTreeSet<u8>,
     /// The case being run sends an FC 15 (Write File Record): its FC 14 reads read back what it wrote.
     case_writes_files: bool,
+    /// Outputs the drive has set up for a drive function, learned before the cases
+    /// ([`Runner::learn_output_setup`]): (line, type, the coil, the registers that write it).
+    function_outputs: Vec<(u16, i64, Option<u16>, Vec<u16>)>,
     /// Transaction ids of the restore's traffic: a sequence of its own, so that the cases' ids (and the
     /// snapshots of their observations) are the same with or without leaving the drive as found.
     restore_tid: u16,
@@ -295,6 +320,7 @@ impl Runner {
             refused_writes: Vec::new(),
             lacking: std::collections::BTreeSet::new(),
             case_writes_files: false,
+            function_outputs: Vec::new(),
             restore_tid: 0xA000,
             case_order,
             input_offset: 0,
@@ -1198,10 +1224,118 @@ impl Runner {
         }
     }
 
+    /// Why `case` may not write: it writes an output the drive has set up for a drive function.
+    fn writes_function_output(&self, case: &Case) -> Option<String> {
+        if self.function_outputs.is_empty() {
+            return None;
+        }
+        let pdus = case.steps.iter().filter_map(|s| match s {
+            Step::Exchange {
+                send: Outgoing::Pdu(p),
+                ..
+            }
+            | Step::Persist {
+                send: Outgoing::Pdu(p),
+                ..
+            } => Some(p),
+            _ => None,
+        });
+        for pdu in pdus {
+            let Ok(req) = Request::decode(pdu) else {
+                continue;
+            };
+            let coils = match &req {
+                Request::WriteSingleCoil { address, .. } => Some((*address, 1)),
+                Request::WriteMultipleCoils {
+                    address, quantity, ..
+                } => Some((*address, *quantity)),
+                _ => None,
+            };
+            let registers = drives::requirements::registers_written(&req);
+            for (line, kind, coil, regs) in &self.function_outputs {
+                let coil_hit = matches!((coils, coil), (Some((a, q)), Some(c)) if drives::requirements::covers(a, q, *c));
+                let reg_hit = registers.is_some_and(|(a, q)| {
+                    regs.iter().any(|r| drives::requirements::covers(a, q, *r))
+                });
+                if coil_hit || reg_hit {
+                    return Some(format!(
+                        "writes output {line}, which the drive has set up for a drive function (OS type {kind}, not 16, general purpose): the manual says the outputs must be configured as such (001 line 790), and writing one the drive drives would fight the drive and whatever is wired to it"
+                    ));
+                }
+            }
+        }
+        None
+    }
+
+    /// Learn which outputs the drive has set up for a drive function (the LMD's OS, "Output setup": type 16
+    /// is a general purpose output, 17 moving, 18 fault, ..., 001 lines 1577-1581; "the outputs must be
+    /// configured as such", line 790), before the cases: one FC 0x41 read of OS. The cases that would write
+    /// such an output are SKIPPED ([`Runner::not_applicable`]): the drive drives it, refuses the write or
+    /// fights it, and a PLC may be wired to it. The read form is "line,type,active" per line, lines apart by
+    /// ';' (both drives written independently from the manual read all lines so; the manual prints none).
+    /// Not for a drive whose I/O points are shared (the MDrive's S1-S4 are set up by the cases). Best effort:
+    /// nothing is learned from an answer in another form.
+    pub fn learn_output_setup(&mut self) {
+        if self.profile.device.shared_io_points {
+            return;
+        }
+        let Some(os) = self.profile.mnemonic("OS").filter(|m| m.read) else {
+            return;
+        };
+        let Some(mnemonic) = codec::Mnemonic::from_name(&os.name) else {
+            return;
+        };
+        let read = Request::VendorRead { mnemonic };
+        let answer = crate::restore::Link::transact(self, &read);
+        self.learning_reads.extend(read.to_bytes().ok());
+        let Ok(Some(codec::Response::VendorRead { params })) = answer else {
+            return;
+        };
+        let text = String::from_utf8_lossy(&params).into_owned();
+        let mut coils: Vec<u16> = self
+            .profile
+            .coils
+            .iter()
+            .map(|c| c.get_ref().address)
+            .collect();
+        coils.sort_unstable();
+        let groups: Vec<u16> = ["OT", "OL"]
+            .iter()
+            .filter_map(|m| self.profile.register_by_mnemonic(m).map(|r| r.address))
+            .collect();
+        for group in text.trim_start_matches('=').split(';') {
+            let v: Vec<i64> = group
+                .split(',')
+                .filter_map(|x| x.trim().parse().ok())
+                .collect();
+            let (Some(&line), Some(&kind)) = (v.first(), v.get(1)) else {
+                continue;
+            };
+            let Ok(line) = u16::try_from(line) else {
+                continue;
+            };
+            if line == 0 || kind == 16 || usize::from(line) > coils.len() {
+                continue;
+            }
+            let mut registers = groups.clone();
+            registers.extend(
+                self.profile
+                    .register_by_mnemonic(&format!("O{line}"))
+                    .map(|r| r.address),
+            );
+            let coil = coils.get(usize::from(line) - 1).copied();
+            self.function_outputs.push((line, kind, coil, registers));
+        }
+    }
+
     /// Why `case` says nothing about this drive, as far as the run has learned it: an FC 43 request that sets
     /// the layout's Reserved field, to a drive that takes FC 43 in the manual's example form, which has no
-    /// such field (freedom `sd2x-fc43-reserved-byte`; the request would go out as a plain one).
+    /// such field (freedom `sd2x-fc43-reserved-byte`; the request would go out as a plain one); a write of an
+    /// output the drive has set up for a drive function ([`Runner::learn_output_setup`]).
     fn not_applicable(&self, case: &Case) -> Option<String> {
+        if let Some(why) = self.writes_function_output(case) {
+            return Some(why);
+        }
         if !self.fc43_without_reserved {
             return None;
         }

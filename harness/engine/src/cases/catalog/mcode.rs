@@ -434,7 +434,7 @@ pub(super) fn program_command(cx: &Ctx, a: &mut Around, tags: &mut Vec<Tag>, nam
         return;
     }
     let name = name.to_ascii_uppercase();
-    if matches!(name.as_str(), "CP" | "UG") {
+    if crate::cases::safety::irreversible_mnemonic(&name) {
         if !tags.contains(&Tag::Irreversible) {
             tags.push(Tag::Irreversible);
         }

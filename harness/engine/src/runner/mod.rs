@@ -1108,10 +1108,19 @@ impl Runner {
             t
         });
         let mut bytes = Vec::with_capacity(pdu.len() + 7);
-        // Anything the strict codec refuses as a request was sent malformed on purpose.
+        // Anything the strict codec refuses as a request was sent malformed on purpose; so is a request whose
+        // function code is an exception response's (128-255, App 4.1), or an FC 43 whose MEI type no
+        // interface has (App 6.19): no dissector takes them for requests.
         let mut malformed = case_pdu.len() > codec::MAX_PDU_LEN
             || altered.is_some()
-            || Request::decode(case_pdu).is_err();
+            || case_pdu.first().is_some_and(|f| *f >= 0x80)
+            || match Request::decode(case_pdu) {
+                Err(_) => true,
+                Ok(Request::Raw { function, .. }) => {
+                    function == codec::FunctionCode::ENCAPSULATED_INTERFACE
+                }
+                Ok(_) => false,
+            };
         match framing {
             Framing::Tcp => {
                 if tcp::encode_adu(tid.unwrap_or(0), unit, pdu, &mut bytes).is_err() {

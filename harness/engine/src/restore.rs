@@ -408,6 +408,72 @@ fn case_pdus(case: &Case) -> Vec<&[u8]> {
     pdus
 }
 
+/// How often and how long [`settle_axis`] reads MV: 50 ms apart, 10 s at most after each stop.
+const SETTLE_POLL: std::time::Duration = std::time::Duration::from_millis(50);
+const SETTLE_READS: usize = 200;
+
+/// Before anything is put back: an axis left moving (a run interrupted during a move, a homing that found no
+/// switch) is stopped and waited for, where the profile has MCode's MV ("Moving", 000 line 1089) and the
+/// items to put back include DE (the run allowed motion, so a move may have been started): SL 0 (a slew
+/// ramps down, 000 line 1114), then, if the axis still moves, DE = 0 (the output bridge off stops any motion,
+/// 000 line 1042; DE is put back with the rest). A drive refuses to take P while it moves, its counters change
+/// under the restore, and a run must not end with the axis moving. The writes it sent.
+fn settle_axis(
+    link: &mut dyn Link,
+    profile: &Profile,
+    items: &[Item],
+) -> Result<usize, TargetError> {
+    let reg = |m: &str| profile.register_by_mnemonic(m);
+    let (Some(mv), Some(de)) = (
+        reg("MV").filter(|r| r.access.readable() && r.width == 1),
+        reg("DE").filter(|r| r.access == Access::Rw),
+    ) else {
+        return Ok(0);
+    };
+    if !items
+        .iter()
+        .any(|i| i.key == format!("holding:0x{:04X}", de.address))
+    {
+        return Ok(0);
+    }
+    let read = Request::ReadHoldingRegisters {
+        address: mv.address,
+        quantity: 1,
+    };
+    let moving = |link: &mut dyn Link| -> Result<bool, TargetError> {
+        Ok(
+            matches!(link.transact(&read)?, Some(Response::ReadHoldingRegisters { values }) if values.first().is_some_and(|v| *v != 0)),
+        )
+    };
+    if !moving(link)? {
+        return Ok(0);
+    }
+    let order = profile.device.word_order;
+    let mut stops = Vec::new();
+    if let Some(sl) = reg("SL").filter(|r| r.access.writable()) {
+        stops.push(Request::WriteMultipleRegisters {
+            address: sl.address,
+            values: sl.words(order, 0),
+        });
+    }
+    stops.push(Request::WriteMultipleRegisters {
+        address: de.address,
+        values: de.words(order, 0),
+    });
+    let mut writes = 0;
+    for stop in stops {
+        link.transact(&stop)?;
+        writes += 1;
+        for _ in 0..SETTLE_READS {
+            link.idle(SETTLE_POLL);
+            if !moving(link)? {
+                return Ok(writes);
+            }
+        }
+    }
+    Ok(writes)
+}
+
 /// The items that requests `pdus` can have written.
 fn touched_by(items: &[Item], pdus: Vec<&[u8]>) -> BTreeSet<String> {
     let mut keys = BTreeSet::new();
@@ -741,6 +807,9 @@ pub trait Link {
     /// The target did not take a request of `kind` for several parameters as asked: one parameter a request
     /// from now on.
     fn refuse_blocks(&mut self, _kind: Block) {}
+
+    /// Let `d` pass with the line idle (a target that moves needs the time to come to rest).
+    fn idle(&mut self, _d: std::time::Duration) {}
 }
 
 /// A request for several adjacent parameters at once (see [`Link::blocks`]).
@@ -765,6 +834,10 @@ struct Bounded<'a> {
 impl Link for Bounded<'_> {
     fn blocks(&self, kind: Block) -> bool {
         self.link.blocks(kind)
+    }
+
+    fn idle(&mut self, d: std::time::Duration) {
+        self.link.idle(d);
     }
 
     fn refuse_blocks(&mut self, kind: Block) {
@@ -798,6 +871,10 @@ pub(crate) struct Counting<'a> {
 }
 
 impl Link for Counting<'_> {
+    fn idle(&mut self, d: std::time::Duration) {
+        self.link.idle(d);
+    }
+
     fn blocks(&self, kind: Block) -> bool {
         self.link.blocks(kind)
     }
@@ -1006,6 +1083,9 @@ pub fn restore(
 ) -> Result<(usize, Vec<Unrestored>), TargetError> {
     let link = &mut Bounded { link, silent: 0 };
     let mut writes = 0;
+    if let Some(p) = profile {
+        writes += settle_axis(link, p, items)?;
+    }
     let mut now = read_all(link, items)?;
     let mut refused: BTreeMap<String, String> = BTreeMap::new();
     for _round in 0..2 {
@@ -2274,5 +2354,101 @@ mod tests {
         inv.items.iter().any(|i| {
             matches!(i.place, Place::Object { index: x, subindex: s, .. } if x == index && s == subindex)
         })
+    }
+
+    /// An MDrive axis left moving by an interrupted run: MV reads 1 until DE = 0 (SL 0 does not stop a point
+    /// move), and P is refused with 04 while it moves. The restore stops it first (SL 0, then DE 0), then puts
+    /// P and DE back; without the stop P could not be put back.
+    struct Axis {
+        regs: BTreeMap<u16, u16>,
+        moving: bool,
+        sent: Vec<Request>,
+    }
+
+    const MV: u16 = 0x004A;
+    const DE: u16 = 0x001C;
+    const P: u16 = 0x0057;
+
+    impl Link for Axis {
+        fn transact(&mut self, req: &Request) -> Result<Option<Response>, TargetError> {
+            self.sent.push(req.clone());
+            Ok(match req {
+                Request::ReadHoldingRegisters { address, quantity } => (0..*quantity)
+                    .map(|i| {
+                        let a = address + i;
+                        if a == MV {
+                            Some(u16::from(self.moving))
+                        } else {
+                            self.regs.get(&a).copied()
+                        }
+                    })
+                    .collect::<Option<Vec<u16>>>()
+                    .map(|values| Response::ReadHoldingRegisters { values }),
+                Request::WriteMultipleRegisters { address, values } => {
+                    if self.moving && *address == P {
+                        return Ok(Some(Response::exception(
+                            FunctionCode::WRITE_MULTIPLE_REGISTERS,
+                            codec::ExceptionCode::SERVER_DEVICE_FAILURE,
+                        )));
+                    }
+                    for (a, v) in (*address..).zip(values) {
+                        self.regs.insert(a, *v);
+                    }
+                    if *address == DE && values.first() == Some(&0) {
+                        self.moving = false;
+                    }
+                    Some(Response::WriteMultipleRegisters {
+                        address: *address,
+                        quantity: values.len() as u16,
+                    })
+                }
+                _ => None,
+            })
+        }
+    }
+
+    #[test]
+    fn an_axis_left_moving_is_stopped_before_anything_is_put_back() {
+        let profile = drives::corpus::Corpus::Embedded
+            .profile("mdrive")
+            .expect("mdrive profile");
+        let safety = Safety {
+            allow_motion: true,
+            allow_destructive: true,
+            ..Safety::default()
+        };
+        let inv = inventory(&profile, &safety);
+        let items: Vec<Item> = inv
+            .items
+            .iter()
+            .filter(|i| {
+                i.key == format!("holding:0x{DE:04X}") || i.key == format!("holding:0x{P:04X}")
+            })
+            .cloned()
+            .collect();
+        assert_eq!(items.len(), 2, "DE and P are kept with motion allowed");
+        let snapshot: BTreeMap<String, Value> = [
+            (format!("holding:0x{DE:04X}"), Value::Words(vec![1])),
+            (format!("holding:0x{P:04X}"), Value::Words(vec![0, 0])),
+        ]
+        .into();
+        let moving = || Axis {
+            regs: [(DE, 1), (P, 0x0001), (P + 1, 0x2345)].into(),
+            moving: true,
+            sent: Vec::new(),
+        };
+        let mut axis = moving();
+        let (_, left) = restore(&mut axis, &items, &snapshot, Some(&profile)).expect("restore");
+        assert!(left.is_empty(), "{left:?}");
+        assert!(!axis.moving);
+        assert_eq!(axis.regs[&DE], 1, "DE put back after the stop");
+        assert_eq!((axis.regs[&P], axis.regs[&(P + 1)]), (0, 0));
+        // Without the profile (no stop): P stays refused.
+        let mut axis = moving();
+        let (_, left) = restore(&mut axis, &items, &snapshot, None).expect("restore");
+        assert!(
+            left.iter().any(|u| u.key == format!("holding:0x{P:04X}")),
+            "{left:?}"
+        );
     }
 }

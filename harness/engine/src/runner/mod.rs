@@ -2434,6 +2434,11 @@ impl crate::restore::Link for Runner {
         }
     }
 
+    fn idle(&mut self, d: Duration) {
+        self.target.idle(d);
+        self.sync_shadow();
+    }
+
     fn transact(&mut self, req: &Request) -> Result<Option<codec::Response>, TargetError> {
         let Ok(pdu) = req.to_bytes() else {
             return Ok(None);

@@ -867,6 +867,31 @@ impl Request {
         Ok(req)
     }
 
+    /// The request a PDU longer than its layout carries, read by the layout (its length and count fields), and
+    /// how many bytes follow it: a PDU with bytes after a complete request, or an FC 0x42 whose byte count is
+    /// less than the parameter bytes carried. `None` for any other PDU.
+    pub fn decode_layout_prefix(pdu: &[u8]) -> Option<(Request, usize)> {
+        let extra = match Self::decode(pdu) {
+            Err(DecodeError {
+                kind: DecodeErrorKind::TrailingBytes { extra },
+                ..
+            }) => extra,
+            Err(DecodeError {
+                kind:
+                    DecodeErrorKind::ByteCountMismatch {
+                        declared,
+                        expected,
+                        basis: "parameter bytes present",
+                        ..
+                    },
+                ..
+            }) if declared < expected => expected - declared,
+            _ => return None,
+        };
+        let prefix = pdu.get(..pdu.len().checked_sub(extra)?)?;
+        Some((Self::decode(prefix).ok()?, extra))
+    }
+
     /// Append the PDU bytes to `out`; on error `out` is left as it was.
     pub fn encode(&self, out: &mut Vec<u8>) -> Result<(), EncodeError> {
         let start = out.len();

@@ -50,6 +50,9 @@ pub mod ids {
     pub const FC41_BYTE_COUNT_WIDTH: &str = "fc41-byte-count-width";
     /// FC 0x41 response parameter string: the values separated by ", ", or as written ("=0,1,0").
     pub const FC41_READ_BACK_FORMAT: &str = "fc41-read-back-format";
+    /// FC 0x41 read of a setting whose write format has fewer values than its read example (the MDrive's
+    /// TR): the example's count, or the format's.
+    pub const FC41_READ_BACK_FIELDS: &str = "fc41-read-back-fields";
     /// A parameterless FC 0x42 command (E, PS, RS, CP, ESC): byte count 0, or no byte count at all.
     pub const FC42_PARAMETERLESS_BYTE_COUNT: &str = "fc42-parameterless-byte-count";
     /// The LMD's ESC on the wire: 20 20 20 1B (the reversal rule) or 20 20 1B 20 (as printed).
@@ -60,6 +63,9 @@ pub mod ids {
     pub const TRUNCATED_PDU: &str = "truncated-pdu";
     /// Both the quantity and the address (range) wrong: 03 (quantity checked first) or 02 (address first).
     pub const EXCEPTION_CHECK_ORDER: &str = "exception-check-order";
+    /// A quantity above the manual's limit but within the specification's: refused (03 or 02, the code is
+    /// `quantity-over-device-limit`'s), or served by a drive whose limit is higher than its manual says.
+    pub const QUANTITY_OVER_DEVICE_LIMIT_SERVED: &str = "quantity-over-device-limit-served";
     /// A write of a value inside a register's widest range that is none of the values every reading of its
     /// manual takes (`safe_values`): taken, or refused with 03.
     pub const VALUE_MEANING_OPEN: &str = "value-meaning-open";
@@ -85,6 +91,8 @@ pub mod ids {
     pub const PDU_OVER_253: &str = "pdu-over-253";
     /// The MDrive, a write to the output of an I/O point configured as an input: taken, or 04/03/02.
     pub const MDRIVE_OUTPUT_WRITE_WHILE_INPUT: &str = "mdrive-output-write-while-input";
+    /// The MDrive, a read of the output of an I/O point configured as an input: served, or 02/04.
+    pub const MDRIVE_OUTPUT_READ_WHILE_INPUT: &str = "mdrive-output-read-while-input";
     /// The MDrive, a write of the outputs as a group (OT, OL) while a point is an input: taken, or 04/03/02.
     pub const MDRIVE_OUTPUT_GROUP_WRITE_WHILE_INPUT: &str = "mdrive-output-group-write-while-input";
     /// FC 0x41/0x42 naming a known mnemonic padded with NUL where the manuals print spaces: refused as
@@ -125,11 +133,13 @@ pub mod ids {
         EVENT_COUNTER_CLEAR_COUNTED,
         FC41_BYTE_COUNT_WIDTH,
         FC41_READ_BACK_FORMAT,
+        FC41_READ_BACK_FIELDS,
         FC42_PARAMETERLESS_BYTE_COUNT,
         LMD_ESC_WIRE_FORM,
         MDRIVE_PROGRAM_CONTROL_FUNCTION,
         TRUNCATED_PDU,
         TRAILING_BYTES,
+        QUANTITY_OVER_DEVICE_LIMIT_SERVED,
         VALUE_MEANING_OPEN,
         REQUEST_FC_OVER_127,
         UNSUPPORTED_MEI_TYPE,
@@ -141,6 +151,7 @@ pub mod ids {
         MBAP_LENGTH_LONG,
         PDU_OVER_253,
         MDRIVE_OUTPUT_WRITE_WHILE_INPUT,
+        MDRIVE_OUTPUT_READ_WHILE_INPUT,
         MDRIVE_OUTPUT_GROUP_WRITE_WHILE_INPUT,
         MNEMONIC_LETTER_CASE,
         MNEMONIC_PADDING,

@@ -303,6 +303,9 @@ pub struct Register {
     pub line: Option<u32>,
     /// False when discovered by a probe and not confirmed: the catalog only reads it.
     pub confirmed: bool,
+    /// A read clears it (the MCode error code ER: "must be read or set to 0 to clear"): the safety classifier
+    /// rates a read of it destructive, as it rates a write.
+    pub read_clears: bool,
 }
 
 impl Register {

@@ -1122,22 +1122,20 @@ impl Station {
             Ok(req) => req,
             // Longer than the function's layout: the drive may serve what the layout's bytes ask and ignore
             // the rest (`trailing-bytes`), as the reference does once it learned the drive does.
-            Err(codec::DecodeError {
-                kind: DecodeErrorKind::TrailingBytes { extra },
-                ..
-            }) if !self.faults.has(Fault::TrailingBytes04)
-                && self.choices.name(ids::TRAILING_BYTES) == Some("response")
-                && Request::decode(&pdu[..pdu.len().saturating_sub(extra)]).is_ok() =>
+            Err(_)
+                if !self.faults.has(Fault::TrailingBytes04)
+                    && self.choices.name(ids::TRAILING_BYTES) == Some("response")
+                    && Request::decode_layout_prefix(pdu).is_some() =>
             {
                 self.decisions.push(ids::TRAILING_BYTES);
-                Request::decode(&pdu[..pdu.len().saturating_sub(extra)]).ok()?
+                Request::decode_layout_prefix(pdu)?.0
             }
             Err(e) => {
                 self.malformed();
                 if self.dead {
                     return None;
                 }
-                if matches!(e.kind, DecodeErrorKind::TrailingBytes { .. }) {
+                if Request::decode_layout_prefix(pdu).is_some() {
                     if self.faults.has(Fault::TrailingBytes04) {
                         return Some((
                             Some(Response::exception(
@@ -1232,7 +1230,16 @@ impl Station {
                 .code(ids::UNSUPPORTED_MEI_TYPE, ExceptionCode::ILLEGAL_FUNCTION);
             return Some((Some(Response::exception(fc, code)), false));
         }
-        let resp = if let Some(e) = self.spec_checks(&req) {
+        // A quantity above the manual's limit but within the specification's: a drive may serve it (its limit
+        // is higher than its manual says, `quantity-over-device-limit-served`), or refuse it with the code
+        // `quantity-over-device-limit` gives.
+        let over_limit = self.over_device_limit(&req);
+        if over_limit {
+            self.decisions.push(ids::QUANTITY_OVER_DEVICE_LIMIT_SERVED);
+        }
+        let served = over_limit
+            && self.choices.name(ids::QUANTITY_OVER_DEVICE_LIMIT_SERVED) == Some("response");
+        let resp = if let Some(e) = (!served).then(|| self.spec_checks(&req)).flatten() {
             self.decisions.extend(e.freedom);
             let e = self.check_order(now, unit, &req, e);
             Some(Response::exception(fc, e.code))
@@ -1528,6 +1535,21 @@ impl Station {
                 .is_some_and(|m| m > limit && m <= spec)
     }
 
+    /// True when `req`'s quantity (or FC 23's quantity to write) is above the profile's limit for its function
+    /// but within the specification's: the manual's limit, which a drive may not enforce.
+    fn over_device_limit(&self, req: &Request) -> bool {
+        if self.faults.has(Fault::QuantityUnchecked) {
+            return false;
+        }
+        let over = |q: usize, device: Option<u16>, spec: Option<u16>| {
+            let spec = usize::from(spec.unwrap_or(u16::MAX));
+            let device = device.map_or(spec, usize::from);
+            q > 0 && q > device && q <= spec
+        };
+        let limit = |fc: FunctionCode| self.profile().function(fc).and_then(|f| f.max_quantity);
+        quantity_asked(req).is_some_and(|(fc, q)| over(q, limit(fc), fc.max_quantity()))
+    }
+
     /// Quantity limits and FC 05 values, per the application protocol spec's state diagrams.
     fn spec_checks(&self, req: &Request) -> Option<Rejection> {
         if self.faults.has(Fault::QuantityUnchecked) {
@@ -1550,19 +1572,11 @@ impl Station {
                 None
             }
         };
+        if let Some((fc, q)) = quantity_asked(req) {
+            return check(u16::try_from(q).unwrap_or(u16::MAX), fc, fc.max_quantity());
+        }
         use Request::*;
         match req {
-            ReadCoils { quantity, .. }
-            | ReadDiscreteInputs { quantity, .. }
-            | ReadHoldingRegisters { quantity, .. }
-            | ReadInputRegisters { quantity, .. }
-            | WriteMultipleCoils { quantity, .. } => {
-                check(*quantity, req.function(), req.function().max_quantity())
-            }
-            WriteMultipleRegisters { values, .. } => {
-                let fc = FunctionCode::WRITE_MULTIPLE_REGISTERS;
-                check(values.len() as u16, fc, fc.max_quantity())
-            }
             ReadWriteMultipleRegisters {
                 read_quantity,
                 values,
@@ -1626,39 +1640,51 @@ impl Station {
                     address,
                     quantity: 1,
                 },
-                Request::ReadHoldingRegisters { .. } | Request::WriteMultipleRegisters { .. } => {
-                    Request::ReadHoldingRegisters {
-                        address,
-                        quantity: 1,
-                    }
-                }
+                Request::ReadHoldingRegisters { .. }
+                | Request::WriteMultipleRegisters { .. }
+                | Request::ReadWriteMultipleRegisters { .. } => Request::ReadHoldingRegisters {
+                    address,
+                    quantity: 1,
+                },
                 _ => Request::ReadInputRegisters {
                     address,
                     quantity: 1,
                 },
             }
         };
-        let (address, quantity) = match req {
+        let count = |values: &Vec<u16>| u16::try_from(values.len()).unwrap_or(u16::MAX);
+        // FC 23 carries two ranges (spec 6.17): a quantity wrong in either and an address wrong in either
+        // leave the order of the checks to the drive as for the other functions.
+        let ranges: Vec<(u16, u16)> = match req {
             Request::ReadCoils { address, quantity }
             | Request::ReadDiscreteInputs { address, quantity }
             | Request::ReadHoldingRegisters { address, quantity }
             | Request::ReadInputRegisters { address, quantity }
             | Request::WriteMultipleCoils {
                 address, quantity, ..
-            } => (*address, *quantity),
-            Request::WriteMultipleRegisters { address, values } => {
-                (*address, u16::try_from(values.len()).unwrap_or(u16::MAX))
-            }
+            } => vec![(*address, *quantity)],
+            Request::WriteMultipleRegisters { address, values } => vec![(*address, count(values))],
+            Request::ReadWriteMultipleRegisters {
+                read_address,
+                read_quantity,
+                write_address,
+                values,
+            } => vec![
+                (*read_address, *read_quantity),
+                (*write_address, count(values)),
+            ],
             _ => return rejection,
         };
-        let last = u32::from(address) + u32::from(quantity.max(1)) - 1;
         let mut scratch = self.model.clone();
         let mut invalid = |a: u16| {
             scratch.handle(now, unit, &one(a)).is_some_and(|r| {
                 matches!(r, Response::Exception { code, .. } if code == ExceptionCode::ILLEGAL_DATA_ADDRESS)
             })
         };
-        let address_wrong = invalid(address) || u16::try_from(last).map_or(true, &mut invalid);
+        let address_wrong = ranges.into_iter().any(|(address, quantity)| {
+            let last = u32::from(address) + u32::from(quantity.max(1)) - 1;
+            invalid(address) || u16::try_from(last).map_or(true, &mut invalid)
+        });
         if !address_wrong {
             return rejection;
         }
@@ -1941,4 +1967,21 @@ fn header_range(pdu: &[u8]) -> Option<Request> {
         0x04 => Request::ReadInputRegisters { address, quantity },
         _ => return None,
     })
+}
+
+/// The function and the quantity a read (FC 01-04) or a multiple write (FC 0F, 10) asks for: the items read or
+/// written (an FC 10's values counted). `None` for any other request.
+fn quantity_asked(req: &Request) -> Option<(FunctionCode, usize)> {
+    use Request::*;
+    match req {
+        ReadCoils { quantity, .. }
+        | ReadDiscreteInputs { quantity, .. }
+        | ReadHoldingRegisters { quantity, .. }
+        | ReadInputRegisters { quantity, .. }
+        | WriteMultipleCoils { quantity, .. } => Some((req.function(), usize::from(*quantity))),
+        WriteMultipleRegisters { values, .. } => {
+            Some((FunctionCode::WRITE_MULTIPLE_REGISTERS, values.len()))
+        }
+        _ => None,
+    }
 }

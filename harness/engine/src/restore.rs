@@ -456,6 +456,18 @@ fn settle_axis(
             values: sl.words(order, 0),
         });
     }
+    // MCode's escape where the profile has it: it ends motion and any program (a drive may keep moving with
+    // its bridge disabled).
+    if let Some(m) = profile
+        .mnemonic("\u{1b}")
+        .filter(|m| m.write)
+        .and_then(|m| Mnemonic::from_name(&m.name))
+    {
+        stops.push(Request::VendorWrite {
+            mnemonic: m,
+            params: Vec::new(),
+        });
+    }
     stops.push(Request::WriteMultipleRegisters {
         address: de.address,
         values: de.words(order, 0),

@@ -608,7 +608,23 @@ pub fn preflight(
         bounds.probe_timeout,
     ) {
         None => Ok(()),
-        Some(m) => Err(SessionError::NotAnswering(m)),
+        Some(mut m) => {
+            // Silence on Modbus/TCP: is it the unit id? The same read at the unit ids a device that is not a
+            // gateway commonly answers (TCP guide 4.4.1.3: 0xFF recommended, 0 accepted too). Reads only; not
+            // on a serial line, where another address may be another device.
+            if heard == crate::liveness::Heard::Nothing && runner.framing() == codec::Framing::Tcp {
+                let short = bounds.probe_timeout.min(Duration::from_millis(500));
+                for other in [255u8, 0, 1].into_iter().filter(|u| *u != unit) {
+                    if runner.answers_at_unit(&pdu, other, short)? {
+                        m = format!(
+                            "{m}. The same read at unit {other} is answered: the device's unit id is likely {other} (the TCP implementation guide, 4.4.1.3, recommends 0xFF for a device that is not a gateway): run again with --unit {other}"
+                        );
+                        break;
+                    }
+                }
+            }
+            Err(SessionError::NotAnswering(m))
+        }
     }
 }
 

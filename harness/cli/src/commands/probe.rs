@@ -194,6 +194,7 @@ pub fn run(args: &ProbeArgs) -> ExitCode {
         timeout: Duration::from_millis(args.timeout.max(1)),
         scan,
         writes: args.probe_writes,
+        unread: profile.as_ref().map(probe::unread_of).unwrap_or_default(),
     };
     let report = match probe::probe(t.as_mut(), &options) {
         Ok(r) => r,

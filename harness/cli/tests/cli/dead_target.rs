@@ -100,6 +100,51 @@ fn a_silent_port_exits_2_within_seconds_for_run_probe_and_fuzz() {
     stop.store(true, Ordering::SeqCst);
 }
 
+/// A Modbus/TCP server that answers only unit id 255 (and 0), as the TCP implementation guide recommends for a
+/// device that is not a gateway (a drive written independently from the MDrive manual does so): the run at the
+/// profile's unit 1 gets no answer, and the error says which unit id answers the same read.
+#[test]
+fn a_server_of_another_unit_id_is_told_which_one_answers() {
+    let sim = SimProcess::start(&[
+        "--profile",
+        "generic",
+        "--listen",
+        "127.0.0.1:0",
+        "--unit",
+        "255",
+        "--choose",
+        "tcp-unit-ids=silence",
+    ]);
+    let target = sim.tcp_url();
+    let (code, _, err, took) = harness_timed(
+        &["run", "--target", &target, "--profile", "generic"],
+        Duration::from_secs(60),
+    );
+    assert_eq!(code, 2, "{err}");
+    assert!(took < Duration::from_secs(10), "took {took:?}");
+    assert!(
+        err.contains("unit 255 is answered") && err.contains("--unit 255"),
+        "{err}"
+    );
+    // With it, the run goes ahead.
+    let (code, out, err, _) = harness_timed(
+        &[
+            "run",
+            "--target",
+            &target,
+            "--profile",
+            "generic",
+            "--unit",
+            "255",
+            "--read-only",
+            "--no-progress",
+        ],
+        Duration::from_secs(120),
+    );
+    assert!(code == 0 || code == 1, "{out}{err}");
+    assert!(out.contains("RESULT:"), "{out}{err}");
+}
+
 #[test]
 fn an_http_server_is_named_not_modbus() {
     let (addr, stop) = peer(http);

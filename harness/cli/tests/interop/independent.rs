@@ -1,6 +1,7 @@
-//! Drives written independently from the manuals (tests/independent/): six Python simulators, two of each
+//! Drives written independently from the manuals (tests/independent/): nine Python simulators, three of each
 //! drive by authors who had the manuals, the public Modbus specifications and tests/independent/BRIEF.md
-//! (the second wave, `*-b`: BRIEF-b.md), and never saw this code nor each other's. Where they conform to the manuals the harness must give them no FAIL, and it must leave every
+//! (the second wave, `*-b`: BRIEF-b.md; the third, `*-c`: BRIEF-c.md), and never saw this code nor each
+//! other's. Where they conform to the manuals the harness must give them no FAIL, and it must leave every
 //! value of their state (their own dump, `--state`) as it found it. Each fix they led to is in the log
 //! (README, "Independent drives").
 
@@ -89,7 +90,7 @@ fn differences(a: &serde_json::Value, b: &serde_json::Value, at: &str, out: &mut
     }
 }
 
-/// The profile a drive's simulator is judged with: its directory's name before any `-b`.
+/// The profile a drive's simulator is judged with: its directory's name before any `-b` or `-c`.
 fn profile_of(drive: &str) -> &str {
     drive.split('-').next().unwrap_or(drive)
 }
@@ -321,5 +322,85 @@ fn the_sd2x_on_a_serial_line_passes_and_is_left_as_found() {
             "sd2x-b {extra:?}: left changed: {diff:?}\n{out}\n{err}"
         );
         assert_pass("sd2x-b", code, &out);
+    }
+}
+
+/// The third wave (BRIEF-c.md): an MDrive Plus2 that answers unit ids 255 and 0 only (so `--unit 255`: the
+/// harness's pre-flight says so), whose I/O points are all inputs as shipped and which refuses reads and
+/// writes of outputs with 02, reads TR back as the write format's one value, and takes only 1 as S's
+/// operand; an LMD; an SD2x with a watchdog. Their catalogs PASS and leave them as found.
+#[test]
+fn the_catalogs_pass_the_third_wave_and_leave_it_as_found() {
+    for (drive, scheme, extra) in [
+        ("mdrive-c", "tcp", &["--unit", "255"][..]),
+        ("lmd-c", "tcp", &[][..]),
+        ("sd2x-c", "rtu+tcp", &[][..]),
+    ] {
+        let (code, out) = run_leaving_as_found(drive, scheme, extra);
+        assert_pass(drive, code, &out);
+    }
+}
+
+/// The third wave with every flag: PASS, and as found, but for what the manuals make impossible to put
+/// back or what a case does by design: the LMD's MR (0x0046) reads back the last relative move written,
+/// -1 (an instruction: writing it back would move the axis again), its UG leaves it in upgrade mode and its
+/// S saves to NVM once (a counter this simulator keeps).
+#[test]
+fn catalogs_with_motion_pass_the_third_wave() {
+    let all = ["--allow-motion", "--allow-destructive"];
+    for (drive, scheme, extra, by_design) in [
+        ("mdrive-c", "tcp", &["--unit", "255"][..], &[][..]),
+        (
+            "lmd-c",
+            "tcp",
+            &[][..],
+            &[
+                "/holding_registers/0x0046/",
+                "/manufacturer_specific/UG/upgrade_mode:",
+                "/nvm_save_count:",
+            ][..],
+        ),
+        ("sd2x-c", "rtu+tcp", &[][..], &[][..]),
+    ] {
+        let sim = Independent::start(drive);
+        let before = sim.state();
+        let args: Vec<&str> = extra.iter().chain(all.iter()).copied().collect();
+        let (code, out, err) = harness_bounded(
+            None,
+            &run_args(&sim.target(scheme), profile_of(drive), &args),
+            RUN_LIMIT,
+        );
+        let after = sim.state();
+        let mut diff = Vec::new();
+        differences(&before, &after, "", &mut diff);
+        diff.retain(|d| !by_design.iter().any(|p| d.starts_with(p)));
+        assert!(
+            diff.is_empty(),
+            "{drive}: left changed: {diff:?}\n{out}\n{err}"
+        );
+        assert!(!out.contains("NOT RESTORED"), "{out}");
+        assert_pass(drive, code, &out);
+    }
+}
+
+/// Generated cases against the third wave (fewer than the first two waves get: the CI machine's time):
+/// PASS, nothing left changed.
+#[test]
+fn generated_runs_leave_the_third_wave_as_found() {
+    for (drive, scheme, extra) in [
+        (
+            "mdrive-c",
+            "tcp",
+            &["--unit", "255", "--generated", "1000", "--seed", "1"][..],
+        ),
+        ("lmd-c", "tcp", &["--generated", "1000", "--seed", "3"][..]),
+        (
+            "sd2x-c",
+            "rtu+tcp",
+            &["--generated", "300", "--seed", "2"][..],
+        ),
+    ] {
+        let (code, out) = run_leaving_as_found(drive, scheme, extra);
+        assert_pass(drive, code, &out);
     }
 }

@@ -54,6 +54,10 @@ pub trait DataModel {
     /// Note that a freedom decided the answer being given.
     fn decided(&mut self, _freedom: Decision) {}
 
+    /// Note the freedoms `request` is about whatever the answer to it (with [`DataModel::decided`]): called
+    /// before it is served, where the model's reads cannot note anything.
+    fn note_request(&mut self, _request: &Request) {}
+
     /// Apply a plan made by [`DataModel::plan_write`], with whatever the write sets off.
     fn commit(&mut self, plan: Self::Plan);
 
@@ -132,6 +136,7 @@ pub fn serve<M: DataModel + ?Sized>(model: &mut M, request: &Request) -> Option<
             model.decided(ids::PARTIAL_REGISTER_READ);
         }
     }
+    model.note_request(request);
     let answer = Some(match request {
         Request::ReadCoils { address, quantity } => model
             .read_bits(BitTable::Coils, *address, *quantity)

@@ -869,6 +869,85 @@ impl Mdrive {
         Choices::exception_value(v).map(|code| Rejection::by(freedom, code))
     }
 
+    /// The points (1-based) whose output registers (O1-O4, not the groups) `quantity` registers from
+    /// `address` cover.
+    fn output_register_points(&self, address: u16, quantity: usize) -> Vec<usize> {
+        let end = u32::from(address) + u32::try_from(quantity).unwrap_or(u32::MAX);
+        self.addrs
+            .outputs
+            .iter()
+            .enumerate()
+            .filter(|(_, a)| a.is_some_and(|a| (u32::from(address)..end).contains(&u32::from(a))))
+            .map(|(i, _)| i + 1)
+            .collect()
+    }
+
+    /// True when a read the bank serves covers the output of a point configured as an input: FC 01 of its
+    /// coil, a register read of its O register (`mdrive-output-read-while-input`; OT/OL are served).
+    fn reads_input_point(&self, request: &Request) -> bool {
+        let (points, served) = match request {
+            Request::ReadCoils { address, quantity } => (
+                self.coil_points(*address, usize::from(*quantity)),
+                self.bank
+                    .read_bits(BitTable::Coils, *address, *quantity)
+                    .is_ok(),
+            ),
+            Request::ReadHoldingRegisters { address, quantity }
+            | Request::ReadWriteMultipleRegisters {
+                read_address: address,
+                read_quantity: quantity,
+                ..
+            } => (
+                self.output_register_points(*address, usize::from(*quantity)),
+                self.bank
+                    .read(RegTable::Holding, *address, *quantity)
+                    .is_ok(),
+            ),
+            Request::ReadInputRegisters { address, quantity } => (
+                self.output_register_points(*address, usize::from(*quantity)),
+                self.bank.read(RegTable::Input, *address, *quantity).is_ok(),
+            ),
+            _ => return false,
+        };
+        served && self.sets_input_point(points)
+    }
+
+    /// The refusal this drive chose for a read of an output whose point is an input; `None` where it serves
+    /// it (the reference).
+    fn output_read_refusal(&self, points: Vec<usize>) -> Option<Rejection> {
+        if !self.sets_input_point(points) {
+            return None;
+        }
+        self.input_point_refusal(ids::MDRIVE_OUTPUT_READ_WHILE_INPUT)
+    }
+
+    /// The freedoms of a register write of `words` at `address` that sets the output of a point configured
+    /// as an input, where the write's value is out of range (03): a drive refusing such writes with 02 checks
+    /// the address first (app 4.5, Figure 9) and refuses it for the point.
+    fn refused_value_freedoms(&self, address: u16, words: &[u16]) -> Vec<Decision> {
+        let value_refused = matches!(
+            self.bank.plan_write(address, words),
+            Err(e) if e.code == ExceptionCode::ILLEGAL_DATA_VALUE
+        );
+        if !value_refused {
+            return Vec::new();
+        }
+        let end = u32::from(address) + u32::try_from(words.len()).unwrap_or(u32::MAX);
+        let group = self
+            .addrs
+            .output_groups
+            .iter()
+            .any(|g| (u32::from(address)..end).contains(&u32::from(*g)));
+        let mut out = Vec::new();
+        if self.sets_input_point(self.output_register_points(address, words.len())) {
+            out.push(ids::MDRIVE_OUTPUT_WRITE_WHILE_INPUT);
+        }
+        if group && self.sets_input_point(1..=self.outputs.len()) {
+            out.push(ids::MDRIVE_OUTPUT_GROUP_WRITE_WHILE_INPUT);
+        }
+        out
+    }
+
     /// The dependent limits a register write must respect (exception 03), beyond each register's own range.
     fn check_limits(&self, changes: &[Change]) -> Result<(), Rejection> {
         if self.bank.range_unchecked() {
@@ -1077,6 +1156,22 @@ impl Mdrive {
             && let Some(v) = self.bank.value(reg)
         {
             *first = v.to_string();
+        }
+        // A setting whose write format has fewer values than it reads back (the MDrive's TR: written
+        // "=position", read back "0, 0, 0" in the manual's example): a drive may answer the format's values
+        // only (`fc41-read-back-fields`).
+        let format_fields = m
+            .format
+            .as_deref()
+            .filter(|f| f.trim_start().starts_with('='))
+            .map(|f| f.split(',').count());
+        if let Some(n) = format_fields.filter(|&n| n < values.len())
+            && self.profile.device.id == "mdrive"
+        {
+            self.decided(ids::FC41_READ_BACK_FIELDS);
+            if self.bank.choices().name(ids::FC41_READ_BACK_FIELDS) == Some("format-count") {
+                values.truncate(n);
+            }
         }
         self.decided(ids::FC41_READ_BACK_FORMAT);
         let params = if self.bank.choices().name(ids::FC41_READ_BACK_FORMAT) == Some("as-written") {
@@ -1334,7 +1429,13 @@ impl DataModel for Mdrive {
         address: u16,
         quantity: u16,
     ) -> Result<Vec<u16>, Rejection> {
-        self.bank.read(table, address, quantity)
+        let values = self.bank.read(table, address, quantity)?;
+        if let Some(refusal) =
+            self.output_read_refusal(self.output_register_points(address, usize::from(quantity)))
+        {
+            return Err(refusal);
+        }
+        Ok(values)
     }
 
     fn splits_register(&self, table: RegTable, address: u16, quantity: u16) -> bool {
@@ -1342,7 +1443,14 @@ impl DataModel for Mdrive {
     }
 
     fn plan_write(&self, address: u16, words: &[u16]) -> Result<Vec<Change>, Rejection> {
-        let changes = self.bank.plan_write(address, words)?;
+        let changes = self.bank.plan_write(address, words).map_err(|e| {
+            // A drive refusing writes of input points with 02 checks the address before the value.
+            self.refused_value_freedoms(address, words)
+                .into_iter()
+                .filter_map(|f| self.input_point_refusal(f))
+                .find(|r| r.code == ExceptionCode::ILLEGAL_DATA_ADDRESS)
+                .unwrap_or(e)
+        })?;
         self.check_limits(&changes)?;
         self.check_motion(&changes)?;
         // Last: a write the drive could not take anyway is refused for that (its own freedoms decide the code).
@@ -1371,6 +1479,27 @@ impl DataModel for Mdrive {
         self.bank.freedoms().decided(freedom);
     }
 
+    fn note_request(&mut self, request: &Request) {
+        if self.reads_input_point(request) {
+            self.decided(ids::MDRIVE_OUTPUT_READ_WHILE_INPUT);
+        }
+        let write = match request {
+            Request::WriteSingleRegister { address, value } => Some((*address, vec![*value])),
+            Request::WriteMultipleRegisters { address, values }
+            | Request::ReadWriteMultipleRegisters {
+                write_address: address,
+                values,
+                ..
+            } => Some((*address, values.clone())),
+            _ => None,
+        };
+        if let Some((address, words)) = write {
+            for freedom in self.refused_value_freedoms(address, &words) {
+                self.decided(freedom);
+            }
+        }
+    }
+
     fn commit(&mut self, changes: Vec<Change>) {
         for freedom in self.input_point_freedoms(&changes) {
             // Taken although a point it sets is an input: a drive may refuse it (see `plan_write`).
@@ -1389,7 +1518,14 @@ impl DataModel for Mdrive {
         address: u16,
         quantity: u16,
     ) -> Result<Vec<u8>, Rejection> {
-        self.bank.read_bits(table, address, quantity)
+        let bits = self.bank.read_bits(table, address, quantity)?;
+        if table == BitTable::Coils
+            && let Some(refusal) =
+                self.output_read_refusal(self.coil_points(address, usize::from(quantity)))
+        {
+            return Err(refusal);
+        }
+        Ok(bits)
     }
 
     fn write_coils(&mut self, address: u16, states: &[bool]) -> Result<(), Rejection> {

@@ -53,6 +53,8 @@ pub(super) struct RegisterEntry {
     line: Option<u32>,
     #[serde(default = "super::yes")]
     confirmed: bool,
+    #[serde(default)]
+    read_clears: bool,
 }
 
 /// A `[[coil]]` or `[[discrete_input]]` table: one bit, or a block of them.
@@ -300,6 +302,7 @@ impl RegisterEntry {
                 note: fill_opt(&self.note, i, address).map_err(err)?,
                 line: self.line,
                 confirmed: self.confirmed,
+                read_clears: self.read_clears,
             });
         }
         Ok(out)

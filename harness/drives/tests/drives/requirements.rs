@@ -288,13 +288,13 @@ fn a_well_formed_set_parses() {
     );
 }
 
-/// `units` is a range: `tcp-unit-ids` concerns every unit id from 1 to 247, not only those two.
+/// `units` is a range: `tcp-unit-ids` concerns every unit id from 1 to 254, not only those two.
 #[test]
 fn unit_ids_are_a_range() {
     let r = embedded();
     let f = r.freedom("tcp-unit-ids").expect("tcp-unit-ids");
-    assert!(f.covers_unit(1) && f.covers_unit(2) && f.covers_unit(247));
-    assert!(!f.covers_unit(0) && !f.covers_unit(248) && !f.covers_unit(255));
+    assert!(f.covers_unit(1) && f.covers_unit(2) && f.covers_unit(247) && f.covers_unit(254));
+    assert!(!f.covers_unit(0) && !f.covers_unit(255));
     let parsed = parse(
         DOC,
         &FREEDOMS.replace("exception-code", "unit-ids").replace(

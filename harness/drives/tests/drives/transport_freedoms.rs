@@ -85,12 +85,13 @@ fn tcp_unit_ids_silence_ignores_the_listed_units_but_not_its_own_nor_0_and_ff() 
     assert_eq!(serve(&mut reference, &adu(1, other, READ)).0.len(), 1);
     assert_eq!(serve(&mut chosen, &adu(1, other, READ)), (vec![], false));
     assert!(chosen.take_decisions().contains(&ids::TCP_UNIT_IDS));
-    // Every unit id of the freedom's range (`units = [1, 247]`), not only its ends.
+    // Every unit id of the freedom's range (`units = [1, 254]`), not only its ends.
     let inside = if own == 100 { 101 } else { 100 };
     assert_eq!(serve(&mut reference, &adu(1, inside, READ)).0.len(), 1);
     assert_eq!(serve(&mut chosen, &adu(1, inside, READ)), (vec![], false));
-    // Outside it (and not 0 or 0xFF), a unit id the profile answers is still answered.
-    assert_eq!(serve(&mut chosen, &adu(1, 250, READ)).0.len(), 1);
+    // 248-254 (reserved on a serial line) too: a drive that ignores other ids ignores those.
+    assert_eq!(serve(&mut reference, &adu(1, 250, READ)).0.len(), 1);
+    assert_eq!(serve(&mut chosen, &adu(1, 250, READ)), (vec![], false));
     for u in [own, 0, 0xFF] {
         assert_eq!(
             serve(&mut chosen, &adu(2, u, READ)).0.len(),
@@ -248,6 +249,57 @@ fn exception_check_order_2_checks_the_address_before_the_quantity() {
             .contains(&ids::EXCEPTION_CHECK_ORDER)
     );
     assert_eq!(serve(&mut chosen, &quantity).0, [(2, "81 03".to_string())]);
+    assert!(
+        !chosen
+            .take_decisions()
+            .contains(&ids::EXCEPTION_CHECK_ORDER)
+    );
+}
+
+/// FC 23 carries two ranges (App 6.17): a read range past the map with a write quantity of 0 is wrong in
+/// both, and the order of the checks is the drive's as for the other functions; a write range past the map
+/// with a read quantity over 125 too. Only the quantity wrong: 03 whatever the order.
+#[test]
+fn exception_check_order_covers_both_ranges_of_fc_23() {
+    let u = unit("generic");
+    // Read 1 register at 200 (past the generic map's 100), write none at 0.
+    let read_past = adu(
+        1,
+        u,
+        &[0x17, 0x00, 0xC8, 0x00, 0x01, 0x00, 0x00, 0x00, 0x00, 0x00],
+    );
+    // Read 126 registers at 0, write 1 at 200.
+    let write_past = adu(
+        2,
+        u,
+        &[
+            0x17, 0x00, 0x00, 0x00, 0x7E, 0x00, 0xC8, 0x00, 0x01, 0x02, 0x00, 0x01,
+        ],
+    );
+    // Read 1 at 0, write none at 0: the quantity alone.
+    let quantity = adu(
+        3,
+        u,
+        &[0x17, 0x00, 0x00, 0x00, 0x01, 0x00, 0x00, 0x00, 0x00, 0x00],
+    );
+    for (bytes, tid) in [(&read_past, 1), (&write_past, 2)] {
+        let mut reference = station("generic", &[]);
+        let mut chosen = station("generic", &["exception-check-order=2"]);
+        assert_eq!(serve(&mut reference, bytes).0, [(tid, "97 03".to_string())]);
+        assert!(
+            reference
+                .take_decisions()
+                .contains(&ids::EXCEPTION_CHECK_ORDER)
+        );
+        assert_eq!(serve(&mut chosen, bytes).0, [(tid, "97 02".to_string())]);
+        assert!(
+            chosen
+                .take_decisions()
+                .contains(&ids::EXCEPTION_CHECK_ORDER)
+        );
+    }
+    let mut chosen = station("generic", &["exception-check-order=2"]);
+    assert_eq!(serve(&mut chosen, &quantity).0, [(3, "97 03".to_string())]);
     assert!(
         !chosen
             .take_decisions()

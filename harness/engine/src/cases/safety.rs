@@ -55,6 +55,21 @@ pub fn classify(p: &Profile, pdu: &[u8]) -> BTreeSet<Tag> {
         let count = pdu.get(at + 4).map_or(0, |b| per_bytes(usize::from(*b)));
         quantity.max(count).max(per_bytes(data_len(at + 5))).max(1)
     };
+    // A read that clears what it reads (the MCode error code ER, "must be read or set to 0 to clear"): the
+    // drive's record of its last error is gone once read, so the read is destructive.
+    let read = |at: usize| -> Option<(u16, u16)> { Some((be16(at)?, be16(at + 2)?)) };
+    let clears = |(address, quantity): (u16, u16)| {
+        let end = u32::from(address) + u32::from(quantity.max(1));
+        p.registers
+            .iter()
+            .map(|x| x.get_ref())
+            .any(|x| x.read_clears && u32::from(x.address) < end && x.end() > u32::from(address))
+    };
+    if matches!(fc, 0x03 | 0x04) && read(1).is_some_and(clears)
+        || fc == 0x17 && read(1).is_some_and(clears)
+    {
+        r.destructive = true;
+    }
     match fc {
         0x05 => r.coils(p, be16(1), 1),
         0x06 | 0x16 => r.registers(p, be16(1), 1),

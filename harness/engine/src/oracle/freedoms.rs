@@ -136,6 +136,11 @@ fn touches(f: &Freedom, cx: &StepContext<'_>) -> bool {
         if f.id == "sd2x-fc43-reserved-byte" {
             return cx.request.is_none() && canopen_example_form(cx.pdu);
         }
+        // An FC 02 read at the example's input addresses: a drive may serve them as an alias (`reading`).
+        if f.id == "lmd-discrete-input-addressing" {
+            return matches!(cx.request, Some(Request::ReadDiscreteInputs { address, .. })
+                if cx.profile.discrete_inputs.iter().any(|b| b.get_ref().address.wrapping_add(0x002D) == *address));
+        }
         return matches!(
             f.id.as_str(),
             "fc42-parameterless-byte-count"
@@ -150,6 +155,10 @@ fn touches(f: &Freedom, cx: &StepContext<'_>) -> bool {
     let Some(req) = cx.request else {
         return false;
     };
+    // Any FC 0x41 read (the alternative is there only for a setting whose format and example disagree).
+    if f.id == drives::choices::ids::FC41_READ_BACK_FIELDS {
+        return matches!(req, Request::VendorRead { .. });
+    }
     match f.kind {
         FreedomKind::Optional | FreedomKind::Access => f
             .items
@@ -303,11 +312,12 @@ pub fn reference_shown(
                 _ => None,
             }
         }
-        // A write of an MDrive output whose point is an input, taken as the reference takes it: the drive's
+        // A write (or read) of an MDrive output whose point is an input, taken as the reference takes it: the drive's
         // choice, held against a refusal of another such write (an outcome freedom's other values are shown
         // by the answers that differ from the reference's, see `outcome_shown`).
         FreedomKind::Outcome
             if (f.id == drives::choices::ids::MDRIVE_OUTPUT_WRITE_WHILE_INPUT
+                || f.id == drives::choices::ids::MDRIVE_OUTPUT_READ_WHILE_INPUT
                 || f.id == drives::choices::ids::MDRIVE_OUTPUT_GROUP_WRITE_WHILE_INPUT)
                 && cx.decided(f) =>
         {
@@ -463,6 +473,13 @@ pub fn unambiguous(
             {
                 "access"
             }
+            // Nor is a quantity over the device's limit served or refused: its refusal's code is
+            // `quantity-over-device-limit`'s, which this exception shows.
+            FreedomKind::Outcome
+                if f.id == drives::choices::ids::QUANTITY_OVER_DEVICE_LIMIT_SERVED =>
+            {
+                continue;
+            }
             // An SDO error freedom is no reason for an exception: it chooses among SDO errors only.
             FreedomKind::ExceptionCode | FreedomKind::Outcome if cx.decided(f) => f.id.as_str(),
             _ => continue,
@@ -539,6 +556,46 @@ pub fn about_of(freedom: &str, cx: &StepContext<'_>) -> String {
     if freedom == VALUE_MEANING_OPEN {
         return value_meaning_about(cx).unwrap_or_default();
     }
+    // A group write of the outputs (OT/OL) that sets no output at all cannot drive a point that is an input:
+    // a drive may take it and refuse one that sets a bit (an independent MDrive refuses with 03 a bit of a
+    // point that is not an output, and takes 0). Held apart.
+    if freedom == drives::choices::ids::MDRIVE_OUTPUT_GROUP_WRITE_WHILE_INPUT {
+        let zero = match cx.request {
+            Some(Request::WriteSingleRegister { value, .. }) => *value == 0,
+            Some(Request::WriteMultipleRegisters { values, .. })
+            | Some(Request::ReadWriteMultipleRegisters { values, .. }) => {
+                values.iter().all(|v| *v == 0)
+            }
+            _ => false,
+        };
+        return if zero {
+            "writing 0".into()
+        } else {
+            "setting an output".into()
+        };
+    }
+    // FC 08's data field is N x 2 bytes (App 6.8): a field of an odd size is no telegram of the layout, one of
+    // an even size other than the manual's 2 bytes is; a drive may echo the one and refuse the other.
+    if freedom == drives::choices::ids::SD2X_DIAGNOSTIC_DATA_SIZE {
+        let data = cx.pdu.len().saturating_sub(3);
+        return if data % 2 == 1 {
+            "odd size".into()
+        } else {
+            "even size".into()
+        };
+    }
+    // The order of the checks is drawn per function in app section 6 (a state diagram each), and a PDU
+    // longer than its layout carries a byte count that no longer matches in some functions and not in
+    // others: a drive keeps to its choice per function code.
+    if freedom == drives::choices::ids::EXCEPTION_CHECK_ORDER
+        || freedom == drives::choices::ids::TRAILING_BYTES
+    {
+        return cx
+            .pdu
+            .first()
+            .map(|fc| format!("FC 0x{fc:02X}"))
+            .unwrap_or_default();
+    }
     if freedom != PARTIAL_REGISTER_WRITE && freedom != PARTIAL_REGISTER_READ {
         return String::new();
     }
@@ -549,13 +606,25 @@ pub fn about_of(freedom: &str, cx: &StepContext<'_>) -> String {
         return String::new();
     };
     let end = u32::from(address) + u32::from(quantity);
-    cx.profile
-        .registers
-        .iter()
-        .map(|r| r.get_ref())
-        .find(|r| r.width_disputed && u32::from(r.address) < end && r.end() > u32::from(address))
-        .map(|r| r.mnemonic.clone().unwrap_or_else(|| r.name.clone()))
-        .unwrap_or_default()
+    let overlapped =
+        |r: &&drives::profile::Register| u32::from(r.address) < end && r.end() > u32::from(address);
+    let registers = || cx.profile.registers.iter().map(|r| r.get_ref());
+    if let Some(r) = registers().find(|r| r.width_disputed && overlapped(r)) {
+        return r.mnemonic.clone().unwrap_or_else(|| r.name.clone());
+    }
+    // A write that starts where a 32-bit register starts reads as a write of it (a drive may take its first
+    // register for the whole value), one that starts inside it cannot: a drive may take the one and refuse
+    // the other, and keeps to each.
+    if freedom == PARTIAL_REGISTER_WRITE
+        && let Some(r) = registers().find(|r| r.width == 2 && overlapped(r))
+    {
+        return if r.address == address {
+            "from its first register".into()
+        } else {
+            "from inside it".into()
+        };
+    }
+    String::new()
 }
 
 /// The alternative answers a freedom admits for a step whose reference answer is `expected` (`None`:
@@ -830,9 +899,11 @@ fn outcome(
     let request = cx.request;
     let has = |name: &str| f.admits(name);
     // A listed exception to the function `fc` the request asked for, where the drive answered one.
+    // (A request of function 128-255 is refused with that function: its own bit 7 is set already.)
     let exception = |o: &Response, fc: FunctionCode| match exception_of(o) {
         Some((ofn, code))
-            if ofn.without_exception_bit() == fc && has(&format!("exception-{:02X}", code.0)) =>
+            if ofn.without_exception_bit() == fc.without_exception_bit()
+                && has(&format!("exception-{:02X}", code.0)) =>
         {
             vec![Alternative::exact(
                 Some(Response::exception(fc, code)),
@@ -845,11 +916,20 @@ fn outcome(
         // The reference stays silent (an MBAP length still waiting for bytes, say): a listed exception to
         // the request's function is as good. The function is the PDU's first byte: a request malformed on
         // purpose (or of a function the profile lacks) may not decode.
-        (None, Some(o)) => request
-            .map(Request::function)
-            .or_else(|| cx.pdu.first().map(|&b| FunctionCode(b)))
-            .map(|fc| exception(o, fc))
-            .unwrap_or_default(),
+        // Or, where the freedom lists it, the request served (a PDU longer than its layout, served as its
+        // layout's bytes ask by a drive that answered another such request with silence before).
+        (None, Some(o)) => {
+            let fc = request
+                .map(Request::function)
+                .or_else(|| cx.pdu.first().map(|&b| FunctionCode(b)));
+            match fc {
+                Some(fc) if exception_of(o).is_none() && !fc.is_exception() => {
+                    served(f, request, o, fc)
+                }
+                Some(fc) => exception(o, fc),
+                None => vec![],
+            }
+        }
         (_, None) if cx.closed && has("close") => {
             vec![Alternative::exact(None, shown_named(f, "", "close"))]
         }
@@ -873,24 +953,37 @@ fn outcome(
                 } else {
                     vec![]
                 }
-            } else if has("response") && o.function() == fc && e.is_exception() {
-                // A write's echo is the request's (App 6.5, 6.6, 6.11, 6.12): compared as the step compares.
-                let echo = request
-                    .is_some_and(|r| registers_written(r).is_some() || is_coil_write(r))
-                    && !matches!(request, Some(Request::ReadWriteMultipleRegisters { .. }));
-                let served = Some(served_as_asked(request).unwrap_or_else(|| o.clone()));
-                let shown = shown_named(f, "", "response");
-                vec![if echo {
-                    Alternative::exact(served, shown)
-                } else {
-                    Alternative::values_free(served, shown)
-                }]
+            } else if e.is_exception() {
+                served(f, request, o, fc)
             } else {
                 vec![]
             }
         }
         _ => vec![],
     }
+}
+
+/// The request served, where the outcome freedom `f` lists it and the drive's answer `o` is of its function
+/// `fc`: a write's echo is the request's (App 6.5, 6.6, 6.11, 6.12), compared as the step compares; the
+/// values read are the drive's.
+fn served(
+    f: &Freedom,
+    request: Option<&Request>,
+    o: &Response,
+    fc: FunctionCode,
+) -> Vec<Alternative> {
+    if !f.admits("response") || o.function() != fc {
+        return vec![];
+    }
+    let echo = request.is_some_and(|r| registers_written(r).is_some() || is_coil_write(r))
+        && !matches!(request, Some(Request::ReadWriteMultipleRegisters { .. }));
+    let served = Some(served_as_asked(request).unwrap_or_else(|| o.clone()));
+    let shown = shown_named(f, "", "response");
+    vec![if echo {
+        Alternative::exact(served, shown)
+    } else {
+        Alternative::values_free(served, shown)
+    }]
 }
 
 /// FC 05 or FC 0F.
@@ -1060,6 +1153,36 @@ fn field_value(
             }
         }
         (
+            drives::choices::ids::FC41_READ_BACK_FIELDS,
+            Response::VendorRead { params: ep },
+            Response::VendorRead { params: op },
+            Some(Request::VendorRead { mnemonic }),
+        ) => {
+            // The values the manual's write format has, where the reference reads back more of them.
+            let name = mnemonic.name();
+            let name = name.trim();
+            let Some(format) = cx
+                .profile
+                .mnemonics
+                .iter()
+                .map(|m| m.get_ref())
+                .find(|m| m.name == name)
+                .and_then(|m| m.format.as_deref())
+            else {
+                return vec![];
+            };
+            let fields = parameter_values(format.as_bytes()).len();
+            let (ev, ov) = (parameter_values(ep), parameter_values(op));
+            if ev.len() > fields && ov.len() == fields && same_values(&ev[..fields], &ov) {
+                vec![Alternative::exact(
+                    Some(o.clone()),
+                    shown_named(f, name, "format-count"),
+                )]
+            } else {
+                vec![]
+            }
+        }
+        (
             "run-indicator-status",
             Response::ReportServerId { data: ed },
             Response::ReportServerId { data: od },
@@ -1218,6 +1341,40 @@ fn reading(
         return vec![];
     }
     let other = f.values.get(1).map(|v| v.to_string()).unwrap_or_default();
+    // An LMD that serves its inputs at both addresses the manual gives (the table's 0x0000, which the run
+    // found it serving, and the example's 0x002D as an alias): a read of the inputs at the example's
+    // address served where the reference, following the table, refuses it with 02. Its own choice (about
+    // the alias), so that a drive refusing such a read later is held to it.
+    if f.id == "lmd-discrete-input-addressing"
+        && let (Some(Request::ReadDiscreteInputs { address, quantity }), Some(e)) =
+            (cx.request, expected)
+        && matches!(e, Response::Exception { code, .. } if code.0 == 2)
+        && matches!(o, Response::ReadDiscreteInputs { .. })
+    {
+        let inputs: Vec<u16> = cx
+            .profile
+            .discrete_inputs
+            .iter()
+            .map(|b| b.get_ref().address.wrapping_add(0x002D))
+            .collect();
+        let last = u32::from(*address) + u32::from(*quantity.max(&1)) - 1;
+        let within =
+            (u32::from(*address)..=last).all(|a| inputs.iter().any(|&i| u32::from(i) == a));
+        return if within {
+            vec![Alternative {
+                answer: Some(o.clone()),
+                shown: shown_named(f, "0x002D as an alias", &other),
+                values_free: true,
+                note: Some(
+                    "the drive serves its inputs at the example's address 0x002D too, as well as at the \
+                     table's (lmd-discrete-input-addressing)"
+                        .into(),
+                ),
+            }]
+        } else {
+            vec![]
+        };
+    }
     let refused = match o {
         Response::Exception { function, code } => {
             function.without_exception_bit().0 == fc && (1..=4).contains(&code.0)
@@ -1351,6 +1508,119 @@ mod tests {
         }
     }
 
+    /// An LMD serving its inputs at the example's address 0x002D as well as at the table's: a read there
+    /// served where the reference refuses it with 02 is admitted (values free, its own choice); one past the
+    /// inputs (0x0031) served, or an input read refused with another code, is not.
+    #[test]
+    fn an_lmd_serving_its_inputs_at_both_addresses_is_admitted() {
+        let lmd = drives::corpus::Corpus::Embedded
+            .profile("lmd")
+            .expect("lmd");
+        let requirements = drives::corpus::Corpus::Embedded
+            .requirements()
+            .expect("requirements");
+        let f = requirements
+            .freedom("lmd-discrete-input-addressing")
+            .expect("freedom");
+        let refused = Response::exception(FunctionCode::READ_DISCRETE_INPUTS, ExceptionCode(2));
+        let served = Response::ReadDiscreteInputs { data: vec![0] };
+        let judged = |address: u16, quantity: u16, observed: &Response| {
+            let req = Request::ReadDiscreteInputs { address, quantity };
+            let pdu = req.to_bytes().expect("pdu");
+            let cx = cx_for(&req, &pdu, &lmd);
+            (
+                touches(f, &cx),
+                reading(f, &cx, Some(&refused), Some(observed)),
+            )
+        };
+        let (touched, alternatives) = judged(0x002D, 4, &served);
+        assert!(touched);
+        assert_eq!(alternatives.len(), 1);
+        assert!(alternatives[0].values_free);
+        assert_eq!(alternatives[0].shown.about, "0x002D as an alias");
+        let (touched, alternatives) = judged(0x002E, 4, &served);
+        assert!(
+            touched && alternatives.is_empty(),
+            "0x002E-0x0031 runs past the inputs"
+        );
+        let (touched, _) = judged(0x0040, 1, &served);
+        assert!(!touched);
+        let busy = Response::exception(FunctionCode::READ_DISCRETE_INPUTS, ExceptionCode(4));
+        let (_, alternatives) = judged(0x002D, 1, &busy);
+        assert!(
+            alternatives
+                .iter()
+                .all(|a| a.answer.as_ref() != Some(&served))
+        );
+    }
+
+    /// A group write of the MDrive's outputs (OT) is about whether it sets an output: an independent MDrive
+    /// takes OT = 0 and refuses OT = 8 with 03 while the points are inputs, and keeps to both.
+    #[test]
+    fn a_group_write_of_the_outputs_is_keyed_by_whether_it_sets_one() {
+        let mdrive = drives::corpus::Corpus::Embedded
+            .profile("mdrive")
+            .expect("mdrive");
+        let about = |value: u16| {
+            let req = Request::WriteMultipleRegisters {
+                address: 0x0056,
+                values: vec![value],
+            };
+            let pdu = req.to_bytes().expect("pdu");
+            about_of(
+                drives::choices::ids::MDRIVE_OUTPUT_GROUP_WRITE_WHILE_INPUT,
+                &cx_for(&req, &pdu, &mdrive),
+            )
+        };
+        assert_eq!(about(0), "writing 0");
+        assert_eq!(about(8), "setting an output");
+        assert_eq!(about(15), "setting an output");
+    }
+
+    /// TR's FC 0x41 read-back: the manual's example reads back three values, its write format has one. A drive
+    /// answering the format's one value, equal to the reference's first, is admitted (`format-count`); one
+    /// value that differs, or as many values as the reference with one wrong, is not.
+    #[test]
+    fn a_read_back_of_the_format_fields_is_admitted_only_with_the_reference_values() {
+        let mdrive = drives::corpus::Corpus::Embedded
+            .profile("mdrive")
+            .expect("mdrive");
+        let requirements = drives::corpus::Corpus::Embedded
+            .requirements()
+            .expect("requirements");
+        let f = requirements
+            .freedom(drives::choices::ids::FC41_READ_BACK_FIELDS)
+            .expect("freedom");
+        let req = Request::VendorRead {
+            mnemonic: codec::vendor::Mnemonic::from_name("TR").expect("TR"),
+        };
+        let pdu = req.to_bytes().expect("pdu");
+        let cx = cx_for(&req, &pdu, &mdrive);
+        let read = |p: &str| Response::VendorRead {
+            params: p.as_bytes().to_vec(),
+        };
+        let expected = read("6500, 0, 0");
+        let admitted = |o: &str| !field_value(f, &cx, Some(&expected), Some(&read(o))).is_empty();
+        assert!(admitted("6500"));
+        assert!(admitted("=6500"));
+        assert!(!admitted("6501"));
+        assert!(!admitted("6500, 1"));
+        assert!(!admitted("6500, 0, 1"));
+        // Not for a setting whose format has as many values as it reads back (S1: "=A,B,C"), nor for a
+        // mnemonic the profile does not know.
+        for (name, back, answer) in [("S1", "16, 0, 0", "16"), ("QQ", "1, 2", "1")] {
+            let other = Request::VendorRead {
+                mnemonic: codec::vendor::Mnemonic::from_name(name).expect("mnemonic"),
+            };
+            let pdu = other.to_bytes().expect("pdu");
+            let cx = cx_for(&other, &pdu, &mdrive);
+            assert!(
+                field_value(f, &cx, Some(&read(back)), Some(&read(answer))).is_empty(),
+                "{name}"
+            );
+        }
+    }
+
     /// A half write of a register whose width the LMD manual gives two ways (LT: "0x009C-0x009D", "Bytes 2")
     /// is a choice about that register; a half write of any other 32-bit register is about the whole
     /// freedom, so a drive taking LT's first register alone and refusing other half writes keeps its choices.
@@ -1369,9 +1639,18 @@ mod tests {
         };
         assert_eq!(about(0x009C, PARTIAL_REGISTER_WRITE), "LT");
         assert_eq!(about(0x00A3, PARTIAL_REGISTER_WRITE), "TS");
-        // R2 (0x0061) and A (0x0000) are 32-bit one way only; other freedoms are about the whole freedom.
-        assert_eq!(about(0x0061, PARTIAL_REGISTER_WRITE), "");
-        assert_eq!(about(0x0000, PARTIAL_REGISTER_WRITE), "");
+        // R2 (0x0061) and A (0x0000) are 32-bit one way only: a half write of them is about where it starts
+        // (a drive may take a write from a register's first word as the whole value, and refuse one from
+        // inside it); other freedoms are about the whole freedom.
+        assert_eq!(
+            about(0x0061, PARTIAL_REGISTER_WRITE),
+            "from its first register"
+        );
+        assert_eq!(
+            about(0x0000, PARTIAL_REGISTER_WRITE),
+            "from its first register"
+        );
+        assert_eq!(about(0x0001, PARTIAL_REGISTER_WRITE), "from inside it");
         assert_eq!(about(0x009C, UNKNOWN_MNEMONIC), "");
         let mut log = super::super::choices::ChoiceLog::default();
         let requirements = drives::corpus::Corpus::Embedded
@@ -1385,7 +1664,10 @@ mod tests {
         let a = shown_named(f, about(0x0000, PARTIAL_REGISTER_WRITE), "response");
         assert_eq!(log.record(&lt, "lt", &requirements), None);
         assert_eq!(log.record(&r2, "r2", &requirements), None);
-        // Taking a half write of A after refusing R2's is a change of mind.
+        // Taking a half write of A after refusing R2's (both from their first register) is a change of mind;
+        // refusing one from inside A is another choice.
         assert!(log.record(&a, "a", &requirements).is_some());
+        let inside = shown_named(f, about(0x0001, PARTIAL_REGISTER_WRITE), "exception-02");
+        assert_eq!(log.record(&inside, "a2", &requirements), None);
     }
 }

@@ -42,6 +42,21 @@ pub struct ProbeOptions {
     pub scan: (u16, u16),
     /// Also probe the write function codes, with requests a drive must reject before writing.
     pub writes: bool,
+    /// Register addresses the scan does not read: a read of them changes the drive (the profile's
+    /// `read_clears`, MCode ER: "must be read or set to 0 to clear"). See [`unread_of`].
+    pub unread: Vec<u16>,
+}
+
+/// The register addresses of `profile` a read of which changes the drive (`read_clears`): a probe leaves
+/// them unread.
+pub fn unread_of(profile: &Profile) -> Vec<u16> {
+    profile
+        .registers
+        .iter()
+        .map(|r| r.get_ref())
+        .filter(|r| r.read_clears)
+        .flat_map(|r| r.address..r.address.saturating_add(u16::from(r.width)))
+        .collect()
 }
 
 /// The outcome of a probe.
@@ -56,6 +71,8 @@ pub struct ProbeReport {
     pub discrete_inputs: Vec<(u16, u16)>,
     /// FC 08/00 (Return Query Data) echoed its data.
     pub echo: bool,
+    /// Register addresses of the scan left unread (FC 03 and 04): a read of them changes the drive.
+    pub unread: Vec<u16>,
     /// Device identification objects (FC 2B/0E), sorted by id.
     pub identification: Vec<(u8, Vec<u8>)>,
     /// Modbus/TCP: each other unit id a read was sent to, and whether it was answered.
@@ -235,6 +252,22 @@ impl Prober<'_> {
     }
 }
 
+/// Inclusive ranges `r` without the addresses `out`.
+fn without(r: Vec<(u16, u16)>, out: &[u16]) -> Vec<(u16, u16)> {
+    if out.is_empty() {
+        return r;
+    }
+    let mut kept = Vec::new();
+    for (a, b) in r {
+        for x in a..=b {
+            if !out.contains(&x) {
+                extend(&mut kept, x);
+            }
+        }
+    }
+    kept
+}
+
 /// Add `a` to sorted inclusive ranges built in ascending order.
 fn extend(ranges: &mut Vec<(u16, u16)>, a: u16) {
     match ranges.last_mut() {
@@ -311,6 +344,12 @@ pub fn probe(t: &mut dyn Target, o: &ProbeOptions) -> Result<ProbeReport, Target
         }
         let mut ranges: Vec<(u16, u16)> = Vec::new();
         for a in start..=end {
+            if matches!(fc, 0x03 | 0x04) && o.unread.contains(&a) {
+                if !report.unread.contains(&a) {
+                    report.unread.push(a);
+                }
+                continue;
+            }
             let req = match fc {
                 0x03 => Request::ReadHoldingRegisters {
                     address: a,
@@ -573,8 +612,18 @@ pub fn render(report: &ProbeReport, profile: Option<&Profile>, scan: (u16, u16))
             scan.0, scan.1
         );
         let _ = writeln!(s, "  target:  {}", fmt(got));
+        // Registers a read would change were not read: not compared either.
+        let unread: &[u16] = if fc >= 0x03 { &report.unread } else { &[] };
+        if !unread.is_empty() {
+            let list: Vec<String> = unread.iter().map(|a| format!("0x{a:04X}")).collect();
+            let _ = writeln!(
+                s,
+                "  not read: {} (a read clears it: the profile's read_clears)",
+                list.join(", ")
+            );
+        }
         if let Some(p) = profile {
-            let want = clip(documented(p));
+            let want = without(clip(documented(p)), unread);
             let _ = writeln!(s, "  profile: {}", fmt(&want));
             let _ = writeln!(s, "  {}", if &want == got { "same" } else { "DIFFERENT" });
         }

@@ -120,6 +120,8 @@ struct Framed {
     bytes: Vec<u8>,
     sent: Sent,
     malformed: bool,
+    /// The ADU around the PDU was altered on purpose (a protocol id, an MBAP length, a CRC).
+    adu_altered: bool,
 }
 
 impl Framed {
@@ -161,6 +163,12 @@ pub struct Runner {
     /// a later 01 to the same function is that again, whatever the reference answers to the request (silence
     /// for a request it learned to ignore, say).
     lacking: std::collections::BTreeSet<u8>,
+    /// Function codes the drive served (a normal response) in this run.
+    served_functions: std::collections::BTreeSet<u8>,
+    /// The keeper's last request got no frame at all (silence, or the connection closed).
+    restore_unheard: bool,
+    /// New connections the keeper opened after a request of its got no frame at all.
+    pub restore_reconnects: u32,
     /// The case being run sends an FC 15 (Write File Record): its FC 14 reads read back what it wrote.
     case_writes_files: bool,
     /// Outputs the drive has set up for a drive function, learned before the cases
@@ -319,6 +327,9 @@ impl Runner {
             refused: false,
             refused_writes: Vec::new(),
             lacking: std::collections::BTreeSet::new(),
+            served_functions: std::collections::BTreeSet::new(),
+            restore_unheard: false,
+            restore_reconnects: 0,
             case_writes_files: false,
             function_outputs: Vec::new(),
             restore_tid: 0xA000,
@@ -796,6 +807,23 @@ impl Runner {
         Ok((heard, f.bytes))
     }
 
+    /// Whether the target answers the read `pdu` sent to another unit id `unit` (the reference drive does not
+    /// see it): a pre-flight read that got no answer at the run's unit is tried at the unit ids a Modbus/TCP
+    /// device commonly answers, to say which one to use.
+    pub fn answers_at_unit(
+        &mut self,
+        pdu: &[u8],
+        unit: u8,
+        bound: Duration,
+    ) -> Result<bool, TargetError> {
+        let f = self.frame(pdu, unit, None);
+        self.target.drain();
+        self.remember(f.sent.tid, format!("the read at unit {unit}"));
+        self.requests += 1;
+        Ok(crate::liveness::ask(self.target.as_mut(), &f.bytes, bound)?
+            == crate::liveness::Heard::Modbus)
+    }
+
     /// Remember a request's transaction id (Modbus/TCP), to attribute a late answer to it.
     fn remember(&mut self, tid: Option<u16>, by: String) {
         if let Some(tid) = tid {
@@ -1141,21 +1169,25 @@ impl Runner {
                 }
             }
         }
+        let mut adu_altered = false;
         match mutation {
             Some(Mutation::ProtocolId(p)) if bytes.len() >= 4 && framing == Framing::Tcp => {
                 bytes[2..4].copy_from_slice(&p.to_be_bytes());
                 malformed = true;
+                adu_altered = true;
             }
             Some(Mutation::LengthDelta(d)) if bytes.len() >= 6 && framing == Framing::Tcp => {
                 let l = u16::from_be_bytes([bytes[4], bytes[5]]).wrapping_add_signed(*d);
                 bytes[4..6].copy_from_slice(&l.to_be_bytes());
                 malformed = true;
+                adu_altered = true;
             }
             Some(Mutation::BadCrc) if bytes.len() >= 2 && framing != Framing::Tcp => {
                 let n = bytes.len();
                 bytes[n - 2] ^= 0xFF;
                 bytes[n - 1] ^= 0xFF;
                 malformed = true;
+                adu_altered = true;
             }
             _ => {}
         }
@@ -1167,6 +1199,7 @@ impl Runner {
                 pdu: case_pdu.to_vec(),
             },
             malformed,
+            adu_altered,
         }
     }
 
@@ -1750,7 +1783,20 @@ impl Runner {
                     ),
                     _ => false,
                 });
-            if !busy || k >= tries {
+            if busy && k >= tries {
+                // Refused as busy all along: the drive cannot move now (no motor, no home switch set up, a
+                // fault or a limit the harness cannot see or clear). Nothing was done; the reference does
+                // not do it either, and the refusal is worth saying, not a FAIL of the protocol.
+                self.shadow = before;
+                self.sync_shadow();
+                r.findings = vec![format!(
+                    "refused as busy (exception 04 or 06) at every one of {k} attempts over {} ms: the drive cannot do it now (no motor, no home switch set up, a fault or a limit the run cannot see); nothing was done",
+                    every.as_micros() * (k - 1) / 1000
+                )];
+                r.verdict = Verdict::Informational;
+                return Ok(r);
+            }
+            if !busy {
                 if !codes.is_empty() {
                     codes.dedup();
                     let codes: Vec<String> = codes.iter().map(|c| format!("{c:02X}")).collect();
@@ -2182,7 +2228,11 @@ impl Runner {
                     unit,
                     pdu: vec![],
                 });
-            let request = Request::decode(&sent.pdu).ok();
+            // A request longer than its layout is judged as the request the layout reads (a drive may serve
+            // it, `trailing-bytes`), so that what it touches (an item a product may lack) is known.
+            let request = Request::decode(&sent.pdu)
+                .ok()
+                .or_else(|| Request::decode_layout_prefix(&sent.pdu).map(|(r, _)| r));
             // In a batch, the freedoms that decided this frame's answer (and those about the batch).
             let mut decided: Vec<drives::Decision> = match self.frame_decisions.get(j) {
                 Some(own) => own
@@ -2281,6 +2331,30 @@ impl Runner {
                     .function(codec::FunctionCode(fc))
                     .is_some_and(|f| f.line.is_some())
             };
+            // Nor where it never served the function in this run: 01 is what a drive lacking it answers to
+            // any request of it (App 4.5, Figure 9: the function code is checked first), whatever else the
+            // reference found wrong with the request or chose to do with it (a PDU longer than its layout
+            // ignored, say).
+            // (Where the reference answers the same 01, what was found is about something else: a unit id, a
+            // transaction id.)
+            let served_before = sent
+                .pdu
+                .first()
+                .is_some_and(|fc| self.served_functions.contains(fc));
+            let reference_refuses = |x: Option<&Vec<u8>>, fc: u8| {
+                x.and_then(|b| crate::readings::decode_response(framing, b))
+                    .is_some_and(|r| {
+                        matches!(r, codec::Response::Exception { function, code }
+                            if function.0 == fc | 0x80 && code == codec::ExceptionCode::ILLEGAL_FUNCTION)
+                    })
+            };
+            if let (Received::Frame { bytes, .. }, Some(&fc)) = (seen, sent.pdu.first())
+                && frames.len() == 1
+                && crate::readings::decode_response(framing, bytes)
+                    .is_some_and(|r| !r.is_exception() && r.function().0 == fc)
+            {
+                self.served_functions.insert(fc);
+            }
             if illegal_function
                 && let Some(&fc) = sent.pdu.first()
                 && !listed(fc)
@@ -2291,14 +2365,25 @@ impl Runner {
                     .any(|f| f.severity == Severity::Unimplemented)
                 {
                     self.lacking.insert(fc);
-                } else if self.lacking.contains(&fc) {
+                } else if self.lacking.contains(&fc)
+                    || !served_before
+                        && !reference_refuses(judged_expected.get(e), fc)
+                        && !frames
+                            .get(j)
+                            .or(frames.last())
+                            .is_some_and(|f| f.adu_altered)
+                {
+                    let why = if self.lacking.contains(&fc) {
+                        "the drive answered 01 to function 0x{fc:02X} before: it lacks it"
+                    } else {
+                        "exception 01: the drive lacks function 0x{fc:02X}, which its manual does not list and which it served nowhere in this run"
+                    }
+                    .replace("{fc:02X}", &format!("{fc:02X}"));
+                    self.lacking.insert(fc);
                     for f in &mut judged_findings {
                         if f.severity == Severity::Must {
                             f.severity = Severity::Unimplemented;
-                            f.text = format!(
-                                "{} (the drive answered 01 to function 0x{fc:02X} before: it lacks it)",
-                                f.text
-                            );
+                            f.text = format!("{} ({why})", f.text);
                         }
                     }
                 }
@@ -2443,9 +2528,17 @@ impl crate::restore::Link for Runner {
         let Ok(pdu) = req.to_bytes() else {
             return Ok(None);
         };
-        Ok(self
-            .transact_pdu(&pdu)?
-            .and_then(|r| codec::Response::decode(&r).ok()))
+        let mut answer = self.transact_pdu(&pdu)?;
+        // Nothing came at all (no frame, or the connection closed): a drive may leave a connection hung
+        // after a malformed request and still answer on a new one (jsmodbus did, after a truncated FC 15).
+        // What the keeper sends puts values back or reads them (the same request twice does no harm): once
+        // more on a new connection before the request counts as unanswered.
+        if answer.is_none() && self.restore_unheard && self.target.framing() == Framing::Tcp {
+            self.target.reconnect()?;
+            self.restore_reconnects += 1;
+            answer = self.transact_pdu(&pdu)?;
+        }
+        Ok(answer.and_then(|r| codec::Response::decode(&r).ok()))
     }
 }
 
@@ -2467,9 +2560,11 @@ impl Runner {
         self.shadow.send(&f.bytes)?;
         let _ = self.shadow.settle();
         let _ = self.shadow.take_decisions();
+        self.restore_unheard = false;
         for _ in 0..3 {
             let got = self.target.recv(self.cfg.timing.timeout)?;
             let Received::Frame { bytes, .. } = got else {
+                self.restore_unheard = true;
                 return Ok(None);
             };
             let bytes = self.in_case_form(&bytes).unwrap_or(bytes);
@@ -2731,6 +2826,7 @@ pub(super) mod tests {
                 pdu: vec![0x03, 0x00, 0x00, 0x00, 0x01],
             },
             malformed: false,
+            adu_altered: false,
         }
     }
 

@@ -459,10 +459,12 @@ pub(crate) const WITNESSES: &[(&str, &str, &str)] = &[
         "sim:mdrive",
         "spec/app-6/quantity/fc-0x03/high-byte-set",
     ),
+    // (FC 02, not FC 01: a drive may refuse a read of outputs whose points are inputs with 02,
+    // `mdrive-output-read-while-input`, which blinds an FC 01 witness to the quantity it read.)
     (
         "quantity-low-byte",
         "sim:mdrive?transport=rtu",
-        "spec/app-6/quantity/fc-0x01/high-byte-set",
+        "spec/app-6/quantity/fc-0x02/high-byte-set",
     ),
     (
         "quantity-low-byte",
@@ -568,10 +570,11 @@ pub(crate) const WITNESSES: &[(&str, &str, &str)] = &[
         "sim:mdrive",
         "profile/mdrive/mnemonic/tr/write",
     ),
+    // (S1, not MU: an open-loop LMD refuses MU, closed loop only: `lmd-closed-loop-only`.)
     (
         "vendor-write-not-applied",
         "sim:lmd",
-        "profile/lmd/mnemonic/mu/write",
+        "profile/lmd/mnemonic/s1/write",
     ),
     // The identification conformity level that does not match the objects and access served (issue 15).
     (

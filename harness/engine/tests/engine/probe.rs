@@ -89,6 +89,7 @@ fn probe_of(
             timeout: Duration::from_millis(500),
             scan,
             writes,
+            unread: probe::unread_of(&profile(name)),
         },
     )
     .expect("probe");
@@ -257,4 +258,57 @@ fn a_draft_loads_claims_no_width_or_access_and_its_catalog_never_writes() {
             "{url}: the registers are read"
         );
     }
+}
+
+/// A register whose read clears it (MCode ER, "must be read or set to 0 to clear": the profile's
+/// `read_clears`) is left unread by the probe, said so, and not counted as a difference from the profile;
+/// without the profile's list the probe reads it (and the classifier rates that read destructive).
+#[test]
+fn the_probe_leaves_a_register_a_read_clears_unread() {
+    let p = profile("mdrive");
+    let er = p
+        .registers
+        .iter()
+        .map(|r| r.get_ref())
+        .find(|r| r.read_clears)
+        .expect("a read_clears register")
+        .address;
+    let (report, t) = probe_of("mdrive", Framing::Tcp, (0, 0xC0), false);
+    assert_eq!(report.unread, [er]);
+    let read_of_er = |t: &Recording| {
+        t.sent.iter().any(|f| {
+            let pdu = pdu_of(Framing::Tcp, f);
+            pdu[0] == 0x03 && u16::from_be_bytes([pdu[1], pdu[2]]) == er
+        })
+    };
+    assert!(!read_of_er(&t));
+    let text = probe::render(&report, Some(&p), (0, 0xC0));
+    assert!(text.contains(&format!("not read: 0x{er:04X}")), "{text}");
+    let holding = text
+        .split("holding (FC 03)")
+        .nth(1)
+        .and_then(|s| s.lines().nth(4))
+        .unwrap_or("");
+    assert_eq!(holding.trim(), "same", "{text}");
+    // Without the list (no profile given): read, and rated destructive.
+    let station = Station::new(
+        drives::build(p.clone(), FaultSet::none()),
+        FaultSet::none(),
+        255,
+    );
+    let mut t = Recording {
+        inner: SimTarget::with_framing(station, Framing::Tcp, None),
+        sent: Vec::new(),
+        received: Vec::new(),
+    };
+    let o = ProbeOptions {
+        unit: p.device.default_unit,
+        timeout: Duration::from_millis(500),
+        scan: (0, 0xC0),
+        writes: false,
+        unread: vec![],
+    };
+    let report = probe::probe(&mut t, &o).expect("probe");
+    assert!(report.unread.is_empty());
+    assert!(read_of_er(&t));
 }

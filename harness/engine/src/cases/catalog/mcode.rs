@@ -178,8 +178,10 @@ const REST_WITHIN: Duration = Duration::from_secs(10);
 const REST_POLL: Duration = Duration::from_millis(50);
 
 /// What stops an axis that does not come to rest by itself (a homing whose switch or index mark is never
-/// found runs on, 000 line 1055): SL 0, which ramps a slew down (000 line 1114), then DE = 0, which disables
-/// the output bridge (000 line 1042) and so stops any motion. The case keeps DE and puts it back after.
+/// found runs on, 000 line 1055): SL 0, which ramps a slew down (000 line 1114); MCode's escape, where the
+/// profile has it (the LMD's <ESC>, 001 line 1245: in MCode it ends motion and any program, and a drive may
+/// keep moving with its bridge disabled); then DE = 0, which disables the output bridge (000 line 1042). The
+/// case keeps DE and puts it back after.
 fn stop_requests(cx: &Ctx) -> Vec<Vec<u8>> {
     let mut out = Vec::new();
     if let Some(sl) = register(cx.p, "SL").filter(|r| r.access.writable()) {
@@ -187,12 +189,27 @@ fn stop_requests(cx: &Ctx) -> Vec<Vec<u8>> {
             &cx.write_request(sl.address, sl.words(cx.p.device.word_order, 0))
         ));
     }
+    if let Some(esc) = escape(cx.p) {
+        out.push(esc);
+    }
     if let Some(de) = register(cx.p, "DE").filter(|r| r.access == Access::Rw) {
         out.push(pdu(
             &cx.write_request(de.address, de.words(cx.p.device.word_order, 0))
         ));
     }
     out
+}
+
+/// FC 0x42 <ESC> (no parameters) where the profile has the escape mnemonic, in the form its name encodes to.
+fn escape(p: &Profile) -> Option<Vec<u8>> {
+    let m = p.mnemonic("\u{1b}").filter(|m| m.write)?;
+    let mnemonic = Mnemonic::from_name(&m.name)?;
+    Request::VendorWrite {
+        mnemonic,
+        params: Vec::new(),
+    }
+    .to_bytes()
+    .ok()
 }
 
 /// Before a write that can start motion without being one of the move registers (a vendor function such as

@@ -19,6 +19,7 @@ pub(super) fn cases(cx: &mut Ctx) {
     truncated_pdus(cx);
     trailing_bytes(cx);
     request_fc_over_127(cx);
+    quantity_over_device_limit_mapped(cx);
     unsupported_mei_type(cx);
     write_coil_illegal_value(cx);
     bit_padding(cx);
@@ -128,6 +129,65 @@ fn unsupported_mei_type(cx: &mut Ctx) {
             ),
             cx.liveness(),
         ],
+    );
+}
+
+/// FC 03 of the device's limit + 1 registers over a range the map fills (readable holding registers end to
+/// end, no register split, none a read clears), where the profile states a limit below the specification's:
+/// refused (03, or 02) by a drive that keeps to its manual's limit, served by one whose limit is higher
+/// (`quantity-over-device-limit-served`). Nothing where the map has no such range.
+fn quantity_over_device_limit_mapped(cx: &mut Ctx) {
+    let p = cx.p;
+    let fc = FunctionCode::READ_HOLDING_REGISTERS;
+    let Some(limit) = p.function(fc).and_then(|f| f.max_quantity) else {
+        return;
+    };
+    let want = u32::from(limit) + 1;
+    if want > u32::from(fc.max_quantity().unwrap_or(125)) {
+        return;
+    }
+    let mut regs: Vec<&drives::profile::Register> = p
+        .registers
+        .iter()
+        .map(|r| r.get_ref())
+        .filter(|r| r.table != Table::Input)
+        .collect();
+    regs.sort_by_key(|r| r.address);
+    let usable = |r: &drives::profile::Register| r.access.readable() && !r.read_clears;
+    let start = regs.iter().enumerate().find_map(|(i, first)| {
+        let mut end = u32::from(first.address);
+        for r in &regs[i..] {
+            if u32::from(r.address) != end || !usable(r) {
+                return None;
+            }
+            end = r.end();
+            if end - u32::from(first.address) == want {
+                return Some(first.address);
+            }
+            if end - u32::from(first.address) > want {
+                return None;
+            }
+        }
+        None
+    });
+    let Some(address) = start else {
+        return;
+    };
+    let q = want as u16;
+    cx.push(
+        "spec/app-6/quantity/fc-0x03/max-plus-1-mapped".to_string(),
+        format!("FC 03 of {q} registers (limit {limit}) from 0x{address:04X}, every one mapped and readable"),
+        format!("{APP}, section 6.3; the manual's limit"),
+        format!("A quantity above the device's limit ({limit}) but within the specification's is refused (03 or 02), or served by a drive whose limit is higher than its manual states, the same way each time."),
+        vec![],
+        vec![exchange(
+            Outgoing::Pdu(pdu(&Request::ReadHoldingRegisters {
+                address,
+                quantity: q,
+            })),
+            Compare::Structure,
+            format!("quantity {q}"),
+        )],
     );
 }
 

@@ -629,6 +629,11 @@ pub struct Account {
     /// no case since could write: not counted as unrestored, listed with what the drive answered.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub verified_before_irreversible: Vec<Unrestored>,
+    /// A CiA 402 drive found without a fault and left faulted (status word bit 3): the status word before
+    /// the first write and at the end. Not a parameter (nothing writes it back): said, not counted as
+    /// unrestored.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub left_faulted: Option<(u16, u16)>,
 }
 
 impl Account {
@@ -676,6 +681,13 @@ impl Account {
                 self.verified_before_irreversible.len(),
                 self.verified_before_irreversible[0].name,
                 self.verified_before_irreversible[0].what()
+            ));
+        }
+        if let Some((before, after)) = self.left_faulted {
+            out.push(format!(
+                "  WARNING: the drive was found without a fault (status word 0x{before:04X}) and is left faulted \
+                 (0x{after:04X}, CiA 402 bit 3): a case the flags allowed tripped it. Its parameters are as found; \
+                 the fault is not reset by the harness (a fault reset is a state change of its own)"
             ));
         }
         for u in &self.unrestored {
@@ -1205,6 +1217,9 @@ pub struct Keeper {
     written: BTreeSet<String>,
     /// After [`Keeper::checkpoint`]: the keys it left unrestored, and the keys cases wrote since.
     checkpoint: Option<(BTreeSet<String>, BTreeSet<String>)>,
+    /// A CiA 402 status word to read before the first write and at the end (see [`Keeper::watch_status`]),
+    /// and what it read before.
+    status_word: Option<(Request, Option<u16>)>,
 }
 
 impl Keeper {
@@ -1234,6 +1249,40 @@ impl Keeper {
             unwritable: Vec::new(),
             written: BTreeSet::new(),
             checkpoint: None,
+            status_word: None,
+        }
+    }
+
+    /// Read the profile's CiA 402 status word (a read-only register named "Status Word") before the first
+    /// write and at the end, and say when the drive was found without a fault and is left faulted.
+    pub fn watch_status(mut self, profile: &Profile) -> Self {
+        let word = profile.registers.iter().map(|r| r.get_ref()).find(|r| {
+            r.width == 1 && r.access == Access::Ro && r.name.eq_ignore_ascii_case("status word")
+        });
+        self.status_word = word.map(|r| {
+            let read = match r.table {
+                Table::Input => Request::ReadInputRegisters {
+                    address: r.address,
+                    quantity: 1,
+                },
+                _ => Request::ReadHoldingRegisters {
+                    address: r.address,
+                    quantity: 1,
+                },
+            };
+            (read, None)
+        });
+        self
+    }
+
+    /// The status word as the drive answers it now (`None`: no status word, or no answer).
+    fn read_status(&self, link: &mut dyn Link) -> Option<u16> {
+        let (read, _) = self.status_word.as_ref()?;
+        match link.transact(read).ok()?? {
+            Response::ReadInputRegisters { values } | Response::ReadHoldingRegisters { values } => {
+                values.first().copied()
+            }
+            _ => None,
         }
     }
 
@@ -1320,6 +1369,10 @@ impl Keeper {
     /// read are left out with the reason.
     pub fn take_snapshot(&mut self, link: &mut dyn Link) -> Result<(), SnapshotError> {
         let mut counting = Counting { link, sent: 0 };
+        let status = self.read_status(&mut counting);
+        if let Some((_, before)) = self.status_word.as_mut() {
+            *before = status;
+        }
         let read = read_all(&mut counting, &self.inventory.items);
         self.account.requests += counting.sent;
         let read = read?;
@@ -1542,6 +1595,14 @@ impl Keeper {
         let items: Vec<Item> = self.restored_items().cloned().collect();
         let mut counting = Counting { link, sent: 0 };
         let restored = restore(&mut counting, &items, &snapshot, Some(profile));
+        const FAULT: u16 = 1 << 3;
+        if let Some(before) = self.status_word.as_ref().and_then(|(_, b)| *b)
+            && before & FAULT == 0
+            && let Some(after) = self.read_status(&mut counting)
+            && after & FAULT != 0
+        {
+            self.account.left_faulted = Some((before, after));
+        }
         self.account.requests += counting.sent;
         match restored {
             Ok((writes, left)) => {
@@ -1932,6 +1993,60 @@ mod tests {
         );
         k.take_snapshot(fake).expect("snapshot");
         k
+    }
+
+    /// A CiA 402 drive found without a fault and left faulted (a watchdog a case armed tripped) is said at
+    /// the end: the status word before the first write and after the final restore. Not when it stays
+    /// healthy, nor when it was found faulted already.
+    #[test]
+    fn a_drive_left_faulted_is_said() {
+        let sd2x = drives::corpus::Corpus::Embedded
+            .profile("sd2x")
+            .expect("sd2x");
+        let dir = std::env::temp_dir().join(format!("keeper-fault-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).expect("dir");
+        for (found, left, said) in [
+            (0x1270u16, 0x1238u16, true),
+            (0x1270, 0x1270, false),
+            (0x1238, 0x1238, false),
+        ] {
+            let mut fake = Fake::three();
+            fake.regs.insert(2000, found);
+            let items = (0..3u16)
+                .map(|a| {
+                    item(
+                        &format!("holding:{a}"),
+                        Place::Holding {
+                            address: a,
+                            width: 1,
+                        },
+                    )
+                })
+                .collect();
+            let mut k = Keeper::new(
+                Inventory {
+                    items,
+                    ..Inventory::default()
+                },
+                "tcp://127.0.0.1:1".into(),
+                "sd2x".into(),
+                1,
+                Some(dir.join("journal.json")),
+            )
+            .watch_status(&sd2x);
+            k.take_snapshot(&mut fake).expect("snapshot");
+            fake.regs.insert(2000, left);
+            let account = k.finish(&mut fake, &sd2x);
+            assert!(account.clean());
+            assert_eq!(
+                account.left_faulted.is_some(),
+                said,
+                "{found:#06X} -> {left:#06X}"
+            );
+            let text = account.lines().join("\n");
+            assert_eq!(text.contains("left faulted (0x1238"), said, "{text}");
+        }
+        let _ = std::fs::remove_dir_all(&dir);
     }
 
     /// A register the profile takes as read-only but a drive may take writes to (ST of the LMD) is kept,

@@ -1229,7 +1229,8 @@ pub fn keeper(
         profile_name,
         cfg.unit,
         Some(journal),
-    );
+    )
+    .watch_status(profile);
     Some(if scratch {
         keeper.scratch_journal()
     } else {
@@ -1543,5 +1544,6 @@ pub fn restore_journal(
         journal: Some(path.to_path_buf()),
         unwritable: Vec::new(),
         verified_before_irreversible: Vec::new(),
+        left_faulted: None,
     })
 }

@@ -1347,4 +1347,12 @@ impl Profile {
             .map(|o| o.get_ref())
             .find(|o| o.index == index && o.subindex == subindex)
     }
+
+    /// The first object a client may read (the one the CANopen cases and the learning read use).
+    pub fn first_readable_object(&self) -> Option<&Object> {
+        self.objects
+            .iter()
+            .map(|o| o.get_ref())
+            .find(|o| o.access.readable())
+    }
 }

@@ -1970,6 +1970,11 @@ mod tests {
     }
 
     fn keeper_of(fake: &mut Fake, journal: &Path) -> Keeper {
+        keeper_watching(fake, journal, None)
+    }
+
+    /// [`keeper_of`], the keeper watching `profile`'s status word where one is given.
+    fn keeper_watching(fake: &mut Fake, journal: &Path, profile: Option<&Profile>) -> Keeper {
         let items = (0..3u16)
             .map(|a| {
                 item(
@@ -1991,6 +1996,9 @@ mod tests {
             1,
             Some(journal.to_path_buf()),
         );
+        if let Some(p) = profile {
+            k = k.watch_status(p);
+        }
         k.take_snapshot(fake).expect("snapshot");
         k
     }
@@ -2012,29 +2020,7 @@ mod tests {
         ] {
             let mut fake = Fake::three();
             fake.regs.insert(2000, found);
-            let items = (0..3u16)
-                .map(|a| {
-                    item(
-                        &format!("holding:{a}"),
-                        Place::Holding {
-                            address: a,
-                            width: 1,
-                        },
-                    )
-                })
-                .collect();
-            let mut k = Keeper::new(
-                Inventory {
-                    items,
-                    ..Inventory::default()
-                },
-                "tcp://127.0.0.1:1".into(),
-                "sd2x".into(),
-                1,
-                Some(dir.join("journal.json")),
-            )
-            .watch_status(&sd2x);
-            k.take_snapshot(&mut fake).expect("snapshot");
+            let mut k = keeper_watching(&mut fake, &dir.join("journal.json"), Some(&sd2x));
             fake.regs.insert(2000, left);
             let account = k.finish(&mut fake, &sd2x);
             assert!(account.clean());

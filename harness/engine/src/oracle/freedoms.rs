@@ -126,6 +126,10 @@ pub fn applicable<'a>(
     out
 }
 
+/// Where the LMD manual's example reads the inputs (0x002D, line 763) relative to its table's addresses
+/// (0x0000, line 731): `lmd-discrete-input-addressing`.
+pub const LMD_EXAMPLE_INPUT_OFFSET: u16 = 0x002D;
+
 /// True when the request touches what a freedom is about (item-, register- and unit-bound freedoms).
 fn touches(f: &Freedom, cx: &StepContext<'_>) -> bool {
     // The readings of the vendor functions, wherever such a request goes (generated and fuzz cases cite
@@ -139,7 +143,7 @@ fn touches(f: &Freedom, cx: &StepContext<'_>) -> bool {
         // An FC 02 read at the example's input addresses: a drive may serve them as an alias (`reading`).
         if f.id == "lmd-discrete-input-addressing" {
             return matches!(cx.request, Some(Request::ReadDiscreteInputs { address, .. })
-                if cx.profile.discrete_inputs.iter().any(|b| b.get_ref().address.wrapping_add(0x002D) == *address));
+                if cx.profile.discrete_inputs.iter().any(|b| b.get_ref().address.wrapping_add(LMD_EXAMPLE_INPUT_OFFSET) == *address));
         }
         return matches!(
             f.id.as_str(),
@@ -1355,7 +1359,7 @@ fn reading(
             .profile
             .discrete_inputs
             .iter()
-            .map(|b| b.get_ref().address.wrapping_add(0x002D))
+            .map(|b| b.get_ref().address.wrapping_add(LMD_EXAMPLE_INPUT_OFFSET))
             .collect();
         let last = u32::from(*address) + u32::from(*quantity.max(&1)) - 1;
         let within =

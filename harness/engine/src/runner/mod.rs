@@ -460,7 +460,7 @@ impl Runner {
     pub fn learn_input_addressing(&mut self) {
         const FREEDOM: &str = "lmd-discrete-input-addressing";
         const EXAMPLE: &str = "inputs-at-0x002D";
-        const OFFSET: u16 = 0x002D;
+        const OFFSET: u16 = crate::oracle::freedoms::LMD_EXAMPLE_INPUT_OFFSET;
         let requirements = Arc::clone(&self.requirements);
         let id = self.profile.device.id.clone();
         let Some(freedom) = requirements.freedom(FREEDOM).filter(|f| f.applies_to(&id)) else {
@@ -562,13 +562,7 @@ impl Runner {
         let Some(freedom) = requirements.freedom(FREEDOM).filter(|f| f.applies_to(&id)) else {
             return;
         };
-        let Some(o) = self
-            .profile
-            .objects
-            .iter()
-            .map(|o| o.get_ref())
-            .find(|o| o.access.readable())
-        else {
+        let Some(o) = self.profile.first_readable_object() else {
             return;
         };
         let (index, subindex) = (o.index, o.subindex);
@@ -2317,12 +2311,17 @@ impl Runner {
                 .collect();
             // Exception 01 to a function the drive showed it lacks: UNIMPLEMENTED again, not a FAIL because the
             // reference would have answered this request otherwise.
-            let illegal_function = match (seen, sent.pdu.first()) {
-                (Received::Frame { bytes, .. }, Some(&fc)) if fc < 0x80 => matches!(
-                    crate::readings::decode_response(framing, bytes),
-                    Some(codec::Response::Exception { function, code })
-                        if function.0 == fc | 0x80 && code == codec::ExceptionCode::ILLEGAL_FUNCTION
-                ),
+            // The drive's answer, decoded once: what the 01 rule and the functions served look at.
+            let answer = match seen {
+                Received::Frame { bytes, .. } => crate::readings::decode_response(framing, bytes),
+                _ => None,
+            };
+            let refused_01 = |r: &codec::Response, fc: u8| {
+                matches!(r, codec::Response::Exception { function, code }
+                    if function.0 == fc | 0x80 && *code == codec::ExceptionCode::ILLEGAL_FUNCTION)
+            };
+            let illegal_function = match (&answer, sent.pdu.first()) {
+                (Some(r), Some(&fc)) if fc < 0x80 => refused_01(r, fc),
                 _ => false,
             };
             // Not where the drive's manual lists the function: refusing it is a FAIL every time.
@@ -2343,15 +2342,12 @@ impl Runner {
                 .is_some_and(|fc| self.served_functions.contains(fc));
             let reference_refuses = |x: Option<&Vec<u8>>, fc: u8| {
                 x.and_then(|b| crate::readings::decode_response(framing, b))
-                    .is_some_and(|r| {
-                        matches!(r, codec::Response::Exception { function, code }
-                            if function.0 == fc | 0x80 && code == codec::ExceptionCode::ILLEGAL_FUNCTION)
-                    })
+                    .is_some_and(|r| refused_01(&r, fc))
             };
-            if let (Received::Frame { bytes, .. }, Some(&fc)) = (seen, sent.pdu.first())
+            if let (Some(r), Some(&fc)) = (&answer, sent.pdu.first())
                 && frames.len() == 1
-                && crate::readings::decode_response(framing, bytes)
-                    .is_some_and(|r| !r.is_exception() && r.function().0 == fc)
+                && !r.is_exception()
+                && r.function().0 == fc
             {
                 self.served_functions.insert(fc);
             }

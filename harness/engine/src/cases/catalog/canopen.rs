@@ -143,12 +143,7 @@ fn missing_object(cx: &mut Ctx) {
 fn wrong_length(cx: &mut Ctx) {
     let p = cx.p;
     let node = cx.unit;
-    let Some(o) = p
-        .objects
-        .iter()
-        .map(|o| o.get_ref())
-        .find(|o| o.access.readable())
-    else {
+    let Some(o) = p.first_readable_object() else {
         return;
     };
     for (name, count, requirement) in [
@@ -232,12 +227,7 @@ fn zero_count(cx: &mut Ctx) {
 fn zero_fields(cx: &mut Ctx) {
     let p = cx.p;
     let node = cx.unit;
-    let Some(o) = p
-        .objects
-        .iter()
-        .map(|o| o.get_ref())
-        .find(|o| o.access.readable())
-    else {
+    let Some(o) = p.first_readable_object() else {
         return;
     };
     let size = u16::try_from(o.ty.size()).unwrap_or(4);

@@ -328,3 +328,36 @@ fn a_malformed_vendor_read_of_a_mnemonic_the_drive_may_lack_leaves_the_code_open
         );
     }
 }
+
+/// A station whose decisions nobody takes (`simulate`'s, the drive under test of a `sim:` target) drops
+/// them input by input, its model's too; an observed one (the oracle's reference) keeps every one until
+/// taken. Before, the served station kept them all: `simulate` grew without bound under a long campaign.
+#[test]
+fn a_station_whose_decisions_nobody_takes_keeps_only_the_last_inputs() {
+    use codec::{Mnemonic, Request};
+    let own = unit("mdrive");
+    let other = if own == 100 { 101 } else { 100 };
+    let vendor_read = Request::VendorRead {
+        mnemonic: Mnemonic::from_name("P").expect("mnemonic"),
+    }
+    .to_bytes()
+    .expect("encodes");
+    let mut observed = station("mdrive", &["tcp-unit-ids=silence"]);
+    let mut served = station("mdrive", &["tcp-unit-ids=silence"]).forgetting_decisions();
+    for tid in 0..500 {
+        for s in [&mut observed, &mut served] {
+            serve(s, &adu(tid, other, READ));
+            serve(s, &adu(tid, own, &vendor_read));
+        }
+    }
+    let kept = observed.take_decisions();
+    assert_eq!(
+        kept.iter().filter(|d| **d == ids::TCP_UNIT_IDS).count(),
+        500
+    );
+    // The model's own decisions (the FC 0x41 read's fields) are kept too.
+    assert!(kept.len() > 1000, "{}", kept.len());
+    let last = served.take_decisions();
+    assert!(!last.is_empty() && last.len() < 10, "{last:?}");
+    assert!(!last.contains(&ids::TCP_UNIT_IDS), "{last:?}");
+}

@@ -183,7 +183,8 @@ pub async fn start(station: Station, config: &ServerConfig) -> Result<ServerHand
     if config.tcp.is_none() && config.rtu_over_tcp.is_none() && config.serial.is_none() {
         return Err(ServerError::NoEndpoint);
     }
-    let shared = Arc::new(SharedStation::new(station));
+    // Nobody takes a served drive's decisions: they are dropped request by request.
+    let shared = Arc::new(SharedStation::new(station.forgetting_decisions()));
     let (stop, stop_rx) = watch::channel(false);
     let mut handle = ServerHandle {
         tcp: None,

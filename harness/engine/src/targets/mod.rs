@@ -178,7 +178,8 @@ pub fn open(
             Box::new(serial::SerialTarget::open(path, *baud, *format)?)
         }
         TargetUrl::Sim { profile, rtu } => {
-            let station = sim_station(profile)?;
+            // The drive under test: nobody takes its decisions (the reference's are the oracle's).
+            let station = sim_station(profile)?.forgetting_decisions();
             match rtu {
                 None => Box::new(sim::SimTarget::new(station)),
                 Some(r) => {

@@ -123,3 +123,18 @@ fn sd2x_over_rtu_over_tcp_and_a_pty() {
     same_independent(&inproc, &serial, "sd2x pty vs sim");
     drop(h);
 }
+
+/// `simulate`'s served drive keeps no record of what its answers decided beyond the last request: nobody
+/// takes it, and kept it grew with every request (400 KB a second under a live campaign) and was copied
+/// with the model for every request. The catalog over Modbus/TCP decides freedoms on hundreds of requests.
+#[test]
+fn a_served_drive_forgets_its_decisions_request_by_request() {
+    let rt = tokio::runtime::Runtime::new().expect("runtime");
+    let h = rt.block_on(serve("mdrive", &[], loopback_tcp_and_rtu()));
+    let url = format!("tcp://{}", h.tcp_addr().expect("tcp"));
+    let served = verdicts(&url, "mdrive");
+    assert!(served.len() > 100, "{} cases", served.len());
+    let left = h.station().lock().take_decisions();
+    assert!(left.len() < 10, "{} decisions kept: {left:?}", left.len());
+    drop(h);
+}

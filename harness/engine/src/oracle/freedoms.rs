@@ -108,16 +108,43 @@ pub fn applicable<'a>(
     decisions: &[drives::Decision],
     cited: &[String],
 ) -> Vec<&'a Freedom> {
+    let touchable = touchable(requirements, &cx.profile.device.id);
+    applicable_among(requirements, &touchable, cx, decisions, cited)
+}
+
+/// The freedoms of `requirements` that apply to `profile` and that a request can touch (see [`touches`]):
+/// the only ones [`applicable`] has to look at beyond those decided or cited. The same for every step of a
+/// run, so a runner finds them once ([`applicable_among`]); looking at every freedom for every answer was a
+/// tenth of an in-process campaign's time.
+pub fn touchable(requirements: &Requirements, profile: &str) -> Vec<usize> {
+    requirements
+        .freedoms()
+        .iter()
+        .enumerate()
+        .filter(|(_, f)| f.applies_to(profile) && may_touch(f))
+        .map(|(i, _)| i)
+        .collect()
+}
+
+/// [`applicable`] with the freedoms [`touchable`] found for the step's profile.
+pub fn applicable_among<'a>(
+    requirements: &'a Requirements,
+    touchable: &[usize],
+    cx: &StepContext<'_>,
+    decisions: &[drives::Decision],
+    cited: &[String],
+) -> Vec<&'a Freedom> {
     let mut out: Vec<&'a Freedom> = Vec::new();
     let by_id = decisions
         .iter()
         .copied()
         .chain(cited.iter().map(String::as_str))
         .filter_map(|id| requirements.freedom(id));
-    let touched = requirements
-        .freedoms()
+    let freedoms = requirements.freedoms();
+    let touched = touchable
         .iter()
-        .filter(|f| f.applies_to(&cx.profile.device.id) && touches(f, cx));
+        .filter_map(|&i| freedoms.get(i))
+        .filter(|f| touches(f, cx));
     for f in by_id.chain(touched) {
         if f.applies_to(&cx.profile.device.id) && !out.iter().any(|g| g.id == f.id) {
             out.push(f);
@@ -130,7 +157,24 @@ pub fn applicable<'a>(
 /// (0x0000, line 731): `lmd-discrete-input-addressing`.
 pub const LMD_EXAMPLE_INPUT_OFFSET: u16 = 0x002D;
 
+/// False when [`touches`] is false for `f` whatever the step: it looks only at these kinds (and at
+/// `fc41-read-back-fields` by id).
+fn may_touch(f: &Freedom) -> bool {
+    f.id == drives::choices::ids::FC41_READ_BACK_FIELDS
+        || matches!(
+            f.kind,
+            FreedomKind::Reading
+                | FreedomKind::UnitIds
+                | FreedomKind::Optional
+                | FreedomKind::Access
+                | FreedomKind::StatusBits
+                | FreedomKind::FieldValue
+                | FreedomKind::WordOrder
+        )
+}
+
 /// True when the request touches what a freedom is about (item-, register- and unit-bound freedoms).
+/// Every freedom this can be true for must pass [`may_touch`] (test `touchable_is_every_freedom_touched`).
 fn touches(f: &Freedom, cx: &StepContext<'_>) -> bool {
     // The readings of the vendor functions, wherever such a request goes (generated and fuzz cases cite
     // nothing); the others where a case cites them (the LMD input addressing is learned before the cases).
@@ -1510,6 +1554,71 @@ mod tests {
             closed: false,
             short_of_length: false,
         }
+    }
+
+    /// `applicable_among` with a runner's `touchable` list finds what looking at every freedom finds: over
+    /// 3,000 generated cases of every embedded profile (every request and unit id a step sends, decoded or
+    /// not), no freedom outside the list is touched, and the two give the same freedoms in the same order.
+    /// A `touches` that learns a kind `may_touch` does not list fails here.
+    #[test]
+    fn touchable_is_every_freedom_touched() {
+        use crate::cases::{Outgoing, Step};
+        let requirements = drives::corpus::Corpus::Embedded
+            .requirements()
+            .expect("requirements");
+        let mut touched = 0usize;
+        for stem in ["generic", "mdrive", "lmd", "sd2x"] {
+            let profile = drives::corpus::Corpus::Embedded
+                .profile(stem)
+                .expect("profile");
+            let touchable = touchable(&requirements, &profile.device.id);
+            let generator = crate::cases::generated::Generator::new(&profile, 1, 7);
+            for case in generator.cases(3_000) {
+                for step in &case.steps {
+                    let Step::Exchange { send, .. } = step else {
+                        continue;
+                    };
+                    let sent: Vec<(&[u8], u8)> = match send {
+                        Outgoing::Pdu(p) | Outgoing::Mutated { pdu: p, .. } => vec![(p, 1)],
+                        Outgoing::PduToUnit { pdu, unit } => vec![(pdu, *unit)],
+                        Outgoing::Batch(ps) => ps.iter().map(|p| (p.as_slice(), 1)).collect(),
+                        _ => Vec::new(),
+                    };
+                    for (pdu, unit) in sent {
+                        let request = Request::decode(pdu).ok();
+                        let mut cx = match &request {
+                            Some(r) => cx_for(r, pdu, &profile),
+                            None => StepContext {
+                                request: None,
+                                ..cx_for(&Request::ReadExceptionStatus, pdu, &profile)
+                            },
+                        };
+                        cx.unit = unit;
+                        let all: Vec<&Freedom> = requirements
+                            .freedoms()
+                            .iter()
+                            .filter(|f| f.applies_to(&profile.device.id) && touches(f, &cx))
+                            .collect();
+                        for f in &all {
+                            assert!(may_touch(f), "{} touched but not listed", f.id);
+                        }
+                        touched += all.len();
+                        let ids =
+                            |v: Vec<&Freedom>| v.iter().map(|f| f.id.clone()).collect::<Vec<_>>();
+                        assert_eq!(
+                            ids(applicable_among(&requirements, &touchable, &cx, &[], &[])),
+                            ids(all),
+                            "{stem}: {}",
+                            codec::hex_spaced(pdu)
+                        );
+                    }
+                }
+            }
+        }
+        assert!(
+            touched > 1000,
+            "only {touched} freedoms touched: the test sees nothing"
+        );
     }
 
     /// An LMD serving its inputs at the example's address 0x002D as well as at the table's: a read there

@@ -233,6 +233,9 @@ pub struct Runner {
     /// The profile leaves open whether a read of half a 32-bit register is served (`partial-register-read`):
     /// a plain read may then take the drive's own way, and the reference follows it (see [`follows`]).
     reads_decided: bool,
+    /// The freedoms of `requirements` a request to this profile can touch (see
+    /// [`oracle::freedoms::touchable`]), found once.
+    touchable: Vec<usize>,
     /// For a step that sends several requests in one write: the freedoms that decided each one's answer,
     /// found by sending them one by one to a copy of the reference (see [`decisions_one_by_one`]).
     frame_decisions: Vec<Vec<drives::Decision>>,
@@ -345,6 +348,7 @@ impl Runner {
             gaps: crate::timing::AnswerGaps::default(),
             gaps_measurable,
             reads_decided: false,
+            touchable: Vec::new(),
             frame_decisions: Vec::new(),
             unit_ignored: false,
             follow: Vec::new(),
@@ -738,6 +742,7 @@ impl Runner {
         self.reads_decided = requirements
             .freedom(drives::choices::ids::PARTIAL_REGISTER_READ)
             .is_some_and(|f| f.applies_to(&self.profile.device.id));
+        self.touchable = oracle::freedoms::touchable(&requirements, &self.profile.device.id);
         self.requirements = requirements;
         self
     }
@@ -2262,8 +2267,13 @@ impl Runner {
                     .is_some_and(|f| f.short_of_length()),
             };
             let requirements = Arc::clone(&self.requirements);
-            let applicable =
-                oracle::freedoms::applicable(&requirements, &cx, &decisions, &self.case_freedoms);
+            let applicable = oracle::freedoms::applicable_among(
+                &requirements,
+                &self.touchable,
+                &cx,
+                &decisions,
+                &self.case_freedoms,
+            );
             let observation = oracle::Observation {
                 framing,
                 sent: &sent,

@@ -25,6 +25,9 @@
 #                    motion and destructive (the classifier cannot tell what a file holds)
 #   --expect TEXT    count only a `finding:` line containing TEXT (e.g. the case kind `comm-event-log`), and
 #                    run the campaigns with --keep-going so that another finding does not end them first
+#   --timeout MS, --preflight-timeout MS
+#                    pass these to every campaign (defaults of `fuzz`: 1000 and 3000 ms, made for a real drive;
+#                    a fault whose finding is an answer that does not come is found after them)
 #
 # The profile is the one whose behaviour the fault concerns: sd2x for the DS402/watchdog faults,
 # write-quantity-over-limit-dropped (the only FC 17 write limit below 121) and the FC 04 its manual lists,
@@ -49,10 +52,14 @@ FAULTS=""
 WRITES=""
 PROFILE=""
 EXPECT=""
+TIMEOUT=""
+PREFLIGHT=""
 . "$here/lib.sh"
-bench_parse first-finding.sh 2,37 --bin=BIN --seeds=SEEDS --duration=DURATION --core=CORE --faults=FAULTS \
+bench_parse first-finding.sh 2,40 --bin=BIN --seeds=SEEDS --duration=DURATION --core=CORE --faults=FAULTS \
   --allow-writes@=WRITES --allow-destructive@=WRITES --allow-motion@=WRITES --profile=PROFILE \
-  --expect=EXPECT -- "$@"
+  --expect=EXPECT --timeout=TIMEOUT --preflight-timeout=PREFLIGHT -- "$@"
+[ -z "$TIMEOUT" ] || WRITES="$WRITES --timeout $TIMEOUT"
+[ -z "$PREFLIGHT" ] || WRITES="$WRITES --preflight-timeout $PREFLIGHT"
 for tool in python3 taskset; do
   command -v "$tool" >/dev/null || { echo "first-finding.sh: $tool is missing" >&2; exit 1; }
 done

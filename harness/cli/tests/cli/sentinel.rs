@@ -118,3 +118,105 @@ fn a_drive_that_answers_what_it_must_ignore_fails_with_sentinels_on() {
         }
     }
 }
+
+/// A relay on 127.0.0.1:0 in front of `upstream` that holds each chunk the server sends for `delay` before
+/// passing it on, and closes both sides as soon as its client half-closes, dropping what it holds: a server
+/// that writes its answers on a later turn of its event loop and closes when it reads the client's FIN
+/// (modbus-serial 8.0.25). Its threads end when the connections close; the listener ends on drop.
+struct DeferringProxy {
+    addr: std::net::SocketAddr,
+    stop: std::sync::Arc<std::sync::atomic::AtomicBool>,
+}
+
+impl DeferringProxy {
+    fn start(upstream: std::net::SocketAddr, delay: std::time::Duration) -> Self {
+        use std::io::{Read, Write};
+        use std::net::{Shutdown, TcpListener, TcpStream};
+        use std::sync::Arc;
+        use std::sync::atomic::{AtomicBool, Ordering};
+        let listener = TcpListener::bind("127.0.0.1:0").expect("bind");
+        let addr = listener.local_addr().expect("address");
+        let stop = Arc::new(AtomicBool::new(false));
+        let st = stop.clone();
+        std::thread::spawn(move || {
+            for conn in listener.incoming() {
+                if st.load(Ordering::SeqCst) {
+                    break;
+                }
+                let Ok(client) = conn else { continue };
+                let Ok(server) =
+                    TcpStream::connect_timeout(&upstream, std::time::Duration::from_secs(2))
+                else {
+                    continue;
+                };
+                let _ = client.set_nodelay(true);
+                let _ = server.set_nodelay(true);
+                let closed = Arc::new(AtomicBool::new(false));
+                let (mut c_in, mut s_out) = (
+                    client.try_clone().expect("clone"),
+                    server.try_clone().expect("clone"),
+                );
+                let shut = closed.clone();
+                std::thread::spawn(move || {
+                    let mut buf = [0u8; 4096];
+                    while let Ok(n @ 1..) = c_in.read(&mut buf) {
+                        if s_out.write_all(&buf[..n]).is_err() {
+                            break;
+                        }
+                    }
+                    // The client's FIN (or an error): close at once, whatever is held.
+                    shut.store(true, Ordering::SeqCst);
+                    let _ = s_out.shutdown(Shutdown::Both);
+                    let _ = c_in.shutdown(Shutdown::Both);
+                });
+                let (mut s_in, mut c_out) = (server, client);
+                std::thread::spawn(move || {
+                    let mut buf = [0u8; 4096];
+                    while let Ok(n @ 1..) = s_in.read(&mut buf) {
+                        std::thread::sleep(delay);
+                        if closed.load(Ordering::SeqCst) || c_out.write_all(&buf[..n]).is_err() {
+                            break;
+                        }
+                    }
+                    let _ = c_out.shutdown(Shutdown::Both);
+                    let _ = s_in.shutdown(Shutdown::Both);
+                });
+            }
+        });
+        Self { addr, stop }
+    }
+}
+
+impl Drop for DeferringProxy {
+    fn drop(&mut self) {
+        self.stop.store(true, std::sync::atomic::Ordering::SeqCst);
+        let _ =
+            std::net::TcpStream::connect_timeout(&self.addr, std::time::Duration::from_millis(200));
+    }
+}
+
+/// A drive that answers 5 ms after each request and closes on the harness's FIN, dropping an answer not yet
+/// sent: the half-close that proves a silence comes after twice the slowest recent answer, so an answer
+/// to the request the drive must ignore (`mbap-length-ignored`) is seen and FAILs, as with the window
+/// listened out; the healthy drive's silence is still proven by its close. (With the FIN right behind the
+/// request, the faulted drive PASSed: its answer was never sent.)
+#[test]
+fn an_answer_written_late_is_seen_before_the_half_close() {
+    let case = "tcp/mbap/request-length-plus-1";
+    for (fault, code_wanted) in [(None, 0), (Some("mbap-length-ignored"), 1)] {
+        let sim = SimProcess::on_loopback("mdrive", "--listen", fault);
+        let upstream = sim
+            .tcp_url()
+            .trim_start_matches("tcp://")
+            .parse()
+            .expect("address");
+        let proxy = DeferringProxy::start(upstream, std::time::Duration::from_millis(5));
+        let url = format!("tcp://{}", proxy.addr);
+        let (code, out, err) = harness(&run_args(&url, "mdrive", &["--cases", case]));
+        assert_eq!(code, code_wanted, "{case} {fault:?}: {out}\n{err}");
+        match fault {
+            None => assert_eq!(silences(&err), (0, 1, 0), "{case}: {err}"),
+            Some(_) => assert!(out.contains("FAIL"), "{out}"),
+        }
+    }
+}

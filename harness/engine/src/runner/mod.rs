@@ -205,6 +205,9 @@ pub struct Runner {
     /// A sentinel the reference answered went unanswered by the target (a target that drops what follows a
     /// bad frame, say): no more sentinels on this target, the window is listened out.
     sentinel_given_up: bool,
+    /// How long the target took to answer its last single requests (Modbus/TCP): the half-close waits twice
+    /// the slowest first (see `prove_silence_by_close`).
+    latencies: RecentLatencies,
     /// The step's request to another unit id was ignored by the drive as the `unit-ids` freedom allows.
     unit_ignored: bool,
     /// Choices the drive showed in the step that the reference drive does not take yet and follows from
@@ -271,6 +274,25 @@ fn decisions_one_by_one(mut reference: SimTarget, frames: &[Framed]) -> Vec<Vec<
 }
 
 /// How the silences due on Modbus/TCP to a real target were settled.
+/// The answer times of a target's last 32 single requests.
+#[derive(Clone, Copy, Debug, Default)]
+struct RecentLatencies {
+    ring: [Duration; 32],
+    next: usize,
+}
+
+impl RecentLatencies {
+    fn note(&mut self, d: Duration) {
+        self.ring[self.next % self.ring.len()] = d;
+        self.next = self.next.wrapping_add(1);
+    }
+
+    /// The slowest of them (zero before the first).
+    fn slowest(&self) -> Duration {
+        self.ring.iter().copied().max().unwrap_or_default()
+    }
+}
+
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct Silences {
     /// Proven by a sentinel request's answer with nothing before it.
@@ -345,6 +367,7 @@ impl Runner {
             unanswered: Vec::new(),
             sentinels: std::collections::VecDeque::new(),
             sentinel_given_up: false,
+            latencies: RecentLatencies::default(),
             gaps: crate::timing::AnswerGaps::default(),
             gaps_measurable,
             reads_decided: false,
@@ -799,9 +822,14 @@ impl Runner {
         let _ = self.shadow.settle();
         let _ = self.shadow.take_decisions();
         self.requests += 1;
+        let asked = self.target.now();
         let heard = crate::liveness::ask(self.target.as_mut(), &f.bytes, bound)?;
         if heard == crate::liveness::Heard::Modbus {
             self.unanswered.clear();
+            if self.target.framing() == Framing::Tcp {
+                // Until its answer is complete: a little over the answer's time.
+                self.latencies.note(self.target.now().saturating_sub(asked));
+            }
         }
         Ok((heard, f.bytes))
     }
@@ -1069,7 +1097,27 @@ impl Runner {
     /// its own FIN, so a close with nothing before it proves that nothing was or will be answered on this
     /// connection. A target that keeps a half-closed connection open is listened to for the window, as
     /// without. Only where the reference keeps its connection: where it closes, the close is what is judged.
+    ///
+    /// Before the half-close the target is listened to for twice the slowest of its last answers (the whole
+    /// window before any answer was timed, the pre-flight read's included): a server
+    /// may write its answer on a later turn of its event loop and close as soon as it reads the harness's
+    /// FIN, dropping it (modbus-serial 8.0.25 does, answering a request with a foreign protocol id: with the
+    /// FIN right behind the request its answer was never sent, and the request it must ignore PASSed, where
+    /// a window listened out FAILs it).
     fn prove_silence_by_close(&mut self) -> Result<Option<Received>, TargetError> {
+        // No answer timed yet: the whole window.
+        let slowest = self.latencies.slowest();
+        let grace = if slowest.is_zero() {
+            self.cfg.timing.silence
+        } else {
+            (slowest * 2).min(self.cfg.timing.silence)
+        };
+        if !grace.is_zero() {
+            let got = self.target.recv(grace)?;
+            if !matches!(&got, Received::Silence { partial, .. } if partial.is_empty()) {
+                return Ok(Some(got));
+            }
+        }
         if !self.target.end_sending()? {
             return Ok(None);
         }
@@ -2195,6 +2243,13 @@ impl Runner {
             }
             if matches!(got, Received::Frame { .. }) {
                 self.unanswered.clear();
+            }
+            if let Received::Frame { first_at, .. } = &got
+                && framing == Framing::Tcp
+                && frames.len() == 1
+                && !expected.is_empty()
+            {
+                self.latencies.note(first_at.saturating_sub(sent_at));
             }
             let stop = !matches!(got, Received::Frame { .. } | Received::Garbage { .. });
             record(&got, wire);

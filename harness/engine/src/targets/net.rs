@@ -40,6 +40,8 @@ fn resolve(host: &str, port: u16) -> Result<SocketAddr, TargetError> {
 
 /// Connection attempts while the target refuses (see `open_retrying`).
 const RECONNECT_TRIES: usize = 6;
+/// Waits shorter than this are made with ppoll (see `TcpTarget::read_once`).
+const SHORT_WAIT: Duration = Duration::from_millis(20);
 
 /// Nominal timing for RTU over TCP: frames are cut by length rules and CRC; silence only ends unknown ones.
 fn rtu_over_tcp_timing() -> RtuTiming {
@@ -129,6 +131,22 @@ impl TcpTarget {
         let Some(s) = self.stream.as_mut() else {
             return Ok(false);
         };
+        // A socket's receive timeout is counted in the kernel's ticks: 250 µs lasts 4-7 ms here. A short wait
+        // (the tail of a window, the look before a half-close) is made with ppoll, whose timeout is exact;
+        // the read then finds the bytes or the close waiting.
+        if left < SHORT_WAIT {
+            use std::os::fd::AsFd;
+            let mut fds = [nix::poll::PollFd::new(
+                s.as_fd(),
+                nix::poll::PollFlags::POLLIN,
+            )];
+            let timeout = nix::sys::time::TimeSpec::from_duration(left);
+            match nix::poll::ppoll(&mut fds, Some(timeout), None) {
+                Ok(0) | Err(nix::errno::Errno::EINTR) => return Ok(true),
+                Ok(_) => {}
+                Err(e) => return Err(self.io(std::io::Error::from(e))),
+            }
+        }
         // Keep the timeout already set while it ends the read no later than `until` and not much before
         // (at least half of what is left): successive exchanges with the same timeout set it once.
         if self.read_timeout.is_none_or(|t| t > left || t < left / 2) {

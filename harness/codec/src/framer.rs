@@ -309,6 +309,35 @@ pub struct RtuFramer {
     start: Duration,
     last: Duration,
     max_gap: Duration,
+    /// What the rules say about `buf`, once they say more than [`FrameLen::NeedMore`]: every rule reads fixed
+    /// positions, so a known length (or its absence) stays what it is as bytes are added. `NeedMore` until
+    /// then, and again whenever bytes leave `buf`.
+    rule: FrameLen,
+    /// The length `buf` must reach before `cut` could emit or drop anything (see [`next_cut`]): bytes that
+    /// keep it shorter are appended without looking.
+    next_cut: usize,
+}
+
+/// The length after `len` at which a cut could next happen, given what the rules say about the buffer at
+/// `len`. While the rules need more bytes to know the length, that is the next byte, or the 4th (no frame is
+/// shorter); once they know it (or know there is no rule), the next candidate length (4..=256) or over 256
+/// bytes (the overlong drop). `cut` has already run at `len`, so candidates up to it failed their CRC and
+/// would fail it again on the same bytes.
+fn next_cut(rule: FrameLen, len: usize) -> usize {
+    const OVERLONG: usize = MAX_ADU_LEN + 1;
+    match rule {
+        FrameLen::NeedMore => MIN_ADU_LEN.max(len + 1),
+        FrameLen::Unknown => OVERLONG,
+        FrameLen::Known(a, b) => {
+            let candidate = |n: usize| n > len && (MIN_ADU_LEN..=MAX_ADU_LEN).contains(&n);
+            match (candidate(a), candidate(b)) {
+                (true, true) => a.min(b),
+                (true, false) => a,
+                (false, true) => b,
+                (false, false) => OVERLONG,
+            }
+        }
+    }
 }
 
 impl RtuFramer {
@@ -322,6 +351,8 @@ impl RtuFramer {
             start: Duration::ZERO,
             last: Duration::ZERO,
             max_gap: Duration::ZERO,
+            rule: FrameLen::NeedMore,
+            next_cut: next_cut(FrameLen::NeedMore, 0),
         }
     }
 
@@ -343,48 +374,48 @@ impl RtuFramer {
     /// Feed bytes that arrived at `now` (one timestamp per chunk).
     ///
     /// The outcome is that of taking the bytes one at a time and looking for a cut after each. The bytes after
-    /// which no cut can happen (see [`quiet`](Self::quiet)) go in together instead; later bytes of a chunk
-    /// add no gap, since they share its timestamp.
+    /// which no cut can happen (see [`next_cut`]) go in together instead; later bytes of a chunk add no gap,
+    /// since they share its timestamp.
     pub fn push(&mut self, now: Duration, bytes: &[u8]) -> Vec<FramerEvent> {
         let mut events = Vec::new();
-        self.poll_into(now, &mut events);
-        let mut rest = bytes;
-        while !rest.is_empty() {
-            if self.buf.is_empty() {
-                self.start = now;
-                self.max_gap = Duration::ZERO;
-            } else {
-                self.max_gap = self.max_gap.max(now.saturating_sub(self.last));
-            }
-            self.last = now;
-            let n = (self.quiet() + 1).min(rest.len());
-            let (taken, left) = rest.split_at(n);
-            self.buf.extend_from_slice(taken);
-            rest = left;
-            self.cut(&mut events);
-        }
+        self.push_into(now, bytes, &mut events);
         events
     }
 
-    /// How many more bytes can arrive before `cut` could emit or drop anything: all but the one that brings the
-    /// buffer to the next length at which it could. While the rules need more bytes to know the length, that
-    /// is the next byte, or the 4th (no frame is shorter); once they know it (or know there is no rule), the
-    /// next candidate length (4..=256) or over 256 bytes. Every rule reads fixed positions, so once known a
-    /// length (or its absence) stays what it is as bytes are added; and `cut` has already run at the present
-    /// length, so candidates up to it failed their CRC and fail it again on the same bytes.
-    fn quiet(&self) -> usize {
-        let len = self.buf.len();
-        let overlong = MAX_ADU_LEN + 1;
-        let next = match expected_len(self.direction, &self.buf, &self.vendor) {
-            FrameLen::NeedMore => MIN_ADU_LEN.max(len + 1),
-            FrameLen::Unknown => overlong,
-            FrameLen::Known(a, b) => [a, b]
-                .into_iter()
-                .filter(|&n| n > len && (MIN_ADU_LEN..=MAX_ADU_LEN).contains(&n))
-                .min()
-                .unwrap_or(overlong),
-        };
-        next.saturating_sub(len + 1)
+    /// [`push`](Self::push), appending the events to `events` (which the caller may reuse).
+    pub fn push_into(&mut self, now: Duration, bytes: &[u8], events: &mut Vec<FramerEvent>) {
+        if !self.buf.is_empty() {
+            // One gap for the chunk: it ends the held bytes by silence, or it is the gap before their next byte.
+            let gap = now.saturating_sub(self.last);
+            if gap >= self.timing.t3_5 {
+                self.end_by_silence(events);
+            } else if !bytes.is_empty() {
+                self.max_gap = self.max_gap.max(gap);
+            }
+        }
+        if bytes.is_empty() {
+            return;
+        }
+        self.last = now;
+        let mut rest = bytes;
+        loop {
+            if self.buf.is_empty() {
+                self.start = now;
+                self.max_gap = Duration::ZERO;
+            }
+            let room = self.next_cut - self.buf.len();
+            if rest.len() < room {
+                self.buf.extend_from_slice(rest);
+                return;
+            }
+            let (taken, left) = rest.split_at(room);
+            self.buf.extend_from_slice(taken);
+            self.cut(events);
+            if left.is_empty() {
+                return;
+            }
+            rest = left;
+        }
     }
 
     /// Report what silence has delimited by `now`.
@@ -394,21 +425,61 @@ impl RtuFramer {
         events
     }
 
-    /// End of stream: whatever is held is judged as if silence followed.
-    pub fn finish(&mut self) -> Vec<FramerEvent> {
-        let mut events = Vec::new();
-        self.end_by_silence(&mut events);
-        events
-    }
-
-    fn poll_into(&mut self, now: Duration, events: &mut Vec<FramerEvent>) {
+    /// [`poll`](Self::poll), appending the events to `events`.
+    pub fn poll_into(&mut self, now: Duration, events: &mut Vec<FramerEvent>) {
         if !self.buf.is_empty() && now.saturating_sub(self.last) >= self.timing.t3_5 {
             self.end_by_silence(events);
         }
     }
 
+    /// End of stream: whatever is held is judged as if silence followed.
+    pub fn finish(&mut self) -> Vec<FramerEvent> {
+        let mut events = Vec::new();
+        self.finish_into(&mut events);
+        events
+    }
+
+    /// [`finish`](Self::finish), appending the events to `events`.
+    pub fn finish_into(&mut self, events: &mut Vec<FramerEvent>) {
+        self.end_by_silence(events);
+    }
+
+    /// What the rules say about `buf`, from the cache once they have said it.
+    fn rule(&mut self) -> FrameLen {
+        if self.rule == FrameLen::NeedMore {
+            self.rule = expected_len(self.direction, &self.buf, &self.vendor);
+        }
+        self.rule
+    }
+
+    /// `buf` lost bytes from its front: what the rules said no longer holds, and the next cut is computed
+    /// again from what is left (no cut happens at the present length: cuts follow an arriving byte).
+    fn drained(&mut self) {
+        self.rule = FrameLen::NeedMore;
+        self.next_cut = if self.buf.is_empty() {
+            next_cut(FrameLen::NeedMore, 0)
+        } else {
+            let rule = self.rule();
+            next_cut(rule, self.buf.len())
+        };
+    }
+
+    /// All of `buf`, which is left empty (with its capacity).
+    fn take_all(&mut self) -> Vec<u8> {
+        let bytes = self.buf.to_vec();
+        self.buf.clear();
+        self.drained();
+        bytes
+    }
+
     fn emit(&mut self, n: usize, events: &mut Vec<FramerEvent>) {
-        let bytes: Vec<u8> = self.buf.drain(..n).collect();
+        let bytes = self.buf[..n].to_vec();
+        if n == self.buf.len() {
+            self.buf.clear();
+        } else {
+            self.buf.drain(..n);
+        }
+        self.drained();
         events.push(FramerEvent::Frame {
             bytes,
             start: self.start,
@@ -419,25 +490,27 @@ impl RtuFramer {
         self.max_gap = Duration::ZERO;
     }
 
+    /// Look for a cut after the byte that brought `buf` to `next_cut`.
     fn cut(&mut self, events: &mut Vec<FramerEvent>) {
-        if let FrameLen::Known(a, b) = expected_len(self.direction, &self.buf, &self.vendor) {
+        let rule = self.rule();
+        let len = self.buf.len();
+        if let FrameLen::Known(a, b) = rule {
             for n in [a, b] {
-                if n >= MIN_ADU_LEN
-                    && n <= self.buf.len()
-                    && n <= MAX_ADU_LEN
-                    && crc_ok(&self.buf[..n])
-                {
+                if n >= MIN_ADU_LEN && n <= len && n <= MAX_ADU_LEN && crc_ok(&self.buf[..n]) {
                     self.emit(n, events);
                     return;
                 }
             }
         }
-        if self.buf.len() > MAX_ADU_LEN {
+        if len > MAX_ADU_LEN {
+            let at = self.last;
             events.push(FramerEvent::Discarded {
-                bytes: self.buf.drain(..).collect(),
-                at: self.last,
+                bytes: self.take_all(),
+                at,
                 reason: DiscardReason::Overlong,
             });
+        } else {
+            self.next_cut = next_cut(rule, len);
         }
     }
 
@@ -446,9 +519,10 @@ impl RtuFramer {
             return;
         }
         if self.buf.len() < MIN_ADU_LEN {
+            let at = self.last;
             events.push(FramerEvent::Discarded {
-                bytes: self.buf.drain(..).collect(),
-                at: self.last,
+                bytes: self.take_all(),
+                at,
                 reason: DiscardReason::TooShort,
             });
         } else {
@@ -459,9 +533,10 @@ impl RtuFramer {
                 let n = self.buf.len();
                 self.emit(n, events);
             } else {
+                let at = self.last;
                 events.push(FramerEvent::Discarded {
-                    bytes: self.buf.drain(..).collect(),
-                    at: self.last,
+                    bytes: self.take_all(),
+                    at,
                     reason: DiscardReason::BadCrc { expected, received },
                 });
             }

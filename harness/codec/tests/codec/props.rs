@@ -1000,13 +1000,15 @@ proptest! {
     #![proptest_config(ProptestConfig::with_cases(512))]
 
     /// `push` taking the bytes that cannot trigger a cut in one go decides exactly as cutting after every byte
-    /// does: the same events (frames, discards, reasons, times) and the same bytes pending, after every step.
+    /// does: the same events (frames, discards, reasons, times and gaps), the same bytes pending and the same
+    /// deadline, after every step; through `push`/`poll`/`finish` and their `_into` forms alike.
     #[test]
     fn framer_decides_as_bytewise(
         (dir, steps) in direction().prop_flat_map(|d| (Just(d), vec(framer_step(d), 1..=24))),
         vendor in vec((any::<u8>(), length_rule(), length_rule()), 0..=2),
         timing in timing(),
         split in 1usize..=64,
+        inner in prop_oneof![Just(0u32), 1u32..=60],
     ) {
         let vendor: Vec<VendorRule> = vendor
             .into_iter()
@@ -1023,24 +1025,53 @@ proptest! {
             max_gap: Duration::ZERO,
         };
         let mut t = Duration::ZERO;
-        for (bytes, silence, poll, end) in steps {
+        for (i, (bytes, silence, poll, end)) in steps.into_iter().enumerate() {
             t += timing.t3_5 * silence / 100;
+            // Every other step through the `_into` forms, appending to a buffer that already holds events.
+            let into = i % 2 == 1;
             let (mut ours, mut theirs) = (Vec::new(), Vec::new());
             if poll {
-                ours.extend(framer.poll(t));
+                if into {
+                    framer.poll_into(t, &mut ours);
+                } else {
+                    ours.extend(framer.poll(t));
+                }
                 bytewise.poll(t, &mut theirs);
             }
-            // Pushed in pieces of `split` bytes at the same instant, then as one chunk: both are streams.
-            for piece in bytes.chunks(split) {
-                ours.extend(framer.push(t, piece));
+            // Pushed in pieces of `split` bytes, each `inner` hundredths of t3.5 after the one before (0: at
+            // the same instant; otherwise frames span gaps on both sides of t1.5, and their `max_gap` shows).
+            // An empty step is an empty push (the silence before it may end the held bytes).
+            let pieces: Vec<&[u8]> = if bytes.is_empty() {
+                vec![&[]]
+            } else {
+                bytes.chunks(split).collect()
+            };
+            for (k, piece) in pieces.into_iter().enumerate() {
+                if k > 0 {
+                    t += timing.t3_5 * inner / 100;
+                }
+                if into {
+                    framer.push_into(t, piece, &mut ours);
+                } else {
+                    ours.extend(framer.push(t, piece));
+                }
                 bytewise.push(t, piece, &mut theirs);
             }
             if end {
-                ours.extend(framer.finish());
+                if into {
+                    framer.finish_into(&mut ours);
+                } else {
+                    ours.extend(framer.finish());
+                }
                 bytewise.finish(&mut theirs);
             }
             prop_assert_eq!(&ours, &theirs);
             prop_assert_eq!(framer.pending(), &bytewise.buf[..]);
+            // The same last byte time: the deadline for the next poll.
+            prop_assert_eq!(
+                framer.deadline(),
+                (!bytewise.buf.is_empty()).then(|| bytewise.last + timing.t3_5)
+            );
         }
     }
 }

@@ -13,6 +13,11 @@ pub(crate) const RTU_19200_8E1: u8 = 0x05;
 /// `rtu_framer` step control: push after a silence of t3.5 (16/16), so the chunk starts a new frame.
 pub(crate) const RTU_AFTER_SILENCE: u8 = 16;
 
+/// t3.5 of `timing` in nanoseconds.
+fn t3_5_nanos(timing: RtuTiming) -> u64 {
+    u64::try_from(timing.t3_5.as_nanos()).expect("t3.5 fits in u64 nanoseconds")
+}
+
 fn length_rule(b: u8) -> LengthRule {
     if b & 0x80 != 0 {
         LengthRule::Fixed(usize::from(b & 0x7F))
@@ -32,31 +37,57 @@ struct CountedFramer {
     fed: usize,
     framed: usize,
     discarded: usize,
+    /// The events of the last call, checked and emptied by `account` (one buffer for every call).
+    events: Vec<FramerEvent>,
 }
 
 impl CountedFramer {
     fn push(&mut self, now: Duration, bytes: &[u8]) {
         self.fed += bytes.len();
-        let events = self.framer.push(now, bytes);
-        self.account(events);
+        self.framer.push_into(now, bytes, &mut self.events);
+        self.account();
     }
 
     fn poll(&mut self, now: Duration) {
-        let events = self.framer.poll(now);
-        self.account(events);
+        self.framer.poll_into(now, &mut self.events);
+        self.account();
     }
 
     fn finish(&mut self) {
-        let events = self.framer.finish();
-        self.account(events);
+        self.framer.finish_into(&mut self.events);
+        self.account();
         assert!(
             self.framer.pending().is_empty(),
             "bytes held after the end of the stream"
         );
     }
 
-    fn account(&mut self, events: Vec<FramerEvent>) {
-        for event in events {
+    fn account(&mut self) {
+        if !self.events.is_empty() {
+            self.check_events();
+        }
+        let pending = self.framer.pending().len();
+        assert!(
+            pending <= rtu::MAX_ADU_LEN,
+            "{pending} bytes pending, over the 256-byte ADU limit"
+        );
+        assert_eq!(
+            self.fed,
+            self.framed + self.discarded + pending,
+            "bytes in != framed + discarded + pending"
+        );
+    }
+
+    /// Check every event of the last call and count its bytes; leaves `events` empty.
+    fn check_events(&mut self) {
+        let Self {
+            direction,
+            framed,
+            discarded,
+            events,
+            ..
+        } = self;
+        for event in events.drain(..) {
             match event {
                 FramerEvent::Frame {
                     bytes,
@@ -79,26 +110,16 @@ impl CountedFramer {
                         start <= end && max_gap <= end - start,
                         "frame times out of order: start {start:?}, end {end:?}, max gap {max_gap:?}"
                     );
-                    if let Ok((address, pdu)) = rtu::decode(&bytes, self.direction) {
+                    if let Ok((address, pdu)) = rtu::decode(&bytes, *direction) {
                         let again = rtu::encode(address, &pdu)
                             .unwrap_or_else(|e| panic!("decoded {pdu:?} does not encode: {e}"));
                         assert_eq!(again, bytes, "{pdu:?} re-encodes differently");
                     }
-                    self.framed += bytes.len();
+                    *framed += bytes.len();
                 }
-                FramerEvent::Discarded { bytes, .. } => self.discarded += bytes.len(),
+                FramerEvent::Discarded { bytes, .. } => *discarded += bytes.len(),
             }
         }
-        let pending = self.framer.pending().len();
-        assert!(
-            pending <= rtu::MAX_ADU_LEN,
-            "{pending} bytes pending, over the 256-byte ADU limit"
-        );
-        assert_eq!(
-            self.fed,
-            self.framed + self.discarded + pending,
-            "bytes in != framed + discarded + pending"
-        );
     }
 }
 
@@ -136,12 +157,17 @@ pub fn rtu_framer(data: &[u8]) {
         fed: 0,
         framed: 0,
         discarded: 0,
+        events: Vec::new(),
     });
-    let mut now = Duration::ZERO;
+    // Time in nanoseconds: `timing.t3_5 * k / 16` exactly, as t3.5 is under a second at these speeds (see the
+    // test below), with no `Duration` arithmetic per step.
+    let t3_5 = t3_5_nanos(timing);
+    let mut now_ns = 0u64;
     while !input.is_empty() {
         let control = input.u8();
         let chunk = input.counted();
-        now += timing.t3_5 * u32::from(control & 0x3F) / 16;
+        now_ns += t3_5 * u64::from(control & 0x3F) / 16;
+        let now = Duration::from_nanos(now_ns);
         for f in &mut framers {
             if control & 0x40 != 0 {
                 f.poll(now);
@@ -154,5 +180,39 @@ pub fn rtu_framer(data: &[u8]) {
     }
     for f in &mut framers {
         f.finish();
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The silence before a step, computed in nanoseconds, is the `Duration` arithmetic it replaced, for every
+    /// line format and silence an input can choose; and so is the time after many steps.
+    #[test]
+    fn step_time_in_nanoseconds_is_duration_arithmetic() {
+        for config in 0..=0x1Fu8 {
+            let format = CharFormat {
+                parity: match config >> 2 & 3 {
+                    1 => Parity::Even,
+                    2 => Parity::Odd,
+                    _ => Parity::None,
+                },
+                stop_bits: 1 + (config >> 4 & 1),
+            };
+            let timing = RtuTiming::new(BAUDS[usize::from(config & 3)], format);
+            let t3_5 = t3_5_nanos(timing);
+            let (mut now, mut now_ns) = (Duration::ZERO, 0u64);
+            for step in 0..10_000u32 {
+                let k = step % 64;
+                now += timing.t3_5 * k / 16;
+                now_ns += t3_5 * u64::from(k) / 16;
+                assert_eq!(
+                    Duration::from_nanos(now_ns),
+                    now,
+                    "config {config:#04x}, step {step}"
+                );
+            }
+        }
     }
 }

@@ -632,12 +632,29 @@ pub fn about_of(freedom: &str, cx: &StepContext<'_>) -> String {
             "even size".into()
         };
     }
-    // The order of the checks is drawn per function in app section 6 (a state diagram each), and a PDU
-    // longer than its layout carries a byte count that no longer matches in some functions and not in
-    // others: a drive keeps to its choice per function code.
-    if freedom == drives::choices::ids::EXCEPTION_CHECK_ORDER
-        || freedom == drives::choices::ids::TRAILING_BYTES
-    {
+    // The order of the checks is drawn per function in app section 6 (a state diagram each): a drive keeps
+    // to its choice per function code. And per check: section 6 tests the quantity and the byte count
+    // before the address, 4.5 every data value after it; a drive that tests a quantity above the maximum
+    // first (it bounds the address range), and a quantity of 0 or the byte count after the address (rmodbus
+    // 0.13), takes one of the two drawn orders for each, and keeps to each.
+    if freedom == drives::choices::ids::EXCEPTION_CHECK_ORDER {
+        return cx
+            .pdu
+            .first()
+            .map(|fc| {
+                if quantity_zero(cx.pdu) {
+                    format!("FC 0x{fc:02X} quantity 0")
+                } else if byte_count_refused(cx.pdu) {
+                    format!("FC 0x{fc:02X} byte count")
+                } else {
+                    format!("FC 0x{fc:02X}")
+                }
+            })
+            .unwrap_or_default();
+    }
+    // A PDU longer than its layout carries a byte count that no longer matches in some functions and not
+    // in others: a drive keeps to its choice per function code.
+    if freedom == drives::choices::ids::TRAILING_BYTES {
         return cx
             .pdu
             .first()
@@ -673,6 +690,38 @@ pub fn about_of(freedom: &str, cx: &StepContext<'_>) -> String {
         };
     }
     String::new()
+}
+
+/// True when a quantity field of a read or multiple write (FC 01-04, 0F, 10, 17) is 0.
+fn quantity_zero(pdu: &[u8]) -> bool {
+    let zero = |i: usize| pdu.get(i..i + 2) == Some(&[0, 0][..]);
+    match pdu.first() {
+        Some(0x01..=0x04 | 0x0F | 0x10) => zero(3),
+        Some(0x17) => zero(3) || zero(7),
+        _ => false,
+    }
+}
+
+/// True when a multiple write's quantities are in the specification's range and its byte count is not the
+/// one they give (FC 0F: app 6.11, N = quantity / 8 rounded up; FC 10: 6.12, 2 x quantity; FC 17: 6.17, 2 x
+/// the quantity to write): the value a refusal with 03 is about is then the byte count, not a quantity.
+fn byte_count_refused(pdu: &[u8]) -> bool {
+    let word = |i: usize| {
+        pdu.get(i..i + 2)
+            .map(|b| usize::from(u16::from_be_bytes([b[0], b[1]])))
+    };
+    let count = |i: usize| pdu.get(i).map(|b| usize::from(*b));
+    match pdu.first() {
+        Some(0x0F) => {
+            matches!((word(3), count(5)), (Some(q @ 1..=0x07B0), Some(n)) if n != q.div_ceil(8))
+        }
+        Some(0x10) => matches!((word(3), count(5)), (Some(q @ 1..=0x7B), Some(n)) if n != 2 * q),
+        Some(0x17) => matches!(
+            (word(3), word(7), count(9)),
+            (Some(1..=0x7D), Some(q @ 1..=0x79), Some(n)) if n != 2 * q
+        ),
+        _ => false,
+    }
 }
 
 /// The alternative answers a freedom admits for a step whose reference answer is `expected` (`None`:
@@ -1554,6 +1603,47 @@ mod tests {
             closed: false,
             short_of_length: false,
         }
+    }
+
+    /// The check order is held per function code and per value refused: a drive may test a quantity above
+    /// the maximum before the address and the byte count or a quantity of 0 after it (rmodbus 0.13 answers FC
+    /// 0F with a bad byte count and address 02, with a quantity of 0 and a bad address 02, with a quantity
+    /// too large and a bad address 03), each one of the two orders the spec draws.
+    #[test]
+    fn the_check_order_is_held_apart_for_the_quantity_and_the_byte_count() {
+        let profile = drives::corpus::Corpus::Embedded
+            .profile("generic")
+            .expect("generic");
+        let about = |pdu: &[u8]| {
+            let cx = StepContext {
+                request: None,
+                ..cx_for(&Request::ReadExceptionStatus, pdu, &profile)
+            };
+            about_of(drives::choices::ids::EXCEPTION_CHECK_ORDER, &cx)
+        };
+        let bad_count = [0x0F, 0x00, 0x4C, 0x04, 0x76, 0x8E, 0x00];
+        let bad_quantity = [0x0F, 0x00, 0x63, 0x40, 0x01, 0x01, 0xC8];
+        assert_eq!(about(&bad_count), "FC 0x0F byte count");
+        assert_eq!(about(&bad_quantity), "FC 0x0F");
+        // FC 10: 2 registers with 3 bytes; with 4 bytes the count is right.
+        assert_eq!(about(&[0x10, 0, 0, 0, 2, 3, 0, 0, 0]), "FC 0x10 byte count");
+        assert_eq!(about(&[0x10, 0, 0, 0, 2, 4, 0, 0, 0, 0]), "FC 0x10");
+        assert_eq!(about(&[0x10, 0, 0, 0, 0x7C, 0xF8]), "FC 0x10");
+        // FC 17: the byte count of the write part.
+        assert_eq!(
+            about(&[0x17, 0, 0, 0, 1, 0, 0, 0, 1, 3, 0, 0, 0]),
+            "FC 0x17 byte count"
+        );
+        assert_eq!(about(&[0x17, 0, 0, 0, 1, 0, 0, 0, 1, 2, 0, 0]), "FC 0x17");
+        assert_eq!(about(&[0x03, 0, 0, 0, 0x7E]), "FC 0x03");
+        // A quantity of 0 apart from one above the maximum (rmodbus: 02 for `0F 02 09 00 00 00`, 03 for
+        // `0F 00 63 40 01 01 C8`).
+        assert_eq!(about(&[0x0F, 0x02, 0x09, 0, 0, 0]), "FC 0x0F quantity 0");
+        assert_eq!(about(&[0x03, 0, 0, 0, 0]), "FC 0x03 quantity 0");
+        assert_eq!(
+            about(&[0x17, 0, 0, 0, 1, 0, 0, 0, 0, 0]),
+            "FC 0x17 quantity 0"
+        );
     }
 
     /// `applicable_among` with a runner's `touchable` list finds what looking at every freedom finds: over

@@ -123,6 +123,19 @@ impl CountedFramer {
     }
 }
 
+/// The line of a config byte: bits 0-1 the baud rate, bits 2-3 the parity, bit 4 two stop bits.
+fn line_timing(config: u8) -> RtuTiming {
+    let format = CharFormat {
+        parity: match config >> 2 & 3 {
+            1 => Parity::Even,
+            2 => Parity::Odd,
+            _ => Parity::None,
+        },
+        stop_bits: 1 + (config >> 4 & 1),
+    };
+    RtuTiming::new(BAUDS[usize::from(config & 3)], format)
+}
+
 /// `rtu_framer`: a timed RTU byte stream fed to a request framer and a response framer. Input: a config byte
 /// (bits 0-1 baud 9600/19200/38400/115200, bits 2-3 parity none/even/odd/none, bit 4 two stop bits, bit 5 a
 /// vendor length rule follows as three bytes: function, request rule, response rule), then steps of
@@ -133,15 +146,7 @@ impl CountedFramer {
 pub fn rtu_framer(data: &[u8]) {
     let mut input = Input(data);
     let config = input.u8();
-    let format = CharFormat {
-        parity: match config >> 2 & 3 {
-            1 => Parity::Even,
-            2 => Parity::Odd,
-            _ => Parity::None,
-        },
-        stop_bits: 1 + (config >> 4 & 1),
-    };
-    let timing = RtuTiming::new(BAUDS[usize::from(config & 3)], format);
+    let timing = line_timing(config);
     let vendor = if config & 0x20 != 0 {
         vec![VendorRule {
             function: input.u8(),
@@ -192,15 +197,7 @@ mod tests {
     #[test]
     fn step_time_in_nanoseconds_is_duration_arithmetic() {
         for config in 0..=0x1Fu8 {
-            let format = CharFormat {
-                parity: match config >> 2 & 3 {
-                    1 => Parity::Even,
-                    2 => Parity::Odd,
-                    _ => Parity::None,
-                },
-                stop_bits: 1 + (config >> 4 & 1),
-            };
-            let timing = RtuTiming::new(BAUDS[usize::from(config & 3)], format);
+            let timing = line_timing(config);
             let t3_5 = t3_5_nanos(timing);
             let (mut now, mut now_ns) = (Duration::ZERO, 0u64);
             for step in 0..10_000u32 {

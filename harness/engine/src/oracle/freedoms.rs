@@ -100,22 +100,10 @@ pub struct Alternative {
     pub note: Option<String>,
 }
 
-/// The freedoms applicable to a step: decided by the reference drive, cited by the case, or about what the
-/// request touches; only those of the run's profile.
-pub fn applicable<'a>(
-    requirements: &'a Requirements,
-    cx: &StepContext<'_>,
-    decisions: &[drives::Decision],
-    cited: &[String],
-) -> Vec<&'a Freedom> {
-    let touchable = touchable(requirements, &cx.profile.device.id);
-    applicable_among(requirements, &touchable, cx, decisions, cited)
-}
-
 /// The freedoms of `requirements` that apply to `profile` and that a request can touch (see [`touches`]):
-/// the only ones [`applicable`] has to look at beyond those decided or cited. The same for every step of a
-/// run, so a runner finds them once ([`applicable_among`]); looking at every freedom for every answer was a
-/// tenth of an in-process campaign's time.
+/// the only ones [`applicable_among`] has to look at beyond those decided or cited. The same for every step
+/// of a run, so a runner finds them once; looking at every freedom for every answer was a tenth of an
+/// in-process campaign's time.
 pub fn touchable(requirements: &Requirements, profile: &str) -> Vec<usize> {
     requirements
         .freedoms()
@@ -126,7 +114,9 @@ pub fn touchable(requirements: &Requirements, profile: &str) -> Vec<usize> {
         .collect()
 }
 
-/// [`applicable`] with the freedoms [`touchable`] found for the step's profile.
+/// The freedoms applicable to a step: decided by the reference drive, cited by the case, or about what the
+/// request touches (among `touchable`, what [`touchable`] found for the step's profile); only those of the
+/// run's profile.
 pub fn applicable_among<'a>(
     requirements: &'a Requirements,
     touchable: &[usize],
@@ -711,15 +701,24 @@ fn byte_count_refused(pdu: &[u8]) -> bool {
             .map(|b| usize::from(u16::from_be_bytes([b[0], b[1]])))
     };
     let count = |i: usize| pdu.get(i).map(|b| usize::from(*b));
-    match pdu.first() {
-        Some(0x0F) => {
-            matches!((word(3), count(5)), (Some(q @ 1..=0x07B0), Some(n)) if n != q.div_ceil(8))
+    // A quantity at `i` within 1..=max (the spec's limits, `FunctionCode::max_quantity`).
+    let quantity = |i: usize, max: Option<u16>| {
+        word(i).filter(|q| max.is_some_and(|m| (1..=usize::from(m)).contains(q)))
+    };
+    let Some(&fc) = pdu.first() else {
+        return false;
+    };
+    let max = FunctionCode(fc).max_quantity();
+    match fc {
+        0x0F => matches!((quantity(3, max), count(5)), (Some(q), Some(n)) if n != q.div_ceil(8)),
+        0x10 => matches!((quantity(3, max), count(5)), (Some(q), Some(n)) if n != 2 * q),
+        0x17 => {
+            quantity(3, max).is_some()
+                && matches!(
+                    (quantity(7, Some(FunctionCode::MAX_READ_WRITE_WRITE_QUANTITY)), count(9)),
+                    (Some(q), Some(n)) if n != 2 * q
+                )
         }
-        Some(0x10) => matches!((word(3), count(5)), (Some(q @ 1..=0x7B), Some(n)) if n != 2 * q),
-        Some(0x17) => matches!(
-            (word(3), word(7), count(9)),
-            (Some(1..=0x7D), Some(q @ 1..=0x79), Some(n)) if n != 2 * q
-        ),
         _ => false,
     }
 }

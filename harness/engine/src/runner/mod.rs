@@ -273,7 +273,6 @@ fn decisions_one_by_one(mut reference: SimTarget, frames: &[Framed]) -> Vec<Vec<
         .collect()
 }
 
-/// How the silences due on Modbus/TCP to a real target were settled.
 /// The answer times of a target's last 32 single requests.
 #[derive(Clone, Copy, Debug, Default)]
 struct RecentLatencies {
@@ -293,6 +292,7 @@ impl RecentLatencies {
     }
 }
 
+/// How the silences due on Modbus/TCP to a real target were settled.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct Silences {
     /// Proven by a sentinel request's answer with nothing before it.

@@ -367,8 +367,9 @@ impl RtuFramer {
     }
 
     /// When `poll` should next be called (the end of the t3.5 silence after the last byte), if bytes are held.
+    /// Saturates at `Duration::MAX` for a clock that far on (a caller's time base is its own).
     pub fn deadline(&self) -> Option<Duration> {
-        (!self.buf.is_empty()).then(|| self.last + self.timing.t3_5)
+        (!self.buf.is_empty()).then(|| self.last.saturating_add(self.timing.t3_5))
     }
 
     /// Feed bytes that arrived at `now` (one timestamp per chunk).

@@ -186,6 +186,20 @@ fn framer_reports_bad_crc_after_silence() {
     );
 }
 
+/// A caller's clock is its own: bytes held at a time near `Duration::MAX` give a deadline that saturates
+/// instead of overflowing (it panicked in `last + t3_5`), and silence still ends them.
+#[test]
+fn framer_deadline_saturates_at_the_end_of_the_clock() {
+    let bad = raw![0x01, 0x03, 0x07, 0xD0, 0x00, 0x01, 0x84, 0x88].to_vec();
+    let mut f = RtuFramer::new(Direction::Request, timing(), Vec::new());
+    let late = Duration::MAX - Duration::from_nanos(1);
+    assert!(f.push(late, &bad).is_empty());
+    assert_eq!(f.deadline(), Some(Duration::MAX));
+    assert_eq!(frames(&f.poll(Duration::MAX)), Vec::<Vec<u8>>::new());
+    assert_eq!(f.pending(), &bad[..], "1 ns is not t3.5");
+    assert_eq!(f.finish().len(), 1, "the held bytes end with the stream");
+}
+
 #[test]
 fn framer_emits_unknown_function_code_only_after_silence() {
     let odd = rtu_frame(1, &raw![0x65, 0x12, 0x34, 0x56]);

@@ -60,20 +60,25 @@ pub struct CaseResult {
     pub reason: Option<String>,
 }
 
-impl CaseResult {
-    /// True when a step expected an answer and got silence or a close (nothing of a frame before it: part
+impl StepResult {
+    /// True when the step expected an answer and got silence or a close (nothing of a frame before it: part
     /// of a frame is an answer, wrong).
     pub fn unanswered(&self) -> bool {
-        self.steps.iter().any(|s| {
-            s.expected.is_some()
-                && s.observed.iter().any(|o| {
-                    matches!(
-                        o,
-                        crate::targets::Received::Silence { partial, .. }
-                            | crate::targets::Received::Closed { partial, .. } if partial.is_empty()
-                    )
-                })
-        })
+        self.expected.is_some()
+            && self.observed.iter().any(|o| {
+                matches!(
+                    o,
+                    crate::targets::Received::Silence { partial, .. }
+                        | crate::targets::Received::Closed { partial, .. } if partial.is_empty()
+                )
+            })
+    }
+}
+
+impl CaseResult {
+    /// True when a step expected an answer and got silence or a close (see [`StepResult::unanswered`]).
+    pub fn unanswered(&self) -> bool {
+        self.steps.iter().any(StepResult::unanswered)
     }
 
     /// The result of a case that was not run, and why.

@@ -660,7 +660,7 @@ impl Watch {
 
     /// After a case: if an answer that was due did not come, is the target still there?
     fn after_case(&mut self, runner: &mut Runner, result: &mut CaseResult, log: &mut dyn Write) {
-        let Some(step) = result.steps.iter().position(|s| {
+        let Some(mut step) = result.steps.iter().position(|s| {
             s.expected.is_some()
                 && s.observed
                     .iter()
@@ -668,12 +668,33 @@ impl Watch {
         }) else {
             return;
         };
+        if runner.stalled().is_some() {
+            // The case stopped after its last step run: that is the one the target went silent after.
+            step = result.steps.len() - 1;
+        }
         // The request that preceded the silence: the first one sent since the last answer (an earlier
         // case's when the target took it silently, as a malformed frame may be), else this step's.
         let preceding = runner.first_unanswered().cloned();
         let started = runner.now();
-        if self.alive(runner, self.bounds.probe_timeout) {
-            return;
+        match runner.stalled() {
+            // The case stopped on a hung connection and a new one is answered (the step says so).
+            Some(crate::runner::Stall::Connection) => {
+                let _ = writeln!(
+                    log,
+                    "liveness: the connection stopped answering after {} (step {}: {}); a new connection is answered, the case's remaining steps were not sent",
+                    result.id,
+                    step + 1,
+                    crate::liveness::hex(result.steps[step].sent.as_deref().unwrap_or_default()),
+                );
+                return;
+            }
+            // The case stopped with nothing answering on a new connection either: known, not asked again.
+            Some(crate::runner::Stall::Target) => {}
+            None => {
+                if self.alive(runner, self.bounds.probe_timeout) {
+                    return;
+                }
+            }
         }
         let (by, sent) = preceding.unwrap_or_else(|| {
             (
@@ -918,6 +939,9 @@ pub fn run(
     let mut runner = open_runner(opts, &profile, &cfg, &expectations)?;
     preflight(opts, &profile, &mut runner)?;
     let mut watch = Watch::new(opts, &profile);
+    if let Some(w) = watch.as_ref() {
+        runner.watch_mid_case(w.probe.clone(), w.bounds.probe_timeout);
+    }
     let framing = runner.framing();
     let info = run_info(opts, &profile, &runner, generator.as_ref());
     let mut reports = match &opts.report_dir {

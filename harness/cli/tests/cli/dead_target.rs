@@ -300,6 +300,12 @@ enum Mode {
     Pause(usize, Duration),
     /// The `at`-th chunk the server sends is held back for the duration, the others pass: one late answer.
     Delay(usize, Duration),
+    /// The first request chunk containing these bytes goes to the server, and from then on nothing passes
+    /// on that connection either way (its answer included); other connections are relayed as usual: a drive
+    /// that leaves a connection hung after a request, as jsmodbus 5 does.
+    Hang(&'static [u8]),
+    /// As `Hang`, but from then on nothing passes on any connection, old or new: a drive that dies mid-case.
+    Die(&'static [u8]),
 }
 
 /// A Modbus/TCP proxy on 127.0.0.1:0 in front of `upstream` that misbehaves as its [`Mode`] says. Its threads
@@ -315,6 +321,7 @@ impl Proxy {
         let requests = Arc::new(AtomicUsize::new(0));
         let answers = Arc::new(AtomicUsize::new(0));
         let paused_until: Arc<Mutex<Option<Instant>>> = Arc::default();
+        let dead = Arc::new(AtomicBool::new(false));
         listener.set_nonblocking(true).expect("nonblocking");
         thread::spawn(move || {
             let until = Instant::now() + PEER_LIFETIME;
@@ -332,9 +339,18 @@ impl Proxy {
                     let _ = s.set_nodelay(true);
                     let _ = s.set_read_timeout(Some(PEER_LIFETIME));
                 }
+                // A connection of a dead drive is hung from the start.
+                let hung = match mode {
+                    Mode::Die(_) => dead.clone(),
+                    _ => Arc::new(AtomicBool::new(false)),
+                };
                 let pump = |mut from: TcpStream, to: TcpStream, upward: bool| {
-                    let (requests, answers, paused_until) =
-                        (requests.clone(), answers.clone(), paused_until.clone());
+                    let (requests, answers, paused_until, hung) = (
+                        requests.clone(),
+                        answers.clone(),
+                        paused_until.clone(),
+                        hung.clone(),
+                    );
                     let to = Arc::new(Mutex::new(to));
                     thread::spawn(move || {
                         let mut buf = [0u8; 4096];
@@ -343,6 +359,15 @@ impl Proxy {
                             let chunk = buf[..n].to_vec();
                             let count = if upward { &requests } else { &answers };
                             let nth = count.fetch_add(1, Ordering::SeqCst) + 1;
+                            if let Mode::Hang(pattern) | Mode::Die(pattern) = mode {
+                                if hung.load(Ordering::SeqCst) {
+                                    continue;
+                                }
+                                if upward && chunk.windows(pattern.len()).any(|w| w == pattern) {
+                                    // Hung before the server can answer: its answer is dropped too.
+                                    hung.store(true, Ordering::SeqCst);
+                                }
+                            }
                             let mut held = None;
                             {
                                 let mut p = paused_until.lock().expect("pause");
@@ -422,6 +447,112 @@ fn a_drive_silent_for_3_s_is_waited_for_and_the_run_goes_on() {
         "{summary}"
     );
     // The simulator lives to the end of the test.
+    drop(sim);
+}
+
+/// A drive that leaves a connection hung after a request and answers on a new one (jsmodbus 5 did after an
+/// unsupported function, and after a request with a byte too many): the case stops at that request, which
+/// FAILs saying so, instead of sending its remaining steps to the hung connection (where each FAILed "no
+/// response", the step that puts the coil back included); the run goes on, and the coil the unanswered
+/// write set is put back by the leave-as-found keeper right after the case.
+#[test]
+fn a_connection_left_hung_mid_case_stops_the_case_at_that_request() {
+    // `profile/generic/coil/7-coil-7`: read coil 7, write it ON, read it back, write it OFF again. The
+    // connection hangs at the write (unit 1, FC 05, coil 7, ON), which the simulator takes.
+    let (sim, target) =
+        Proxy::before_generic_sim(Mode::Hang(&[0x01, 0x05, 0x00, 0x07, 0xFF, 0x00]));
+    let dir = TempDir::new("hung-connection");
+    let report = dir.path().join("report");
+    let report_s = report.to_string_lossy().into_owned();
+    let case = "profile/generic/coil/7-coil-7";
+    let mut args = run_args(&target, "generic", &["--cases", "profile/generic/coil/*"]);
+    args.extend_from_slice(&["--preflight-timeout", "500", "--report", &report_s]);
+    let (code, out, err, took) = harness_timed(&args, Duration::from_secs(60));
+    assert_eq!(code, 1, "one FAIL\n{out}\n{err}");
+    assert!(took < Duration::from_secs(20), "took {took:?}");
+    assert_complete(&report);
+    let summary = &index(&report)["summary"];
+    assert_eq!(summary["counts"]["FAIL"], 1, "{summary}");
+    assert_eq!(summary["failing"][0], case, "{summary}");
+    assert!(summary.get("ended").is_none(), "the run went on: {summary}");
+    assert!(
+        summary["counts"]["PASS"].as_u64().unwrap_or(0) >= 90,
+        "the other coils' cases PASS on new connections: {summary}"
+    );
+    let record = case_records(&report)
+        .into_iter()
+        .find(|c| c.contains(&format!("\"id\":\"{case}\"")))
+        .expect("the case's record");
+    let record: serde_json::Value = serde_json::from_str(&record).expect("json");
+    let steps = record["result"]["steps"].as_array().expect("steps");
+    assert_eq!(steps.len(), 2, "stopped after the write: {steps:#?}");
+    assert_eq!(steps[0]["verdict"], "PASS", "{steps:#?}");
+    assert_eq!(steps[1]["verdict"], "FAIL", "{steps:#?}");
+    let findings = steps[1]["findings"].to_string();
+    assert!(
+        findings.contains("the connection stopped answering after this request")
+            && findings.contains("2 remaining step(s) were not sent"),
+        "{findings}"
+    );
+    assert!(
+        err.contains(
+            "liveness: the connection stopped answering after profile/generic/coil/7-coil-7"
+        ),
+        "{err}"
+    );
+    // Put back by the keeper, verified by its read-back (the coil was written ON by the simulator).
+    assert!(
+        out.contains("every kept parameter reads as before"),
+        "{out}"
+    );
+    drop(sim);
+}
+
+/// A drive that dies mid-case (nothing answers from one request on, on any connection): the case stops at
+/// that request, which FAILs with what was tried, the run waits `--recovery-wait` for the drive and SKIPs
+/// the rest; the remaining steps of the case are not sent into the silence one by one.
+#[test]
+fn a_drive_that_dies_mid_case_stops_the_case_and_the_run() {
+    let (sim, target) = Proxy::before_generic_sim(Mode::Die(&[0x01, 0x05, 0x00, 0x07, 0xFF, 0x00]));
+    let dir = TempDir::new("dies-mid-case");
+    let report = dir.path().join("report");
+    let report_s = report.to_string_lossy().into_owned();
+    let case = "profile/generic/coil/7-coil-7";
+    let mut args = run_args(&target, "generic", &["--cases", "profile/generic/coil/*"]);
+    args.extend_from_slice(&[
+        "--preflight-timeout",
+        "500",
+        "--recovery-wait",
+        "2",
+        "--report",
+        &report_s,
+    ]);
+    let (code, out, err, took) = harness_timed(&args, Duration::from_secs(60));
+    assert_ne!(code, 0, "{out}\n{err}");
+    assert!(took < Duration::from_secs(20), "took {took:?}");
+    assert_complete(&report);
+    let summary = &index(&report)["summary"];
+    assert_eq!(summary["counts"]["FAIL"], 1, "{summary}");
+    assert_eq!(summary["failing"][0], case, "{summary}");
+    let ended = summary["ended"].as_str().expect("why the run ended");
+    assert!(
+        ended.contains(&format!("stopped answering after {case}")),
+        "{ended}"
+    );
+    let record = case_records(&report)
+        .into_iter()
+        .find(|c| c.contains(&format!("\"id\":\"{case}\"")))
+        .expect("the case's record");
+    let record: serde_json::Value = serde_json::from_str(&record).expect("json");
+    let steps = record["result"]["steps"].as_array().expect("steps");
+    assert_eq!(steps.len(), 2, "stopped after the write: {steps:#?}");
+    let findings = steps[1]["findings"].to_string();
+    assert!(
+        findings.contains(
+            "on this connection or a new one: the case's 2 remaining step(s) were not sent"
+        ) && findings.contains("the target stopped answering after this request"),
+        "{findings}"
+    );
     drop(sim);
 }
 

@@ -937,7 +937,8 @@ fn hanging_proxy(upstream: SocketAddr) -> SocketAddr {
 }
 
 /// A drive that hangs the connection after a truncated request, as jsmodbus does (/work/peers2): the run
-/// finds that the target stopped answering on it (FAIL, with the liveness note), goes on on a new connection,
+/// finds that the connection stopped answering (FAIL, the case stopped there, with the liveness note), goes
+/// on on a new connection,
 /// and ends with every parameter as found and no NOT RESTORED. (The keeper also sends a request that got
 /// nothing at all once more on a new connection, for a hang that comes while it puts values back; here the
 /// liveness check has reconnected before it, so this test does not show that second line.)
@@ -965,8 +966,17 @@ fn a_drive_hanging_a_connection_after_a_malformed_request_is_still_put_back() {
         ),
         RUN_LIMIT,
     );
+    // The case stops at the request after which its connection hung (its put-back steps would have gone
+    // to the hung connection); the keeper puts the drive back on a new one.
     assert!(
-        out.contains("stopped answering after spec/app-6/truncated-pdu/fc-0x10"),
+        out.contains("FAIL spec/app-6/truncated-pdu/fc-0x10")
+            && out.contains("the connection stopped answering after this request"),
+        "{out}\n{err}"
+    );
+    assert!(
+        err.contains(
+            "liveness: the connection stopped answering after spec/app-6/truncated-pdu/fc-0x10"
+        ),
         "{out}\n{err}"
     );
     assert!(!out.contains("NOT RESTORED"), "{out}\n{err}");

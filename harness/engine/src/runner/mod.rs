@@ -226,6 +226,11 @@ pub struct Runner {
     /// The step being run is followed by a new connection (`Step::Reconnect`): its connection may be
     /// half-closed to prove a silence (see `prove_silence_by_close`).
     reconnect_next: bool,
+    /// Real targets of a run: the known-good read and its bound, sent after a step whose due answer did not
+    /// come while the case has requests left (see [`Runner::watch_mid_case`]).
+    mid_case: Option<(Vec<u8>, Duration)>,
+    /// The case being run was stopped there, and why.
+    stalled: Option<Stall>,
     /// RTU on a real target: a malformed frame went out, so the next one waits for the line's t3.5 first
     /// (see `send_pieces`).
     resync_rtu: bool,
@@ -290,6 +295,19 @@ impl RecentLatencies {
     fn slowest(&self) -> Duration {
         self.ring.iter().copied().max().unwrap_or_default()
     }
+}
+
+/// Why a case was stopped before its last step: a step's due answer did not come, and a known-good read
+/// after it (see [`Runner::watch_mid_case`]) showed more than that one request going unanswered.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Stall {
+    /// The connection no longer answers, a new one does (a drive that leaves a connection hung after a
+    /// request: jsmodbus 5 did after an unsupported function and after a request with a byte too many). The
+    /// case's remaining requests would have gone to the hung connection, or to a drive whose state after the
+    /// unanswered request nobody knows.
+    Connection,
+    /// Nothing answers, on this connection or a new one: the run's watch waits for the target.
+    Target,
 }
 
 /// How the silences due on Modbus/TCP to a real target were settled.
@@ -379,6 +397,8 @@ impl Runner {
             requests: 0,
             blocks_refused: Vec::new(),
             reconnect_next: false,
+            mid_case: None,
+            stalled: None,
             resync_rtu: false,
             ahead: std::collections::VecDeque::new(),
             stash: Vec::new(),
@@ -1142,6 +1162,22 @@ impl Runner {
         self.unanswered.first()
     }
 
+    /// After a step whose due answer did not come, while the case has requests left to send: send the
+    /// known-good read `probe` (listening up to `bound`) before the next one. Answered: the case goes on.
+    /// Not answered: on a target with connections the read is tried once more on a new one; either way the
+    /// case stops there (see [`Stall`]), the step FAILs saying so, and its remaining steps are not sent.
+    /// Without this (the default, and `fuzz`, which probes after each case), the remaining steps go out as
+    /// they come, to a target that may no longer hear them, each FAILing for the one request that silenced
+    /// it, put-back steps included.
+    pub fn watch_mid_case(&mut self, probe: Vec<u8>, bound: Duration) {
+        self.mid_case = Some((probe, bound));
+    }
+
+    /// Whether the last case run was stopped after a step whose due answer did not come, and why.
+    pub fn stalled(&self) -> Option<Stall> {
+        self.stalled
+    }
+
     /// Close and reopen the target's connection (a target that stopped answering may take a new one).
     pub fn reconnect(&mut self) -> Result<(), TargetError> {
         self.target.reconnect()
@@ -1478,6 +1514,7 @@ impl Runner {
         self.case_freedoms.clone_from(&case.freedoms);
         self.case_tags.clone_from(&case.tags);
         self.refused = false;
+        self.stalled = None;
         self.refused_writes.clear();
         self.case_writes_files = case.steps.iter().any(|s| {
             matches!(s, Step::Exchange { send: Outgoing::Pdu(p), .. } if p.first() == Some(&0x15))
@@ -1544,8 +1581,12 @@ impl Runner {
                     capture,
                     note,
                 } => {
-                    let r = self.exchange(send, compare, *capture, note, &mut wire)?;
+                    let mut r = self.exchange(send, compare, *capture, note, &mut wire)?;
+                    let stop = self.stall_after(&mut r, &case.steps[k + 1..])?;
                     steps.push(r);
+                    if stop {
+                        break;
+                    }
                 }
             }
         }
@@ -1582,6 +1623,53 @@ impl Runner {
             result.verdict = v;
         }
         Ok(result)
+    }
+
+    /// See [`Runner::watch_mid_case`]: after `step`, with `rest` of the case to come, whether the case stops
+    /// there (the finding is added to `step`). Not when nothing of `rest` sends, nor when the case opens a
+    /// new connection next (its own design: the request may leave the old one hung).
+    fn stall_after(&mut self, step: &mut StepResult, rest: &[Step]) -> Result<bool, TargetError> {
+        let Some((probe, bound)) = self.mid_case.clone() else {
+            return Ok(false);
+        };
+        let sends = |s: &Step| {
+            matches!(
+                s,
+                Step::Exchange { .. } | Step::Until { .. } | Step::Persist { .. }
+            )
+        };
+        let left = rest.iter().filter(|s| sends(s)).count();
+        if left == 0 || matches!(rest.first(), Some(Step::Reconnect)) || !step.unanswered() {
+            return Ok(false);
+        }
+        if self.known_good(&probe, bound)?.0 == crate::liveness::Heard::Modbus {
+            return Ok(false);
+        }
+        let secs = bound.as_secs_f64();
+        let mut stall = Stall::Target;
+        if self.target.has_connections() {
+            self.target.reconnect()?;
+            self.shadow.reconnect()?;
+            if self.known_good(&probe, bound)?.0 == crate::liveness::Heard::Modbus {
+                stall = Stall::Connection;
+            }
+        }
+        step.findings.push(match stall {
+            Stall::Connection => format!(
+                "the connection stopped answering after this request: a known-good read on it got no answer within {secs:.1} s, on a new connection it is answered; the case's {left} remaining step(s) were not sent (they would have gone to a drive whose state after this request is unknown)"
+            ),
+            Stall::Target => format!(
+                "a known-good read got no answer within {secs:.1} s{}: the case's {left} remaining step(s) were not sent",
+                if self.target.has_connections() {
+                    ", on this connection or a new one"
+                } else {
+                    ""
+                }
+            ),
+        });
+        step.verdict = Verdict::Fail;
+        self.stalled = Some(stall);
+        Ok(true)
     }
 
     /// The silences before every answer of the run so far (see [`crate::timing`]): FAIL when one surely

@@ -123,6 +123,11 @@ pub trait Target {
     fn idle(&mut self, d: Duration);
     /// Close and reopen the connection (no-op on a serial line).
     fn reconnect(&mut self) -> Result<(), TargetError>;
+    /// Whether [`Target::reconnect`] opens a new connection to a peer that may treat it apart from the old
+    /// one (TCP; not a serial line, nor the in-process drive).
+    fn has_connections(&self) -> bool {
+        false
+    }
     /// Discard whatever arrived unasked (late answers of an earlier case).
     fn drain(&mut self);
     /// Half-close the connection: tell the peer that nothing more will be sent on it (TCP FIN), while its

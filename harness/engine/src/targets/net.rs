@@ -273,6 +273,10 @@ impl Target for TcpTarget {
         std::thread::sleep(d);
     }
 
+    fn has_connections(&self) -> bool {
+        true
+    }
+
     fn reconnect(&mut self) -> Result<(), TargetError> {
         if let Some(s) = self.stream.take() {
             let _ = s.shutdown(std::net::Shutdown::Both);

@@ -119,6 +119,8 @@ pub fn response_validation(data: &[u8]) {
             last_at: at,
             max_gap: at,
         };
+        // The reference answer decoded once for the four judgements (`judge_answer` judges as `judge`).
+        let answer = oracle::Answer::new(framing, e);
         for compare in &COMPARES {
             let itself = oracle::Observation {
                 expected: Some(e),
@@ -126,7 +128,7 @@ pub fn response_validation(data: &[u8]) {
                 compare,
                 ..observation
             };
-            let findings = oracle::judge(&itself, profile.device.word_order);
+            let findings = oracle::judge_answer(&itself, profile.device.word_order, &answer);
             assert!(
                 findings.is_empty(),
                 "{} judged against itself ({compare:?}): {findings:?}",

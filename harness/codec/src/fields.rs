@@ -32,16 +32,28 @@ impl fmt::Display for FieldValue {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         match self {
             FieldValue::Int(v) => write!(f, "{v} (0x{v:X})"),
+            // The lists are written element by element, not through a string per element.
             FieldValue::Ints(v) => {
-                let parts: Vec<String> = v.iter().map(|x| format!("0x{x:04X} ({x})")).collect();
-                write!(f, "[{}]", parts.join(", "))
+                f.write_str("[")?;
+                for (n, x) in v.iter().enumerate() {
+                    if n > 0 {
+                        f.write_str(", ")?;
+                    }
+                    write!(f, "0x{x:04X} ({x})")?;
+                }
+                f.write_str("]")
             }
-            FieldValue::Bytes(b) => write!(f, "{}", hex_spaced(b)),
+            FieldValue::Bytes(b) => f.write_str(&hex_spaced(b)),
             FieldValue::Text(s) => write!(f, "{s:?}"),
             FieldValue::Objects(o) => {
-                let parts: Vec<String> =
-                    o.iter().map(|(i, v)| format!("0x{i:02X}={v:?}")).collect();
-                write!(f, "{{{}}}", parts.join(", "))
+                f.write_str("{")?;
+                for (n, (i, v)) in o.iter().enumerate() {
+                    if n > 0 {
+                        f.write_str(", ")?;
+                    }
+                    write!(f, "0x{i:02X}={v:?}")?;
+                }
+                f.write_str("}")
             }
         }
     }
@@ -415,5 +427,38 @@ mod tests {
         let all: Vec<u8> = (0..=255).collect();
         let expected: Vec<String> = all.iter().map(|x| format!("{x:02X}")).collect();
         assert_eq!(hex_spaced(&all), expected.join(" "));
+    }
+
+    #[test]
+    fn lists_print_as_their_elements_joined() {
+        // What the values printed as when each element went through its own string, joined.
+        let ints = |v: &[u64]| {
+            let parts: Vec<String> = v.iter().map(|x| format!("0x{x:04X} ({x})")).collect();
+            format!("[{}]", parts.join(", "))
+        };
+        for v in [vec![], vec![7], vec![0, 0xFFFF, 65_536, u64::MAX]] {
+            assert_eq!(FieldValue::Ints(v.clone()).to_string(), ints(&v));
+        }
+        assert_eq!(
+            FieldValue::Ints(vec![1, 0xBEEF]).to_string(),
+            "[0x0001 (1), 0xBEEF (48879)]"
+        );
+        let objects = |o: &[(u8, String)]| {
+            let parts: Vec<String> = o.iter().map(|(i, v)| format!("0x{i:02X}={v:?}")).collect();
+            format!("{{{}}}", parts.join(", "))
+        };
+        for o in [
+            vec![],
+            vec![(0, "IMS".to_string())],
+            vec![(1, "a\"b".to_string()), (0x80, String::new())],
+        ] {
+            assert_eq!(FieldValue::Objects(o.clone()).to_string(), objects(&o));
+        }
+        assert_eq!(
+            FieldValue::Objects(vec![(0, "IMS".into()), (2, "1.0".into())]).to_string(),
+            r#"{0x00="IMS", 0x02="1.0"}"#
+        );
+        assert_eq!(FieldValue::Bytes(vec![0x01, 0xAB]).to_string(), "01 AB");
+        assert_eq!(FieldValue::Bytes(vec![]).to_string(), "");
     }
 }

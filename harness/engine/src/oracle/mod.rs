@@ -8,7 +8,8 @@ pub mod freedoms;
 use crate::cases::{Compare, Level, Verdict};
 use crate::targets::Received;
 use codec::{
-    Direction, FieldValue, Framing, Pdu, Request, Response, decode_any, describe, hex_spaced,
+    Decoded, Direction, FieldValue, Framing, Pdu, Request, Response, decode_any, describe,
+    hex_spaced,
 };
 use drives::profile::{Profile, Table, WordOrder};
 use drives::requirements::{Freedom, FreedomKind};
@@ -63,21 +64,49 @@ pub struct Sent {
 
 /// Describe a frame briefly: hex and, where it decodes, its function and fields.
 pub fn brief(framing: Framing, bytes: &[u8]) -> String {
-    match decode_any(bytes, framing, Direction::Response) {
-        Ok(d) => format!("{} ({})", hex_spaced(bytes), summary(&d.pdu)),
-        Err(_) => hex_spaced(bytes),
-    }
+    brief_decoded(framing, bytes, None)
 }
 
+/// [`brief`], with `bytes` already decoded when `decoded` is `Some` (their decoding as a response under
+/// `framing`).
+fn brief_decoded(framing: Framing, bytes: &[u8], decoded: Option<&Decoded>) -> String {
+    let mut out = hex_spaced(bytes);
+    let again;
+    let decoded = match decoded {
+        Some(d) => Some(d),
+        None => {
+            again = decode_any(bytes, framing, Direction::Response).ok();
+            again.as_ref()
+        }
+    };
+    if let Some(d) = decoded {
+        out.push_str(" (");
+        summary_into(&d.pdu, &mut out);
+        out.push(')');
+    }
+    out
+}
+
+/// The fields of a PDU, `FC 0xNN, name value, …`.
 fn summary(p: &Pdu) -> String {
-    describe(p)
-        .iter()
-        .map(|f| match (&f.name, &f.value) {
-            (&"function", FieldValue::Int(v)) => format!("FC 0x{v:02X}"),
-            (n, v) => format!("{n} {v}"),
-        })
-        .collect::<Vec<_>>()
-        .join(", ")
+    let mut out = String::new();
+    summary_into(p, &mut out);
+    out
+}
+
+/// [`summary`] appended to `out`, written in place (no string per field).
+fn summary_into(p: &Pdu, out: &mut String) {
+    use std::fmt::Write as _;
+    for (i, f) in describe(p).iter().enumerate() {
+        if i > 0 {
+            out.push_str(", ");
+        }
+        // Writing to a String cannot fail.
+        let _ = match (&f.name, &f.value) {
+            (&"function", FieldValue::Int(v)) => write!(out, "FC 0x{v:02X}"),
+            (n, v) => write!(out, "{n} {v}"),
+        };
+    }
 }
 
 fn field_diff(exp: &Pdu, obs: &Pdu) -> Vec<String> {
@@ -111,13 +140,66 @@ pub struct Observation<'a> {
 
 /// Judge one observation against the reference answer, reading 32-bit register values in `order`.
 pub fn judge(o: &Observation<'_>, order: WordOrder) -> Vec<Finding> {
+    judge_with(o, order, None)
+}
+
+/// A reference answer decoded once, for judging several observations against it ([`judge_answer`]).
+#[derive(Clone, Debug)]
+pub struct Answer<'a> {
+    framing: Framing,
+    bytes: &'a [u8],
+    /// `bytes` decoded as a response under `framing`; `None` where they do not decode.
+    decoded: Option<Decoded>,
+}
+
+impl<'a> Answer<'a> {
+    /// The reference's answer `bytes` under `framing`, decoded.
+    pub fn new(framing: Framing, bytes: &'a [u8]) -> Self {
+        Answer {
+            framing,
+            bytes,
+            decoded: decode_any(bytes, framing, Direction::Response).ok(),
+        }
+    }
+}
+
+/// [`judge`] with the reference answer decoded beforehand: the same findings as `judge(o, order)`. `answer`
+/// is used where it is the observation's reference answer (`o.expected` holds the same bytes, under the same
+/// framing); otherwise the answer is decoded as `judge` does.
+pub fn judge_answer(o: &Observation<'_>, order: WordOrder, answer: &Answer<'_>) -> Vec<Finding> {
+    let decoded = (o.framing == answer.framing && o.expected == Some(answer.bytes))
+        .then_some(answer.decoded.as_ref())
+        .flatten();
+    judge_with(o, order, decoded)
+}
+
+/// [`judge`]; `exp_decoded`, where `Some`, is `o.expected` decoded as a response under `o.framing`.
+fn judge_with(
+    o: &Observation<'_>,
+    order: WordOrder,
+    exp_decoded: Option<&Decoded>,
+) -> Vec<Finding> {
     if *o.compare == Compare::RejectOrIgnore
         && let Some(findings) = reject_or_ignore(o.framing, o.sent, o.expected, o.observed)
     {
         return findings;
     }
-    match frames_to_compare(o.framing, o.expected, o.observed, o.reference_closed) {
-        Ok((exp, obs)) => compare_frames(o.framing, o.sent, exp, obs, o.compare, o.profile, order),
+    match frames_to_compare(
+        o.framing,
+        o.expected,
+        o.observed,
+        o.reference_closed,
+        exp_decoded,
+    ) {
+        Ok((exp, obs)) => compare_frames(
+            o.framing,
+            o.sent,
+            (exp, exp_decoded),
+            obs,
+            o.compare,
+            o.profile,
+            order,
+        ),
         Err(findings) => findings,
     }
 }
@@ -422,12 +504,14 @@ fn reject_or_ignore(
 }
 
 /// The reference's frame and the observed one, when both are frames; otherwise the verdict on the
-/// silence, close or garbage that came (or should have come) instead.
+/// silence, close or garbage that came (or should have come) instead. `exp_decoded`: `expected` decoded,
+/// where the caller has it.
 fn frames_to_compare<'a>(
     framing: Framing,
     expected: Option<&'a [u8]>,
     observed: &'a Received,
     reference_closed: bool,
+    exp_decoded: Option<&Decoded>,
 ) -> Result<(&'a [u8], &'a [u8]), Vec<Finding>> {
     let mut out = Vec::new();
     match (expected, observed) {
@@ -473,14 +557,14 @@ fn frames_to_compare<'a>(
             };
             out.push(must(format!(
                 "no response within the timeout; the reference answers {}{tail}",
-                brief(framing, e)
+                brief_decoded(framing, e, exp_decoded)
             )));
             Err(out)
         }
         (Some(e), Received::Closed { .. }) => {
             out.push(must(format!(
                 "the connection was closed instead of an answer; the reference answers {}",
-                brief(framing, e)
+                brief_decoded(framing, e, exp_decoded)
             )));
             Err(out)
         }
@@ -496,36 +580,57 @@ fn frames_to_compare<'a>(
 }
 
 /// Compare two decoded frames: they decode, the echoes match (transaction id, unit), exceptions agree, then
-/// the compare mode of the step.
+/// the compare mode of the step. `exp` is the reference's frame and, where the caller has it, its decoding.
 fn compare_frames(
     framing: Framing,
     sent: &Sent,
-    exp: &[u8],
+    (exp, exp_pre): (&[u8], Option<&Decoded>),
     obs: &[u8],
     compare: &Compare,
     profile: &Profile,
     order: WordOrder,
 ) -> Vec<Finding> {
     let mut out = Vec::new();
-    let obs_d = match decode_any(obs, framing, Direction::Response) {
-        Ok(d) => d,
-        Err(err) => {
-            out.push(must(format!(
-                "response {} does not decode: {err}",
-                hex_spaced(obs)
-            )));
-            return out;
+    // A reply identical to the reference's carries the right echoes by construction, and decodes as it
+    // does: decoded once (the reference's own answer judged against itself, a drive that answers as it).
+    let identical = obs == exp;
+    let obs_decoded;
+    let obs_d = match exp_pre.filter(|_| identical) {
+        Some(d) => d,
+        None => match decode_any(obs, framing, Direction::Response) {
+            Ok(d) => {
+                obs_decoded = d;
+                &obs_decoded
+            }
+            Err(err) => {
+                out.push(must(format!(
+                    "response {} does not decode: {err}",
+                    hex_spaced(obs)
+                )));
+                return out;
+            }
+        },
+    };
+    let exp_decoded;
+    let exp_d = if identical {
+        obs_d
+    } else if let Some(d) = exp_pre {
+        d
+    } else {
+        match decode_any(exp, framing, Direction::Response) {
+            Ok(d) => {
+                exp_decoded = d;
+                &exp_decoded
+            }
+            Err(_) => {
+                out.push(must(format!(
+                    "internal: the reference answer {} does not decode",
+                    hex_spaced(exp)
+                )));
+                return out;
+            }
         }
     };
-    let Ok(exp_d) = decode_any(exp, framing, Direction::Response) else {
-        out.push(must(format!(
-            "internal: the reference answer {} does not decode",
-            hex_spaced(exp)
-        )));
-        return out;
-    };
-    // A reply identical to the reference's carries the right echoes by construction.
-    let identical = obs == exp;
     if let (Some(t), Some(got)) = (sent.tid, obs_d.transaction_id)
         && t != got
         && !identical
@@ -1020,5 +1125,164 @@ mod reject_tests {
         assert_eq!(wrong[0].severity, Severity::Should);
         let served = judge("00 01 00 00 00 05 01 03 02 00 00");
         assert_eq!(served[0].severity, Severity::Must);
+    }
+}
+
+#[cfg(test)]
+mod brief_tests {
+    use super::brief;
+    use codec::{
+        Direction, FieldValue, Framing, decode_any, describe, hex_spaced, parse_hex, rtu, tcp,
+    };
+
+    /// What `brief` printed when each field went through its own string, joined.
+    fn joined(framing: Framing, bytes: &[u8]) -> String {
+        match decode_any(bytes, framing, Direction::Response) {
+            Ok(d) => {
+                let fields = describe(&d.pdu)
+                    .iter()
+                    .map(|f| match (&f.name, &f.value) {
+                        (&"function", FieldValue::Int(v)) => format!("FC 0x{v:02X}"),
+                        (n, v) => format!("{n} {v}"),
+                    })
+                    .collect::<Vec<_>>()
+                    .join(", ");
+                format!("{} ({fields})", hex_spaced(bytes))
+            }
+            Err(_) => hex_spaced(bytes),
+        }
+    }
+
+    #[test]
+    fn brief_prints_the_hex_and_the_fields() {
+        let pdus = [
+            "03 04 00 01 BE EF",
+            "83 02",
+            "01 01 05",
+            "05 00 10 FF 00",
+            "2B 0E 01 81 00 00 02 00 03 49 4D 53 01 02 41 42",
+            "41 00",
+            "",
+            "03 05 00",
+        ];
+        for pdu in pdus {
+            let pdu = parse_hex(pdu).unwrap();
+            let mut t = Vec::new();
+            tcp::encode_adu(7, 1, &pdu, &mut t).unwrap();
+            let mut r = Vec::new();
+            rtu::encode_adu(1, &pdu, &mut r).unwrap();
+            for (framing, bytes) in [(Framing::Tcp, &t), (Framing::Rtu, &r), (Framing::Tcp, &pdu)] {
+                assert_eq!(brief(framing, bytes), joined(framing, bytes));
+            }
+        }
+        let mut t = Vec::new();
+        tcp::encode_adu(7, 1, &parse_hex("03 04 00 01 BE EF").unwrap(), &mut t).unwrap();
+        assert_eq!(
+            brief(Framing::Tcp, &t),
+            "00 07 00 00 00 07 01 03 04 00 01 BE EF (FC 0x03, byte_count 4 (0x4), values [0x0001 (1), 0xBEEF (48879)])"
+        );
+    }
+}
+
+#[cfg(test)]
+mod answer_tests {
+    use super::{Answer, Observation, Sent, judge, judge_answer};
+    use crate::cases::Compare;
+    use crate::targets::Received;
+    use codec::{Framing, parse_hex, rtu, tcp};
+    use std::time::Duration;
+
+    fn framed(framing: Framing, pdu: &str) -> Vec<u8> {
+        let pdu = parse_hex(pdu).unwrap();
+        let mut out = Vec::new();
+        match framing {
+            Framing::Tcp => tcp::encode_adu(1, 1, &pdu, &mut out).unwrap(),
+            _ => rtu::encode_adu(1, &pdu, &mut out).unwrap(),
+        }
+        out
+    }
+
+    /// `judge_answer` finds what `judge` finds, whatever the answer passed (the observation's reference
+    /// answer, another one, one under another framing, one that does not decode).
+    #[test]
+    fn judging_with_the_answer_decoded_finds_what_judge_finds() {
+        let profile = drives::corpus::Corpus::Embedded.profile("sd2x").unwrap();
+        let order = profile.device.word_order;
+        let compares = [
+            Compare::Exact,
+            Compare::Structure,
+            Compare::InRange,
+            Compare::Any,
+            Compare::RejectOrIgnore,
+        ];
+        let pdus = [
+            "03 04 00 01 BE EF",
+            "03 04 00 02 BE EF",
+            "03 02 00 01",
+            "83 02",
+            "83 01",
+            "06 00 10 00 05",
+            "01 01 05",
+            "2B 0E 01 81 00 00 01 00 03 49 4D 53",
+        ];
+        let mut checked = 0;
+        for framing in [Framing::Tcp, Framing::Rtu] {
+            let sent = Sent {
+                tid: (framing == Framing::Tcp).then_some(1),
+                unit: 1,
+                pdu: parse_hex("03 00 00 00 02").unwrap(),
+            };
+            let frames: Vec<Vec<u8>> = pdus
+                .iter()
+                .map(|p| framed(framing, p))
+                .chain([vec![0x00, 0x01, 0x02], vec![]])
+                .collect();
+            let mut observed: Vec<Received> = frames.iter().cloned().map(Received::frame).collect();
+            for partial in [vec![], vec![0x01, 0x03]] {
+                observed.push(Received::Silence {
+                    partial: partial.clone(),
+                    at: Duration::ZERO,
+                });
+                observed.push(Received::Closed {
+                    partial,
+                    at: Duration::ZERO,
+                });
+            }
+            observed.push(Received::Garbage {
+                bytes: vec![0xFF; 3],
+                at: Duration::ZERO,
+                reason: "test".into(),
+            });
+            for expected in frames.iter().map(|f| Some(f.as_slice())).chain([None]) {
+                for o in &observed {
+                    for compare in &compares {
+                        for closed in [false, true] {
+                            let observation = Observation {
+                                framing,
+                                sent: &sent,
+                                expected,
+                                observed: o,
+                                compare,
+                                profile: &profile,
+                                reference_closed: closed,
+                            };
+                            let want = judge(&observation, order);
+                            let answers = frames.iter().flat_map(|f| {
+                                [Answer::new(framing, f), Answer::new(Framing::Pdu, f)]
+                            });
+                            for answer in answers {
+                                assert_eq!(
+                                    judge_answer(&observation, order, &answer),
+                                    want,
+                                    "{observation:?} with {answer:?}"
+                                );
+                                checked += 1;
+                            }
+                        }
+                    }
+                }
+            }
+        }
+        assert!(checked > 10_000);
     }
 }

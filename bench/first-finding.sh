@@ -25,9 +25,10 @@
 #                    motion and destructive (the classifier cannot tell what a file holds)
 #   --expect TEXT    count only a `finding:` line containing TEXT (e.g. the case kind `comm-event-log`), and
 #                    run the campaigns with --keep-going so that another finding does not end them first
-#   --timeout MS, --preflight-timeout MS
-#                    pass these to every campaign (defaults of `fuzz`: 1000 and 3000 ms, made for a real drive;
-#                    a fault whose finding is an answer that does not come is found after them)
+#   --timeout MS, --preflight-timeout MS, --silence MS
+#                    pass these to every campaign (defaults of `fuzz`: 1000, 3000 and 300 ms, made for a real
+#                    drive; a fault whose finding is an answer that does not come is found after them, and
+#                    over RTU over TCP every broadcast and request to another address listens out --silence)
 #
 # The profile is the one whose behaviour the fault concerns: sd2x for the DS402/watchdog faults,
 # write-quantity-over-limit-dropped (the only FC 17 write limit below 121) and the FC 04 its manual lists,
@@ -54,11 +55,13 @@ PROFILE=""
 EXPECT=""
 TIMEOUT=""
 PREFLIGHT=""
+SILENCE=""
 . "$here/lib.sh"
 bench_parse first-finding.sh 2,40 --bin=BIN --seeds=SEEDS --duration=DURATION --core=CORE --faults=FAULTS \
   --allow-writes@=WRITES --allow-destructive@=WRITES --allow-motion@=WRITES --profile=PROFILE \
-  --expect=EXPECT --timeout=TIMEOUT --preflight-timeout=PREFLIGHT -- "$@"
+  --expect=EXPECT --timeout=TIMEOUT --preflight-timeout=PREFLIGHT --silence=SILENCE -- "$@"
 [ -z "$TIMEOUT" ] || WRITES="$WRITES --timeout $TIMEOUT"
+[ -z "$SILENCE" ] || WRITES="$WRITES --silence $SILENCE"
 [ -z "$PREFLIGHT" ] || WRITES="$WRITES --preflight-timeout $PREFLIGHT"
 for tool in python3 taskset; do
   command -v "$tool" >/dev/null || { echo "first-finding.sh: $tool is missing" >&2; exit 1; }

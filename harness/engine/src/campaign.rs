@@ -669,6 +669,7 @@ fn fuzz_loop(
             );
         }
     }
+    crate::session::log_silences(log, runner);
     let stopped = stopped.unwrap_or_else(|| {
         if interrupt.load(Ordering::SeqCst) {
             "interrupted".to_string()

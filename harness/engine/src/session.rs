@@ -579,6 +579,29 @@ pub(crate) fn open_runner(
     Ok(runner)
 }
 
+/// How the silences due were settled (run and fuzz, at their end), when there were any.
+pub fn log_silences(log: &mut dyn Write, runner: &Runner) {
+    let timing = runner.timing();
+    let crate::runner::Silences {
+        sentinel,
+        close,
+        listened,
+    } = runner.silences();
+    if sentinel + close + listened > 0 {
+        let _ = writeln!(
+            log,
+            "silences: {sentinel} proven by a sentinel request, {close} by the target's close after a half-close, {listened} listened out for the whole window ({} ms{})",
+            timing.silence.as_millis(),
+            match (timing.sentinel, runner.framing()) {
+                (_, codec::Framing::Rtu) => ": RTU has no sentinel, see --silence",
+                (true, _) =>
+                    ": a frame the target may still be reading, or a target that dropped a sentinel",
+                (false, _) => ": --no-sentinel",
+            }
+        );
+    }
+}
+
 /// The bounds of the liveness checks of a run: real targets with `opts.liveness` set.
 fn liveness_of(opts: &Options) -> Option<crate::liveness::Liveness> {
     opts.liveness.filter(|_| !opts.target.is_sim())
@@ -1143,23 +1166,7 @@ pub fn run(
             shrunk.push(report);
         }
     }
-    let crate::runner::Silences {
-        sentinel,
-        close,
-        listened,
-    } = runner.silences();
-    if sentinel + close + listened > 0 {
-        let _ = writeln!(
-            log,
-            "silences: {sentinel} proven by a sentinel request, {close} by the target's close after a half-close, {listened} listened out for the whole window ({} ms{})",
-            opts.timing.silence.as_millis(),
-            if opts.timing.sentinel {
-                ": a frame the target may still be reading, or a target that dropped a sentinel"
-            } else {
-                ": --no-sentinel"
-            }
-        );
-    }
+    log_silences(log, &runner);
     // At the end, interrupted or not: everything that differs from the snapshot is put back and verified.
     let leave_as_found = keeper.as_mut().map(|k| k.finish(&mut runner, &profile));
     let mut summary = collected.tally.summary(interrupted, started.elapsed());

@@ -62,6 +62,11 @@ pub struct FuzzArgs {
     /// Per-answer timeout in milliseconds.
     #[arg(long, default_value_t = 1000, value_name = "MS")]
     timeout: u64,
+    /// How long to listen for an answer that should not come, in milliseconds: on RTU (a serial line, RTU
+    /// over TCP) after every broadcast, request to another address and malformed frame; on Modbus/TCP only
+    /// where no sentinel or half-close can prove the silence (see --no-sentinel). As `run --silence`.
+    #[arg(long, default_value_t = 300, value_name = "MS")]
+    silence: u64,
     /// Inject a simulator fault (sim: only; repeatable).
     #[arg(long = "fault", value_name = "NAME")]
     faults: Vec<String>,
@@ -144,6 +149,7 @@ pub fn run(args: &FuzzArgs) -> ExitCode {
     base.corpus = Corpus::Embedded;
     base.unit = args.unit;
     base.timing.timeout = Duration::from_millis(args.timeout.max(1));
+    base.timing.silence = Duration::from_millis(args.silence.max(1));
     base.liveness = Some(engine::liveness::Liveness {
         probe_timeout: Duration::from_millis(args.preflight_timeout.max(1)),
         recovery: engine::liveness::Liveness::default().recovery,

@@ -220,3 +220,51 @@ fn an_answer_written_late_is_seen_before_the_half_close() {
         }
     }
 }
+
+/// RTU has no sentinel: a broadcast or a request to another address listens out the window, which `fuzz`
+/// takes from `--silence` as `run` does (300 ms by default, made for a real line; on loopback a shorter one
+/// lets a campaign over RTU over TCP run). Its log says how many silences were listened out and for how
+/// long; a drive that answers a broadcast still FAILs with the shorter window.
+#[test]
+fn fuzz_listens_out_rtu_silences_for_its_silence_window() {
+    for (fault, code_wanted) in [(None, 0), (Some("broadcast-answered"), 1)] {
+        let sim = SimProcess::on_loopback("generic", "--rtu-over-tcp", fault);
+        let url = sim.rtu_over_tcp_url();
+        let dir = TempDir::new("fuzz-silence");
+        let regressions = dir.path().to_string_lossy().into_owned();
+        let (code, out, err) = harness(&[
+            "fuzz",
+            "--target",
+            &url,
+            "--profile",
+            "generic",
+            "--seed",
+            "1",
+            "--max-cases",
+            "200",
+            "--duration",
+            "60s",
+            "--silence",
+            "40",
+            "--timeout",
+            "300",
+            "--preflight-timeout",
+            "1000",
+            "--regressions",
+            &regressions,
+        ]);
+        assert_eq!(code, code_wanted, "{fault:?}: {out}\n{err}");
+        match fault {
+            None => {
+                let (sentinel, close, listened) = silences(&err);
+                assert_eq!((sentinel, close), (0, 0), "{err}");
+                assert!(listened > 0, "{err}");
+                assert!(
+                    err.contains("listened out for the whole window (40 ms: RTU has no sentinel"),
+                    "{err}"
+                );
+            }
+            Some(_) => assert!(err.contains("expected no response, got"), "{err}"),
+        }
+    }
+}

@@ -310,7 +310,7 @@ pub enum Stall {
     Target,
 }
 
-/// How the silences due on Modbus/TCP to a real target were settled.
+/// How the silences due from a real target were settled (on RTU every one is listened out).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct Silences {
     /// Proven by a sentinel request's answer with nothing before it.
@@ -834,6 +834,7 @@ impl Runner {
         bound: Duration,
     ) -> Result<(crate::liveness::Heard, Vec<u8>), TargetError> {
         let f = self.frame_aside(pdu);
+        self.resync_if_due();
         self.target.drain();
         self.sync_shadow();
         self.pace();
@@ -1102,6 +1103,11 @@ impl Runner {
     /// Modbus/TCP to a real target: how the silences due were settled.
     pub fn silences(&self) -> Silences {
         self.silences
+    }
+
+    /// The timeouts and windows this runner listens with.
+    pub fn timing(&self) -> Timing {
+        self.cfg.timing
     }
 
     /// Requests sent to the target so far: the cases', the sentinels, the liveness probes and the
@@ -1845,6 +1851,16 @@ impl Runner {
         let sent = self.send_pieces(&frames, &pieces, wire)?;
         let result =
             self.receive_and_judge(&frames, &pieces, sent, compare, capture, note, wire)?;
+        // A well-formed frame no length rule sizes was ended by the drive if it answered it.
+        if self.resync_rtu
+            && !frames.iter().any(|f| f.malformed)
+            && result
+                .observed
+                .iter()
+                .any(|o| matches!(o, Received::Frame { .. }))
+        {
+            self.resync_rtu = false;
+        }
         if let [f] = frames.as_slice()
             && refused_only(self.target.framing(), &result.observed)
         {
@@ -2173,6 +2189,20 @@ impl Runner {
         })
     }
 
+    /// RTU on a real target: after a frame the drive may still hold (see `send_pieces`), the line's t3.5
+    /// (the carrier's 50 ms over TCP) before the next one.
+    fn resync_if_due(&mut self) {
+        if std::mem::take(&mut self.resync_rtu) {
+            let t3_5 = self
+                .target
+                .rtu_timing()
+                .unwrap_or_else(codec::RtuTiming::tcp_carrier)
+                .t3_5;
+            self.target.idle(t3_5);
+            self.sync_shadow();
+        }
+    }
+
     /// Write the pieces to the target and to the reference drive. Returns what the harness could not
     /// guarantee (a split frame's pieces too far apart) and the target's time just before the last write.
     fn send_pieces(
@@ -2187,16 +2217,18 @@ impl Runner {
         // say: the rest waits). The reference drops them at that silence, so the target must have it too
         // before the next frame, or the leftovers would corrupt it. (Real targets: on `sim:` the reference
         // and the drive share the clock.) A master resynchronising a slave does the same.
-        if std::mem::take(&mut self.resync_rtu) {
-            let t3_5 = self
-                .target
-                .rtu_timing()
-                .unwrap_or_else(codec::RtuTiming::tcp_carrier)
-                .t3_5;
-            self.target.idle(t3_5);
-            self.sync_shadow();
-        }
-        self.resync_rtu = malformed && !self.cfg.is_sim && self.target.framing() == Framing::Rtu;
+        self.resync_if_due();
+        // So does a frame no length rule sizes (an unknown function code, say): only silence ends it, and a
+        // frame sent sooner would be read as part of it (unless its answer came: see `exchange`).
+        let no_length_rule = frames.iter().any(|f| {
+            !matches!(
+                codec::framer::expected_len(codec::Direction::Request, &f.bytes, &[]),
+                codec::FrameLen::Known(a, b) if a == f.bytes.len() || b == f.bytes.len()
+            )
+        });
+        self.resync_rtu = (malformed || no_length_rule)
+            && !self.cfg.is_sim
+            && self.target.framing() == Framing::Rtu;
         let mut precondition = Vec::new();
         // On the target's clock: virtual on `sim:`, where a stall of the harness is not a gap on the line.
         let mut last_write: Option<Duration> = None;
@@ -2320,7 +2352,7 @@ impl Runner {
             let mut got = match proven {
                 Some(got) => got,
                 None => {
-                    if expected.is_empty() && !self.cfg.is_sim && framing == Framing::Tcp {
+                    if expected.is_empty() && !self.cfg.is_sim {
                         self.silences.listened += 1;
                     }
                     self.recv_answer(frames, wait)?

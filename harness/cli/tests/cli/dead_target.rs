@@ -450,6 +450,47 @@ fn a_drive_silent_for_3_s_is_waited_for_and_the_run_goes_on() {
     drop(sim);
 }
 
+/// The case the two tests below stop: read coil 7, write it ON, read it back, write it OFF again. The
+/// proxy's trigger is its write (unit 1, FC 05, coil 7, ON), which reaches the simulator.
+const COIL_7: &str = "profile/generic/coil/7-coil-7";
+const COIL_7_ON: &[u8] = &[0x01, 0x05, 0x00, 0x07, 0xFF, 0x00];
+
+/// `run --cases 'profile/generic/coil/*' --preflight-timeout 500 EXTRA...` through a proxy in `mode` in front
+/// of `simulate --profile generic`, checked to take under 20 s, complete its reports and FAIL [`COIL_7`]
+/// alone: (exit code, stdout, stderr), the index's summary, and that case's steps.
+fn coil_7_through(
+    mode: Mode,
+    extra: &[&str],
+) -> (
+    i32,
+    String,
+    String,
+    serde_json::Value,
+    Vec<serde_json::Value>,
+) {
+    let (sim, target) = Proxy::before_generic_sim(mode);
+    let dir = TempDir::new("coil-7");
+    let report = dir.path().join("report");
+    let report_s = report.to_string_lossy().into_owned();
+    let mut args = run_args(&target, "generic", &["--cases", "profile/generic/coil/*"]);
+    args.extend_from_slice(&["--preflight-timeout", "500", "--report", &report_s]);
+    args.extend_from_slice(extra);
+    let (code, out, err, took) = harness_timed(&args, Duration::from_secs(60));
+    drop(sim);
+    assert!(took < Duration::from_secs(20), "took {took:?}");
+    assert_complete(&report);
+    let summary = index(&report)["summary"].clone();
+    assert_eq!(summary["counts"]["FAIL"], 1, "{summary}");
+    assert_eq!(summary["failing"][0], COIL_7, "{summary}");
+    let record = case_records(&report)
+        .into_iter()
+        .find(|c| c.contains(&format!("\"id\":\"{COIL_7}\"")))
+        .expect("the case's record");
+    let record: serde_json::Value = serde_json::from_str(&record).expect("json");
+    let steps = record["result"]["steps"].as_array().expect("steps").clone();
+    (code, out, err, summary, steps)
+}
+
 /// A drive that leaves a connection hung after a request and answers on a new one (jsmodbus 5 did after an
 /// unsupported function, and after a request with a byte too many): the case stops at that request, which
 /// FAILs saying so, instead of sending its remaining steps to the hung connection (where each FAILed "no
@@ -457,34 +498,13 @@ fn a_drive_silent_for_3_s_is_waited_for_and_the_run_goes_on() {
 /// write set is put back by the leave-as-found keeper right after the case.
 #[test]
 fn a_connection_left_hung_mid_case_stops_the_case_at_that_request() {
-    // `profile/generic/coil/7-coil-7`: read coil 7, write it ON, read it back, write it OFF again. The
-    // connection hangs at the write (unit 1, FC 05, coil 7, ON), which the simulator takes.
-    let (sim, target) =
-        Proxy::before_generic_sim(Mode::Hang(&[0x01, 0x05, 0x00, 0x07, 0xFF, 0x00]));
-    let dir = TempDir::new("hung-connection");
-    let report = dir.path().join("report");
-    let report_s = report.to_string_lossy().into_owned();
-    let case = "profile/generic/coil/7-coil-7";
-    let mut args = run_args(&target, "generic", &["--cases", "profile/generic/coil/*"]);
-    args.extend_from_slice(&["--preflight-timeout", "500", "--report", &report_s]);
-    let (code, out, err, took) = harness_timed(&args, Duration::from_secs(60));
+    let (code, out, err, summary, steps) = coil_7_through(Mode::Hang(COIL_7_ON), &[]);
     assert_eq!(code, 1, "one FAIL\n{out}\n{err}");
-    assert!(took < Duration::from_secs(20), "took {took:?}");
-    assert_complete(&report);
-    let summary = &index(&report)["summary"];
-    assert_eq!(summary["counts"]["FAIL"], 1, "{summary}");
-    assert_eq!(summary["failing"][0], case, "{summary}");
     assert!(summary.get("ended").is_none(), "the run went on: {summary}");
     assert!(
         summary["counts"]["PASS"].as_u64().unwrap_or(0) >= 90,
         "the other coils' cases PASS on new connections: {summary}"
     );
-    let record = case_records(&report)
-        .into_iter()
-        .find(|c| c.contains(&format!("\"id\":\"{case}\"")))
-        .expect("the case's record");
-    let record: serde_json::Value = serde_json::from_str(&record).expect("json");
-    let steps = record["result"]["steps"].as_array().expect("steps");
     assert_eq!(steps.len(), 2, "stopped after the write: {steps:#?}");
     assert_eq!(steps[0]["verdict"], "PASS", "{steps:#?}");
     assert_eq!(steps[1]["verdict"], "FAIL", "{steps:#?}");
@@ -495,9 +515,9 @@ fn a_connection_left_hung_mid_case_stops_the_case_at_that_request() {
         "{findings}"
     );
     assert!(
-        err.contains(
-            "liveness: the connection stopped answering after profile/generic/coil/7-coil-7"
-        ),
+        err.contains(&format!(
+            "liveness: the connection stopped answering after {COIL_7}"
+        )),
         "{err}"
     );
     // Put back by the keeper, verified by its read-back (the coil was written ON by the simulator).
@@ -505,7 +525,6 @@ fn a_connection_left_hung_mid_case_stops_the_case_at_that_request() {
         out.contains("every kept parameter reads as before"),
         "{out}"
     );
-    drop(sim);
 }
 
 /// A drive that dies mid-case (nothing answers from one request on, on any connection): the case stops at
@@ -513,38 +532,14 @@ fn a_connection_left_hung_mid_case_stops_the_case_at_that_request() {
 /// the rest; the remaining steps of the case are not sent into the silence one by one.
 #[test]
 fn a_drive_that_dies_mid_case_stops_the_case_and_the_run() {
-    let (sim, target) = Proxy::before_generic_sim(Mode::Die(&[0x01, 0x05, 0x00, 0x07, 0xFF, 0x00]));
-    let dir = TempDir::new("dies-mid-case");
-    let report = dir.path().join("report");
-    let report_s = report.to_string_lossy().into_owned();
-    let case = "profile/generic/coil/7-coil-7";
-    let mut args = run_args(&target, "generic", &["--cases", "profile/generic/coil/*"]);
-    args.extend_from_slice(&[
-        "--preflight-timeout",
-        "500",
-        "--recovery-wait",
-        "2",
-        "--report",
-        &report_s,
-    ]);
-    let (code, out, err, took) = harness_timed(&args, Duration::from_secs(60));
+    let (code, out, err, summary, steps) =
+        coil_7_through(Mode::Die(COIL_7_ON), &["--recovery-wait", "2"]);
     assert_ne!(code, 0, "{out}\n{err}");
-    assert!(took < Duration::from_secs(20), "took {took:?}");
-    assert_complete(&report);
-    let summary = &index(&report)["summary"];
-    assert_eq!(summary["counts"]["FAIL"], 1, "{summary}");
-    assert_eq!(summary["failing"][0], case, "{summary}");
     let ended = summary["ended"].as_str().expect("why the run ended");
     assert!(
-        ended.contains(&format!("stopped answering after {case}")),
+        ended.contains(&format!("stopped answering after {COIL_7}")),
         "{ended}"
     );
-    let record = case_records(&report)
-        .into_iter()
-        .find(|c| c.contains(&format!("\"id\":\"{case}\"")))
-        .expect("the case's record");
-    let record: serde_json::Value = serde_json::from_str(&record).expect("json");
-    let steps = record["result"]["steps"].as_array().expect("steps");
     assert_eq!(steps.len(), 2, "stopped after the write: {steps:#?}");
     let findings = steps[1]["findings"].to_string();
     assert!(
@@ -553,7 +548,6 @@ fn a_drive_that_dies_mid_case_stops_the_case_and_the_run() {
         ) && findings.contains("the target stopped answering after this request"),
         "{findings}"
     );
-    drop(sim);
 }
 
 #[test]

@@ -553,18 +553,32 @@ fn fuzz_loop(
             let p = runner.run_case(&probe)?;
             if p.verdict == Verdict::Fail {
                 let first = history.first().map_or("?".to_string(), |c| c.id.clone());
-                let f: Vec<String> = p.findings().cloned().collect();
+                let mut f: Vec<String> = p.findings().cloned().collect();
                 // Bytes came back: the drive is alive, its answer is what FAILs (an answer whose MBAP length
                 // disagrees with its bytes arrives as an incomplete frame, say).
                 let heard = heard_anything(&p);
+                // Nothing came: the probe once more on a new connection tells a drive that hangs a
+                // connection (and answers on a new one: jsmodbus 5) from one that stopped altogether.
+                let hung = !heard
+                    && runner.target().has_connections()
+                    && runner.reconnect().is_ok()
+                    && runner
+                        .run_case(&probe)
+                        .is_ok_and(|again| again.verdict == Verdict::Pass);
+                if hung {
+                    f.push(
+                        "the same read on a new connection is answered: the drive left the connection it was on hung"
+                            .to_string(),
+                    );
+                }
+                let what = match (heard, hung) {
+                    (true, _) => "the liveness probe was answered wrongly or late",
+                    (false, true) => "the connection stopped answering (a new one is answered)",
+                    (false, false) => "the drive stopped answering",
+                };
                 let _ = writeln!(
                     log,
-                    "finding: {} within the {} case(s) since the last good probe (from {first})",
-                    if heard {
-                        "the liveness probe was answered wrongly or late"
-                    } else {
-                        "the drive stopped answering"
-                    },
+                    "finding: {what} within the {} case(s) since the last good probe (from {first})",
                     history.len()
                 );
                 let h = std::mem::take(&mut history);
@@ -581,10 +595,10 @@ fn fuzz_loop(
                 };
                 findings.push(record(opts, &profile.device.id, d, &probe, log));
                 stopped = Some(
-                    if heard {
-                        "a wrong or late answer to the liveness probe"
-                    } else {
-                        "the drive stopped answering"
+                    match (heard, hung) {
+                        (true, _) => "a wrong or late answer to the liveness probe",
+                        (false, true) => "the connection stopped answering",
+                        (false, false) => "the drive stopped answering",
                     }
                     .to_string(),
                 );

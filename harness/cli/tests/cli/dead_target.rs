@@ -550,6 +550,50 @@ fn a_drive_that_dies_mid_case_stops_the_case_and_the_run() {
     );
 }
 
+/// `fuzz` against a drive that hangs a connection (after an FC 07 here: MBAP length 2, unit 1, FC 07) and
+/// answers on a new one: the finding says the connection stopped answering, not the drive; against one that
+/// dies there, that the drive stopped answering.
+#[test]
+fn fuzz_tells_a_hung_connection_from_a_dead_drive() {
+    const FC_07: &[u8] = &[0x00, 0x02, 0x01, 0x07];
+    for (mode, said) in [
+        (
+            Mode::Hang(FC_07),
+            "the connection stopped answering (a new one is answered)",
+        ),
+        (Mode::Die(FC_07), "finding: the drive stopped answering"),
+    ] {
+        let (sim, target) = Proxy::before_generic_sim(mode);
+        let dir = TempDir::new("fuzz-hung");
+        let regressions = dir.path().to_string_lossy().into_owned();
+        let (code, out, err, _) = harness_timed(
+            &[
+                "fuzz",
+                "--target",
+                &target,
+                "--profile",
+                "generic",
+                "--seed",
+                "1",
+                "--max-cases",
+                "3000",
+                "--duration",
+                "60s",
+                "--timeout",
+                "300",
+                "--preflight-timeout",
+                "500",
+                "--regressions",
+                &regressions,
+            ],
+            Duration::from_secs(90),
+        );
+        drop(sim);
+        assert_eq!(code, 1, "{out}\n{err}");
+        assert!(err.contains(said), "{err}");
+    }
+}
+
 #[test]
 fn a_run_stopped_by_an_error_still_completes_its_reports() {
     use engine::session::{Options, SessionError, run};

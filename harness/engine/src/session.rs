@@ -697,17 +697,22 @@ impl Watch {
         }
         // The request that preceded the silence: the first one sent since the last answer (an earlier
         // case's when the target took it silently, as a malformed frame may be), else this step's.
-        let preceding = runner.first_unanswered().cloned();
+        let preceding = runner.stalled_by().or(runner.first_unanswered()).cloned();
         let started = runner.now();
         match runner.stalled() {
             // The case stopped on a hung connection and a new one is answered (the step says so).
             Some(crate::runner::Stall::Connection) => {
+                let (by, sent) = preceding.unwrap_or_else(|| {
+                    (
+                        result.id.clone(),
+                        result.steps[step].sent.clone().unwrap_or_default(),
+                    )
+                });
                 let _ = writeln!(
                     log,
-                    "liveness: the connection stopped answering after {} (step {}: {}); a new connection is answered, the case's remaining steps were not sent",
+                    "liveness: the connection stopped answering after {by} (request {}); a new connection is answered, the rest of {} was not sent",
+                    crate::liveness::hex(&sent),
                     result.id,
-                    step + 1,
-                    crate::liveness::hex(result.steps[step].sent.as_deref().unwrap_or_default()),
                 );
                 return;
             }

@@ -306,6 +306,11 @@ enum Mode {
     Hang(&'static [u8]),
     /// As `Hang`, but from then on nothing passes on any connection, old or new: a drive that dies mid-case.
     Die(&'static [u8]),
+    /// The first request chunk containing these bytes is held until the client sends its next chunk; then
+    /// the held one goes to the server and the next one is dropped: a drive that holds a frame until more
+    /// bytes come, answers it then, and swallows what completed it (pymodbus 3.16 after an MBAP length of
+    /// 1). Everything else passes.
+    Swallow(&'static [u8]),
 }
 
 /// A Modbus/TCP proxy on 127.0.0.1:0 in front of `upstream` that misbehaves as its [`Mode`] says. Its threads
@@ -344,12 +349,15 @@ impl Proxy {
                     Mode::Die(_) => dead.clone(),
                     _ => Arc::new(AtomicBool::new(false)),
                 };
+                let swallowing: Arc<Mutex<Option<Vec<u8>>>> = Arc::default();
                 let pump = |mut from: TcpStream, to: TcpStream, upward: bool| {
-                    let (requests, answers, paused_until, hung) = (
+                    let (requests, answers, paused_until, hung, swallowing, dead) = (
                         requests.clone(),
                         answers.clone(),
                         paused_until.clone(),
                         hung.clone(),
+                        swallowing.clone(),
+                        dead.clone(),
                     );
                     let to = Arc::new(Mutex::new(to));
                     thread::spawn(move || {
@@ -359,6 +367,24 @@ impl Proxy {
                             let chunk = buf[..n].to_vec();
                             let count = if upward { &requests } else { &answers };
                             let nth = count.fetch_add(1, Ordering::SeqCst) + 1;
+                            if let (Mode::Swallow(pattern), true) = (mode, upward) {
+                                let mut held = swallowing.lock().expect("held");
+                                if let Some(first) = held.take() {
+                                    // The next chunk completes the held frame: the held one goes on, this
+                                    // one is lost. Once only (`dead` marks it done).
+                                    if to.lock().expect("to").write_all(&first).is_err() {
+                                        break;
+                                    }
+                                    continue;
+                                }
+                                if !dead.load(Ordering::SeqCst)
+                                    && chunk.windows(pattern.len()).any(|w| w == pattern)
+                                {
+                                    dead.store(true, Ordering::SeqCst);
+                                    *held = Some(chunk);
+                                    continue;
+                                }
+                            }
                             if let Mode::Hang(pattern) | Mode::Die(pattern) = mode {
                                 if hung.load(Ordering::SeqCst) {
                                     continue;
@@ -547,6 +573,28 @@ fn a_drive_that_dies_mid_case_stops_the_case_and_the_run() {
             "on this connection or a new one: the case's 2 remaining step(s) were not sent"
         ) && findings.contains("the target stopped answering after this request"),
         "{findings}"
+    );
+}
+
+/// A drive that holds the request until the next bytes come, then answers it and swallows those (the
+/// known-good read sent after the step's silence): the late answer to the step is not taken for the read's
+/// own, it is noted on the step, and as the read's own answer never comes the case stops there. (Taking
+/// any answer for the read's, the case went on, and the late answer showed nowhere in the report.)
+#[test]
+fn a_late_answer_to_the_step_is_not_taken_for_the_mid_case_reads() {
+    let (code, out, err, _, steps) =
+        coil_7_through(Mode::Swallow(COIL_7_ON), &["--timeout", "300"]);
+    assert_eq!(code, 1, "{out}\n{err}");
+    assert_eq!(steps.len(), 2, "stopped after the write: {steps:#?}");
+    let findings = steps[1]["findings"].to_string();
+    assert!(
+        findings.contains("a late answer (transaction id")
+            && findings.contains("during the known-good read after this step"),
+        "{findings}"
+    );
+    assert!(
+        out.contains("every kept parameter reads as before"),
+        "{out}"
     );
 }
 

@@ -231,6 +231,8 @@ pub struct Runner {
     mid_case: Option<(Vec<u8>, Duration)>,
     /// The case being run was stopped there, and why.
     stalled: Option<Stall>,
+    /// The request the stall began after (see [`Runner::stalled_by`]).
+    stalled_by: Option<(String, Vec<u8>)>,
     /// RTU on a real target: a malformed frame went out, so the next one waits for the line's t3.5 first
     /// (see `send_pieces`).
     resync_rtu: bool,
@@ -399,6 +401,7 @@ impl Runner {
             reconnect_next: false,
             mid_case: None,
             stalled: None,
+            stalled_by: None,
             resync_rtu: false,
             ahead: std::collections::VecDeque::new(),
             stash: Vec::new(),
@@ -836,13 +839,7 @@ impl Runner {
         let f = self.frame_aside(pdu);
         self.resync_if_due();
         self.target.drain();
-        self.sync_shadow();
-        self.pace();
-        self.remember(f.sent.tid, "the liveness probe".into());
-        self.shadow.send(&f.bytes)?;
-        let _ = self.shadow.settle();
-        let _ = self.shadow.take_decisions();
-        self.requests += 1;
+        self.probe_to_reference(&f)?;
         let asked = self.target.now();
         let heard = crate::liveness::ask(self.target.as_mut(), &f.bytes, bound)?;
         if heard == crate::liveness::Heard::Modbus {
@@ -853,6 +850,74 @@ impl Runner {
             }
         }
         Ok((heard, f.bytes))
+    }
+
+    /// A liveness probe `f` about to go to the target: paced, remembered for a late answer, counted, and
+    /// given to the reference drive, so that it counts what the target counts.
+    fn probe_to_reference(&mut self, f: &Framed) -> Result<(), TargetError> {
+        self.sync_shadow();
+        self.pace();
+        self.remember(f.sent.tid, "the liveness probe".into());
+        self.shadow.send(&f.bytes)?;
+        let _ = self.shadow.settle();
+        let _ = self.shadow.take_decisions();
+        self.requests += 1;
+        Ok(())
+    }
+
+    /// The known-good read `pdu` after a step whose due answer did not come (see [`Runner::watch_mid_case`]),
+    /// listening up to `bound`: whether its own answer came (Modbus/TCP: the frame with its transaction id;
+    /// on RTU, which has none, any Modbus answer), and notes on the late answers to earlier requests that
+    /// came before it or instead (stale ones included): a drive still holding an earlier frame may answer
+    /// that one when the read's bytes complete it, and swallow the read.
+    fn probe_mid_case(
+        &mut self,
+        pdu: &[u8],
+        bound: Duration,
+    ) -> Result<(bool, Vec<String>), TargetError> {
+        let f = self.frame_aside(pdu);
+        self.resync_if_due();
+        let when = "during the known-good read after this step";
+        let tcp = self.target.framing() == Framing::Tcp;
+        let mut late = if tcp {
+            self.target.drain_stale()
+        } else {
+            self.target.drain();
+            Vec::new()
+        };
+        self.probe_to_reference(&f)?;
+        self.target.send(&f.bytes)?;
+        let start = self.target.now();
+        let mut own = false;
+        // Bounded by `bound` on the target's clock and by 32 receives.
+        for _ in 0..32 {
+            let left = bound.saturating_sub(self.target.now().saturating_sub(start));
+            if left.is_zero() {
+                break;
+            }
+            match self.target.recv(left)? {
+                Received::Frame { bytes, .. } => {
+                    let answer =
+                        crate::readings::decode_response(self.target.framing(), &bytes).is_some();
+                    if answer && (!tcp || bytes.get(..2) == f.bytes.get(..2)) {
+                        own = true;
+                        break;
+                    }
+                    late.extend_from_slice(&bytes);
+                }
+                Received::Garbage { .. } => {}
+                Received::Silence { .. } | Received::Closed { .. } => break,
+            }
+        }
+        if own {
+            self.unanswered.clear();
+        }
+        let notes = if tcp {
+            self.late_in(&late, when)
+        } else {
+            Vec::new()
+        };
+        Ok((own, notes))
     }
 
     /// Whether the target answers the read `pdu` sent to another unit id `unit` (the reference drive does not
@@ -884,7 +949,7 @@ impl Runner {
 
     /// The answers among `stale` bytes (Modbus/TCP ADUs, split by their MBAP lengths) whose transaction id
     /// is one of the latest requests', as notes naming the request and how late they came.
-    fn late_in(&self, stale: &[u8]) -> Vec<String> {
+    fn late_in(&self, stale: &[u8], when: &str) -> Vec<String> {
         let mut notes = Vec::new();
         let mut rest = stale;
         // Bounded by the bytes: each round consumes at least one ADU header.
@@ -899,7 +964,7 @@ impl Runner {
             }
             if let Some((_, by, sent_at)) = self.recent.iter().rev().find(|(t, _, _)| *t == tid) {
                 notes.push(format!(
-                    "a late answer (transaction id {tid}) to a request of {by} arrived within {} ms after that request, between two cases: noted, taken for no step's answer",
+                    "a late answer (transaction id {tid}) to a request of {by} arrived within {} ms after that request, {when}: noted, taken for no step's answer",
                     self.target.now().saturating_sub(*sent_at).as_millis()
                 ));
             }
@@ -1182,6 +1247,12 @@ impl Runner {
     /// Whether the last case run was stopped after a step whose due answer did not come, and why.
     pub fn stalled(&self) -> Option<Stall> {
         self.stalled
+    }
+
+    /// For a stalled case: the request the silence began after (case id, bytes), the first sent since the
+    /// target last answered.
+    pub fn stalled_by(&self) -> Option<&(String, Vec<u8>)> {
+        self.stalled.and(self.stalled_by.as_ref())
     }
 
     /// Close and reopen the target's connection (a target that stopped answering may take a new one).
@@ -1489,7 +1560,7 @@ impl Runner {
             return (Vec::new(), wire);
         }
         let stale = self.target.drain_stale();
-        let notes = self.late_in(&stale);
+        let notes = self.late_in(&stale, "between two cases");
         if !stale.is_empty() {
             wire.push(WireEvent {
                 dir: Dir::Rx,
@@ -1521,6 +1592,7 @@ impl Runner {
         self.case_tags.clone_from(&case.tags);
         self.refused = false;
         self.stalled = None;
+        self.stalled_by = None;
         self.refused_writes.clear();
         self.case_writes_files = case.steps.iter().any(|s| {
             matches!(s, Step::Exchange { send: Outgoing::Pdu(p), .. } if p.first() == Some(&0x15))
@@ -1648,9 +1720,27 @@ impl Runner {
         if left == 0 || matches!(rest.first(), Some(Step::Reconnect)) || !step.unanswered() {
             return Ok(false);
         }
-        if self.known_good(&probe, bound)?.0 == crate::liveness::Heard::Modbus {
+        // The request the silence began after: the first sent since the target last answered (an earlier
+        // step's whose silence was admitted, say a truncated request the drive still waits on).
+        let first = self.unanswered.first().cloned();
+        let (answered, notes) = self.probe_mid_case(&probe, bound)?;
+        step.findings.extend(notes);
+        if answered {
             return Ok(false);
         }
+        let after = match &first {
+            Some((case, bytes)) if step.sent.as_ref() != Some(bytes) => format!(
+                "the request {} ({}, no answer since)",
+                crate::liveness::hex(bytes),
+                if *case == self.case_id {
+                    "an earlier step"
+                } else {
+                    case.as_str()
+                }
+            ),
+            _ => "this request".to_string(),
+        };
+        self.stalled_by = first;
         let secs = bound.as_secs_f64();
         let mut stall = Stall::Target;
         if self.target.has_connections() {
@@ -1662,10 +1752,10 @@ impl Runner {
         }
         step.findings.push(match stall {
             Stall::Connection => format!(
-                "the connection stopped answering after this request: a known-good read on it got no answer within {secs:.1} s, on a new connection it is answered; the case's {left} remaining step(s) were not sent (they would have gone to a drive whose state after this request is unknown)"
+                "the connection stopped answering after {after}: a known-good read on it got no answer within {secs:.1} s, on a new connection it is answered; the case's {left} remaining step(s) were not sent (they would have gone to a drive whose state after that request is unknown)"
             ),
             Stall::Target => format!(
-                "a known-good read got no answer within {secs:.1} s{}: the case's {left} remaining step(s) were not sent",
+                "after {after}, a known-good read got no answer within {secs:.1} s{}: the case's {left} remaining step(s) were not sent",
                 if self.target.has_connections() {
                     ", on this connection or a new one"
                 } else {

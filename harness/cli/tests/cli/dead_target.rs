@@ -482,8 +482,9 @@ const COIL_7: &str = "profile/generic/coil/7-coil-7";
 const COIL_7_ON: &[u8] = &[0x01, 0x05, 0x00, 0x07, 0xFF, 0x00];
 
 /// `run --cases 'profile/generic/coil/*' --preflight-timeout 500 EXTRA...` through a proxy in `mode` in front
-/// of `simulate --profile generic`, checked to take under 20 s, complete its reports and FAIL [`COIL_7`]
-/// alone: (exit code, stdout, stderr), the index's summary, and that case's steps.
+/// of `simulate --profile generic`, checked to take under 20 s, complete its reports, FAIL [`COIL_7`]
+/// alone and stop it after its write (two steps run): (exit code, stdout, stderr), the index's summary, and
+/// that case's steps.
 fn coil_7_through(
     mode: Mode,
     extra: &[&str],
@@ -514,6 +515,7 @@ fn coil_7_through(
         .expect("the case's record");
     let record: serde_json::Value = serde_json::from_str(&record).expect("json");
     let steps = record["result"]["steps"].as_array().expect("steps").clone();
+    assert_eq!(steps.len(), 2, "stopped after the write: {steps:#?}");
     (code, out, err, summary, steps)
 }
 
@@ -531,7 +533,6 @@ fn a_connection_left_hung_mid_case_stops_the_case_at_that_request() {
         summary["counts"]["PASS"].as_u64().unwrap_or(0) >= 90,
         "the other coils' cases PASS on new connections: {summary}"
     );
-    assert_eq!(steps.len(), 2, "stopped after the write: {steps:#?}");
     assert_eq!(steps[0]["verdict"], "PASS", "{steps:#?}");
     assert_eq!(steps[1]["verdict"], "FAIL", "{steps:#?}");
     let findings = steps[1]["findings"].to_string();
@@ -566,7 +567,6 @@ fn a_drive_that_dies_mid_case_stops_the_case_and_the_run() {
         ended.contains(&format!("stopped answering after {COIL_7}")),
         "{ended}"
     );
-    assert_eq!(steps.len(), 2, "stopped after the write: {steps:#?}");
     let findings = steps[1]["findings"].to_string();
     assert!(
         findings.contains(
@@ -585,7 +585,6 @@ fn a_late_answer_to_the_step_is_not_taken_for_the_mid_case_reads() {
     let (code, out, err, _, steps) =
         coil_7_through(Mode::Swallow(COIL_7_ON), &["--timeout", "300"]);
     assert_eq!(code, 1, "{out}\n{err}");
-    assert_eq!(steps.len(), 2, "stopped after the write: {steps:#?}");
     let findings = steps[1]["findings"].to_string();
     assert!(
         findings.contains("a late answer (transaction id")

@@ -579,6 +579,18 @@ fn frames_to_compare<'a>(
     }
 }
 
+/// `bytes` decoded as a response under `framing`, or `pre` where the caller has that decoding already.
+fn decoded<'a>(
+    framing: Framing,
+    bytes: &[u8],
+    pre: Option<&'a Decoded>,
+) -> Result<std::borrow::Cow<'a, Decoded>, codec::DecodeError> {
+    match pre {
+        Some(d) => Ok(std::borrow::Cow::Borrowed(d)),
+        None => decode_any(bytes, framing, Direction::Response).map(std::borrow::Cow::Owned),
+    }
+}
+
 /// Compare two decoded frames: they decode, the echoes match (transaction id, unit), exceptions agree, then
 /// the compare mode of the step. `exp` is the reference's frame and, where the caller has it, its decoding.
 fn compare_frames(
@@ -594,33 +606,24 @@ fn compare_frames(
     // A reply identical to the reference's carries the right echoes by construction, and decodes as it
     // does: decoded once (the reference's own answer judged against itself, a drive that answers as it).
     let identical = obs == exp;
-    let obs_decoded;
-    let obs_d = match exp_pre.filter(|_| identical) {
-        Some(d) => d,
-        None => match decode_any(obs, framing, Direction::Response) {
-            Ok(d) => {
-                obs_decoded = d;
-                &obs_decoded
-            }
-            Err(err) => {
-                out.push(must(format!(
-                    "response {} does not decode: {err}",
-                    hex_spaced(obs)
-                )));
-                return out;
-            }
-        },
+    let obs_d = match decoded(framing, obs, exp_pre.filter(|_| identical)) {
+        Ok(d) => d,
+        Err(err) => {
+            out.push(must(format!(
+                "response {} does not decode: {err}",
+                hex_spaced(obs)
+            )));
+            return out;
+        }
     };
-    let exp_decoded;
-    let exp_d = if identical {
-        obs_d
-    } else if let Some(d) = exp_pre {
-        d
+    let exp_own;
+    let exp_d: &Decoded = if identical {
+        &obs_d
     } else {
-        match decode_any(exp, framing, Direction::Response) {
+        match decoded(framing, exp, exp_pre) {
             Ok(d) => {
-                exp_decoded = d;
-                &exp_decoded
+                exp_own = d;
+                &exp_own
             }
             Err(_) => {
                 out.push(must(format!(
@@ -631,6 +634,7 @@ fn compare_frames(
             }
         }
     };
+    let obs_d: &Decoded = &obs_d;
     if let (Some(t), Some(got)) = (sent.tid, obs_d.transaction_id)
         && t != got
         && !identical

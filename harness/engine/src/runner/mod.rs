@@ -1707,9 +1707,12 @@ impl Runner {
     /// there (the finding is added to `step`). Not when nothing of `rest` sends, nor when the case opens a
     /// new connection next (its own design: the request may leave the old one hung).
     fn stall_after(&mut self, step: &mut StepResult, rest: &[Step]) -> Result<bool, TargetError> {
-        let Some((probe, bound)) = self.mid_case.clone() else {
+        if self.mid_case.is_none()
+            || !step.unanswered()
+            || matches!(rest.first(), Some(Step::Reconnect))
+        {
             return Ok(false);
-        };
+        }
         let sends = |s: &Step| {
             matches!(
                 s,
@@ -1717,9 +1720,10 @@ impl Runner {
             )
         };
         let left = rest.iter().filter(|s| sends(s)).count();
-        if left == 0 || matches!(rest.first(), Some(Step::Reconnect)) || !step.unanswered() {
+        // Only now, on the rare step that needs it: the read is copied out of the runner it is sent by.
+        let Some((probe, bound)) = self.mid_case.clone().filter(|_| left > 0) else {
             return Ok(false);
-        }
+        };
         // The request the silence began after: the first sent since the target last answered (an earlier
         // step's whose silence was admitted, say a truncated request the drive still waits on).
         let first = self.unanswered.first().cloned();

@@ -983,3 +983,119 @@ fn a_drive_hanging_a_connection_after_a_malformed_request_is_still_put_back() {
     assert_ne!(code, 3, "{out}\n{err}");
     drive.assert_reads_as(&before, "the drive that hung a connection");
 }
+
+/// A drive with one connection slot in front of `upstream`, as many drives and serial device servers are
+/// (the TCP guide leaves the number of connections to the device, 4.4.2.1): a connection that arrives while
+/// the slot is held is accepted and closed at once (its count is returned); the client's close is noticed
+/// `notice` late (a firmware that polls its sockets), and then the drive frees the slot and closes its side;
+/// where the server closes first, the slot is freed at once. Bounded: the accept loop ends after
+/// 4 × [`RUN_LIMIT`], every socket times out, and the relay threads end with their connections.
+fn one_slot_proxy(
+    upstream: SocketAddr,
+    notice: Duration,
+) -> (SocketAddr, std::sync::Arc<std::sync::atomic::AtomicUsize>) {
+    use std::sync::Arc;
+    use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+    let listener = std::net::TcpListener::bind("127.0.0.1:0").expect("bind");
+    let addr = listener.local_addr().expect("addr");
+    listener.set_nonblocking(true).expect("nonblocking");
+    let refused = Arc::new(AtomicUsize::new(0));
+    let count = refused.clone();
+    let busy = Arc::new(AtomicBool::new(false));
+    std::thread::spawn(move || {
+        let until = Instant::now() + RUN_LIMIT * 4;
+        while Instant::now() < until {
+            let Ok((client, _)) = listener.accept() else {
+                std::thread::sleep(Duration::from_millis(1));
+                continue;
+            };
+            if busy.load(Ordering::SeqCst) {
+                count.fetch_add(1, Ordering::SeqCst);
+                drop(client);
+                continue;
+            }
+            let Ok(server) = TcpStream::connect_timeout(&upstream, Duration::from_secs(5)) else {
+                continue;
+            };
+            busy.store(true, Ordering::SeqCst);
+            let _ = client.set_nonblocking(false);
+            for s in [&client, &server] {
+                let _ = s.set_nodelay(true);
+                let _ = s.set_read_timeout(Some(RUN_LIMIT));
+            }
+            // The slot is freed before the drive's FIN goes out, as a firmware closing its socket does.
+            let freed = Arc::new(AtomicBool::new(false));
+            let free = Arc::new({
+                let (busy, freed) = (busy.clone(), freed.clone());
+                let (c, s) = (
+                    client.try_clone().expect("clone"),
+                    server.try_clone().expect("clone"),
+                );
+                move || {
+                    if !freed.swap(true, Ordering::SeqCst) {
+                        busy.store(false, Ordering::SeqCst);
+                    }
+                    let _ = c.shutdown(std::net::Shutdown::Both);
+                    let _ = s.shutdown(std::net::Shutdown::Both);
+                }
+            });
+            let relay = |mut from: TcpStream, mut to: TcpStream, late: Duration| {
+                let (free, freed) = (free.clone(), freed.clone());
+                std::thread::spawn(move || {
+                    let mut buf = [0u8; 4096];
+                    while let Ok(n @ 1..) = from.read(&mut buf) {
+                        if to.write_all(&buf[..n]).is_err() {
+                            break;
+                        }
+                    }
+                    if !freed.load(Ordering::SeqCst) {
+                        std::thread::sleep(late);
+                    }
+                    free();
+                });
+            };
+            let (c2, s2) = (
+                client.try_clone().expect("clone"),
+                server.try_clone().expect("clone"),
+            );
+            relay(client, server, notice);
+            relay(s2, c2, Duration::ZERO);
+        }
+    });
+    (addr, refused)
+}
+
+/// A drive with one connection slot that notices a client's close 20 ms late: runs one right after the
+/// other (the catalog, a generated run, the catalog again) PASS, and the drive is left as found, read by the
+/// test's own client. The harness waits for the drive's close before it connects again, so no connection
+/// is refused. Before, the catalog FAILed two cases (the liveness read on the case's new connection found
+/// it closed), a generated run ended "no answer to 5 requests in a row" with 54 parameters NOT RESTORED, and
+/// a run started the moment the previous one ended FAILed too (bench/one-slot.sh, BENCHMARKS.md).
+#[test]
+fn a_drive_with_one_connection_slot_is_left_as_found_run_after_run() {
+    for name in ["mdrive", "lmd"] {
+        let dir = TempDir::new(&format!("laf-one-slot-{name}"));
+        let drive = PresetDrive::start(name, dir.path(), &[]);
+        let before = drive.read();
+        let (proxy, refused) = one_slot_proxy(
+            drive.sim.tcp.expect("tcp endpoint"),
+            Duration::from_millis(20),
+        );
+        let url = format!("tcp://{proxy}");
+        for extra in [&[][..], &["--generated", "300", "--seed", "1"], &[]] {
+            let (code, out, err) = harness_bounded(None, &run_args(&url, name, extra), RUN_LIMIT);
+            assert_eq!(code, 0, "{name} {extra:?}: {out}\n{err}");
+            assert!(out.contains("RESULT: PASS"), "{name} {extra:?}: {out}");
+            assert!(
+                out.contains("every kept parameter reads as before"),
+                "{name} {extra:?}: {out}"
+            );
+        }
+        drive.assert_reads_as(&before, &format!("{name}: not left as found"));
+        assert_eq!(
+            refused.load(std::sync::atomic::Ordering::SeqCst),
+            0,
+            "{name}: a connection came while the slot was held"
+        );
+    }
+}

@@ -21,6 +21,10 @@ pub struct TcpTarget {
     closed: bool,
     /// The read timeout set on the socket, if any (each change is a system call).
     read_timeout: Option<Duration>,
+    /// When this connection was half-closed (`end_sending`), if it was.
+    fin_sent: Option<Instant>,
+    /// Nothing was sent on this connection yet.
+    fresh: bool,
 }
 
 fn resolve(host: &str, port: u16) -> Result<SocketAddr, TargetError> {
@@ -42,6 +46,9 @@ fn resolve(host: &str, port: u16) -> Result<SocketAddr, TargetError> {
 const RECONNECT_TRIES: usize = 6;
 /// Waits shorter than this are made with ppoll (see `TcpTarget::read_once`).
 const SHORT_WAIT: Duration = Duration::from_millis(20);
+/// How long a connection being closed waits for the target's own close before the next one is opened (see
+/// `TcpTarget::close_gracefully`).
+const CLOSE_WAIT: Duration = Duration::from_millis(250);
 
 /// Nominal timing for RTU over TCP: frames are cut by length rules and CRC; silence only ends unknown ones.
 fn rtu_over_tcp_timing() -> RtuTiming {
@@ -71,6 +78,8 @@ impl TcpTarget {
             rtu,
             closed: false,
             read_timeout: None,
+            fin_sent: None,
+            fresh: false,
         };
         t.open_retrying()?;
         Ok(t)
@@ -88,7 +97,78 @@ impl TcpTarget {
         self.reader.clear();
         self.closed = false;
         self.read_timeout = None;
+        self.fin_sent = None;
+        self.fresh = true;
         Ok(())
+    }
+
+    /// Close the connection the way that lets a drive with one connection slot take the next one: half-close
+    /// it (TCP FIN) and wait, at most [`CLOSE_WAIT`] after the FIN, for the target's own close, discarding
+    /// what comes before it (late answers). A drive frees its slot when it closes its side; one that notices
+    /// a client's close only on the next turn of its loop (a firmware polling its sockets every few
+    /// milliseconds, a serial device server) would otherwise still hold the slot when the harness's next
+    /// connection arrives, and accept and close it at once (the TCP guide leaves the number of connections
+    /// to the device, 4.4.2.1, and says nothing of when a closed one is free again). Not waited for where the
+    /// target closed first. A target that keeps a half-closed connection open is given up on after the wait.
+    fn close_gracefully(&mut self) {
+        let Some(mut s) = self.stream.take() else {
+            return;
+        };
+        if self.closed {
+            return;
+        }
+        let fin = *self.fin_sent.get_or_insert_with(Instant::now);
+        if s.shutdown(std::net::Shutdown::Write).is_err() {
+            return;
+        }
+        let until = fin + CLOSE_WAIT;
+        let mut chunk = [0u8; 1024];
+        // Bounded by the wait, and by 64 KiB of late bytes at most.
+        for _ in 0..64 {
+            let left = until.saturating_duration_since(Instant::now());
+            if left.is_zero() || s.set_read_timeout(Some(left)).is_err() {
+                break;
+            }
+            match s.read(&mut chunk) {
+                Ok(1..) => {}
+                Err(e) if e.kind() == ErrorKind::Interrupted => {}
+                // Its close (or a reset), or the wait is over.
+                _ => break,
+            }
+        }
+        self.closed = true;
+    }
+
+    /// Before the first request on a new connection: whether the target closes it within `look` (zero: has
+    /// closed it already, one look without waiting). A drive whose connection slots are taken may accept a
+    /// connection and close it at once (a refusal after the handshake, where others refuse the connect
+    /// itself).
+    fn closed_within(&self, look: Duration) -> bool {
+        let Some(s) = self.stream.as_ref() else {
+            return false;
+        };
+        if !look.is_zero() {
+            use std::os::fd::AsFd;
+            let mut fds = [nix::poll::PollFd::new(
+                s.as_fd(),
+                nix::poll::PollFlags::POLLIN,
+            )];
+            let timeout = nix::sys::time::TimeSpec::from_duration(look);
+            if !matches!(nix::poll::ppoll(&mut fds, Some(timeout), None), Ok(1..)) {
+                return false;
+            }
+        }
+        let mut probe = [MaybeUninit::<u8>::uninit(); 1];
+        match socket2::SockRef::from(s)
+            .recv_with_flags(&mut probe, libc::MSG_PEEK | libc::MSG_DONTWAIT)
+        {
+            Ok(0) => true,
+            Ok(_) => false,
+            Err(e) => matches!(
+                e.kind(),
+                ErrorKind::ConnectionReset | ErrorKind::ConnectionAborted | ErrorKind::BrokenPipe
+            ),
+        }
     }
 
     /// Open, trying again while the connection is refused or reset: a drive with one connection slot (the
@@ -188,13 +268,24 @@ impl TcpTarget {
     }
 }
 
+impl Drop for TcpTarget {
+    /// The last connection too is closed so that the drive has freed its slot when the process ends (the
+    /// next run, or `restore --journal`, may follow at once).
+    fn drop(&mut self) {
+        self.close_gracefully();
+    }
+}
+
 impl Target for TcpTarget {
     fn end_sending(&mut self) -> Result<bool, TargetError> {
         let Some(s) = self.stream.as_ref() else {
             return Ok(false);
         };
         match s.shutdown(std::net::Shutdown::Write) {
-            Ok(()) => Ok(true),
+            Ok(()) => {
+                self.fin_sent = Some(Instant::now());
+                Ok(true)
+            }
             // Closed by the peer already: the receive that follows sees it.
             Err(e) if e.kind() == ErrorKind::NotConnected => Ok(false),
             Err(e) => Err(self.io(e)),
@@ -210,9 +301,27 @@ impl Target for TcpTarget {
     }
 
     fn send(&mut self, bytes: &[u8]) -> Result<(), TargetError> {
-        if self.closed {
-            self.open_retrying()?;
+        // A new connection closed before its first request was refused after the handshake: the drive's
+        // slot is not free yet. Opened again as after a refused connect, each new one watched for as long as
+        // the pause before it (a refusal takes a round trip to arrive), at most about 1.2 s in all.
+        let mut wait = Duration::from_millis(20);
+        let mut look = Duration::ZERO;
+        for tried in 1..=RECONNECT_TRIES {
+            if self.closed {
+                self.close_gracefully();
+                self.open_retrying()?;
+            }
+            // At the last try the request goes out all the same: its receive sees the close.
+            if tried == RECONNECT_TRIES || !(self.fresh && self.closed_within(look)) {
+                break;
+            }
+            self.stream = None;
+            self.closed = true;
+            std::thread::sleep(wait);
+            look = wait;
+            wait *= 2;
         }
+        self.fresh = false;
         let Some(s) = self.stream.as_mut() else {
             return Err(self.io(ErrorKind::NotConnected.into()));
         };
@@ -278,9 +387,7 @@ impl Target for TcpTarget {
     }
 
     fn reconnect(&mut self) -> Result<(), TargetError> {
-        if let Some(s) = self.stream.take() {
-            let _ = s.shutdown(std::net::Shutdown::Both);
-        }
+        self.close_gracefully();
         self.open_retrying()
     }
 
@@ -419,5 +526,109 @@ mod tests {
             std::thread::sleep(Duration::from_millis(5));
         }
         assert!(t.closed, "the close is seen");
+    }
+
+    /// A request that the one-slot drive below echoes back (a whole MBAP frame).
+    const ECHOED: [u8; 12] = [0, 1, 0, 0, 0, 6, 1, 3, 0, 0, 0, 2];
+
+    /// A drive with one connection slot, on a thread for at most 10 s: a connection that arrives while the
+    /// slot is held is accepted and closed at once (its count is returned), the first `refuse_first`
+    /// connections too; the one in the slot has what it sends echoed, and its client's close is noticed
+    /// `notice` late (a firmware that polls its sockets), when the drive closes it and frees the slot.
+    fn one_slot_drive(
+        notice: Duration,
+        refuse_first: usize,
+    ) -> (SocketAddr, std::sync::Arc<std::sync::atomic::AtomicUsize>) {
+        use std::sync::atomic::{AtomicUsize, Ordering};
+        let listener = TcpListener::bind("127.0.0.1:0").expect("bind");
+        let addr = listener.local_addr().expect("addr");
+        listener.set_nonblocking(true).expect("nonblocking");
+        let refused = std::sync::Arc::new(AtomicUsize::new(0));
+        let count = refused.clone();
+        std::thread::spawn(move || {
+            let mut slot: Option<(TcpStream, Option<Instant>)> = None;
+            let mut seen = 0;
+            let until = Instant::now() + Duration::from_secs(10);
+            while Instant::now() < until {
+                while let Ok((c, _)) = listener.accept() {
+                    seen += 1;
+                    if slot.is_some() || seen <= refuse_first {
+                        count.fetch_add(1, Ordering::SeqCst);
+                        drop(c);
+                    } else {
+                        c.set_nonblocking(true).expect("nonblocking");
+                        slot = Some((c, None));
+                    }
+                }
+                if let Some((c, eof)) = slot.as_mut() {
+                    let mut buf = [0u8; 256];
+                    match c.read(&mut buf) {
+                        Ok(0) => {
+                            eof.get_or_insert_with(Instant::now);
+                        }
+                        Ok(n) => {
+                            let _ = c.write_all(&buf[..n]);
+                        }
+                        Err(_) => {}
+                    }
+                    if eof.is_some_and(|at| at.elapsed() >= notice) {
+                        slot = None;
+                    }
+                }
+                std::thread::sleep(Duration::from_millis(1));
+            }
+        });
+        (addr, refused)
+    }
+
+    fn echoed(t: &mut TcpTarget) -> bool {
+        t.send(&ECHOED).expect("send");
+        matches!(t.recv(Duration::from_secs(2)), Ok(Received::Frame { bytes, .. }) if bytes == ECHOED)
+    }
+
+    /// A drive with one connection slot that frees it only when it notices the close (here 40 ms late) is
+    /// served by the next connection, after a reconnect and after the target is dropped: the harness waits
+    /// for the drive's own close before it connects again. Without that wait the next connection arrived
+    /// while the slot was held and was closed at once.
+    #[test]
+    fn a_one_slot_drive_is_reconnected_to_after_it_closed_the_last_connection() {
+        use std::sync::atomic::Ordering;
+        let (addr, refused) = one_slot_drive(Duration::from_millis(40), 0);
+        let mut t = TcpTarget::connect("127.0.0.1", addr.port(), Duration::from_secs(2), false)
+            .expect("connect");
+        assert!(echoed(&mut t), "the first connection is served");
+        for k in 0..3 {
+            t.reconnect().expect("reconnect");
+            assert!(
+                echoed(&mut t),
+                "reconnect {k}: the next connection is served"
+            );
+        }
+        drop(t);
+        let mut again = TcpTarget::connect("127.0.0.1", addr.port(), Duration::from_secs(2), false)
+            .expect("connect");
+        assert!(echoed(&mut again), "a new target at once is served");
+        assert_eq!(
+            refused.load(Ordering::SeqCst),
+            0,
+            "a connection was refused"
+        );
+    }
+
+    /// A connection the drive accepts and closes before the first request on it (its slots taken) is opened
+    /// again, as a refused connect is, instead of carrying the request to a closed connection.
+    #[test]
+    fn a_connection_closed_before_its_first_request_is_opened_again() {
+        use std::sync::atomic::Ordering;
+        let (addr, refused) = one_slot_drive(Duration::ZERO, 2);
+        let mut t = TcpTarget::connect("127.0.0.1", addr.port(), Duration::from_secs(2), false)
+            .expect("connect");
+        // The drive's close is on loopback well within this.
+        std::thread::sleep(Duration::from_millis(50));
+        assert!(
+            echoed(&mut t),
+            "the request went out on a connection the drive serves"
+        );
+        assert_eq!(refused.load(Ordering::SeqCst), 2, "both refusals were made");
     }
 }

@@ -13,7 +13,8 @@ UPSTREAM at a time; one that arrives while they are all held is
   replace  served, and the oldest connection closed.
 A client's close is noticed --notice MS late (default 0: a firmware that polls its sockets every few
 milliseconds); then the drive closes its side and frees the slot at once. Where the server closes first,
-the slot is freed at once. Ends by itself after --lifetime seconds (default 900). Standard library only.
+the slot is freed at once. With --idle MS, a connection on which the client sent nothing for MS is closed
+by the drive (an idle timeout, as many drives have). Ends by itself after --lifetime seconds (default 900). Standard library only.
 """
 import argparse
 import asyncio
@@ -27,20 +28,28 @@ ap.add_argument("--policy", choices=["refuse", "reset", "queue", "replace"], def
 ap.add_argument("--slots", type=int, default=1)
 ap.add_argument("--notice", type=float, default=0.0, help="milliseconds")
 ap.add_argument("--lifetime", type=float, default=900.0, help="seconds")
+ap.add_argument("--idle", type=float, default=0.0, help="milliseconds; 0: never")
 args = ap.parse_args()
 up_host, up_port = args.upstream.rsplit(":", 1)
 if up_host not in ("127.0.0.1", "localhost", "::1") and not up_host.startswith("127."):
     sys.exit("one-slot-proxy: the upstream must be on loopback")
 
 active = []
-stats = dict(accepted=0, refused=0, queued=0, replaced=0, held_at_once=0)
+stats = dict(accepted=0, refused=0, queued=0, replaced=0, held_at_once=0, idle_closed=0)
 slot = None  # asyncio.Condition, made in main()
 
 
-async def pipe(r, w):
+async def pipe(r, w, idle=0.0):
     try:
         while True:
-            d = await r.read(65536)
+            if idle:
+                try:
+                    d = await asyncio.wait_for(r.read(65536), idle / 1000)
+                except asyncio.TimeoutError:
+                    stats["idle_closed"] += 1
+                    return "idle"
+            else:
+                d = await r.read(65536)
             if not d:
                 break
             w.write(d)
@@ -76,10 +85,10 @@ async def handle(cr, cw):
     active.append(me)
     stats["held_at_once"] = max(stats["held_at_once"], len(active))
     try:
-        up = asyncio.ensure_future(pipe(cr, uw))
+        up = asyncio.ensure_future(pipe(cr, uw, args.idle))
         down = asyncio.ensure_future(pipe(ur, cw))
         done, _ = await asyncio.wait([up, down], return_when=asyncio.FIRST_COMPLETED)
-        if up in done and args.notice:
+        if up in done and args.notice and up.result() != "idle":
             await asyncio.sleep(args.notice / 1000)
         # The slot is freed before the drive's FIN goes out, as a firmware closing its socket does.
         if me in active:

@@ -207,3 +207,53 @@ fn profile_auto_without_an_exact_match_is_exit_2_with_the_identification() {
     ]);
     assert_eq!(code, 0, "{err}");
 }
+
+/// `--max-rate` paces requests, not the pieces of one: the case that splits a request across two TCP
+/// segments 5 ms apart sends them 5 ms apart at `--max-rate 2` too, and the request still goes half a
+/// second after the pre-flight read. (It paced every piece: the segments went 500 ms apart, past a drive's
+/// partial-frame or idle timeout, and on a serial line past t1.5, which made such a step inconclusive.)
+#[test]
+fn max_rate_paces_requests_not_the_pieces_of_one() {
+    let sim = SimProcess::on_loopback("mdrive", "--listen", None);
+    let url = sim.tcp_url();
+    let dir = test_support::TempDir::new("max-rate-pieces");
+    let report = dir.path().join("report");
+    let (code, out, err) = harness(&[
+        "run",
+        "--target",
+        &url,
+        "--profile",
+        "mdrive",
+        "--no-progress",
+        "--max-rate",
+        "2",
+        "--cases",
+        "tcp/segment/request-split",
+        "--report",
+        report.to_str().expect("path"),
+    ]);
+    assert_eq!(code, 0, "{out}\n{err}");
+    assert!(out.contains("RESULT: PASS (1 PASS)"), "{out}");
+    let line = std::fs::read_to_string(report.join("cases.jsonl")).expect("cases.jsonl");
+    let case: serde_json::Value =
+        serde_json::from_str(line.lines().next().expect("one case")).expect("json");
+    // On the target's clock, in microseconds from its opening (the pre-flight read went at about 0).
+    let tx: Vec<u64> = case["result"]["wire"]
+        .as_array()
+        .expect("wire")
+        .iter()
+        .filter(|w| w["dir"] == "tx")
+        .map(|w| w["at"].as_u64().expect("at"))
+        .collect();
+    assert_eq!(tx.len(), 2, "the request's two pieces: {tx:?}");
+    assert!(
+        tx[0] >= 450_000,
+        "the request went {} µs after the pre-flight read",
+        tx[0]
+    );
+    assert!(
+        tx[1] - tx[0] < 100_000,
+        "the pieces of one request went {} µs apart",
+        tx[1] - tx[0]
+    );
+}

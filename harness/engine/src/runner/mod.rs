@@ -143,7 +143,8 @@ pub struct Runner {
     profile: Profile,
     next_tid: u16,
     slots: Vec<Option<Captured>>,
-    last_send: Option<Instant>,
+    /// `--max-rate`: when the next request may go out.
+    next_send: Option<Instant>,
     expectations: Expectations,
     /// The freedoms the oracle applies (empty: judged by the reference drive alone).
     requirements: Arc<Requirements>,
@@ -362,7 +363,7 @@ impl Runner {
             profile,
             next_tid: 1,
             slots: Vec::new(),
-            last_send: None,
+            next_send: None,
             expectations,
             requirements: Arc::default(),
             choices: ChoiceLog::default(),
@@ -1364,17 +1365,26 @@ impl Runner {
     }
 
     fn pace(&mut self) {
-        if self.cfg.is_sim {
+        self.pace_requests(1);
+    }
+
+    /// `--max-rate`: wait until `requests` more requests may go out, counting from the last that went.
+    /// The pieces of one request are not paced apart (that would stretch a split frame the case means to
+    /// arrive as one: past t1.5 on a line, past a drive's partial-frame or idle timeout on TCP).
+    fn pace_requests(&mut self, requests: usize) {
+        let Some(rate) = self.cfg.safety.max_rate.filter(|_| !self.cfg.is_sim) else {
             return;
-        }
-        if let (Some(rate), Some(last)) = (self.cfg.safety.max_rate, self.last_send) {
-            let gap = Duration::from_secs_f64(1.0 / rate.max(0.001));
-            let since = last.elapsed();
-            if since < gap {
-                std::thread::sleep(gap - since);
+        };
+        if let Some(next) = self.next_send {
+            let now = Instant::now();
+            if now < next {
+                std::thread::sleep(next - now);
             }
         }
-        self.last_send = Some(Instant::now());
+        let gap = Duration::from_secs_f64(1.0 / rate.max(0.001));
+        // Bounded: a step sends a few requests at most.
+        let n = u32::try_from(requests.clamp(1, 1000)).unwrap_or(1);
+        self.next_send = Some(Instant::now() + gap * n);
     }
 
     fn sync_shadow(&mut self) {
@@ -2355,7 +2365,9 @@ impl Runner {
                 self.shadow.send(bytes)?;
                 continue;
             }
-            self.pace();
+            if last_write.is_none() {
+                self.pace_requests(frames.len().max(1));
+            }
             wire.push(WireEvent {
                 dir: Dir::Tx,
                 at: self.target.now(),

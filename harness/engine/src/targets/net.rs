@@ -25,6 +25,9 @@ pub struct TcpTarget {
     fin_sent: Option<Instant>,
     /// Nothing was sent on this connection yet.
     fresh: bool,
+    /// When the target last sent bytes on this connection, if it has since the harness's last send (nothing
+    /// of the harness's is outstanding on it then).
+    answered_at: Option<Instant>,
 }
 
 fn resolve(host: &str, port: u16) -> Result<SocketAddr, TargetError> {
@@ -49,6 +52,9 @@ const SHORT_WAIT: Duration = Duration::from_millis(20);
 /// How long a connection being closed waits for the target's own close before the next one is opened (see
 /// `TcpTarget::close_gracefully`).
 const CLOSE_WAIT: Duration = Duration::from_millis(250);
+/// A connection unused for this long since the target's last answer is looked at before the next request
+/// goes out on it (see `send`).
+const IDLE_LOOK: Duration = Duration::from_millis(5);
 
 /// Nominal timing for RTU over TCP: frames are cut by length rules and CRC; silence only ends unknown ones.
 fn rtu_over_tcp_timing() -> RtuTiming {
@@ -80,6 +86,7 @@ impl TcpTarget {
             read_timeout: None,
             fin_sent: None,
             fresh: false,
+            answered_at: None,
         };
         t.open_retrying()?;
         Ok(t)
@@ -99,6 +106,7 @@ impl TcpTarget {
         self.read_timeout = None;
         self.fin_sent = None;
         self.fresh = true;
+        self.answered_at = None;
         Ok(())
     }
 
@@ -241,7 +249,9 @@ impl TcpTarget {
         match s.read(&mut chunk) {
             Ok(0) => Ok(false),
             Ok(n) => {
-                let now = self.start.elapsed();
+                let at = Instant::now();
+                self.answered_at = Some(at);
+                let now = at - self.start;
                 self.reader.push(now, &chunk[..n]);
                 Ok(true)
             }
@@ -301,6 +311,17 @@ impl Target for TcpTarget {
     }
 
     fn send(&mut self, bytes: &[u8]) -> Result<(), TargetError> {
+        // A connection left unused since the drive's last answer (a paced run, a wait, the watch's pauses)
+        // may have been closed by the drive meanwhile (an idle timeout): the request goes out on a new one,
+        // not to a connection whose close is already here, which would have been taken for the drive's answer
+        // to it. Not after a send with nothing back since (the next piece of a request sent in pieces, a
+        // request after one that went unanswered): a close there is the drive's answer to what was sent.
+        if !self.closed
+            && self.answered_at.is_some_and(|at| at.elapsed() >= IDLE_LOOK)
+            && self.closed_within(Duration::ZERO)
+        {
+            self.closed = true;
+        }
         // A new connection closed before its first request was refused after the handshake: the drive's
         // slot is not free yet. Opened again as after a refused connect, each new one watched for as long as
         // the pause before it (a refusal takes a round trip to arrive), at most about 1.2 s in all.
@@ -325,6 +346,7 @@ impl Target for TcpTarget {
         let Some(s) = self.stream.as_mut() else {
             return Err(self.io(ErrorKind::NotConnected.into()));
         };
+        self.answered_at = None;
         match s.write_all(bytes) {
             Ok(()) => Ok(()),
             Err(e) if matches!(e.kind(), ErrorKind::BrokenPipe | ErrorKind::ConnectionReset) => {
@@ -630,5 +652,69 @@ mod tests {
             "the request went out on a connection the drive serves"
         );
         assert_eq!(refused.load(Ordering::SeqCst), 2, "both refusals were made");
+    }
+
+    /// A drive that closes a connection when it has been idle for 30 ms (an idle timeout) and echoes what it
+    /// gets; with `close_first`, it closes its first connection as soon as anything arrives on it. On a
+    /// thread for at most 10 s.
+    fn idle_closing_drive(close_first: bool) -> SocketAddr {
+        let listener = TcpListener::bind("127.0.0.1:0").expect("bind");
+        let addr = listener.local_addr().expect("addr");
+        std::thread::spawn(move || {
+            let until = Instant::now() + Duration::from_secs(10);
+            let mut first = close_first;
+            while Instant::now() < until {
+                let Ok((mut c, _)) = listener.accept() else {
+                    return;
+                };
+                c.set_read_timeout(Some(Duration::from_millis(30)))
+                    .expect("timeout");
+                let mut buf = [0u8; 256];
+                while let Ok(n @ 1..) = c.read(&mut buf) {
+                    if std::mem::take(&mut first) {
+                        break;
+                    }
+                    let _ = c.write_all(&buf[..n]);
+                }
+            }
+        });
+        addr
+    }
+
+    /// The drive closed the connection while it was idle after its last answer: the next request goes out
+    /// on a new connection, and is answered, instead of meeting the close (which was taken for the drive's
+    /// answer to it: "the connection was closed instead of an answer").
+    #[test]
+    fn a_connection_the_drive_closed_while_idle_is_reopened_for_the_next_request() {
+        let addr = idle_closing_drive(false);
+        let mut t = TcpTarget::connect("127.0.0.1", addr.port(), Duration::from_secs(2), false)
+            .expect("connect");
+        assert!(echoed(&mut t), "the first request is answered");
+        for k in 0..3 {
+            // Past the drive's idle timeout; its close is here well within this on loopback.
+            std::thread::sleep(Duration::from_millis(100));
+            assert!(
+                echoed(&mut t),
+                "request {k} after an idle close is answered"
+            );
+        }
+    }
+
+    /// A close after a send with nothing back since is the drive's answer to what was sent: the rest of a
+    /// request sent in pieces goes to that connection, and its receive sees the close (not an answer on a
+    /// new connection).
+    #[test]
+    fn a_close_after_the_first_piece_of_a_request_is_the_drives_answer() {
+        let addr = idle_closing_drive(true);
+        let mut t = TcpTarget::connect("127.0.0.1", addr.port(), Duration::from_secs(2), false)
+            .expect("connect");
+        t.send(&ECHOED[..6]).expect("first piece");
+        std::thread::sleep(Duration::from_millis(50));
+        t.send(&ECHOED[6..]).expect("second piece");
+        // (On a new connection the second piece would have been echoed, and then closed as idle.)
+        assert!(
+            matches!(t.recv(Duration::from_secs(2)), Ok(Received::Closed { partial, .. }) if partial.is_empty()),
+            "the close was not what the request met"
+        );
     }
 }

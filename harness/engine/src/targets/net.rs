@@ -30,19 +30,24 @@ pub struct TcpTarget {
     answered_at: Option<Instant>,
 }
 
-fn resolve(host: &str, port: u16) -> Result<SocketAddr, TargetError> {
+/// Every address `host` names (a name may have several: `localhost` is 127.0.0.1 and ::1), in the
+/// resolver's order.
+fn resolve(host: &str, port: u16) -> Result<Vec<SocketAddr>, TargetError> {
     let addr = format!("{host}:{port}");
-    (host, port)
+    let all: Vec<SocketAddr> = (host, port)
         .to_socket_addrs()
         .map_err(|e| TargetError::Resolve {
             addr: addr.clone(),
             reason: e.to_string(),
         })?
-        .next()
-        .ok_or(TargetError::Resolve {
+        .collect();
+    if all.is_empty() {
+        return Err(TargetError::Resolve {
             addr,
             reason: "no address".into(),
-        })
+        });
+    }
+    Ok(all)
 }
 
 /// Connection attempts while the target refuses (see `open_retrying`).
@@ -69,10 +74,15 @@ impl TcpTarget {
         timeout: Duration,
         rtu: bool,
     ) -> Result<Self, TargetError> {
-        let addr = resolve(host, port)?;
+        Self::connect_to(&resolve(host, port)?, timeout, rtu)
+    }
+
+    /// Connect to the first of `addrs` (not empty) that takes a connection, within `timeout` each.
+    fn connect_to(addrs: &[SocketAddr], timeout: Duration, rtu: bool) -> Result<Self, TargetError> {
+        let label = |a: &SocketAddr| format!("{}://{a}", if rtu { "rtu+tcp" } else { "tcp" });
         let mut t = Self {
-            addr,
-            label: format!("{}://{addr}", if rtu { "rtu+tcp" } else { "tcp" }),
+            addr: addrs[0],
+            label: label(&addrs[0]),
             stream: None,
             connect_timeout: timeout,
             start: Instant::now(),
@@ -88,6 +98,18 @@ impl TcpTarget {
             fresh: false,
             answered_at: None,
         };
+        // A name with several addresses: the first that takes a connection is the target (as
+        // `TcpStream::connect` does); where none does, the first is tried again as below.
+        if addrs.len() > 1 {
+            for a in addrs {
+                t.addr = *a;
+                if t.open().is_ok() {
+                    t.label = label(a);
+                    return Ok(t);
+                }
+            }
+            t.addr = addrs[0];
+        }
         t.open_retrying()?;
         Ok(t)
     }
@@ -716,5 +738,29 @@ mod tests {
             matches!(t.recv(Duration::from_secs(2)), Ok(Received::Closed { partial, .. }) if partial.is_empty()),
             "the close was not what the request met"
         );
+    }
+
+    /// A name with several addresses (`localhost`: 127.0.0.1 and ::1, where the resolver gives both) is the
+    /// first that takes a connection; a port nobody listens on is reported for the first address.
+    #[test]
+    fn the_first_address_that_takes_a_connection_is_the_target() {
+        let live = TcpListener::bind("127.0.0.1:0").expect("bind");
+        let dead = TcpListener::bind("127.0.0.1:0").expect("bind");
+        let (live_addr, dead_addr) = (
+            live.local_addr().expect("addr"),
+            dead.local_addr().expect("addr"),
+        );
+        drop(dead);
+        let t = TcpTarget::connect_to(&[dead_addr, live_addr], Duration::from_secs(2), false)
+            .expect("connected to the second address");
+        assert_eq!(t.addr, live_addr);
+        assert_eq!(t.describe(), format!("tcp://{live_addr}"));
+        drop(live);
+        let Err(TargetError::Connect { addr, .. }) =
+            TcpTarget::connect_to(&[dead_addr, live_addr], Duration::from_secs(2), false)
+        else {
+            panic!("connected to nobody")
+        };
+        assert_eq!(addr, dead_addr.to_string());
     }
 }

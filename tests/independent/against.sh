@@ -7,6 +7,7 @@
 #   tests/independent/against.sh sd2x sd2x rtu+tcp --generated 1500 --seed 2
 #   tests/independent/against.sh lmd lmd tcp --generated 3000 --seed 10
 #   PRESET=tests/independent/lmd/preset_output_function.py tests/independent/against.sh lmd lmd tcp
+#   PROXY="--notice 20" tests/independent/against.sh mdrive mdrive tcp   # behind bench/one-slot-proxy.py
 set -u
 [ $# -ge 3 ] || { sed -n 2,9p "$0"; exit 2; }
 drive=$1 profile=$2 scheme=$3; shift 3
@@ -24,6 +25,16 @@ for _ in $(seq 50); do grep -q listening "$out/sim.out" && break; sleep 0.1; don
 addr=$(grep -oE '127\.0\.0\.1:[0-9]+' "$out/sim.out" | head -1)
 [ -n "$addr" ] || { echo "the drive did not start: $(cat "$out/sim.err")" >&2; exit 2; }
 [ -n "${PRESET:-}" ] && python3 "$PRESET" "$addr" > "$out/preset.out"
+if [ -n "${PROXY:-}" ]; then
+  # The drive behind a proxy with PROXY's options (bench/one-slot-proxy.py: one connection slot, an idle
+  # timeout); the harness talks to the proxy, the state is still dumped by the drive.
+  python3 "$repo/bench/one-slot-proxy.py" "$addr" $PROXY --lifetime 1800 > "$out/proxy.out" 2>&1 &
+  ppid=$!
+  trap 'kill $pid $ppid 2>/dev/null; wait $pid $ppid 2>/dev/null' EXIT
+  for _ in $(seq 50); do grep -q listening "$out/proxy.out" && break; sleep 0.1; done
+  addr=$(grep -oE '127\.0\.0\.1:[0-9]+' "$out/proxy.out" | head -1)
+  [ -n "$addr" ] || { echo "the proxy did not start: $(cat "$out/proxy.out")" >&2; exit 2; }
+fi
 kill -USR1 $pid; sleep 0.5; cp "$out/state.json" "$out/before.json"
 timeout 1800 "$B" run --target "$scheme://$addr" --profile "$profile" --report "$out/report" --regressions "$out/regressions" --no-progress "$@" \
   > "$out/run.out" 2> "$out/run.err"
@@ -46,4 +57,5 @@ print(f"state: {len(fa)} values, {len(diff)} differ after the run (FC 08 counter
 for k, x, y in diff[:60]: print(f"  {k}: {x!r} -> {y!r}")
 PY
 grep -E "^RESULT|harness exit" "$out/run.out"
+[ -n "${PROXY:-}" ] && { sleep 1.1; grep stats "$out/proxy.out" | tail -1; }
 echo "dir: $out"

@@ -185,6 +185,10 @@ pub fn run(args: &FuzzArgs) -> ExitCode {
         let flag = interrupt.clone();
         let _ = ctrlc::set_handler(move || {
             if flag.swap(true, Ordering::SeqCst) {
+                // Ends now, without putting back what the run changed: say how it can be.
+                eprintln!(
+                    "\ninterrupted again: exiting at once; anything changed is NOT put back (modbus-harness restore --journal FILE, with the journal the log named, puts it back)"
+                );
                 std::process::exit(130);
             }
         });

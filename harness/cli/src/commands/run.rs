@@ -313,6 +313,10 @@ pub fn run(args: &RunArgs) -> ExitCode {
         // A second Ctrl-C while the report is being finished ends the process at once.
         let _ = ctrlc::set_handler(move || {
             if flag.swap(true, Ordering::SeqCst) {
+                // Ends now, without putting back what the run changed: say how it can be.
+                eprintln!(
+                    "\ninterrupted again: exiting at once; anything changed is NOT put back (modbus-harness restore --journal FILE, with the journal the log named, puts it back)"
+                );
                 std::process::exit(130);
             }
             eprintln!("\ninterrupted: finishing the current case and writing the report ...");

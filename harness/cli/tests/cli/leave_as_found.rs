@@ -688,6 +688,51 @@ fn a_run_stopped_with_sigterm_restores_before_it_exits() {
 
 /// The drive dies halfway (the simulator is killed after a write changed a value): the run stops, cannot
 /// put the drive back, says so with the journal to restore from, and exits 3, within a bounded time.
+/// A second Ctrl-C ends the run at once, before anything is put back: exit 130, saying that what was
+/// changed is not put back and how to put it back; the journal it points to then puts the drive back.
+#[test]
+fn a_second_ctrl_c_exits_at_once_saying_how_to_put_the_drive_back() {
+    let name = "lmd";
+    let dir = TempDir::new("laf-int2");
+    let drive = PresetDrive::start(name, dir.path(), &[]);
+    let before = drive.read();
+    let err_file = dir.path().join("run.err");
+    let (mut run, journal) = paced_run_past_a_change(
+        &drive,
+        name,
+        dir.path(),
+        // At 20 requests a second the put-back after the first SIGINT takes 100 ms at least (a read, a
+        // write, a verifying read): the second, 20 ms later, comes before it is done.
+        "20",
+        &[],
+        (Stdio::null(), output_file(&err_file)),
+    );
+    let pid = run.0.id().to_string();
+    for _ in 0..2 {
+        let sent = Command::new("kill")
+            .args(["-INT", &pid])
+            .status()
+            .expect("kill -INT");
+        assert!(sent.success());
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    let status = wait_bounded(&mut run.0, RUN_LIMIT, "the run after two SIGINTs");
+    let err = std::fs::read_to_string(&err_file).unwrap_or_default();
+    assert_eq!(status.code(), Some(130), "{err}");
+    assert!(
+        err.contains("interrupted again: exiting at once; anything changed is NOT put back")
+            && err.contains("restore --journal"),
+        "{err}"
+    );
+    assert!(
+        err.contains(&format!("journal {}", journal.display())),
+        "the log names the journal: {err}"
+    );
+    let (code, out, rerr) = harness(&["restore", "--journal", journal.to_str().expect("path")]);
+    assert_eq!(code, 0, "{out}\n{rerr}");
+    drive.assert_reads_as(&before, "not put back by restore --journal");
+}
+
 #[test]
 fn a_target_that_dies_halfway_is_reported_not_restored_with_exit_3() {
     let name = "mdrive";

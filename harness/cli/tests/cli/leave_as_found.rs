@@ -411,6 +411,15 @@ impl PresetDrive {
     }
 }
 
+/// Send the signal `sig` (`TERM`, `INT`) to the run with `kill`.
+fn signal(run: &ChildGuard, sig: &str) {
+    let sent = Command::new("kill")
+        .args([format!("-{sig}"), run.0.id().to_string()])
+        .status()
+        .unwrap_or_else(|e| panic!("kill -{sig}: {e}"));
+    assert!(sent.success(), "kill -{sig}");
+}
+
 /// `modbus-harness ARGS` started as a child with stdin closed and the given stdout and stderr, killed on
 /// drop: a run the test interrupts.
 fn spawn_harness(args: &[&str], stdout: Stdio, stderr: Stdio) -> ChildGuard {
@@ -668,12 +677,7 @@ fn a_run_stopped_with_sigterm_restores_before_it_exits() {
         &[],
         (output_file(&out_file), Stdio::null()),
     );
-    let pid = run.0.id().to_string();
-    let sent = Command::new("kill")
-        .args(["-TERM", &pid])
-        .status()
-        .expect("kill -TERM");
-    assert!(sent.success());
+    signal(&run, "TERM");
     let status = wait_bounded(&mut run.0, RUN_LIMIT, "the run after SIGTERM");
     let out = std::fs::read_to_string(&out_file).unwrap_or_default();
     assert_eq!(status.code(), Some(2), "{out}");
@@ -686,8 +690,6 @@ fn a_run_stopped_with_sigterm_restores_before_it_exits() {
     drive.assert_reads_as(&before, "not left as found after SIGTERM");
 }
 
-/// The drive dies halfway (the simulator is killed after a write changed a value): the run stops, cannot
-/// put the drive back, says so with the journal to restore from, and exits 3, within a bounded time.
 /// A second Ctrl-C ends the run at once, before anything is put back: exit 130, saying that what was
 /// changed is not put back and how to put it back; the journal it points to then puts the drive back.
 #[test]
@@ -707,13 +709,8 @@ fn a_second_ctrl_c_exits_at_once_saying_how_to_put_the_drive_back() {
         &[],
         (Stdio::null(), output_file(&err_file)),
     );
-    let pid = run.0.id().to_string();
     for _ in 0..2 {
-        let sent = Command::new("kill")
-            .args(["-INT", &pid])
-            .status()
-            .expect("kill -INT");
-        assert!(sent.success());
+        signal(&run, "INT");
         std::thread::sleep(Duration::from_millis(20));
     }
     let status = wait_bounded(&mut run.0, RUN_LIMIT, "the run after two SIGINTs");
@@ -733,6 +730,8 @@ fn a_second_ctrl_c_exits_at_once_saying_how_to_put_the_drive_back() {
     drive.assert_reads_as(&before, "not put back by restore --journal");
 }
 
+/// The drive dies halfway (the simulator is killed after a write changed a value): the run stops, cannot
+/// put the drive back, says so with the journal to restore from, and exits 3, within a bounded time.
 #[test]
 fn a_target_that_dies_halfway_is_reported_not_restored_with_exit_3() {
     let name = "mdrive";

@@ -7,7 +7,7 @@
 use drives::profile::Profile;
 use engine::Tag;
 use engine::safety::{classify, is_write_fc};
-use test_support::{RecordingProxy, SimProcess, harness, profile};
+use test_support::{RecordingProxy, SimProcess, harness, profile, run_args};
 
 /// The requests the drive received that write, as `fc pdu-hex`: a write function code, or anything the
 /// classifier rates `write` (FC 08 restart, listen only, clear counters; FC 43 object writes).
@@ -218,20 +218,18 @@ fn max_rate_paces_requests_not_the_pieces_of_one() {
     let url = sim.tcp_url();
     let dir = test_support::TempDir::new("max-rate-pieces");
     let report = dir.path().join("report");
-    let (code, out, err) = harness(&[
-        "run",
-        "--target",
+    let (code, out, err) = harness(&run_args(
         &url,
-        "--profile",
         "mdrive",
-        "--no-progress",
-        "--max-rate",
-        "2",
-        "--cases",
-        "tcp/segment/request-split",
-        "--report",
-        report.to_str().expect("path"),
-    ]);
+        &[
+            "--max-rate",
+            "2",
+            "--cases",
+            "tcp/segment/request-split",
+            "--report",
+            report.to_str().expect("path"),
+        ],
+    ));
     assert_eq!(code, 0, "{out}\n{err}");
     assert!(out.contains("RESULT: PASS (1 PASS)"), "{out}");
     let line = std::fs::read_to_string(report.join("cases.jsonl")).expect("cases.jsonl");

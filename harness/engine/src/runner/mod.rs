@@ -2366,7 +2366,7 @@ impl Runner {
                 continue;
             }
             if last_write.is_none() {
-                self.pace_requests(frames.len().max(1));
+                self.pace_requests(frames.len());
             }
             wire.push(WireEvent {
                 dir: Dir::Tx,

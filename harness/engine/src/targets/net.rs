@@ -50,6 +50,27 @@ fn resolve(host: &str, port: u16) -> Result<Vec<SocketAddr>, TargetError> {
     Ok(all)
 }
 
+/// Wait at most `d` (exactly: ppoll, not the kernel's ticks) for `s` to be readable: bytes, its close or
+/// an error waiting. The number of ready descriptors (0 or 1).
+fn readable_within(s: &TcpStream, d: Duration) -> nix::Result<i32> {
+    use std::os::fd::AsFd;
+    let mut fds = [nix::poll::PollFd::new(
+        s.as_fd(),
+        nix::poll::PollFlags::POLLIN,
+    )];
+    nix::poll::ppoll(
+        &mut fds,
+        Some(nix::sys::time::TimeSpec::from_duration(d)),
+        None,
+    )
+}
+
+/// Look, without waiting or taking it, at whether something is there to read: Ok(0) is the peer's close.
+fn peek(s: &TcpStream) -> std::io::Result<usize> {
+    let mut probe = [MaybeUninit::<u8>::uninit(); 1];
+    socket2::SockRef::from(s).recv_with_flags(&mut probe, libc::MSG_PEEK | libc::MSG_DONTWAIT)
+}
+
 /// Connection attempts while the target refuses (see `open_retrying`).
 const RECONNECT_TRIES: usize = 6;
 /// Waits shorter than this are made with ppoll (see `TcpTarget::read_once`).
@@ -177,21 +198,10 @@ impl TcpTarget {
         let Some(s) = self.stream.as_ref() else {
             return false;
         };
-        if !look.is_zero() {
-            use std::os::fd::AsFd;
-            let mut fds = [nix::poll::PollFd::new(
-                s.as_fd(),
-                nix::poll::PollFlags::POLLIN,
-            )];
-            let timeout = nix::sys::time::TimeSpec::from_duration(look);
-            if !matches!(nix::poll::ppoll(&mut fds, Some(timeout), None), Ok(1..)) {
-                return false;
-            }
+        if !look.is_zero() && !matches!(readable_within(s, look), Ok(1..)) {
+            return false;
         }
-        let mut probe = [MaybeUninit::<u8>::uninit(); 1];
-        match socket2::SockRef::from(s)
-            .recv_with_flags(&mut probe, libc::MSG_PEEK | libc::MSG_DONTWAIT)
-        {
+        match peek(s) {
             Ok(0) => true,
             Ok(_) => false,
             Err(e) => matches!(
@@ -245,13 +255,7 @@ impl TcpTarget {
         // (the tail of a window, the look before a half-close) is made with ppoll, whose timeout is exact;
         // the read then finds the bytes or the close waiting.
         if left < SHORT_WAIT {
-            use std::os::fd::AsFd;
-            let mut fds = [nix::poll::PollFd::new(
-                s.as_fd(),
-                nix::poll::PollFlags::POLLIN,
-            )];
-            let timeout = nix::sys::time::TimeSpec::from_duration(left);
-            match nix::poll::ppoll(&mut fds, Some(timeout), None) {
+            match readable_within(s, left) {
                 Ok(0) | Err(nix::errno::Errno::EINTR) => return Ok(true),
                 Ok(_) => {}
                 Err(e) => return Err(self.io(std::io::Error::from(e))),
@@ -460,12 +464,7 @@ impl Target for TcpTarget {
         let mut stale = self.reader.partial();
         // Before every case: one system call when nothing is there (a non-blocking peek at one byte), where
         // switching the socket to non-blocking mode and back took two more.
-        let waiting = self.stream.as_ref().is_some_and(|s| {
-            let mut probe = [MaybeUninit::<u8>::uninit(); 1];
-            socket2::SockRef::from(s)
-                .recv_with_flags(&mut probe, libc::MSG_PEEK | libc::MSG_DONTWAIT)
-                .is_ok()
-        });
+        let waiting = self.stream.as_ref().is_some_and(|s| peek(s).is_ok());
         if let Some(s) = self.stream.as_ref().filter(|_| waiting) {
             // Non-blocking for the while: what is there is taken, nothing is waited for.
             if s.set_nonblocking(true).is_ok() {

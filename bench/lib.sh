@@ -93,3 +93,14 @@ bench_servers_workdir() {
   trap '[ -f "$work/pids" ] && while read -r p; do kill "$p" 2>/dev/null || true; done <"$work/pids"; rm -rf "$work"' EXIT
   trap 'exit 130' INT TERM
 }
+
+# bench_verdict FILE: a run's RESULT line (verdict and counts) from its output FILE, or the first error line
+# when it has none, and how many parameters it left NOT RESTORED.
+bench_verdict() {
+  local r laf
+  r=$(grep -h '^RESULT' "$1" | tail -1 | sed 's/^RESULT: //')
+  [ -n "$r" ] || r="no result: $(grep -h '^error' "$1" | head -1 | cut -c1-90)"
+  laf=$(grep -c 'NOT RESTORED' "$1" || true)
+  [ "$laf" = 0 ] || r="$r; $laf NOT RESTORED"
+  echo "$r"
+}

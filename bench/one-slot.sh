@@ -28,16 +28,6 @@ pin=()
 listen=--listen scheme=tcp
 [ "$profile" = sd2x ] && listen=--rtu-over-tcp scheme=rtu+tcp
 
-# verdict FILE: the RESULT line's verdict and counts, and the leave-as-found outcome.
-verdict() {
-  local r laf
-  r=$(grep -h '^RESULT' "$1" | tail -1 | sed 's/^RESULT: //')
-  [ -n "$r" ] || r="no result: $(grep -h '^error' "$1" | head -1 | cut -c1-90)"
-  laf=$(grep -c 'NOT RESTORED' "$1" || true)
-  [ "$laf" = 0 ] || r="$r; $laf NOT RESTORED"
-  echo "$r"
-}
-
 echo "| binary | proxy | catalog | generated $cases (seed 1) | 3 catalogs back to back (exit codes) | connections refused |"
 echo "|---|---|---|---|---|---:|"
 for b in "${BINS[@]}"; do
@@ -60,7 +50,7 @@ for b in "${BINS[@]}"; do
     done
     sleep 1.2
     refused=$(grep -o "'refused': [0-9]*" "$work/proxy-$tag.out" | tail -1 | grep -o '[0-9]*$' || echo "?")
-    echo "| $label | $policy, notices a close ${notice} ms late | $(verdict "$work/cat-$tag") | $(verdict "$work/gen-$tag") |$codes | $refused |"
+    echo "| $label | $policy, notices a close ${notice} ms late | $(bench_verdict "$work/cat-$tag") | $(bench_verdict "$work/gen-$tag") |$codes | $refused |"
     echo "one-slot.sh: $tag done" >&2
   done
 done

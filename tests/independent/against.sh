@@ -8,8 +8,9 @@
 #   tests/independent/against.sh lmd lmd tcp --generated 3000 --seed 10
 #   PRESET=tests/independent/lmd/preset_output_function.py tests/independent/against.sh lmd lmd tcp
 #   PROXY="--notice 20" tests/independent/against.sh mdrive mdrive tcp   # behind bench/one-slot-proxy.py
+#   GATEWAY="--units 1-1" tests/independent/against.sh sd2x-b sd2x tcp    # an RTU drive behind bench/gateway.py
 set -u
-[ $# -ge 3 ] || { sed -n 2,9p "$0"; exit 2; }
+[ $# -ge 3 ] || { sed -n 2,11p "$0"; exit 2; }
 drive=$1 profile=$2 scheme=$3; shift 3
 here=$(cd "$(dirname "$0")" && pwd)
 repo=$(cd "$here/../.." && pwd)
@@ -35,6 +36,16 @@ if [ -n "${PROXY:-}" ]; then
   addr=$(grep -oE '127\.0\.0\.1:[0-9]+' "$out/proxy.out" | head -1)
   [ -n "$addr" ] || { echo "the proxy did not start: $(cat "$out/proxy.out")" >&2; exit 2; }
 fi
+if [ -n "${GATEWAY+x}" ]; then
+  # An RTU-over-TCP drive reached over Modbus/TCP through bench/gateway.py with GATEWAY's options (may be
+  # empty: the defaults); the state is still dumped by the drive.
+  python3 "$repo/bench/gateway.py" "$addr" $GATEWAY --lifetime 1800 > "$out/gateway.out" 2> "$out/gateway.err" &
+  gpid=$!
+  trap 'kill $pid ${ppid:-} $gpid 2>/dev/null; wait $pid ${ppid:-} $gpid 2>/dev/null' EXIT
+  for _ in $(seq 50); do grep -q listening "$out/gateway.out" && break; sleep 0.1; done
+  addr=$(grep -oE '127\.0\.0\.1:[0-9]+' "$out/gateway.out" | head -1)
+  [ -n "$addr" ] || { echo "the gateway did not start: $(cat "$out/gateway.err")" >&2; exit 2; }
+fi
 kill -USR1 $pid; sleep 0.5; cp "$out/state.json" "$out/before.json"
 timeout 1800 "$B" run --target "$scheme://$addr" --profile "$profile" --report "$out/report" --regressions "$out/regressions" --no-progress "$@" \
   > "$out/run.out" 2> "$out/run.err"
@@ -58,4 +69,5 @@ for k, x, y in diff[:60]: print(f"  {k}: {x!r} -> {y!r}")
 PY
 grep -E "^RESULT|harness exit" "$out/run.out"
 [ -n "${PROXY:-}" ] && { sleep 1.1; grep stats "$out/proxy.out" | tail -1; }
+[ -n "${GATEWAY+x}" ] && { kill $gpid; sleep 0.3; cat "$out/gateway.err"; }
 echo "dir: $out"

@@ -79,6 +79,9 @@ pub mod ids {
     /// Modbus/TCP, a unit id in the freedom's `units` that is not the station's own (nor 0, 0xFF):
     /// answered or ignored.
     pub const TCP_UNIT_IDS: &str = "tcp-unit-ids";
+    /// Modbus/TCP to a drive without Modbus/TCP (a gateway between), a well-formed request the drive leaves
+    /// unanswered: silence, or the gateway's exception 0B or 0A.
+    pub const GATEWAY_NO_RESPONSE: &str = "gateway-no-response";
     /// Modbus/TCP, several requests received together: answered in request order or in another order.
     pub const PIPELINED_RESPONSE_ORDER: &str = "pipelined-response-order";
     /// Modbus/TCP, a request received while another is served: served, or exception 06 (one transaction).
@@ -145,6 +148,7 @@ pub mod ids {
         UNSUPPORTED_MEI_TYPE,
         EXCEPTION_CHECK_ORDER,
         TCP_UNIT_IDS,
+        GATEWAY_NO_RESPONSE,
         PIPELINED_RESPONSE_ORDER,
         PIPELINED_SERVER_BUSY,
         MBAP_LENGTH_SHORT,

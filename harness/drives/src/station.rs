@@ -22,7 +22,7 @@ use std::time::Duration;
 use crate::choices::{Choices, Decision, Rejection, ids};
 use crate::faults::{Fault, FaultSet};
 use crate::models::DriveModel;
-use crate::profile::{DiagCounter, Profile};
+use crate::profile::{DiagCounter, Profile, Transport};
 use crate::requirements::FreedomKind;
 use crate::tell::{self, WriteRecord, WriteSink, Written};
 use codec::codes::{diag, event};
@@ -279,6 +279,15 @@ impl RtuPort {
             Duration::ZERO
         }
     }
+}
+
+/// How a Modbus/TCP request to a unit id is taken (see `Station::tcp_unit_answered`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum UnitAnswer {
+    Answer,
+    Ignore,
+    /// Refused as a gateway refuses a unit with no device behind it (0A, 0B).
+    Refuse(ExceptionCode),
 }
 
 /// A simulated drive on the wire. A clone is an independent copy in the same state (see
@@ -637,8 +646,11 @@ impl Station {
                 Some(Disagreement::Refuse) => {
                     // The reference's answer: the PDU the MBAP length gives is taken and refused as any
                     // request too short for its function (03; 01 for a function it lacks), the length's
-                    // freedom deciding, not `truncated-pdu`.
-                    self.length_decided = true;
+                    // freedom deciding, not `truncated-pdu`. A drive without Modbus/TCP is behind a gateway,
+                    // which cuts the PDU by the MBAP length: to the drive it is a PDU too short for its
+                    // function, `truncated-pdu` deciding.
+                    self.length_decided =
+                        self.profile().device.transports.contains(&Transport::Tcp);
                     let reply = self.tcp_adu(now, &conn.buf[..len]);
                     self.length_decided = false;
                     reply
@@ -714,29 +726,87 @@ impl Station {
         reply
     }
 
-    /// True when a Modbus/TCP request to `unit` is answered: the station's unit and the profile's unit ids,
-    /// except a unit in the `tcp-unit-ids` freedom's range when the drive chose to ignore it (0 and 0xFF are always
-    /// answered where the profile answers them).
-    fn tcp_unit_answered(&mut self, unit: u8) -> bool {
+    /// How a Modbus/TCP request to `unit` is answered: the station's unit and the profile's unit ids are,
+    /// except a unit in the `tcp-unit-ids` freedom's range when the drive chose to ignore it or to refuse it
+    /// as a gateway would (0A, 0B) (0 and 0xFF are always answered where the profile answers them).
+    fn tcp_unit_answered(&mut self, unit: u8) -> UnitAnswer {
         let accepted = unit == self.unit || {
             let [lo, hi] = self.profile().device.unit_ids;
             (lo..=hi).contains(&unit)
         };
-        if !accepted || unit == self.unit || matches!(unit, 0 | 0xFF) {
-            return accepted;
+        if !accepted {
+            return UnitAnswer::Ignore;
+        }
+        if unit == self.unit || matches!(unit, 0 | 0xFF) {
+            return UnitAnswer::Answer;
         }
         let Some((f, value)) = self
             .choices
             .defined()
             .find(|(f, _)| f.id == ids::TCP_UNIT_IDS)
         else {
-            return true;
+            return UnitAnswer::Answer;
         };
         if !f.covers_unit(unit) {
-            return true;
+            return UnitAnswer::Answer;
         }
         self.decisions.push(ids::TCP_UNIT_IDS);
-        !value.matches("silence")
+        if value.matches("silence") {
+            UnitAnswer::Ignore
+        } else if let Some(code) = Choices::exception_value(value) {
+            UnitAnswer::Refuse(code)
+        } else {
+            UnitAnswer::Answer
+        }
+    }
+
+    /// What the client of a drive without Modbus/TCP hears where the drive stays silent: a gateway is
+    /// between, and answers as the `gateway-no-response` choice says (silence, 0B or 0A).
+    fn gateway_silence(&mut self, header: &tcp::Mbap, function: Option<u8>) -> Option<Wire> {
+        if self.profile().device.transports.contains(&Transport::Tcp) {
+            return None;
+        }
+        self.decisions.push(ids::GATEWAY_NO_RESPONSE);
+        let code = self
+            .choices
+            .get(ids::GATEWAY_NO_RESPONSE)
+            .and_then(Choices::exception_value)?;
+        self.gateway_refusal(header, function?, code)
+    }
+
+    /// An exception `code` to `function` sent for the unit of `header` by what routes requests to it (a
+    /// gateway, or a server routing by unit id): not the drive's answer, so none of its counts. The faults
+    /// of the exception's form and of the MBAP echoes are the whole box's: they apply to it too.
+    fn gateway_refusal(
+        &mut self,
+        header: &tcp::Mbap,
+        function: u8,
+        code: ExceptionCode,
+    ) -> Option<Wire> {
+        let function = if self.faults.has(Fault::ExceptionWithoutFc) {
+            0x80
+        } else {
+            function | 0x80
+        };
+        let (tid, unit) = self.echoed(header);
+        let mut bytes = Vec::with_capacity(tcp::MBAP_LEN + 2);
+        tcp::encode_adu(tid, unit, &[function, code.0], &mut bytes).ok()?;
+        Some(self.wire(bytes))
+    }
+
+    /// The transaction and unit id an answer to `header` carries: the request's, unless a fault says otherwise.
+    fn echoed(&self, header: &tcp::Mbap) -> (u16, u8) {
+        let tid = if self.faults.has(Fault::TidNotEchoed) {
+            header.transaction_id.wrapping_add(1)
+        } else {
+            header.transaction_id
+        };
+        let unit = if self.faults.has(Fault::UnitNotEchoed) {
+            header.unit_id ^ 0x01
+        } else {
+            header.unit_id
+        };
+        (tid, unit)
     }
 
     /// Answer one complete Modbus/TCP ADU (`None`: no response is sent).
@@ -751,28 +821,27 @@ impl Station {
         if self.dead {
             return None;
         }
-        let accepted = self.tcp_unit_answered(header.unit_id);
-        if !accepted && !self.faults.has(Fault::AnswerOtherUnit) {
-            return None;
-        }
         let pdu = &adu[tcp::MBAP_LEN..];
+        let function = pdu.first().copied();
+        match self.tcp_unit_answered(header.unit_id) {
+            UnitAnswer::Refuse(code) if self.forced.is_none() => {
+                return self.gateway_refusal(&header, function?, code);
+            }
+            UnitAnswer::Ignore if !self.faults.has(Fault::AnswerOtherUnit) => {
+                return self.gateway_silence(&header, function);
+            }
+            _ => {}
+        }
         let resp = self.answer(now, header.unit_id, pdu, Via::Tcp);
         self.finish_message();
-        let resp = resp?;
+        let Some(resp) = resp else {
+            return self.gateway_silence(&header, function);
+        };
         let mut body = self.pdu_bytes(&resp);
         if self.faults.has(Fault::TruncatedResponse) && body.len() > 1 {
             body.pop();
         }
-        let tid = if self.faults.has(Fault::TidNotEchoed) {
-            header.transaction_id.wrapping_add(1)
-        } else {
-            header.transaction_id
-        };
-        let unit = if self.faults.has(Fault::UnitNotEchoed) {
-            header.unit_id ^ 0x01
-        } else {
-            header.unit_id
-        };
+        let (tid, unit) = self.echoed(&header);
         let mut bytes = Vec::with_capacity(tcp::MBAP_LEN + body.len());
         tcp::encode_adu(tid, unit, &body, &mut bytes).ok()?;
         if self.faults.has(Fault::MbapLength) {

@@ -1178,6 +1178,63 @@ fn a_drive_with_one_connection_slot_is_left_as_found_run_after_run() {
     }
 }
 
+/// An RTU drive (the SD2x, preset off its factory values) reached over Modbus/TCP through a gateway:
+/// bench/gateway.py turns each MBAP request into an RTU frame for the drive, one at a time, and where the drive
+/// is silent answers exception 0B (after 100 ms here) or, for a unit id it has no path to, 0A, as App 7 defines
+/// for gateways. The catalog and a generated run PASS, the gateway's answers are recorded as its choices, and
+/// the drive is left as found. Before the freedom `gateway-no-response` (and 0A/0B for `tcp-unit-ids`), the
+/// catalog FAILed `tcp/unit-id/247` and `tcp/unit-id/255` ("expected no response, got ... 83 0A").
+#[test]
+fn an_rtu_drive_behind_a_modbus_tcp_gateway_passes_and_is_left_as_found() {
+    use std::io::BufRead as _;
+    let dir = TempDir::new("laf-gateway");
+    let drive = PresetDrive::start("sd2x", dir.path(), &[]);
+    let before = drive.read();
+    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../bench/gateway.py");
+    let upstream = drive
+        .sim
+        .rtu_over_tcp
+        .expect("rtu-over-tcp endpoint")
+        .to_string();
+    let mut gateway = spawn_guarded(
+        Command::new("python3").args([
+            script.to_str().expect("path"),
+            &upstream,
+            "--timeout",
+            "100",
+            "--units",
+            "1-247",
+            "--lifetime",
+            "300",
+        ]),
+        Stdio::piped(),
+        Stdio::null(),
+    );
+    let mut line = String::new();
+    std::io::BufReader::new(gateway.0.stdout.take().expect("stdout"))
+        .read_line(&mut line)
+        .expect("the gateway's first line");
+    let addr = line
+        .trim()
+        .strip_prefix("listening tcp ")
+        .unwrap_or_else(|| panic!("gateway: {line:?}"));
+    let url = format!("tcp://{addr}");
+    for (extra, shown) in [
+        (&[][..], "gateway-no-response [unit 255] = exception-0A"),
+        (&["--generated", "300", "--seed", "1"], "exception-0B"),
+    ] {
+        let (code, out, err) = harness_bounded(None, &run_args(&url, "sd2x", extra), RUN_LIMIT);
+        assert_eq!(code, 0, "{extra:?}: {out}\n{err}");
+        assert!(out.contains("RESULT: PASS"), "{extra:?}: {out}");
+        assert!(out.contains(shown), "{extra:?}: {shown} not shown: {out}");
+        assert!(
+            out.contains("every kept parameter reads as before"),
+            "{extra:?}: {out}"
+        );
+    }
+    drive.assert_reads_as(&before, "sd2x behind a gateway: not left as found");
+}
+
 /// A drive that closes a connection left idle for 30 ms (an idle timeout), run paced at `--max-rate 20`, so
 /// that it closes the connection between every two requests: spec cases, the split request and a generated
 /// run PASS, and the drive is left as found. The harness looks at a connection left unused since the

@@ -1,7 +1,8 @@
 //! The station takes the freedoms of the wire side as chosen (`--choose`): the Modbus/TCP unit ids it
-//! ignores, the order and the Server Busy of pipelined answers, MBAP lengths that disagree with the PDU, PDUs
-//! over 253 bytes, truncated PDUs and the exception check order. Each test compares the chosen drive with the
-//! reference drive on the same bytes, and checks the freedom is recorded as the decision.
+//! ignores or refuses, the order and the Server Busy of pipelined answers, MBAP lengths that disagree with the
+//! PDU, PDUs over 253 bytes, truncated PDUs, the exception check order and the answers of a gateway in front
+//! of a drive without Modbus/TCP. Each test compares the chosen drive with the reference drive on the same
+//! bytes, and checks the freedom is recorded as the decision.
 
 use std::time::Duration;
 
@@ -360,4 +361,93 @@ fn a_station_whose_decisions_nobody_takes_keeps_only_the_last_inputs() {
     let last = served.take_decisions();
     assert!(!last.is_empty() && last.len() < 10, "{last:?}");
     assert!(!last.contains(&ids::TCP_UNIT_IDS), "{last:?}");
+}
+
+/// `tcp-unit-ids=exception-0B` (`exception-0A`): a request to another unit id is refused as a gateway
+/// refuses a unit with no device behind it (App 7), with the request's function code and the unit id
+/// echoed; the station's own unit, 0 and 0xFF are still answered. The refusal is not the drive's: it changes
+/// nothing a later request of the drive's own unit sees.
+#[test]
+fn tcp_unit_ids_exception_refuses_other_units_as_a_gateway_does() {
+    let own = unit("mdrive");
+    let other = if own == 247 { 1 } else { 247 };
+    for (choice, code) in [("exception-0B", "0B"), ("exception-0A", "0A")] {
+        let mut chosen = station("mdrive", &[&format!("tcp-unit-ids={choice}")]);
+        let TcpOutput { replies, close } = chosen.serve_tcp(
+            Duration::ZERO,
+            &mut TcpConn::default(),
+            &adu(9, other, READ),
+        );
+        assert!(!close);
+        let [reply] = replies.as_slice() else {
+            panic!("{choice}: one reply expected, got {replies:?}");
+        };
+        assert_eq!(
+            hex_spaced(&reply.bytes),
+            format!("00 09 00 00 00 03 {other:02X} 83 {code}"),
+            "{choice}: the gateway's exception, transaction and unit id echoed"
+        );
+        assert!(chosen.take_decisions().contains(&ids::TCP_UNIT_IDS));
+        for u in [own, 0, 0xFF] {
+            let (r, _) = serve(&mut chosen, &adu(2, u, READ));
+            assert_eq!(r.len(), 1, "{choice}: unit {u} answered");
+            assert!(!r[0].1.starts_with("83"), "{choice}: unit {u}: {:?}", r[0]);
+        }
+    }
+}
+
+/// A drive that speaks only Modbus RTU (the SD2x) reached over Modbus/TCP is behind a gateway. Where the
+/// drive is silent (a unit id that is no serial address, a broadcast, a truncated PDU it chose to ignore),
+/// `gateway-no-response=exception-0B` (`exception-0A`) answers with the request's function code; the
+/// reference (silence) answers nothing; every such silence is recorded as the freedom's decision. Where the
+/// drive answers, the drive's answer goes out; a foreign protocol id is still discarded (the gateway's own
+/// MBAP check); and a drive with Modbus/TCP (the MDrive) is no gateway: its silences stay silent.
+#[test]
+fn a_drive_without_modbus_tcp_answers_its_silences_as_its_gateway_chose() {
+    let own = unit("sd2x");
+    let echo: &[u8] = &[0x08, 0x00, 0x00, 0x12, 0x34];
+    let truncated: &[u8] = &[0x03, 0x00];
+    for (choice, code) in [("exception-0B", "0B"), ("exception-0A", "0A")] {
+        let mut reference = station("sd2x", &["truncated-pdu=silence"]);
+        let mut chosen = station(
+            "sd2x",
+            &[
+                "truncated-pdu=silence",
+                &format!("gateway-no-response={choice}"),
+            ],
+        );
+        for (u, pdu, fc) in [(0xFF, READ, "83"), (0, echo, "88"), (own, truncated, "83")] {
+            assert_eq!(serve(&mut reference, &adu(3, u, pdu)), (vec![], false));
+            assert!(
+                reference
+                    .take_decisions()
+                    .contains(&ids::GATEWAY_NO_RESPONSE),
+                "unit {u}: the reference's silence is the freedom's decision"
+            );
+            assert_eq!(
+                serve(&mut chosen, &adu(3, u, pdu)),
+                (vec![(3, format!("{fc} {code}"))], false),
+                "{choice}, unit {u}"
+            );
+            assert!(chosen.take_decisions().contains(&ids::GATEWAY_NO_RESPONSE));
+        }
+        assert_eq!(
+            serve(&mut chosen, &adu(4, own, echo)),
+            (vec![(4, "08 00 00 12 34".into())], false),
+            "{choice}: the drive's own answer"
+        );
+        let mut foreign = adu(5, own, truncated);
+        foreign[3] = 1;
+        assert_eq!(
+            serve(&mut chosen, &foreign),
+            (vec![], false),
+            "protocol id 1"
+        );
+    }
+    let mut mdrive = station("mdrive", &["truncated-pdu=silence"]);
+    assert_eq!(
+        serve(&mut mdrive, &adu(6, unit("mdrive"), truncated)),
+        (vec![], false)
+    );
+    assert!(!mdrive.take_decisions().contains(&ids::GATEWAY_NO_RESPONSE));
 }

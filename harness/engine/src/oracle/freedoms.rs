@@ -55,6 +55,9 @@ pub struct StepContext<'a> {
     /// The MBAP length announced more bytes than were sent (Modbus/TCP): a drive that waits for them is
     /// silent whatever it would do once they are in.
     pub short_of_length: bool,
+    /// A Modbus/TCP request (protocol id 0) to a profile without Modbus/TCP among its transports: a gateway
+    /// is between, which answers where the drive is silent as `gateway-no-response` admits.
+    pub gateway: bool,
 }
 
 impl Alternative {
@@ -151,6 +154,7 @@ pub const LMD_EXAMPLE_INPUT_OFFSET: u16 = 0x002D;
 /// `fc41-read-back-fields` by id).
 fn may_touch(f: &Freedom) -> bool {
     f.id == drives::choices::ids::FC41_READ_BACK_FIELDS
+        || f.id == drives::choices::ids::GATEWAY_NO_RESPONSE
         || matches!(
             f.kind,
             FreedomKind::Reading
@@ -185,6 +189,10 @@ fn touches(f: &Freedom, cx: &StepContext<'_>) -> bool {
                 | "lmd-esc-wire-form"
                 | "mdrive-program-control-function"
         ) && reading_concerns(f, cx.request, cx.pdu);
+    }
+    // A gateway is between the harness and the drive: about every request it forwards.
+    if f.id == drives::choices::ids::GATEWAY_NO_RESPONSE {
+        return cx.gateway;
     }
     // A unit id is about the frame, whatever its PDU (a malformed one to another unit goes unanswered too).
     if f.kind == FreedomKind::UnitIds {
@@ -594,6 +602,11 @@ pub fn about_of(freedom: &str, cx: &StepContext<'_>) -> String {
     if freedom == VALUE_MEANING_OPEN {
         return value_meaning_about(cx).unwrap_or_default();
     }
+    // A gateway answers per unit id: a broadcast, an id with no path and the drive's own silences may each
+    // get their own answer (silence for a broadcast, 0A where it has no path, 0B where the drive is silent).
+    if freedom == drives::choices::ids::GATEWAY_NO_RESPONSE {
+        return format!("unit {}", cx.unit);
+    }
     // A group write of the outputs (OT/OL) that sets no output at all cannot drive a point that is an input:
     // a drive may take it and refuse one that sets a bit (an independent MDrive refuses with 03 a bit of a
     // point that is not an output, and takes 0). Held apart.
@@ -767,6 +780,21 @@ pub fn alternatives(
         },
         FreedomKind::Optional => optional(f, cx, expected, observed),
         FreedomKind::Access => access(f, cx, expected, observed),
+        // The gateway's answer is free only where the drive is silent: the reference's (here), or another
+        // freedom's admissible silence (`oracle::judge_admitting`). Where the drive must answer, a 0B is the
+        // drive failing to.
+        FreedomKind::Outcome if f.id == drives::choices::ids::GATEWAY_NO_RESPONSE => {
+            // The reference is silent, or answers as the gateway a drive chose before (the reference
+            // follows it): the drive is silent there.
+            let gateways = |e: &Response| {
+                cx.decided(f) && exception_of(e).is_some_and(|(_, c)| matches!(c.0, 0x0A | 0x0B))
+            };
+            if cx.gateway && expected.is_none_or(gateways) {
+                outcome(f, cx, expected, observed)
+            } else {
+                vec![]
+            }
+        }
         // What kind of answer is free only where the freedom decided it, or for a request sent malformed
         // on purpose (pipelining freedoms: for requests sent together).
         FreedomKind::Outcome
@@ -1601,6 +1629,7 @@ mod tests {
             counter_alternatives: &[],
             closed: false,
             short_of_length: false,
+            gateway: false,
         }
     }
 

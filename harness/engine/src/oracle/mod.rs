@@ -335,6 +335,8 @@ pub fn judge_admitting(
     };
     // Every alternative that admits the observation, in the order of the freedoms.
     let mut passing: Vec<Judged> = Vec::new();
+    let gateway_id = drives::choices::ids::GATEWAY_NO_RESPONSE;
+    let gateway = applicable.iter().find(|f| f.id == gateway_id && cx.gateway);
     for f in applicable {
         if f.kind == FreedomKind::WordOrder {
             let other = match profile.device.word_order {
@@ -401,6 +403,46 @@ pub fn judge_admitting(
                     shown: vec![alt.shown],
                     others: Vec::new(),
                 });
+            }
+        }
+    }
+    // Where a freedom lets the drive be silent and a gateway is between, the gateway's answer to that
+    // silence (`gateway-no-response`): both choices shown.
+    if let Some(gw) = gateway
+        && obs.as_ref().is_some_and(Response::is_exception)
+    {
+        for f in applicable
+            .iter()
+            .filter(|f| f.id != gateway_id && f.kind != FreedomKind::WordOrder)
+        {
+            let silences = freedoms::alternatives(f, cx, exp.as_ref(), None)
+                .into_iter()
+                .filter(|a| a.answer.is_none() && !a.closes());
+            for alt in silences {
+                for g in freedoms::alternatives(gw, cx, None, obs.as_ref()) {
+                    let Some(frame) = g
+                        .answer
+                        .as_ref()
+                        .and_then(|r| frame_like(framing, expected, sent, r))
+                    else {
+                        continue;
+                    };
+                    let again = judge(
+                        &Observation {
+                            expected: Some(&frame),
+                            compare: &Compare::Exact,
+                            ..*o
+                        },
+                        profile.device.word_order,
+                    );
+                    if !fails(&again) {
+                        passing.push(Judged {
+                            findings: again,
+                            shown: vec![alt.shown.clone(), g.shown],
+                            others: Vec::new(),
+                        });
+                    }
+                }
             }
         }
     }

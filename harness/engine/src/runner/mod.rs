@@ -209,7 +209,8 @@ pub struct Runner {
     /// How long the target took to answer its last single requests (Modbus/TCP): the half-close waits twice
     /// the slowest first (see `prove_silence_by_close`).
     latencies: RecentLatencies,
-    /// The step's request to another unit id was ignored by the drive as the `unit-ids` freedom allows.
+    /// The step's request to another unit id was ignored (or refused as a gateway refuses it, 0A or 0B) by
+    /// the drive as the `unit-ids` freedom allows: it took no effect.
     unit_ignored: bool,
     /// Choices the drive showed in the step that the reference drive does not take yet and follows from
     /// now on (see [`follows`]).
@@ -2546,6 +2547,16 @@ impl Runner {
                     .get(j)
                     .or(frames.last())
                     .is_some_and(|f| f.short_of_length()),
+                gateway: framing == Framing::Tcp
+                    && !self
+                        .profile
+                        .device
+                        .transports
+                        .contains(&drives::profile::Transport::Tcp)
+                    && frames
+                        .get(j)
+                        .or(frames.last())
+                        .is_some_and(|f| f.bytes.get(2..4) == Some(&[0, 0][..])),
             };
             let requirements = Arc::clone(&self.requirements);
             let applicable = oracle::freedoms::applicable_among(
@@ -2716,7 +2727,7 @@ impl Runner {
                 self.sentinel_given_up = true;
             }
             if judged.shown.iter().any(|s| {
-                s.value == "silence"
+                (s.value == "silence" || s.value.starts_with("exception-"))
                     && requirements
                         .freedom(&s.freedom)
                         .is_some_and(|f| f.kind == FreedomKind::UnitIds)

@@ -77,6 +77,14 @@ const NOT_EXERCISED: &[(&str, &str)] = &[
         "sd2x",
         "diagnostic-counter-semantics=slave-count-is-responses-sent",
     ),
+    // sim:sd2x speaks RTU, the SD2x's only transport: the unit ids of Modbus/TCP and the answers of a
+    // gateway in front of it show over Modbus/TCP only (tests/engine/gateway.rs shows each of them on
+    // sim:sd2x?transport=tcp).
+    ("sd2x", "tcp-unit-ids=silence"),
+    ("sd2x", "tcp-unit-ids=exception-0B"),
+    ("sd2x", "tcp-unit-ids=exception-0A"),
+    ("sd2x", "gateway-no-response=exception-0B"),
+    ("sd2x", "gateway-no-response=exception-0A"),
 ];
 
 /// More cases that see a fault where a choice makes its witness a refusal: (fault, target, cases).
@@ -343,6 +351,8 @@ fn a_choice_the_simulator_cannot_take_is_refused() {
 fn generated_cases_admit_the_transport_choices() {
     const CHOICES: &[&str] = &[
         "tcp-unit-ids=silence",
+        "tcp-unit-ids=exception-0B",
+        "tcp-unit-ids=exception-0A",
         "pipelined-response-order=transaction-id",
         "pipelined-server-busy=exception-06",
         "truncated-pdu=silence",
@@ -360,6 +370,8 @@ fn generated_cases_admit_the_transport_choices() {
     const SHOWN: &[(&str, &str)] = &[
         ("sim:generic", "tcp-unit-ids=silence"),
         ("sim:mdrive", "tcp-unit-ids=silence"),
+        ("sim:generic", "tcp-unit-ids=exception-0B"),
+        ("sim:mdrive", "tcp-unit-ids=exception-0A"),
         ("sim:generic", "mbap-length-long=exception-03"),
         ("sim:mdrive", "mbap-length-long=close"),
         ("sim:generic", "truncated-pdu=close"),

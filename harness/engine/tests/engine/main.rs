@@ -8,6 +8,7 @@ mod disputed;
 mod fault_matrix;
 mod freedom_space;
 mod fuzz_campaign;
+mod gateway;
 mod generated_cases;
 mod probe;
 mod public_fc;

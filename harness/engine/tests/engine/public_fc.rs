@@ -30,6 +30,7 @@ fn context<'a>(p: &'a drives::profile::Profile, req: &'a Request) -> StepContext
         counter_alternatives: &[],
         closed: false,
         short_of_length: false,
+        gateway: false,
     }
 }
 
@@ -168,6 +169,7 @@ fn a_close_is_the_outcome_close_not_silence() {
                 counter_alternatives: &[],
                 closed: true,
                 short_of_length: false,
+                gateway: false,
             };
             let observation = Observation {
                 framing: Framing::Tcp,

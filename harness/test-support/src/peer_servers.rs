@@ -43,6 +43,17 @@ impl PeerServer {
         Self::start(c)
     }
 
+    /// bench/gateway.py in front of the RTU-over-TCP drive at `upstream`, with `args` (`--timeout MS`, ...):
+    /// a Modbus/TCP-to-RTU gateway answering 0B where the drive is silent, 0A for a unit id with no path.
+    pub fn gateway(upstream: SocketAddr, args: &[&str]) -> Self {
+        let mut c = Command::new("python3");
+        c.arg(std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../bench/gateway.py"))
+            .arg(upstream.to_string())
+            .args(args)
+            .args(["--lifetime", "900"]);
+        Self::start(c)
+    }
+
     /// SIGTERM by pid, then the exit status (bounded).
     pub fn terminate(mut self) -> ExitStatus {
         let pid = self.child.0.id() as libc::pid_t;

@@ -1186,38 +1186,14 @@ fn a_drive_with_one_connection_slot_is_left_as_found_run_after_run() {
 /// catalog FAILed `tcp/unit-id/247` and `tcp/unit-id/255` ("expected no response, got ... 83 0A").
 #[test]
 fn an_rtu_drive_behind_a_modbus_tcp_gateway_passes_and_is_left_as_found() {
-    use std::io::BufRead as _;
     let dir = TempDir::new("laf-gateway");
     let drive = PresetDrive::start("sd2x", dir.path(), &[]);
     let before = drive.read();
-    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../bench/gateway.py");
-    let upstream = drive
-        .sim
-        .rtu_over_tcp
-        .expect("rtu-over-tcp endpoint")
-        .to_string();
-    let mut gateway = spawn_guarded(
-        Command::new("python3").args([
-            script.to_str().expect("path"),
-            &upstream,
-            "--timeout",
-            "100",
-            "--units",
-            "1-247",
-            "--lifetime",
-            "300",
-        ]),
-        Stdio::piped(),
-        Stdio::null(),
+    let gateway = test_support::peer_servers::PeerServer::gateway(
+        drive.sim.rtu_over_tcp.expect("rtu-over-tcp endpoint"),
+        &["--timeout", "100", "--units", "1-247"],
     );
-    let mut line = String::new();
-    std::io::BufReader::new(gateway.0.stdout.take().expect("stdout"))
-        .read_line(&mut line)
-        .expect("the gateway's first line");
-    let addr = line
-        .trim()
-        .strip_prefix("listening tcp ")
-        .unwrap_or_else(|| panic!("gateway: {line:?}"));
+    let addr = gateway.addr;
     let url = format!("tcp://{addr}");
     for (extra, shown) in [
         (&[][..], "gateway-no-response [unit 255] = exception-0A"),

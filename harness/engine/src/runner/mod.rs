@@ -2611,6 +2611,16 @@ impl Runner {
                         })
                 })
                 .collect();
+            // Held to the same evidence as what the judgement showed: a learned choice whose answer here is
+            // the reference's own answer too (an FC 08 counter refusing a data field of another size with 03
+            // after the drive refused one of Return Query Data so) shows nothing.
+            let kept = oracle::freedoms::unambiguous(
+                kept,
+                &applicable,
+                &cx,
+                kind.as_deref(),
+                &requirements,
+            );
             // Exception 01 to a function the drive showed it lacks: UNIMPLEMENTED again, not a FAIL because the
             // reference would have answered this request otherwise.
             // The drive's answer, decoded once: what the 01 rule and the functions served look at.

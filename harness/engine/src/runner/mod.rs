@@ -1150,13 +1150,16 @@ impl Runner {
         // still be busy with an earlier request, not done with it: no proof; the window is listened out.
         if sentinel_busy {
             self.sentinels.retain(|t| *t != tid);
-            self.silences.listened += 1;
             let left = self
                 .cfg
                 .timing
                 .silence
                 .saturating_sub(self.target.now().saturating_sub(start));
-            return self.recv_answer(frames, left);
+            let got = self.recv_answer(frames, left)?;
+            if matches!(got, Received::Silence { .. }) {
+                self.silences.listened += 1;
+            }
+            return Ok(got);
         }
         // The sentinel's answer came with nothing for this step before it: the silence is proven.
         self.sentinels.retain(|t| *t != tid);
@@ -2459,10 +2462,16 @@ impl Runner {
             let mut got = match proven {
                 Some(got) => got,
                 None => {
-                    if expected.is_empty() && !self.cfg.is_sim {
+                    let got = self.recv_answer(frames, wait)?;
+                    // Counted where the window ran out: not where the target closed the connection or
+                    // answered after all.
+                    if expected.is_empty()
+                        && !self.cfg.is_sim
+                        && matches!(got, Received::Silence { .. })
+                    {
                         self.silences.listened += 1;
                     }
-                    self.recv_answer(frames, wait)?
+                    got
                 }
             };
             if framing == Framing::Tcp {

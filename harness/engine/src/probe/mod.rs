@@ -75,8 +75,12 @@ pub struct ProbeReport {
     pub unread: Vec<u16>,
     /// Device identification objects (FC 2B/0E), sorted by id.
     pub identification: Vec<(u8, Vec<u8>)>,
-    /// Modbus/TCP: each other unit id a read was sent to, and whether it was answered.
+    /// Modbus/TCP: each other unit id a read was sent to, and whether it was answered (a gateway's 0A or 0B
+    /// is not an answer of a drive there: see `gateway_refused`).
     pub units: Vec<(u8, bool)>,
+    /// Modbus/TCP: the other unit ids refused with 0A (no path) or 0B (no response from the target), as a
+    /// gateway, or a server routing by unit id, refuses an id with no device behind it (App 7): (unit, code).
+    pub gateway_refused: Vec<(u8, u8)>,
     /// The framing the target spoke.
     pub framing: Option<Framing>,
     /// Requests sent.
@@ -413,8 +417,17 @@ pub fn probe(t: &mut dyn Target, o: &ProbeOptions) -> Result<ProbeReport, Target
         };
         if let Some(read) = read {
             for u in UNIT_PROBES.into_iter().filter(|u| *u != unit) {
-                let answered = p.request(u, &read)?.is_some();
-                report.units.push((u, answered));
+                let got = p.request(u, &read)?;
+                let gateway = match &got {
+                    Some(Response::Exception { code, .. }) if matches!(code.0, 0x0A | 0x0B) => {
+                        Some(code.0)
+                    }
+                    _ => None,
+                };
+                if let Some(code) = gateway {
+                    report.gateway_refused.push((u, code));
+                }
+                report.units.push((u, got.is_some() && gateway.is_none()));
             }
         }
     }
@@ -659,6 +672,18 @@ pub fn render(report: &ProbeReport, profile: Option<&Profile>, scan: (u16, u16))
             list(true),
             list(false)
         );
+        if !report.gateway_refused.is_empty() {
+            let v: Vec<String> = report
+                .gateway_refused
+                .iter()
+                .map(|(u, c)| format!("{u} (0x{c:02X})"))
+                .collect();
+            let _ = writeln!(
+                s,
+                "  of those not answered, refused as a gateway refuses an id with no device behind it (0A: no path, 0B: no response, App 7): {}",
+                v.join(", ")
+            );
+        }
     }
     if let Some(why) = &report.stopped {
         let _ = writeln!(s, "\nTHE PROBE STOPPED EARLY: {why}");

@@ -312,3 +312,54 @@ fn the_probe_leaves_a_register_a_read_clears_unread() {
     assert!(report.unread.is_empty());
     assert!(read_of_er(&t));
 }
+
+/// Behind a gateway (the SD2x over Modbus/TCP, the simulated gateway answering 0B where the drive is silent
+/// and the other unit ids refused 0A), the other unit ids' 0A/0B are not answers of a drive there: the probe
+/// reports them as refused as a gateway refuses an id with no device behind it, and the draft's unit ids
+/// stay the drive's own. (Before, 247 and 255 were "answered", and a draft would take them for the drive's.)
+#[test]
+fn a_gateways_refusal_of_another_unit_id_is_no_answer_of_a_drive_there() {
+    use drives::corpus::Corpus;
+    let p = profile("sd2x");
+    let unit = p.device.default_unit;
+    let requirements = Corpus::Embedded.requirements().expect("requirements");
+    let choose = [
+        "gateway-no-response=exception-0B",
+        "tcp-unit-ids=exception-0A",
+    ];
+    let choices = drives::Choices::parse_all(&choose, &requirements, &p).expect("choices");
+    let station = Station::new(
+        drives::build_with(p.clone(), FaultSet::none(), choices.clone()),
+        FaultSet::none(),
+        unit,
+    )
+    .with_choices(choices);
+    let mut t = SimTarget::with_framing(station, Framing::Tcp, None);
+    let report = probe::probe(
+        &mut t,
+        &ProbeOptions {
+            unit,
+            timeout: Duration::from_millis(500),
+            scan: (1995, 2040),
+            writes: false,
+            unread: probe::unread_of(&p),
+        },
+    )
+    .expect("probe");
+    assert!(
+        report.units.iter().all(|(_, answered)| !answered),
+        "{:?}",
+        report.units
+    );
+    let mut refused = report.gateway_refused.clone();
+    refused.sort_unstable();
+    assert_eq!(refused, [(0, 0x0B), (247, 0x0A), (255, 0x0B)]);
+    let text = probe::render(&report, Some(&p), (1995, 2040));
+    assert!(
+        text.contains("refused as a gateway refuses") && text.contains("247 (0x0A)"),
+        "{text}"
+    );
+    let url = TargetUrl::parse("tcp://127.0.0.1:502").expect("url");
+    let d = draft::write(&report, &url, unit, (1995, 2040));
+    assert!(d.contains("unit_ids = [1, 1]"), "{d}");
+}

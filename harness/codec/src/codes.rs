@@ -147,6 +147,11 @@ impl ExceptionCode {
     /// SD2x FC 43/0x0D: an extended exception (SDO error) follows.
     pub const EXTENDED: Self = Self(0xFF);
 
+    /// True for 0A and 0B, the codes a gateway answers for the device behind it (App 7).
+    pub fn is_gateway(self) -> bool {
+        self == Self::GATEWAY_PATH_UNAVAILABLE || self == Self::GATEWAY_TARGET_FAILED
+    }
+
     /// The name of a known exception code.
     pub fn name(self) -> Option<&'static str> {
         Some(match self.0 {

@@ -12,7 +12,7 @@ use std::sync::Arc;
 
 use codec::ExceptionCode;
 
-use crate::profile::{Profile, Transport};
+use crate::profile::Profile;
 use crate::requirements::{Freedom, FreedomKind, FreedomValue, Requirements};
 
 /// Freedom ids the models decide at (each is a `[[freedom]]` id in `corpus/freedoms/`; a test checks it).
@@ -494,7 +494,7 @@ const MODELLED: &[&str] = &[
 /// [`simulated`] for a drive of `profile`: a drive that speaks no Modbus/TCP has no connection to close, so
 /// an outcome `close` is not a choice it can make (on an RTU line a station chosen `close` keeps silent).
 pub fn simulated_on(f: &Freedom, value: &FreedomValue, profile: &Profile) -> bool {
-    let tcp = profile.device.transports.contains(&Transport::Tcp);
+    let tcp = profile.speaks_tcp();
     simulated(f, value) && (tcp || !value.matches("close"))
 }
 

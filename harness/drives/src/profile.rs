@@ -778,6 +778,12 @@ pub fn toml_error_message(text: &str, e: &toml::de::Error) -> String {
 }
 
 impl Profile {
+    /// True when the device speaks Modbus/TCP itself (`transports`): without it, a Modbus/TCP client reaches
+    /// it through a gateway.
+    pub fn speaks_tcp(&self) -> bool {
+        self.device.transports.contains(&Transport::Tcp)
+    }
+
     /// Parse and validate profile text (blocks expanded); `name` is used in errors.
     pub fn parse(name: &str, text: &str) -> Result<Self, ProfileError> {
         let invalid = |offset: usize, reason: String| ProfileError::Invalid {

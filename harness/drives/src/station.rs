@@ -22,7 +22,7 @@ use std::time::Duration;
 use crate::choices::{Choices, Decision, Rejection, ids};
 use crate::faults::{Fault, FaultSet};
 use crate::models::DriveModel;
-use crate::profile::{DiagCounter, Profile, Transport};
+use crate::profile::{DiagCounter, Profile};
 use crate::requirements::FreedomKind;
 use crate::tell::{self, WriteRecord, WriteSink, Written};
 use codec::codes::{diag, event};
@@ -649,8 +649,7 @@ impl Station {
                     // freedom deciding, not `truncated-pdu`. A drive without Modbus/TCP is behind a gateway,
                     // which cuts the PDU by the MBAP length: to the drive it is a PDU too short for its
                     // function, `truncated-pdu` deciding.
-                    self.length_decided =
-                        self.profile().device.transports.contains(&Transport::Tcp);
+                    self.length_decided = self.profile().speaks_tcp();
                     let reply = self.tcp_adu(now, &conn.buf[..len]);
                     self.length_decided = false;
                     reply
@@ -763,7 +762,7 @@ impl Station {
     /// What the client of a drive without Modbus/TCP hears where the drive stays silent: a gateway is
     /// between, and answers as the `gateway-no-response` choice says (silence, 0B or 0A).
     fn gateway_silence(&mut self, header: &tcp::Mbap, function: Option<u8>) -> Option<Wire> {
-        if self.profile().device.transports.contains(&Transport::Tcp) {
+        if self.profile().speaks_tcp() {
             return None;
         }
         self.decisions.push(ids::GATEWAY_NO_RESPONSE);

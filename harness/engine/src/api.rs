@@ -102,7 +102,6 @@ use crate::targets::TargetUrl;
 use crate::targets::sim::SimTarget;
 use codec::Framing;
 use drives::corpus::Corpus;
-use drives::profile::Transport;
 
 pub use crate::cases::Verdict;
 pub use crate::observe::{CaseResult, StepResult};
@@ -282,13 +281,11 @@ impl SessionBuilder {
                 reason: e.to_string(),
             })?;
         }
-        let framing =
-            self.framing
-                .unwrap_or(if profile.device.transports.contains(&Transport::Tcp) {
-                    Framing::Tcp
-                } else {
-                    Framing::Rtu
-                });
+        let framing = self.framing.unwrap_or(if profile.speaks_tcp() {
+            Framing::Tcp
+        } else {
+            Framing::Rtu
+        });
         // The session's own planning, as for an in-process simulator of this profile: every case runs
         // (no safety policy: nothing here can move a motor), framed as asked.
         let mut opts = Options::new(TargetUrl::Sim {

@@ -20,7 +20,7 @@ use crate::targets::sim::SimTarget;
 use crate::targets::{self, Received, TargetError, TargetUrl};
 use codec::{Direction, Framing, Pdu, Request, Response, decode_any, rtu, tcp};
 use drives::corpus::Corpus;
-use drives::profile::{Profile, Transport};
+use drives::profile::Profile;
 use drives::requirements::Requirements;
 use drives::{self, FaultSet, Station};
 
@@ -254,7 +254,7 @@ pub fn framing_of(url: &TargetUrl, profile: &Profile) -> Framing {
             rtu: Some(false), ..
         } => Framing::Tcp,
         TargetUrl::Sim { rtu: None, .. } => {
-            if profile.device.transports.contains(&Transport::Tcp) {
+            if profile.speaks_tcp() {
                 Framing::Tcp
             } else {
                 Framing::Rtu

@@ -787,7 +787,7 @@ pub fn alternatives(
             // The reference is silent, or answers as the gateway a drive chose before (the reference
             // follows it): the drive is silent there.
             let gateways = |e: &Response| {
-                cx.decided(f) && exception_of(e).is_some_and(|(_, c)| matches!(c.0, 0x0A | 0x0B))
+                cx.decided(f) && exception_of(e).is_some_and(|(_, c)| c.is_gateway())
             };
             if cx.gateway && expected.is_none_or(gateways) {
                 outcome(f, cx, expected, observed)

@@ -419,9 +419,7 @@ pub fn probe(t: &mut dyn Target, o: &ProbeOptions) -> Result<ProbeReport, Target
             for u in UNIT_PROBES.into_iter().filter(|u| *u != unit) {
                 let got = p.request(u, &read)?;
                 let gateway = match &got {
-                    Some(Response::Exception { code, .. }) if matches!(code.0, 0x0A | 0x0B) => {
-                        Some(code.0)
-                    }
+                    Some(Response::Exception { code, .. }) if code.is_gateway() => Some(code.0),
                     _ => None,
                 };
                 if let Some(code) = gateway {

@@ -2509,15 +2509,12 @@ impl Runner {
             if let Some(u) = used.get_mut(e) {
                 *u = true;
             }
-            let sent = frames
-                .get(j)
-                .or(frames.last())
-                .map(|f| f.sent.clone())
-                .unwrap_or(Sent {
-                    tid: None,
-                    unit,
-                    pdu: vec![],
-                });
+            let frame = frames.get(j).or(frames.last());
+            let sent = frame.map(|f| f.sent.clone()).unwrap_or(Sent {
+                tid: None,
+                unit,
+                pdu: vec![],
+            });
             // A request longer than its layout is judged as the request the layout reads (a drive may serve
             // it, `trailing-bytes`), so that what it touches (an item a product may lack) is known.
             let request = Request::decode(&sent.pdu)
@@ -2547,25 +2544,15 @@ impl Runner {
                 unit: sent.unit,
                 run_unit: self.cfg.unit,
                 profile: &self.profile,
-                malformed: frames.get(j).or(frames.last()).is_some_and(|f| f.malformed),
+                malformed: frame.is_some_and(|f| f.malformed),
                 batch: frames.len() > 1,
                 decided: &decided,
                 counter_alternatives: &counter_alternatives,
                 closed: matches!(got, Received::Closed { .. }),
-                short_of_length: frames
-                    .get(j)
-                    .or(frames.last())
-                    .is_some_and(|f| f.short_of_length()),
+                short_of_length: frame.is_some_and(|f| f.short_of_length()),
                 gateway: framing == Framing::Tcp
-                    && !self
-                        .profile
-                        .device
-                        .transports
-                        .contains(&drives::profile::Transport::Tcp)
-                    && frames
-                        .get(j)
-                        .or(frames.last())
-                        .is_some_and(|f| f.bytes.get(2..4) == Some(&[0, 0][..])),
+                    && !self.profile.speaks_tcp()
+                    && frame.is_some_and(|f| f.bytes.get(2..4) == Some(&[0, 0][..])),
             };
             let requirements = Arc::clone(&self.requirements);
             let applicable = oracle::freedoms::applicable_among(

@@ -9,8 +9,11 @@
 #   PRESET=tests/independent/lmd/preset_output_function.py tests/independent/against.sh lmd lmd tcp
 #   PROXY="--notice 20" tests/independent/against.sh mdrive mdrive tcp   # behind bench/one-slot-proxy.py
 #   GATEWAY="--units 1-1" tests/independent/against.sh sd2x-b sd2x tcp    # an RTU drive behind bench/gateway.py
+#   tests/independent/against.sh sd2x-c sd2x serial    # on one end of a socat pty pair (drives with --serial)
+#   ECHO="" tests/independent/against.sh sd2x-b sd2x serial   # behind bench/echo-line.py, the run with echo=on
+#                                                             # (ECHO_URL=off: without it)
 set -u
-[ $# -ge 3 ] || { sed -n 2,11p "$0"; exit 2; }
+[ $# -ge 3 ] || { sed -n 2,14p "$0"; exit 2; }
 drive=$1 profile=$2 scheme=$3; shift 3
 here=$(cd "$(dirname "$0")" && pwd)
 repo=$(cd "$here/../.." && pwd)
@@ -19,13 +22,39 @@ B=${B:-${CARGO_TARGET_DIR:-$repo/target}/release/modbus-harness}
 # DRIVE is one of this folder's drives, or the path of another drive's folder (its sim.py takes the same options).
 out=${OUT:-/tmp/independent}/$(basename "$drive")-$(date +%s%N); mkdir -p "$out"
 case $drive in */*) sim=$drive/sim.py; drive=$(basename "$drive") ;; *) sim=$here/$drive/sim.py ;; esac
-python3 "$sim" ${SIM_ARGS:-} --listen 127.0.0.1:0 --state "$out/state.json" > "$out/sim.out" 2> "$out/sim.err" &
+if [ "$scheme" = serial ]; then
+  # The drive on one end of a socat pty pair at 19200 8N1, the harness on the other (or behind ECHO's line).
+  socat pty,raw,echo=0,link="$out/ttyA" pty,raw,echo=0,link="$out/ttyB" 2> "$out/socat.err" &
+  spid=$!
+  for _ in $(seq 50); do [ -e "$out/ttyA" ] && [ -e "$out/ttyB" ] && break; sleep 0.1; done
+  [ -e "$out/ttyB" ] || { echo "socat made no pty pair: $(cat "$out/socat.err")" >&2; kill $spid; exit 2; }
+  python3 "$sim" ${SIM_ARGS:-} --serial "$out/ttyA" --baud 19200 --parity none --state "$out/state.json" > "$out/sim.out" 2> "$out/sim.err" &
+else
+  python3 "$sim" ${SIM_ARGS:-} --listen 127.0.0.1:0 --state "$out/state.json" > "$out/sim.out" 2> "$out/sim.err" &
+fi
 pid=$!
-trap 'kill $pid 2>/dev/null; wait $pid 2>/dev/null' EXIT
+trap 'kill $pid ${spid:-} 2>/dev/null; wait $pid ${spid:-} 2>/dev/null' EXIT
 for _ in $(seq 50); do grep -q listening "$out/sim.out" && break; sleep 0.1; done
-addr=$(grep -oE '127\.0\.0\.1:[0-9]+' "$out/sim.out" | head -1)
-[ -n "$addr" ] || { echo "the drive did not start: $(cat "$out/sim.err")" >&2; exit 2; }
-[ -n "${PRESET:-}" ] && python3 "$PRESET" "$addr" > "$out/preset.out"
+if [ "$scheme" = serial ]; then
+  grep -q listening "$out/sim.out" || { echo "the drive did not start: $(cat "$out/sim.err")" >&2; exit 2; }
+  target="rtu://$out/ttyB?baud=19200&parity=none"
+  if [ -n "${ECHO+x}" ]; then
+    # The harness behind bench/echo-line.py (ECHO's options, may be empty): every byte it sends comes back.
+    python3 "$repo/bench/echo-line.py" "$out/ttyB" --link "$out/echoing" $ECHO --lifetime 1800 > "$out/echo.out" 2> "$out/echo.err" &
+    epid=$!
+    trap 'kill $pid ${spid:-} $epid 2>/dev/null; wait $pid ${spid:-} $epid 2>/dev/null' EXIT
+    for _ in $(seq 50); do grep -q serial "$out/echo.out" && break; sleep 0.1; done
+    [ -e "$out/echoing" ] || { echo "the echo line did not start: $(cat "$out/echo.err")" >&2; exit 2; }
+    target="rtu://$out/echoing?baud=19200&parity=none"
+    # ECHO_URL=off leaves echo=on out of the URL (what a harness without it meets).
+    [ "${ECHO_URL:-on}" = on ] && target="$target&echo=on"
+  fi
+else
+  addr=$(grep -oE '127\.0\.0\.1:[0-9]+' "$out/sim.out" | head -1)
+  [ -n "$addr" ] || { echo "the drive did not start: $(cat "$out/sim.err")" >&2; exit 2; }
+  target="$scheme://$addr"
+fi
+[ -n "${PRESET:-}" ] && python3 "$PRESET" "${addr:?PRESET needs a TCP drive}" > "$out/preset.out"
 if [ -n "${PROXY:-}" ]; then
   # The drive behind a proxy with PROXY's options (bench/one-slot-proxy.py: one connection slot, an idle
   # timeout); the harness talks to the proxy, the state is still dumped by the drive.
@@ -35,6 +64,7 @@ if [ -n "${PROXY:-}" ]; then
   for _ in $(seq 50); do grep -q listening "$out/proxy.out" && break; sleep 0.1; done
   addr=$(grep -oE '127\.0\.0\.1:[0-9]+' "$out/proxy.out" | head -1)
   [ -n "$addr" ] || { echo "the proxy did not start: $(cat "$out/proxy.out")" >&2; exit 2; }
+  target="$scheme://$addr"
 fi
 if [ -n "${GATEWAY+x}" ]; then
   # An RTU-over-TCP drive reached over Modbus/TCP through bench/gateway.py with GATEWAY's options (may be
@@ -45,9 +75,10 @@ if [ -n "${GATEWAY+x}" ]; then
   for _ in $(seq 50); do grep -q listening "$out/gateway.out" && break; sleep 0.1; done
   addr=$(grep -oE '127\.0\.0\.1:[0-9]+' "$out/gateway.out" | head -1)
   [ -n "$addr" ] || { echo "the gateway did not start: $(cat "$out/gateway.err")" >&2; exit 2; }
+  target="$scheme://$addr"
 fi
 kill -USR1 $pid; sleep 0.5; cp "$out/state.json" "$out/before.json"
-timeout 1800 "$B" run --target "$scheme://$addr" --profile "$profile" --report "$out/report" --regressions "$out/regressions" --no-progress "$@" \
+timeout 1800 "$B" run --target "$target" --profile "$profile" --report "$out/report" --regressions "$out/regressions" --no-progress "$@" \
   > "$out/run.out" 2> "$out/run.err"
 echo "harness exit $?" >> "$out/run.out"
 kill -USR1 $pid; sleep 0.5; cp "$out/state.json" "$out/after.json"
@@ -70,4 +101,5 @@ PY
 grep -E "^RESULT|harness exit" "$out/run.out"
 [ -n "${PROXY:-}" ] && { sleep 1.1; grep stats "$out/proxy.out" | tail -1; }
 [ -n "${GATEWAY+x}" ] && { kill $gpid; sleep 0.3; cat "$out/gateway.err"; }
+[ -n "${ECHO+x}" ] && [ -n "${epid:-}" ] && { kill $epid; sleep 0.3; cat "$out/echo.err"; }
 echo "dir: $out"

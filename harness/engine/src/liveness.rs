@@ -51,14 +51,26 @@ pub fn frame(pdu: &[u8], framing: Framing, unit: u8, tid: u16) -> Vec<u8> {
     out
 }
 
+/// How long [`ask`] listens on after a late answer of an earlier request, for the request's own answer or
+/// its echo.
+const AFTER_A_LATE_ANSWER: Duration = Duration::from_millis(200);
+
 /// Send `request` (already framed) and listen up to `bound` (on the target's clock): a Modbus answer, bytes
 /// of something else, a close or nothing. Any Modbus response counts, whatever request it answers (a late
-/// answer of an earlier request shows the target alive as well). Bounded by `bound` and by 32 receives.
+/// answer of an earlier request shows the target alive as well), except where the request itself comes back
+/// ahead of its answer: that is the line's echo (a two-wire RS-485 adapter hears itself), which every case
+/// would take for the drive's answer, and the target is [`Heard::Foreign`] as an echo. So a late answer of
+/// an earlier request is not the end: the listening goes on a little ([`AFTER_A_LATE_ANSWER`]) for this
+/// request's answer or its echo. Bounded by `bound` and by 32 receives.
 pub fn ask(t: &mut dyn Target, request: &[u8], bound: Duration) -> Result<Heard, TargetError> {
     let framing = t.framing();
     t.send(request)?;
     let start = t.now();
     let mut foreign: Vec<u8> = Vec::new();
+    // A Modbus response to another request came (a late answer): the target is alive, and only a short
+    // while more is listened for this request's own answer or its echo (which follows the send at once).
+    let mut alive = false;
+    let mut bound = bound;
     for _ in 0..32 {
         let left = bound.saturating_sub(t.now().saturating_sub(start));
         if left.is_zero() {
@@ -67,7 +79,17 @@ pub fn ask(t: &mut dyn Target, request: &[u8], bound: Duration) -> Result<Heard,
         match t.recv(left)? {
             Received::Frame { bytes, .. } => {
                 if crate::readings::decode_response(framing, &bytes).is_some() {
-                    return Ok(Heard::Modbus);
+                    if foreign.starts_with(request) {
+                        break;
+                    }
+                    if begins_an_answer(&bytes, request, framing) {
+                        return Ok(Heard::Modbus);
+                    }
+                    if !alive {
+                        alive = true;
+                        bound = bound.min(t.now().saturating_sub(start) + AFTER_A_LATE_ANSWER);
+                    }
+                    continue;
                 }
                 foreign.extend_from_slice(&bytes);
             }
@@ -78,7 +100,7 @@ pub fn ask(t: &mut dyn Target, request: &[u8], bound: Duration) -> Result<Heard,
             }
             Received::Closed { partial, .. } => {
                 foreign.extend_from_slice(&partial);
-                if foreign.is_empty() {
+                if foreign.is_empty() && !alive {
                     return Ok(Heard::Closed);
                 }
                 break;
@@ -88,9 +110,13 @@ pub fn ask(t: &mut dyn Target, request: &[u8], bound: Duration) -> Result<Heard,
             break;
         }
     }
-    if begins_an_answer(&foreign, request, framing) {
-        // A Modbus server whose answer is malformed (its MBAP length disagrees with its bytes, its CRC is
-        // wrong, say): the cases judge it; refusing to run would hide the fault behind "not a Modbus server".
+    if foreign.starts_with(request) {
+        return Ok(Heard::Foreign(looks_like(&foreign, request)));
+    }
+    if alive || begins_an_answer(&foreign, request, framing) {
+        // A late answer; or a Modbus server whose answer is malformed (its MBAP length disagrees with its
+        // bytes, its CRC is wrong, say): the cases judge it; refusing to run would hide the fault behind
+        // "not a Modbus server".
         return Ok(Heard::Modbus);
     }
     Ok(if foreign.is_empty() {
@@ -118,6 +144,9 @@ fn begins_an_answer(bytes: &[u8], request: &[u8], framing: Framing) -> bool {
     }
 }
 
+/// How [`looks_like`] names an echo of the request.
+const ECHO: &str = "an echo of the request";
+
 /// What bytes that are not Modbus look like ("HTTP (...)", "TLS", "SSH", an echo of the request, text, or
 /// their first bytes in hex), to follow "looks like".
 pub fn looks_like(bytes: &[u8], request: &[u8]) -> String {
@@ -140,7 +169,9 @@ pub fn looks_like(bytes: &[u8], request: &[u8]) -> String {
         return format!("SSH (banner \"{first_line}\")");
     }
     if !request.is_empty() && bytes.starts_with(request) {
-        return "an echo of the request (an echo service, a loopback, or a serial adapter echoing what is sent)".into();
+        return format!(
+            "{ECHO} (an echo service, a loopback, or a serial adapter echoing what is sent)"
+        );
     }
     let printable = bytes
         .iter()
@@ -158,15 +189,18 @@ pub fn looks_like(bytes: &[u8], request: &[u8]) -> String {
 
 /// What to tell the user when the pre-flight read did not get a Modbus answer (`None` when it did): what
 /// was tried, and the likely causes or what the peer looks like instead.
+/// `serial` is `Some(echo)` on a serial line, `echo` its `echo=on`.
 pub fn preflight_failure(
     target: &str,
     heard: &Heard,
     request: &[u8],
     framing: Framing,
-    serial: bool,
+    serial: Option<bool>,
     unit: u8,
     bound: Duration,
 ) -> Option<String> {
+    let echo_expected = serial == Some(true);
+    let serial = serial.is_some();
     let pdu = match framing {
         Framing::Tcp => request.get(7..).unwrap_or(&[]),
         _ => request
@@ -194,6 +228,11 @@ pub fn preflight_failure(
             "{target} closed the connection without answering {tried}, so no case was run. Likely causes: {}",
             likely_causes(framing, serial, unit)
         )),
+        Heard::Foreign(looks) if serial && !echo_expected && looks.starts_with(ECHO) => {
+            Some(format!(
+                "{target} gave back {tried} as it was sent, so no case was run: a two-wire RS-485 adapter whose receiver stays on while it transmits hears itself. Add echo=on to the target URL (rtu://PATH?...&echo=on): each request's echo is then read back, checked and dropped before the answer"
+            ))
+        }
         Heard::Foreign(looks) => Some(format!(
             "{target} is not a Modbus server: it answered {tried} with what looks like {looks}, so no case was run"
         )),

@@ -626,7 +626,10 @@ pub fn preflight(
         &heard,
         &request,
         runner.framing(),
-        matches!(opts.target, TargetUrl::Serial { .. }),
+        match opts.target {
+            TargetUrl::Serial { echo, .. } => Some(echo),
+            _ => None,
+        },
         unit,
         bounds.probe_timeout,
     ) {

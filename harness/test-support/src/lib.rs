@@ -398,6 +398,33 @@ impl PtyPair {
     }
 }
 
+/// bench/echo-line.py: a pty linked at `link` that gives back every byte written to it (the local echo of a
+/// two-wire RS-485 adapter) and relays it to the serial device `upstream` (one end of a [`PtyPair`]), with
+/// `extra` (`--corrupt-at N`, `--echo off`); returns once the link exists (bounded), killed on drop.
+pub fn echo_line(upstream: &Path, link: &Path, extra: &[&str]) -> ChildGuard {
+    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../bench/echo-line.py");
+    let mut c = Command::new("python3");
+    c.arg(script)
+        .arg(upstream)
+        .arg("--link")
+        .arg(link)
+        .args(extra)
+        .args(["--lifetime", "600"]);
+    let mut guard = spawn_guarded(&mut c, Stdio::null(), Stdio::null());
+    let began = Instant::now();
+    while !link.exists() {
+        if let Ok(Some(status)) = guard.0.try_wait() {
+            panic!("echo-line.py ended before its link existed: {status}");
+        }
+        assert!(
+            began.elapsed() < STEP,
+            "echo-line.py made no link within {STEP:?}"
+        );
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    guard
+}
+
 /// A pty whose bytes socat carries to a TCP endpoint and back: an RTU client that only speaks serial (the
 /// libmodbus client, mbpoll) reaches an RTU-over-TCP endpoint through it. Killed on drop.
 pub struct PtyTcpBridge {

@@ -171,7 +171,10 @@ pub fn run(args: &ProbeArgs) -> ExitCode {
             &heard,
             &request,
             framing,
-            matches!(url, TargetUrl::Serial { .. }),
+            match url {
+                TargetUrl::Serial { echo, .. } => Some(echo),
+                _ => None,
+            },
             unit,
             bound,
         ) {

@@ -285,7 +285,7 @@ fn differences(a: &BTreeMap<String, String>, b: &BTreeMap<String, String>) -> Ve
 }
 
 /// The simulate journal's complete lines (a line being written while the test reads is left for later).
-fn journal_lines(path: &Path) -> Vec<serde_json::Value> {
+pub(crate) fn journal_lines(path: &Path) -> Vec<serde_json::Value> {
     let text = std::fs::read_to_string(path).unwrap_or_default();
     let complete = text.rfind('\n').map_or("", |i| &text[..i]);
     complete
@@ -356,8 +356,8 @@ fn wait_for_a_change(run: &mut ChildGuard, sim_journal: &Path) {
 /// A preset simulator of `name` (see [`nonfactory_presets`]) journaling every write it accepts to
 /// `dir/sim.jsonl`, with what a test needs to read it back as a client: its profile, the run's target URL
 /// and the framing of that endpoint (RTU over TCP for the SD2x, Modbus/TCP for the others).
-struct PresetDrive {
-    sim: SimProcess,
+pub(crate) struct PresetDrive {
+    pub(crate) sim: SimProcess,
     url: String,
     framing: Framing,
     /// How many presets moved it off its factory values.
@@ -367,11 +367,16 @@ struct PresetDrive {
 
 impl PresetDrive {
     fn start(name: &str, dir: &Path, extra: &[&str]) -> Self {
+        Self::start_framed(name, dir, extra, name == "sd2x")
+    }
+
+    /// As [`PresetDrive::start`], served as RTU over TCP where `rtu` (a profile with RTU among its
+    /// transports), else over Modbus/TCP.
+    pub(crate) fn start_framed(name: &str, dir: &Path, extra: &[&str], rtu: bool) -> Self {
         let presets = nonfactory_presets(name);
         let file = dir.join("preset.txt");
         std::fs::write(&file, presets.join("\n")).expect("preset file");
         let journal = dir.join("sim.jsonl");
-        let rtu = name == "sd2x";
         let mut args = vec![
             "--profile",
             name,
@@ -399,13 +404,13 @@ impl PresetDrive {
     }
 
     /// Every parameter as the drive reads it now ([`read_everything`]).
-    fn read(&self) -> BTreeMap<String, String> {
+    pub(crate) fn read(&self) -> BTreeMap<String, String> {
         let addr = self.sim.tcp.or(self.sim.rtu_over_tcp).expect("an endpoint");
         read_everything(addr, self.framing, &self.p)
     }
 
     /// Panics with `what` and the differences unless every parameter reads as in `before`.
-    fn assert_reads_as(&self, before: &BTreeMap<String, String>, what: &str) {
+    pub(crate) fn assert_reads_as(&self, before: &BTreeMap<String, String>, what: &str) {
         let diff = differences(before, &self.read());
         assert!(diff.is_empty(), "{what}: {diff:#?}");
     }

@@ -4,6 +4,7 @@
 mod ci_examples;
 mod dead_target;
 mod decode;
+mod echo_line;
 mod edges;
 mod generated_snapshots;
 mod html_browser;

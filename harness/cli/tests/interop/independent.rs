@@ -356,6 +356,54 @@ fn the_sd2x_on_a_serial_line_passes_and_is_left_as_found() {
     }
 }
 
+/// The second SD2x on a serial line behind bench/echo-line.py, which gives back every byte the harness sends,
+/// as a two-wire RS-485 adapter whose receiver stays on while it transmits: with `echo=on` the catalog with
+/// every flag PASSes and the drive is left as found (the third, whose serial mode has no TCP endpoint for
+/// this test's start, the same with `ECHO="" tests/independent/against.sh sd2x-c sd2x serial`). A harness that took the echo for the answer
+/// (the previous one, `echo=on` left out) FAILed 172 of sd2x-b's cases and left it in FAULT (BENCHMARKS.md,
+/// "A serial line that echoes"); the harness now stops at the pre-flight instead.
+#[test]
+fn the_sd2x_behind_a_line_that_echoes_passes_and_is_left_as_found() {
+    if !socat_or_skip("independent::the_sd2x_behind_a_line_that_echoes") {
+        return;
+    }
+    let drive = "sd2x-b";
+    let pty = PtyPair::start();
+    let a = pty.a.to_string_lossy().into_owned();
+    let sim = Independent::start_with(
+        drive,
+        &["--serial", &a, "--baud", "19200", "--parity", "even"],
+    );
+    let dir = TempDir::new("echoing");
+    let link = dir.path().join("echoing");
+    let _line = test_support::echo_line(&pty.b, &link, &[]);
+    let before = sim.state();
+    let target = format!("rtu://{}?baud=19200&parity=even&echo=on", link.display());
+    let extra = ["--allow-motion", "--allow-destructive"];
+    let (code, out, err) = harness_bounded(None, &run_args(&target, "sd2x", &extra), RUN_LIMIT);
+    let after = sim.state();
+    let mut diff = Vec::new();
+    differences(&before, &after, "", &mut diff);
+    assert!(
+        diff.is_empty(),
+        "{drive} behind an echoing line: left changed: {diff:?}\n{out}\n{err}"
+    );
+    assert_pass(drive, code, &out);
+    let (code, _, err) = harness_bounded(
+        None,
+        &run_args(&target.replace("&echo=on", ""), "sd2x", &extra),
+        RUN_LIMIT,
+    );
+    assert_eq!(code, 2, "{drive}: {err}");
+    assert!(err.contains("Add echo=on"), "{drive}: {err}");
+    let mut diff = Vec::new();
+    differences(&after, &sim.state(), "", &mut diff);
+    assert!(
+        diff.is_empty(),
+        "{drive}: the run stopped at the pre-flight changed {diff:?}"
+    );
+}
+
 /// The third wave (BRIEF-c.md): an MDrive Plus2 that answers unit ids 255 and 0 only (so `--unit 255`: the
 /// harness's pre-flight says so), whose I/O points are all inputs as shipped and which refuses reads and
 /// writes of outputs with 02, reads TR back as the write format's one value, and takes only 1 as S's

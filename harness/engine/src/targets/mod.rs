@@ -179,9 +179,12 @@ pub fn open(
         TargetUrl::RtuOverTcp { host, port } => {
             Box::new(net::TcpTarget::connect(host, *port, connect_timeout, true)?)
         }
-        TargetUrl::Serial { path, baud, format } => {
-            Box::new(serial::SerialTarget::open(path, *baud, *format)?)
-        }
+        TargetUrl::Serial {
+            path,
+            baud,
+            format,
+            echo,
+        } => Box::new(serial::SerialTarget::open(path, *baud, *format)?.with_echo(*echo)),
         TargetUrl::Sim { profile, rtu } => {
             // The drive under test: nobody takes its decisions (the reference's are the oracle's).
             let station = sim_station(profile)?.forgetting_decisions();

@@ -1,4 +1,5 @@
-//! Target URLs: `tcp://host:port`, `rtu+tcp://host:port`, `rtu:///dev/ttyX?baud=..&parity=..&stop=..`, `sim:PROFILE`
+//! Target URLs: `tcp://host:port`, `rtu+tcp://host:port`, `rtu:///dev/ttyX?baud=..&parity=..&stop=..&echo=..`,
+//! `sim:PROFILE`
 //! (`PROFILE` a corpus profile's name or a profile file: `sim:./my.toml`, `sim:/abs/x.toml?transport=rtu`).
 
 use std::fmt;
@@ -17,6 +18,9 @@ pub enum TargetUrl {
         path: String,
         baud: u32,
         format: CharFormat,
+        /// The line gives back what the harness sends (`echo=on`: a two-wire RS-485 adapter that hears its
+        /// own transmitter); each request's echo is checked and dropped before the answer is read.
+        echo: bool,
     },
     /// The in-process reference drive of a profile (no sockets, virtual clock); `rtu` overrides the
     /// profile's native framing (`sim:generic?transport=rtu`). `profile` is a corpus name or a file path
@@ -123,7 +127,7 @@ impl TargetUrl {
                     "the serial device must be an absolute path: rtu:///dev/ttyUSB0".into(),
                 ));
             }
-            let (mut baud, mut parity, mut stop) = (19_200u32, Parity::Even, 1u8);
+            let (mut baud, mut parity, mut stop, mut echo) = (19_200u32, Parity::Even, 1u8, false);
             for kv in query.split('&').filter(|s| !s.is_empty()) {
                 let (k, v) = kv
                     .split_once('=')
@@ -153,7 +157,18 @@ impl TargetUrl {
                             _ => return Err(err(format!("stop bits `{v}` is not 1 or 2"))),
                         }
                     }
-                    _ => return Err(err(format!("unknown option `{k}` (baud, parity, stop)"))),
+                    "echo" => {
+                        echo = match v {
+                            "on" | "1" | "true" => true,
+                            "off" | "0" | "false" => false,
+                            _ => return Err(err(format!("echo `{v}` is not on or off"))),
+                        }
+                    }
+                    _ => {
+                        return Err(err(format!(
+                            "unknown option `{k}` (baud, parity, stop, echo)"
+                        )));
+                    }
                 }
             }
             return Ok(TargetUrl::Serial {
@@ -163,6 +178,7 @@ impl TargetUrl {
                     parity,
                     stop_bits: stop,
                 },
+                echo,
             });
         }
         Err(err(match url.split_once("://") {
@@ -188,7 +204,12 @@ impl fmt::Display for TargetUrl {
                 write!(f, "rtu+tcp://[{host}]:{port}")
             }
             TargetUrl::RtuOverTcp { host, port } => write!(f, "rtu+tcp://{host}:{port}"),
-            TargetUrl::Serial { path, baud, format } => {
+            TargetUrl::Serial {
+                path,
+                baud,
+                format,
+                echo,
+            } => {
                 let p = match format.parity {
                     Parity::None => "none",
                     Parity::Even => "even",
@@ -196,8 +217,9 @@ impl fmt::Display for TargetUrl {
                 };
                 write!(
                     f,
-                    "rtu://{path}?baud={baud}&parity={p}&stop={}",
-                    format.stop_bits
+                    "rtu://{path}?baud={baud}&parity={p}&stop={}{}",
+                    format.stop_bits,
+                    if *echo { "&echo=on" } else { "" }
                 )
             }
             TargetUrl::Sim { profile, rtu: None } => write!(f, "sim:{profile}"),
@@ -251,5 +273,32 @@ mod tests {
         assert!(e.reason.contains("sim:./my.toml"), "{e}");
         let e = TargetUrl::parse("sim:./my.toml?baud=9600").unwrap_err();
         assert!(e.reason.contains("unknown sim option `baud=9600`"), "{e}");
+    }
+
+    #[test]
+    fn serial_targets_take_line_settings_and_the_local_echo() {
+        use codec::{CharFormat, Parity};
+        let got = TargetUrl::parse("rtu:///dev/ttyUSB0?baud=9600&parity=none&stop=2&echo=on")
+            .unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(
+            got,
+            TargetUrl::Serial {
+                path: "/dev/ttyUSB0".into(),
+                baud: 9600,
+                format: CharFormat {
+                    parity: Parity::None,
+                    stop_bits: 2
+                },
+                echo: true,
+            }
+        );
+        assert_eq!(TargetUrl::parse(&got.to_string()).as_ref(), Ok(&got));
+        let plain = TargetUrl::parse("rtu:///dev/ttyUSB0").unwrap_or_else(|e| panic!("{e}"));
+        assert!(matches!(plain, TargetUrl::Serial { echo: false, .. }));
+        assert!(!plain.to_string().contains("echo"), "{plain}");
+        let e = TargetUrl::parse("rtu:///dev/ttyUSB0?echo=maybe").unwrap_err();
+        assert!(e.reason.contains("echo `maybe` is not on or off"), "{e}");
+        let e = TargetUrl::parse("rtu:///dev/ttyUSB0?loopback=1").unwrap_err();
+        assert!(e.reason.contains("(baud, parity, stop, echo)"), "{e}");
     }
 }

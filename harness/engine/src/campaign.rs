@@ -322,8 +322,8 @@ pub fn campaign(
         return Err(SessionError::FaultNeedsSim);
     }
     let cfg = config(base, &profile);
-    let mut runner = open_runner(base, &profile, &cfg, &Expectations::default())?;
-    crate::session::preflight(base, &profile, &mut runner)?;
+    let mut runner =
+        crate::session::open_checked_runner(base, &profile, &cfg, &Expectations::default())?;
     if !cfg.is_sim && !cfg.safety.read_only && opts.allow_writes {
         let allowed = |yes: bool| if yes { "ALLOWED" } else { "not sent" };
         let _ = writeln!(

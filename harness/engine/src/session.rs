@@ -536,7 +536,42 @@ pub(crate) fn config(opts: &Options, profile: &Profile) -> RunConfig {
 
 /// Open the target and its reference drive (fault-free, in lockstep) and put a runner around them. A `sim:`
 /// target runs its own drive (with the run's faults); the reference drive is always the run's profile's.
+/// The runner has learned the drive's choices ([`learn_choices`]).
 pub(crate) fn open_runner(
+    opts: &Options,
+    profile: &Profile,
+    cfg: &RunConfig,
+    expectations: &Expectations,
+) -> Result<Runner, SessionError> {
+    let mut runner = open_unlearned(opts, profile, cfg, expectations)?;
+    learn_choices(&mut runner);
+    Ok(runner)
+}
+
+/// [`open_runner`] with the [`preflight`] first: a target that does not answer, or a line that echoes, is
+/// said before the runner's own reads (each of which would wait its timeout, or read an echo).
+pub(crate) fn open_checked_runner(
+    opts: &Options,
+    profile: &Profile,
+    cfg: &RunConfig,
+    expectations: &Expectations,
+) -> Result<Runner, SessionError> {
+    let mut runner = open_unlearned(opts, profile, cfg, expectations)?;
+    preflight(opts, profile, &mut runner)?;
+    learn_choices(&mut runner);
+    Ok(runner)
+}
+
+/// Where a freedom leaves the word order (and the FC 43 form, the input addressing, the output setup)
+/// open, the cases are judged in the drive's own: read from it here.
+fn learn_choices(runner: &mut Runner) {
+    runner.learn_word_order();
+    runner.learn_fc43_form();
+    runner.learn_input_addressing();
+    runner.learn_output_setup();
+}
+
+fn open_unlearned(
     opts: &Options,
     profile: &Profile,
     cfg: &RunConfig,
@@ -563,20 +598,14 @@ pub(crate) fn open_runner(
         opts.connect_timeout,
     )?;
     let shadow = SimTarget::reference(profile, unit, drives::Choices::reference(), target.as_ref());
-    let mut runner = Runner::new(
+    Ok(Runner::new(
         target,
         shadow,
         profile.clone(),
         cfg.clone(),
         expectations.clone(),
     )
-    .with_requirements(requirements);
-    // Where a freedom leaves the word order open, the cases are judged in the drive's own.
-    runner.learn_word_order();
-    runner.learn_fc43_form();
-    runner.learn_input_addressing();
-    runner.learn_output_setup();
-    Ok(runner)
+    .with_requirements(requirements))
 }
 
 /// How the silences due were settled (run and fuzz, at their end), when there were any.
@@ -967,8 +996,7 @@ pub fn run(
     let requirements = requirements_of(&opts.corpus)?;
     let planned = catalog_plan(opts, &profile, &requirements)?;
     let generator = generator(opts, &profile);
-    let mut runner = open_runner(opts, &profile, &cfg, &expectations)?;
-    preflight(opts, &profile, &mut runner)?;
+    let mut runner = open_checked_runner(opts, &profile, &cfg, &expectations)?;
     let mut watch = Watch::new(opts, &profile);
     if let Some(w) = watch.as_ref() {
         runner.watch_mid_case(w.probe.clone(), w.bounds.probe_timeout);

@@ -50,6 +50,16 @@ struct Echo {
 const RESYNC_QUIET: Duration = ECHO_ALLOWANCE;
 const RESYNC_MAX: Duration = Duration::from_secs(2);
 
+impl Echo {
+    /// The echo went wrong: nothing more is due, and stray bytes are let pass before the next request.
+    fn abandon(&mut self) {
+        self.due.clear();
+        self.by = None;
+        self.matched = 0;
+        self.resync = true;
+    }
+}
+
 impl SerialTarget {
     /// Open `path` at `baud` with `format`; a missing or busy device is named with the OS error.
     pub fn open(path: &str, baud: u32, format: CharFormat) -> Result<Self, TargetError> {
@@ -108,10 +118,7 @@ impl SerialTarget {
                         "the line's echo of the request differs from what was sent at byte {} (sent {want:02X}, read back {got:02X}): a collision on the bus (another master, or a device transmitting while the harness did), or noise; the echo was expected because of echo=on",
                         e.matched + 1
                     );
-                    e.due.clear();
-                    e.by = None;
-                    e.matched = 0;
-                    e.resync = true;
+                    e.abandon();
                     return Err(self.io(std::io::Error::new(ErrorKind::InvalidData, msg)));
                 }
                 e.due.pop_front();
@@ -178,10 +185,7 @@ impl SerialTarget {
             let now = Instant::now();
             if now >= by {
                 if let Some(e) = self.echo.as_mut() {
-                    e.due.clear();
-                    e.by = None;
-                    e.matched = 0;
-                    e.resync = true;
+                    e.abandon();
                 }
                 let msg = format!(
                     "the line gave back {matched} of the {} byte(s) sent within {} ms (echo=on expects every byte sent to be read back, as a two-wire RS-485 adapter without echo suppression does): remove echo=on if the adapter does not echo",

@@ -117,6 +117,9 @@ pub mod ids {
     pub const SD2X_DIAGNOSTIC_UNUSED_DATA: &str = "sd2x-diagnostic-unused-data";
     /// SD2x FC 08/00 with a data field other than 2 bytes: echoed, exception 03, or silence.
     pub const SD2X_DIAGNOSTIC_DATA_SIZE: &str = "sd2x-diagnostic-data-size";
+    /// After S (NVM save), CP or UG: every request, or the writes, answered Server Busy (06) for 400 ms.
+    /// Taken by the station (see `MODELLED`); no answer is a decision of it (the runner asks again).
+    pub const BUSY_AFTER_LONG_COMMAND: &str = "busy-after-long-command";
 
     /// Every id above.
     pub const ALL: &[&str] = &[
@@ -489,6 +492,7 @@ const MODELLED: &[&str] = &[
     "sd2x-watchdog-trip-state",
     "sd2x-fc43-reserved-byte",
     "lmd-discrete-input-addressing",
+    ids::BUSY_AFTER_LONG_COMMAND,
 ];
 
 /// [`simulated`] for a drive of `profile`: a drive that speaks no Modbus/TCP has no connection to close, so

@@ -286,6 +286,10 @@ pub struct Register {
     /// Where the manual gives the range two ways (`min`/`max` is then the widest reading): the values every
     /// reading takes. The harness writes no other value inside the range; empty for a range read one way.
     pub safe_values: Vec<i64>,
+    /// The manual gives no written value a meaning every reading shares (MCode DC/IC, "the specified
+    /// variable": its address, an index of R1-R4, or nothing at all): a drive may refuse any value with 03
+    /// (freedom `value-meaning-open`), the values of `safe_values` too. The harness still writes only those.
+    pub operand_open: bool,
     /// The manual gives the register's width two ways (two addresses, two bytes): a drive may take a write
     /// of its first register for a whole one. What a drive does with a half write of it is held apart from
     /// the other registers' (freedom `partial-register-write`).
@@ -331,6 +335,12 @@ impl Register {
         } else {
             vec![value as u16]
         }
+    }
+
+    /// Whether the manual leaves what writing `value` means open (freedom `value-meaning-open`): a value
+    /// outside `safe_values`, or any value of an `operand_open` register.
+    pub fn meaning_open(&self, value: i64) -> bool {
+        self.operand_open || (!self.safe_values.is_empty() && !self.safe_values.contains(&value))
     }
 
     /// The inclusive range a write must fall in.

@@ -323,6 +323,9 @@ pub struct Station {
     /// The ADU being answered is short by its MBAP length's freedom (`mbap-length-short`), not by
     /// `truncated-pdu`'s.
     length_decided: bool,
+    /// Until when requests are answered Server Busy (06) after a long-duration command
+    /// (`busy-after-long-command`), and whether writes only.
+    busy_until: Option<(Duration, bool)>,
     /// Someone takes the decisions and counter alternatives ([`Station::take_decisions`]); when not (see
     /// [`Station::forgetting_decisions`]) they are dropped as each new input arrives.
     observed: bool,
@@ -349,6 +352,7 @@ impl Station {
             forced: None,
             close_requested: false,
             length_decided: false,
+            busy_until: None,
             observed: true,
         }
     }
@@ -1102,9 +1106,20 @@ impl Station {
             0
         };
         self.log_event(event::RECEIVE | bcast);
+        let busy = self.forced.is_none() && self.busy_with_long_command(now, pdu);
         let (resp, completed) = match self.forced {
             Some(code) => (Some(Response::exception(fc, code)), false),
-            None => self.process(now, unit, fc, pdu, via)?,
+            None if busy => (
+                Some(Response::exception(fc, ExceptionCode::SERVER_DEVICE_BUSY)),
+                false,
+            ),
+            None => {
+                let (resp, completed) = self.process(now, unit, fc, pdu, via)?;
+                if completed {
+                    self.start_long_command(now, pdu);
+                }
+                (resp, completed)
+            }
         };
         let exception = resp.as_ref().and_then(|r| match r {
             Response::Exception { code, .. } => Some(*code),
@@ -1138,6 +1153,57 @@ impl Station {
         };
         self.log_event(event::SEND | sent | self.listen_bit());
         resp
+    }
+
+    /// How long a drive that chose `busy-after-long-command` stays busy after the command.
+    const BUSY_AFTER_LONG_COMMAND: Duration = Duration::from_millis(400);
+
+    /// `busy-after-long-command`: whether the request `pdu`, arriving at `now`, is answered Server Busy (06)
+    /// because a long-duration command taken before is still running (every request, or writes only).
+    fn busy_with_long_command(&mut self, now: Duration, pdu: &[u8]) -> bool {
+        let Some((until, writes_only)) = self.busy_until else {
+            return false;
+        };
+        if now >= until {
+            self.busy_until = None;
+            return false;
+        }
+        !writes_only
+            || Request::decode(pdu).is_ok_and(|r| {
+                crate::requirements::registers_written(&r).is_some()
+                    || matches!(
+                        r,
+                        Request::WriteSingleCoil { .. }
+                            | Request::WriteMultipleCoils { .. }
+                            | Request::VendorWrite { .. }
+                    )
+            })
+    }
+
+    /// `busy-after-long-command`: a request taken that writes one of the freedom's items (S, CP, UG) starts
+    /// the busy time.
+    fn start_long_command(&mut self, now: Duration, pdu: &[u8]) {
+        let Some(writes_only) = (match self.choices.name(ids::BUSY_AFTER_LONG_COMMAND) {
+            Some("all-requests") => Some(false),
+            Some("writes") => Some(true),
+            _ => None,
+        }) else {
+            return;
+        };
+        let Ok(req) = Request::decode(pdu) else {
+            return;
+        };
+        let writes = crate::requirements::registers_written(&req).is_some()
+            || matches!(req, Request::VendorWrite { .. });
+        let profile = self.model.profile();
+        let long = writes
+            && self.choices.defined().any(|(f, _)| {
+                f.id == ids::BUSY_AFTER_LONG_COMMAND
+                    && f.items.iter().any(|i| i.touched_by(&req, profile))
+            });
+        if long {
+            self.busy_until = Some((now + Self::BUSY_AFTER_LONG_COMMAND, writes_only));
+        }
     }
 
     /// Answer one request: (the response or silence, whether the message completed normally). `None` when the

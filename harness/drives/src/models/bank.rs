@@ -374,8 +374,7 @@ impl RegisterBank {
             }
             // In range, but a value whose meaning the manual leaves open (`safe_values`): a drive may refuse
             // it (`value-meaning-open`).
-            if !slot.reg.safe_values.is_empty()
-                && !slot.reg.safe_values.contains(&value)
+            if slot.reg.meaning_open(value)
                 && self.choices().name(ids::VALUE_MEANING_OPEN) == Some("exception-03")
             {
                 return Err(Rejection::by(
@@ -396,7 +395,7 @@ impl RegisterBank {
         // Taken although the manual leaves what the value means open: a drive may refuse it.
         if changes.iter().any(|c| {
             self.register(c.address)
-                .is_some_and(|r| !r.safe_values.is_empty() && !r.safe_values.contains(&c.value))
+                .is_some_and(|r| r.meaning_open(c.value))
         }) {
             self.freedoms.decided(ids::VALUE_MEANING_OPEN);
         }

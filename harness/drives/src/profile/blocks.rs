@@ -37,6 +37,8 @@ pub(super) struct RegisterEntry {
     #[serde(default)]
     safe_values: Vec<i64>,
     #[serde(default)]
+    operand_open: bool,
+    #[serde(default)]
     width_disputed: bool,
     default: Option<IntOrTemplate>,
     unit: Option<String>,
@@ -290,6 +292,7 @@ impl RegisterEntry {
                 min: self.min,
                 max: self.max,
                 safe_values: self.safe_values.clone(),
+                operand_open: self.operand_open,
                 width_disputed: self.width_disputed,
                 default,
                 unit: self.unit.clone(),

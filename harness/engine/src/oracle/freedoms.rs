@@ -1590,7 +1590,9 @@ fn value_meaning_about(cx: &StepContext<'_>) -> Option<String> {
         .registers
         .iter()
         .map(|r| r.get_ref())
-        .filter(|r| !r.safe_values.is_empty() && r.width == 1 && r.address >= address)
+        .filter(|r| {
+            (!r.safe_values.is_empty() || r.operand_open) && r.width == 1 && r.address >= address
+        })
         .find_map(|r| {
             let w = *values.get(usize::from(r.address - address))?;
             let v = if r.signed {
@@ -1598,7 +1600,7 @@ fn value_meaning_about(cx: &StepContext<'_>) -> Option<String> {
             } else {
                 i64::from(w)
             };
-            (!r.safe_values.contains(&v)).then(|| {
+            r.meaning_open(v).then(|| {
                 format!(
                     "{}={v}",
                     r.mnemonic.clone().unwrap_or_else(|| r.name.clone())

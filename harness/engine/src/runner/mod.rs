@@ -160,6 +160,10 @@ pub struct Runner {
     /// The request PDUs of the case's steps that the target answered with an exception response and
     /// nothing else: writes it did not take (see [`Runner::refused_writes`]).
     refused_writes: Vec<Vec<u8>>,
+    /// The reference as it was before the last [`Runner::exchange`], where that step made a copy of it (any
+    /// request but a plain read): put back where the drive answered the step Server Busy (06) and the step
+    /// is sent again ([`Runner::exchange_patiently`]).
+    pre_step: Option<SimTarget>,
     /// Function codes the drive answered with exception 01 where the reference serves them (UNIMPLEMENTED):
     /// a later 01 to the same function is that again, whatever the reference answers to the request (silence
     /// for a request it learned to ignore, say).
@@ -343,6 +347,14 @@ fn follows(f: &drives::requirements::Freedom) -> bool {
 /// Requests remembered for attributing late answers.
 const RECENT_REQUESTS: usize = 256;
 
+/// A request the drive answered Server Busy (06) is sent again after this pause, doubled each time up to
+/// [`BUSY_PAUSE_MAX`], for [`BUSY_WITHIN`] at most ([`Runner::exchange_patiently`], and the keeper's reads
+/// and writes). Drives written independently from the manuals were busy for up to 3 s (an LMD's upgrade
+/// mode, UG).
+const BUSY_FIRST_PAUSE: Duration = Duration::from_millis(20);
+const BUSY_PAUSE_MAX: Duration = Duration::from_millis(100);
+const BUSY_WITHIN: Duration = Duration::from_secs(5);
+
 /// How many register pairs that read in range in only one word order settle it (all of them must agree).
 const WORD_ORDER_VOTES: usize = 3;
 
@@ -373,6 +385,7 @@ impl Runner {
             case_tags: Vec::new(),
             refused: false,
             refused_writes: Vec::new(),
+            pre_step: None,
             lacking: std::collections::BTreeSet::new(),
             served_functions: std::collections::BTreeSet::new(),
             restore_unheard: false,
@@ -1673,7 +1686,8 @@ impl Runner {
                     capture,
                     note,
                 } => {
-                    let mut r = self.exchange(send, compare, *capture, note, &mut wire)?;
+                    let mut r =
+                        self.exchange_patiently(send, compare, *capture, note, &mut wire)?;
                     let stop = self.stall_after(&mut r, &case.steps[k + 1..])?;
                     steps.push(r);
                     if stop {
@@ -1900,6 +1914,7 @@ impl Runner {
         note: &str,
         wire: &mut Vec<WireEvent>,
     ) -> Result<StepResult, TargetError> {
+        self.pre_step = None;
         let Some((frames, pieces)) = self.outgoing(send) else {
             return Ok(StepResult {
                 note: note.to_string(),
@@ -1982,7 +1997,12 @@ impl Runner {
         if !follow.is_empty() {
             self.shadow.adopt(self.learned.clone());
         }
-        let Some(mut before) = before.filter(|_| ignored || !follow.is_empty()) else {
+        if !ignored && follow.is_empty() {
+            // Kept for a step the drive answered Server Busy, which is sent again on the reference as it was.
+            self.pre_step = before;
+            return Ok(result);
+        }
+        let Some(mut before) = before else {
             return Ok(result);
         };
         // Do the step again on the reference as it was before it: not at all where the drive ignored it (a
@@ -2012,6 +2032,67 @@ impl Runner {
         Ok(result)
     }
 
+    /// [`Runner::exchange`], and while the drive answers exception 06 (Server Device Busy) where the reference
+    /// answers otherwise, the same request again after a pause (growing from [`BUSY_FIRST_PAUSE`] to
+    /// [`BUSY_PAUSE_MAX`], [`BUSY_WITHIN`] in all). App 7, exception 06: "The server is engaged in
+    /// processing a long-duration program command. The client should retransmit the message later when the
+    /// server is free." Drives written independently from the manuals are busy so for 250 ms to 3 s after
+    /// an NVM save (S), a program cleared (CP) or an upgrade (UG), for every request or for writes only. The
+    /// refused attempt did nothing, so the reference is put back to where it was before it (where the step
+    /// copied it: any request but a plain read) and the write is not counted as refused. The answer after
+    /// the drive is free is the step's result, with a note of the refusals; a drive still busy after
+    /// [`BUSY_WITHIN`] has its last answer judged (FAIL), with a finding that says so. Requests sent together
+    /// (a batch) are not sent again: their 06 is judged as it is (`pipelined-server-busy`).
+    fn exchange_patiently(
+        &mut self,
+        send: &Outgoing,
+        compare: &Compare,
+        capture: Option<usize>,
+        note: &str,
+        wire: &mut Vec<WireEvent>,
+    ) -> Result<StepResult, TargetError> {
+        let framing = self.target.framing();
+        let started = self.target.now();
+        let mut pause = BUSY_FIRST_PAUSE;
+        let mut refusals = 0usize;
+        loop {
+            let refused_before = self.refused_writes.len();
+            let mut r = self.exchange(send, compare, capture, note, wire)?;
+            let busy = r.verdict == Verdict::Fail
+                && !matches!(send, Outgoing::Batch(_))
+                && answered_exception(framing, &r, &[codec::ExceptionCode::SERVER_DEVICE_BUSY]);
+            let waited = self.target.now().saturating_sub(started);
+            if !busy || waited >= BUSY_WITHIN {
+                if refusals > 0 {
+                    let told = format!(
+                        "answered Server Busy (exception 06) {refusals} time(s) over {} ms before this answer; sent again each time (App 7: the client retransmits later)",
+                        waited.as_millis()
+                    );
+                    if busy {
+                        r.findings.push(format!(
+                            "still Server Busy (exception 06) after {} attempts over {} ms: App 7 lets a drive be busy with a long-duration program command and has the client retransmit later; the harness waits {} s",
+                            refusals + 1,
+                            waited.as_millis(),
+                            BUSY_WITHIN.as_secs()
+                        ));
+                    }
+                    r.note = format!("{}: {told}", r.note);
+                }
+                return Ok(r);
+            }
+            refusals += 1;
+            // The drive did nothing with it: neither does the reference, and the write is not one it refused.
+            self.refused_writes.truncate(refused_before);
+            if let Some(before) = self.pre_step.take() {
+                self.shadow = before;
+            }
+            self.sync_shadow();
+            self.target.idle(pause);
+            self.sync_shadow();
+            pause = (pause * 2).min(BUSY_PAUSE_MAX);
+        }
+    }
+
     /// [`Step::Persist`]: send `send` until the drive takes it (no exception 04 or 06 where the reference
     /// answers otherwise), every `every`, `within` at most; the reference is put back to its state before each
     /// refused attempt. The last attempt is the step's result, with a note of the refusals before it.
@@ -2033,15 +2114,14 @@ impl Runner {
             let mut r = self.exchange(send, compare, None, note, wire)?;
             k += 1;
             let busy = r.verdict == Verdict::Fail
-                && r.observed.iter().any(|o| match o {
-                    Received::Frame { bytes, .. } => matches!(
-                        crate::readings::decode_response(framing, bytes),
-                        Some(codec::Response::Exception { code, .. })
-                            if code == codec::ExceptionCode::SERVER_DEVICE_FAILURE
-                                || code == codec::ExceptionCode::SERVER_DEVICE_BUSY
-                    ),
-                    _ => false,
-                });
+                && answered_exception(
+                    framing,
+                    &r,
+                    &[
+                        codec::ExceptionCode::SERVER_DEVICE_FAILURE,
+                        codec::ExceptionCode::SERVER_DEVICE_BUSY,
+                    ],
+                );
             if busy && k >= tries {
                 // Refused as busy all along: the drive cannot move now (no motor, no home switch set up, a
                 // fault or a limit the harness cannot see or clear). Nothing was done; the reference does
@@ -2833,6 +2913,19 @@ impl crate::restore::Link for Runner {
             return Ok(None);
         };
         let mut answer = self.transact_pdu(&pdu)?;
+        // Server Busy (06): the drive did nothing with it and asks to be asked again later (App 7), as after
+        // an NVM save; the same request again, as a case's step is ([`Runner::exchange_patiently`]).
+        let started = self.target.now();
+        let mut pause = BUSY_FIRST_PAUSE;
+        while answer.as_deref().is_some_and(|a| {
+            matches!(a, [fc, code] if fc & 0x80 != 0 && *code == codec::ExceptionCode::SERVER_DEVICE_BUSY.0)
+        }) && self.target.now().saturating_sub(started) < BUSY_WITHIN
+        {
+            self.target.idle(pause);
+            self.sync_shadow();
+            pause = (pause * 2).min(BUSY_PAUSE_MAX);
+            answer = self.transact_pdu(&pdu)?;
+        }
         // Nothing came at all (no frame, or the connection closed): a drive may leave a connection hung
         // after a malformed request and still answer on a new one (jsmodbus did, after a truncated FC 15).
         // What the keeper sends puts values back or reads them (the same request twice does no harm): once
@@ -2933,6 +3026,17 @@ impl crate::restore::Link for ReferenceLink<'_> {
 }
 
 /// True when a Modbus/TCP answer is exception 06, Server Busy.
+/// True when the target answered the step with an exception response of one of `codes`.
+fn answered_exception(framing: Framing, r: &StepResult, codes: &[codec::ExceptionCode]) -> bool {
+    r.observed.iter().any(|o| match o {
+        Received::Frame { bytes, .. } => matches!(
+            crate::readings::decode_response(framing, bytes),
+            Some(codec::Response::Exception { code, .. }) if codes.contains(&code)
+        ),
+        _ => false,
+    })
+}
+
 pub(crate) fn busy_refusal(adu: &[u8]) -> bool {
     matches!(adu.get(tcp::MBAP_LEN..), Some([fc, 0x06]) if fc & 0x80 != 0)
 }
@@ -3248,36 +3352,136 @@ pub(super) mod tests {
     /// As [`generic_runner`], the target's drive taking `choices` (`FREEDOM=VALUE`) where the reference
     /// takes the reference's.
     pub(super) fn generic_runner_choosing(choices: &[&str]) -> Runner {
+        runner_choosing("generic", &[], choices)
+    }
+
+    /// As [`generic_runner_choosing`], for the corpus profile `name`, the target's drive with `faults` too.
+    fn runner_choosing(name: &str, faults: &[drives::Fault], choices: &[&str]) -> Runner {
         let p = drives::corpus::Corpus::Embedded
-            .profile("generic")
-            .expect("generic");
+            .profile(name)
+            .expect("profile");
+        let faults = drives::FaultSet::of(faults);
         let requirements = drives::corpus::Corpus::Embedded
             .requirements()
             .expect("requirements");
         let chosen = drives::Choices::parse_all(choices, &requirements, &p).expect("choices");
-        let station = |choices: drives::Choices| {
+        let station = |choices: drives::Choices, faults: drives::FaultSet| {
             let unit = p.device.default_unit;
             drives::Station::new(
-                drives::build_with(p.clone(), drives::FaultSet::none(), choices.clone()),
-                drives::FaultSet::none(),
+                drives::build_with(p.clone(), faults.clone(), choices.clone()),
+                faults,
                 unit,
             )
             .with_choices(choices)
         };
         let cfg = RunConfig {
-            unit: 1,
+            unit: p.device.default_unit,
             timing: Timing::default(),
             safety: Safety::default(),
             is_sim: false,
         };
         Runner::new(
-            Box::new(SimTarget::new(station(chosen))),
-            SimTarget::new(station(drives::Choices::reference())),
+            Box::new(SimTarget::new(station(chosen, faults))),
+            SimTarget::new(station(
+                drives::Choices::reference(),
+                drives::FaultSet::none(),
+            )),
             p.clone(),
             cfg,
             Expectations::default(),
         )
         .with_requirements(Arc::new(requirements))
+    }
+
+    /// The catalog case `id` of profile `name` (Modbus/TCP).
+    fn catalog_case(name: &str, id: &str) -> Case {
+        let p = drives::corpus::Corpus::Embedded
+            .profile(name)
+            .expect("profile");
+        let golden = drives::corpus::Corpus::Embedded
+            .golden(name)
+            .expect("golden");
+        crate::cases::catalog::build(&p, golden.as_ref(), Framing::Tcp, p.device.default_unit)
+            .into_iter()
+            .find(|c| c.id == id)
+            .unwrap_or_else(|| panic!("no case {id}"))
+    }
+
+    /// A drive busy after an NVM save (`busy-after-long-command`, as an independent MDrive and LMD are: App 7,
+    /// exception 06, "the client should retransmit the message later"): a case's request it answers 06 is
+    /// sent again until the drive is free, and the answer then is judged (PASS, with a note of the
+    /// refusals), for every request or for writes only. Without the retransmission these cases FAIL.
+    #[test]
+    fn a_request_answered_server_busy_is_sent_again_once_the_drive_is_free() {
+        for (choice, next) in [
+            ("all-requests", "profile/lmd/read/0x0077-sf"),
+            ("writes", "profile/lmd/write/0x0077-sf"),
+        ] {
+            let mut runner =
+                runner_choosing("lmd", &[], &[&format!("busy-after-long-command={choice}")]);
+            let save = runner
+                .run_case(&catalog_case("lmd", "profile/lmd/write/0x0076-s"))
+                .expect("the save");
+            assert_eq!(save.verdict, Verdict::Pass, "{save:#?}");
+            let r = runner
+                .run_case(&catalog_case("lmd", next))
+                .expect("the case after it");
+            assert_eq!(r.verdict, Verdict::Pass, "{choice}: {r:#?}");
+            assert!(
+                r.steps
+                    .iter()
+                    .any(|s| s.note.contains("answered Server Busy (exception 06)")),
+                "{choice}: {:#?}",
+                r.steps
+            );
+        }
+    }
+
+    /// A drive that answers 06 for good (fault `letter-case-busy`: to a mnemonic named in lower case) is not
+    /// waited for without end: after [`BUSY_WITHIN`] its 06 is judged, FAIL, with a finding that says so.
+    #[test]
+    fn a_drive_busy_for_good_fails_after_the_wait() {
+        let mut runner = runner_choosing("lmd", &[drives::Fault::LetterCaseBusy], &[]);
+        let r = runner
+            .run_case(&catalog_case(
+                "lmd",
+                "profile/lmd/mnemonic/letter-case/read",
+            ))
+            .expect("the case");
+        assert_eq!(r.verdict, Verdict::Fail, "{r:#?}");
+        let findings: Vec<&String> = r.findings().collect();
+        assert!(
+            findings
+                .iter()
+                .any(|f| f.contains("still Server Busy (exception 06)")),
+            "{findings:#?}"
+        );
+    }
+
+    /// The keeper's reads and writes (leave as found) are sent again to a drive that answers 06, as a case's
+    /// are: a read right after an NVM save gets the value, not the refusal.
+    #[test]
+    fn the_keeper_asks_a_busy_drive_again() {
+        use crate::restore::Link;
+        let mut runner = runner_choosing("lmd", &[], &["busy-after-long-command=all-requests"]);
+        let save = Request::WriteMultipleRegisters {
+            address: 0x0076,
+            values: vec![1],
+        };
+        let taken = Link::transact(&mut runner, &save).expect("the save");
+        assert!(
+            taken.as_ref().is_some_and(|r| !r.is_exception()),
+            "{taken:?}"
+        );
+        let read = Request::ReadHoldingRegisters {
+            address: 0x0077,
+            quantity: 1,
+        };
+        let got = Link::transact(&mut runner, &read).expect("the read");
+        assert!(
+            matches!(got, Some(codec::Response::ReadHoldingRegisters { .. })),
+            "{got:?}"
+        );
     }
 
     /// The traffic beside the cases (restore reads and writes, liveness probes, sentinels) never takes the

@@ -113,6 +113,11 @@ pub mod ids {
     pub const SD2X_FC43_RESERVED_NONZERO: &str = "sd2x-fc43-reserved-nonzero";
     /// SD2x FC 43 with an address offset not zero ("set to zero"): the SDO error 0008, or exception 03.
     pub const SD2X_FC43_OFFSET_NONZERO: &str = "sd2x-fc43-offset-nonzero";
+    /// SD2x FC 43 whose node-ID is not the slave address: exception 02 or 03.
+    pub const SD2X_FC43_NODE_ID: &str = "sd2x-fc43-node-id";
+    /// SD2x FC 08 with an unlisted sub-function and a data field other than 2 bytes, at a drive refusing
+    /// other sizes with 03: 03 (the size checked first) or 01 (the sub-function first, as in 6.8's diagram).
+    pub const SD2X_DIAGNOSTIC_CHECK_ORDER: &str = "sd2x-diagnostic-check-order";
     /// SD2x FC 08/0A-0F with a non-zero data field: ignored, or exception 03.
     pub const SD2X_DIAGNOSTIC_UNUSED_DATA: &str = "sd2x-diagnostic-unused-data";
     /// SD2x FC 08/00 with a data field other than 2 bytes: echoed, exception 03, or silence.
@@ -167,6 +172,8 @@ pub mod ids {
         SD2X_FC43_CONTROL_BITS,
         SD2X_FC43_RESERVED_NONZERO,
         SD2X_FC43_OFFSET_NONZERO,
+        SD2X_FC43_NODE_ID,
+        SD2X_DIAGNOSTIC_CHECK_ORDER,
         SD2X_DIAGNOSTIC_UNUSED_DATA,
         SD2X_DIAGNOSTIC_DATA_SIZE,
     ];

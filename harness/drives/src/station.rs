@@ -1905,6 +1905,15 @@ impl Station {
             }
             self.decisions.push(ids::SD2X_DIAGNOSTIC_DATA_SIZE);
             match self.choices.name(ids::SD2X_DIAGNOSTIC_DATA_SIZE) {
+                // A sub-function the profile does not list: the size first (03) or, as 6.8's diagram
+                // orders the checks, the sub-function (01): `sd2x-diagnostic-check-order`.
+                Some("exception-03") if self.profile().diagnostic(*sub_function).is_none() => {
+                    self.decisions.push(ids::SD2X_DIAGNOSTIC_CHECK_ORDER);
+                    return exc(self.choices.code(
+                        ids::SD2X_DIAGNOSTIC_CHECK_ORDER,
+                        ExceptionCode::ILLEGAL_DATA_VALUE,
+                    ));
+                }
                 Some("exception-03") => return exc(ExceptionCode::ILLEGAL_DATA_VALUE),
                 Some("silence") => {
                     return DiagOutcome {

@@ -908,7 +908,13 @@ impl Sd2x {
         }
         // The node-ID is the slave address (line 613), 01h..7Fh (line 546).
         if a.node_id != unit || !(0x01..=0x7F).contains(&a.node_id) {
-            return Err(ObjectError::Exception(ExceptionCode::ILLEGAL_DATA_ADDRESS));
+            // Which code the manual does not say: 02 (no such node) or 03 (`sd2x-fc43-node-id`).
+            self.decided(ids::SD2X_FC43_NODE_ID);
+            let code = self
+                .freedoms
+                .choices()
+                .code(ids::SD2X_FC43_NODE_ID, ExceptionCode::ILLEGAL_DATA_ADDRESS);
+            return Err(ObjectError::Exception(code));
         }
         if a.control & !CanOpenAccess::WRITE != 0 {
             return Err(ObjectError::Sdo(sdo::COMMAND_INVALID));

@@ -656,8 +656,12 @@ pub fn about_of(freedom: &str, cx: &StepContext<'_>) -> String {
             .unwrap_or_default();
     }
     // A PDU longer than its layout carries a byte count that no longer matches in some functions and not
-    // in others: a drive keeps to its choice per function code.
-    if freedom == drives::choices::ids::TRAILING_BYTES {
+    // in others: a drive keeps to its choice per function code. So with a quantity above the manual's
+    // limit: each function has its own state diagram (App 6), and a drive may bound a register read by its
+    // quantity (03) and a read of its few I/O points by their addresses (02), as an independent LMD does.
+    if freedom == drives::choices::ids::TRAILING_BYTES
+        || freedom == drives::choices::ids::QUANTITY_OVER_DEVICE_LIMIT
+    {
         return cx
             .pdu
             .first()
@@ -1633,6 +1637,29 @@ mod tests {
             short_of_length: false,
             gateway: false,
         }
+    }
+
+    /// A quantity above the manual's limit is a choice per function code: an independent LMD refuses a
+    /// register read of 3 (limit 2) with 03 and a read of inputs past its four points with 02, each function
+    /// by its own state diagram (App 6). Two register reads are one choice, held to one code.
+    #[test]
+    fn a_quantity_over_the_device_limit_is_a_choice_per_function() {
+        let profile = drives::corpus::Corpus::Embedded
+            .profile("lmd")
+            .expect("lmd");
+        let about = |pdu: &[u8]| {
+            let req = Request::decode(pdu).expect("a request");
+            about_of(
+                drives::choices::ids::QUANTITY_OVER_DEVICE_LIMIT,
+                &cx_for(&req, pdu, &profile),
+            )
+        };
+        let inputs = about(&[0x02, 0x00, 0x03, 0x00, 0x05]);
+        let registers = about(&[0x03, 0x00, 0x8B, 0x00, 0x03]);
+        let other_registers = about(&[0x03, 0x00, 0x10, 0x00, 0x04]);
+        assert_ne!(inputs, registers);
+        assert_eq!(registers, other_registers);
+        assert_eq!(registers, "FC 0x03");
     }
 
     /// The check order is held per function code and per value refused: a drive may test a quantity above

@@ -88,6 +88,11 @@ pub struct FuzzArgs {
     /// or, before a new connection, by half-closing the connection (the target's close proves it).
     #[arg(long)]
     no_sentinel: bool,
+    /// How long a request the drive answers Server Busy (exception 06: "the client should retransmit the
+    /// message later", App 7; a drive saving to NVM, say) is sent again, every 20-100 ms, before that
+    /// answer is judged, in milliseconds; 0: never sent again.
+    #[arg(long, default_value_t = 5000, value_name = "MS")]
+    busy_wait: u64,
     /// With --keep-going: stop after this many distinct findings (the same kind, case family and finding
     /// with other numbers is a repeat: counted, no second reproducer).
     #[arg(long, default_value_t = 20, value_name = "N")]
@@ -160,6 +165,7 @@ pub fn run(args: &FuzzArgs) -> ExitCode {
     base.safety.read_only = args.read_only;
     base.journal = args.journal.clone();
     base.timing.sentinel = !args.no_sentinel;
+    base.timing.busy_wait = Duration::from_millis(args.busy_wait);
     let regressions = args.regressions.clone().unwrap_or_else(|| {
         if std::path::Path::new("corpus").is_dir() {
             PathBuf::from("corpus/regressions")

@@ -160,6 +160,11 @@ pub struct RunArgs {
     /// connection, by half-closing the connection (the target's close with nothing before it proves it).
     #[arg(long)]
     no_sentinel: bool,
+    /// How long a request the drive answers Server Busy (exception 06: "the client should retransmit the
+    /// message later", App 7; a drive saving to NVM, say) is sent again, every 20-100 ms, before that
+    /// answer is judged, in milliseconds; 0: never sent again.
+    #[arg(long, default_value_t = 5000, value_name = "MS")]
+    busy_wait: u64,
     /// Inject a fault into the in-process simulator (sim: targets; repeatable; see `simulate --list-faults`).
     #[arg(long = "fault", value_name = "NAME")]
     faults: Vec<String>,
@@ -261,6 +266,7 @@ pub fn run(args: &RunArgs) -> ExitCode {
     });
     opts.timing.silence = Duration::from_millis(args.silence.max(1));
     opts.timing.sentinel = !args.no_sentinel;
+    opts.timing.busy_wait = Duration::from_millis(args.busy_wait);
     opts.safety.allow_motion = args.allow_motion;
     opts.safety.allow_destructive = args.allow_destructive;
     opts.safety.read_only = args.read_only;

@@ -290,3 +290,57 @@ fn an_interrupted_run_leaves_a_complete_report() {
     assert_eq!(ids, indexed);
     assert!(!dir.path().join("r/cases.jsonl.partial").exists());
 }
+
+/// A drive busy for 400 ms after an NVM save (`simulate --choose busy-after-long-command=all-requests`, over
+/// Modbus/TCP in real time): the S case, then the cases behind it, PASS, their requests answered Server
+/// Busy (06) sent again until the drive is free (App 7), the drive left as found; with `--busy-wait 0` the
+/// 06 is judged as the answer: the cases behind the save FAIL, and the keeper's reads at the end, refused
+/// too, leave it unable to say the drive is as found (NOT RESTORED, exit 3).
+#[test]
+fn a_drive_busy_after_a_save_is_asked_again_within_busy_wait() {
+    let sim = test_support::SimProcess::start(&[
+        "--profile",
+        "lmd",
+        "--choose",
+        "busy-after-long-command=all-requests",
+        "--listen",
+        "127.0.0.1:0",
+    ]);
+    let target = sim.tcp_url();
+    let cases = [
+        "--cases",
+        "profile/lmd/write/0x0076-s",
+        "--cases",
+        "profile/lmd/read/0x0077-sf",
+        "--cases",
+        "profile/lmd/write/0x0077-sf",
+    ];
+    let run = |extra: &[&str]| {
+        let mut args = vec![
+            "run",
+            "--target",
+            &target,
+            "--profile",
+            "lmd",
+            "--allow-destructive",
+            "--no-progress",
+        ];
+        args.extend_from_slice(&cases);
+        args.extend_from_slice(extra);
+        test_support::harness_bounded(None, &args, std::time::Duration::from_secs(60))
+    };
+    let (code, out, err) = run(&[]);
+    assert_eq!(code, 0, "{out}\n{err}");
+    assert!(out.contains("RESULT: PASS (3 PASS)"), "{out}");
+    assert!(
+        out.contains("every kept parameter reads as before"),
+        "{out}"
+    );
+    let (code, out, err) = run(&["--busy-wait", "0"]);
+    assert_eq!(code, 3, "{out}\n{err}");
+    assert!(
+        out.contains("RESULT: NOT RESTORED (2 FAIL, 1 PASS)"),
+        "{out}"
+    );
+    assert!(out.contains("exception 6 (0x6)"), "{out}");
+}

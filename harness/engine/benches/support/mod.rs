@@ -235,6 +235,7 @@ fn runner_for(target: Box<dyn Target>, profile: &Profile) -> Runner {
             timeout: TIMEOUT,
             silence: Duration::from_millis(300),
             sentinel: true,
+            busy_wait: engine::runner::BUSY_WITHIN,
         },
         safety: Default::default(),
         is_sim: false,

@@ -30,15 +30,19 @@ pub struct Timing {
     /// Modbus/TCP: prove a silence with a sentinel request sent right behind the request that must go
     /// unanswered (see [`Runner`]'s `prove_silence`) instead of listening for all of `silence`.
     pub sentinel: bool,
+    /// How long a request the drive answers Server Busy (06) is sent again before that answer is judged
+    /// (App 7: "the client should retransmit the message later"); zero: never sent again.
+    pub busy_wait: Duration,
 }
 
 impl Default for Timing {
-    /// 1 s for an answer, 300 ms of listening for one that must not come, sentinels on.
+    /// 1 s for an answer, 300 ms of listening for one that must not come, sentinels on, 5 s for a busy drive.
     fn default() -> Self {
         Self {
             timeout: Duration::from_millis(1000),
             silence: Duration::from_millis(300),
             sentinel: true,
+            busy_wait: BUSY_WITHIN,
         }
     }
 }
@@ -348,12 +352,12 @@ fn follows(f: &drives::requirements::Freedom) -> bool {
 const RECENT_REQUESTS: usize = 256;
 
 /// A request the drive answered Server Busy (06) is sent again after this pause, doubled each time up to
-/// [`BUSY_PAUSE_MAX`], for [`BUSY_WITHIN`] at most ([`Runner::exchange_patiently`], and the keeper's reads
-/// and writes). Drives written independently from the manuals were busy for up to 3 s (an LMD's upgrade
-/// mode, UG).
+/// [`BUSY_PAUSE_MAX`], for [`Timing::busy_wait`] at most ([`Runner::exchange_patiently`], and the keeper's
+/// reads and writes); by default [`BUSY_WITHIN`]. Drives written independently from the manuals were busy
+/// for up to 3 s (an LMD's upgrade mode, UG).
 const BUSY_FIRST_PAUSE: Duration = Duration::from_millis(20);
 const BUSY_PAUSE_MAX: Duration = Duration::from_millis(100);
-const BUSY_WITHIN: Duration = Duration::from_secs(5);
+pub const BUSY_WITHIN: Duration = Duration::from_secs(5);
 
 /// How many register pairs that read in range in only one word order settle it (all of them must agree).
 const WORD_ORDER_VOTES: usize = 3;
@@ -2034,14 +2038,14 @@ impl Runner {
 
     /// [`Runner::exchange`], and while the drive answers exception 06 (Server Device Busy) where the reference
     /// answers otherwise, the same request again after a pause (growing from [`BUSY_FIRST_PAUSE`] to
-    /// [`BUSY_PAUSE_MAX`], [`BUSY_WITHIN`] in all). App 7, exception 06: "The server is engaged in
+    /// [`BUSY_PAUSE_MAX`], [`Timing::busy_wait`] in all). App 7, exception 06: "The server is engaged in
     /// processing a long-duration program command. The client should retransmit the message later when the
     /// server is free." Drives written independently from the manuals are busy so for 250 ms to 3 s after
     /// an NVM save (S), a program cleared (CP) or an upgrade (UG), for every request or for writes only. The
     /// refused attempt did nothing, so the reference is put back to where it was before it (where the step
     /// copied it: any request but a plain read) and the write is not counted as refused. The answer after
     /// the drive is free is the step's result, with a note of the refusals; a drive still busy after
-    /// [`BUSY_WITHIN`] has its last answer judged (FAIL), with a finding that says so. Requests sent together
+    /// [`Timing::busy_wait`] has its last answer judged (FAIL), with a finding that says so. Requests sent together
     /// (a batch) are not sent again: their 06 is judged as it is (`pipelined-server-busy`).
     fn exchange_patiently(
         &mut self,
@@ -2062,7 +2066,7 @@ impl Runner {
                 && !matches!(send, Outgoing::Batch(_))
                 && answered_exception(framing, &r, &[codec::ExceptionCode::SERVER_DEVICE_BUSY]);
             let waited = self.target.now().saturating_sub(started);
-            if !busy || waited >= BUSY_WITHIN {
+            if !busy || waited >= self.cfg.timing.busy_wait {
                 if refusals > 0 {
                     let told = format!(
                         "answered Server Busy (exception 06) {refusals} time(s) over {} ms before this answer; sent again each time (App 7: the client retransmits later)",
@@ -2070,10 +2074,10 @@ impl Runner {
                     );
                     if busy {
                         r.findings.push(format!(
-                            "still Server Busy (exception 06) after {} attempts over {} ms: App 7 lets a drive be busy with a long-duration program command and has the client retransmit later; the harness waits {} s",
+                            "still Server Busy (exception 06) after {} attempts over {} ms: App 7 lets a drive be busy with a long-duration program command and has the client retransmit later; the harness waits {} ms (--busy-wait)",
                             refusals + 1,
                             waited.as_millis(),
-                            BUSY_WITHIN.as_secs()
+                            self.cfg.timing.busy_wait.as_millis()
                         ));
                     }
                     r.note = format!("{}: {told}", r.note);
@@ -2919,7 +2923,7 @@ impl crate::restore::Link for Runner {
         let mut pause = BUSY_FIRST_PAUSE;
         while answer.as_deref().is_some_and(|a| {
             matches!(a, [fc, code] if fc & 0x80 != 0 && *code == codec::ExceptionCode::SERVER_DEVICE_BUSY.0)
-        }) && self.target.now().saturating_sub(started) < BUSY_WITHIN
+        }) && self.target.now().saturating_sub(started) < self.cfg.timing.busy_wait
         {
             self.target.idle(pause);
             self.sync_shadow();
@@ -3438,7 +3442,7 @@ pub(super) mod tests {
     }
 
     /// A drive that answers 06 for good (fault `letter-case-busy`: to a mnemonic named in lower case) is not
-    /// waited for without end: after [`BUSY_WITHIN`] its 06 is judged, FAIL, with a finding that says so.
+    /// waited for without end: after [`Timing::busy_wait`] its 06 is judged, FAIL, with a finding that says so.
     #[test]
     fn a_drive_busy_for_good_fails_after_the_wait() {
         let mut runner = runner_choosing("lmd", &[drives::Fault::LetterCaseBusy], &[]);

@@ -2091,10 +2091,16 @@ impl Runner {
                 self.shadow = before;
             }
             self.sync_shadow();
-            self.target.idle(pause);
-            self.sync_shadow();
-            pause = (pause * 2).min(BUSY_PAUSE_MAX);
+            self.busy_pause(&mut pause);
         }
+    }
+
+    /// Wait `pause` for a drive that answered Server Busy, and double it for the next time (up to
+    /// [`BUSY_PAUSE_MAX`]).
+    fn busy_pause(&mut self, pause: &mut Duration) {
+        self.target.idle(*pause);
+        self.sync_shadow();
+        *pause = (*pause * 2).min(BUSY_PAUSE_MAX);
     }
 
     /// [`Step::Persist`]: send `send` until the drive takes it (no exception 04 or 06 where the reference
@@ -2921,13 +2927,10 @@ impl crate::restore::Link for Runner {
         // an NVM save; the same request again, as a case's step is ([`Runner::exchange_patiently`]).
         let started = self.target.now();
         let mut pause = BUSY_FIRST_PAUSE;
-        while answer.as_deref().is_some_and(|a| {
-            matches!(a, [fc, code] if fc & 0x80 != 0 && *code == codec::ExceptionCode::SERVER_DEVICE_BUSY.0)
-        }) && self.target.now().saturating_sub(started) < self.cfg.timing.busy_wait
+        while answer.as_deref().is_some_and(busy_pdu)
+            && self.target.now().saturating_sub(started) < self.cfg.timing.busy_wait
         {
-            self.target.idle(pause);
-            self.sync_shadow();
-            pause = (pause * 2).min(BUSY_PAUSE_MAX);
+            self.busy_pause(&mut pause);
             answer = self.transact_pdu(&pdu)?;
         }
         // Nothing came at all (no frame, or the connection closed): a drive may leave a connection hung
@@ -3029,7 +3032,6 @@ impl crate::restore::Link for ReferenceLink<'_> {
     }
 }
 
-/// True when a Modbus/TCP answer is exception 06, Server Busy.
 /// True when the target answered the step with an exception response of one of `codes`.
 fn answered_exception(framing: Framing, r: &StepResult, codes: &[codec::ExceptionCode]) -> bool {
     r.observed.iter().any(|o| match o {
@@ -3041,8 +3043,14 @@ fn answered_exception(framing: Framing, r: &StepResult, codes: &[codec::Exceptio
     })
 }
 
+/// True when a Modbus/TCP answer is exception 06, Server Busy.
 pub(crate) fn busy_refusal(adu: &[u8]) -> bool {
-    matches!(adu.get(tcp::MBAP_LEN..), Some([fc, 0x06]) if fc & 0x80 != 0)
+    adu.get(tcp::MBAP_LEN..).is_some_and(busy_pdu)
+}
+
+/// True when a response PDU is exception 06, Server Busy.
+fn busy_pdu(pdu: &[u8]) -> bool {
+    matches!(pdu, [fc, code] if fc & 0x80 != 0 && *code == codec::ExceptionCode::SERVER_DEVICE_BUSY.0)
 }
 
 /// The request an answer belongs to: on Modbus/TCP the unpaired one with the answer's transaction id (and

@@ -19,18 +19,26 @@ here=$(cd "$(dirname "$0")" && pwd)
 repo=$(cd "$here/../.." && pwd)
 B=${B:-${CARGO_TARGET_DIR:-$repo/target}/release/modbus-harness}
 [ -x "$B" ] || { echo "no harness binary at $B: cargo build --release (or set B)" >&2; exit 2; }
-# DRIVE is one of this folder's drives, or the path of another drive's folder (its sim.py takes the same options).
+# DRIVE is one of this folder's drives, or the path of another drive's folder (its sim.py, or sim.c built with
+# libmodbus, takes the same options).
 out=${OUT:-/tmp/independent}/$(basename "$drive")-$(date +%s%N); mkdir -p "$out"
-case $drive in */*) sim=$drive/sim.py; drive=$(basename "$drive") ;; *) sim=$here/$drive/sim.py ;; esac
+case $drive in */*) dir=$drive; drive=$(basename "$drive") ;; *) dir=$here/$drive ;; esac
+if [ -f "$dir/sim.c" ]; then
+  # A drive in C on libmodbus (the fifth wave): built here, run as is.
+  gcc -O2 -Wall -Wextra -o "$out/sim" "$dir/sim.c" $(pkg-config --cflags --libs libmodbus) || exit 2
+  launch=("$out/sim")
+else
+  launch=(python3 "$dir/sim.py")
+fi
 if [ "$scheme" = serial ]; then
   # The drive on one end of a socat pty pair at 19200 8N1, the harness on the other (or behind ECHO's line).
   socat pty,raw,echo=0,link="$out/ttyA" pty,raw,echo=0,link="$out/ttyB" 2> "$out/socat.err" &
   spid=$!
   for _ in $(seq 50); do [ -e "$out/ttyA" ] && [ -e "$out/ttyB" ] && break; sleep 0.1; done
   [ -e "$out/ttyB" ] || { echo "socat made no pty pair: $(cat "$out/socat.err")" >&2; kill $spid; exit 2; }
-  python3 "$sim" ${SIM_ARGS:-} --serial "$out/ttyA" --baud 19200 --parity none --state "$out/state.json" > "$out/sim.out" 2> "$out/sim.err" &
+  "${launch[@]}" ${SIM_ARGS:-} --serial "$out/ttyA" --baud 19200 --parity none --state "$out/state.json" > "$out/sim.out" 2> "$out/sim.err" &
 else
-  python3 "$sim" ${SIM_ARGS:-} --listen 127.0.0.1:0 --state "$out/state.json" > "$out/sim.out" 2> "$out/sim.err" &
+  "${launch[@]}" ${SIM_ARGS:-} --listen 127.0.0.1:0 --state "$out/state.json" > "$out/sim.out" 2> "$out/sim.err" &
 fi
 pid=$!
 trap 'kill $pid ${spid:-} 2>/dev/null; wait $pid ${spid:-} 2>/dev/null' EXIT

@@ -98,6 +98,8 @@ pub mod ids {
     pub const MDRIVE_OUTPUT_READ_WHILE_INPUT: &str = "mdrive-output-read-while-input";
     /// The MDrive, a write of the outputs as a group (OT, OL) while a point is an input: taken, or 04/03/02.
     pub const MDRIVE_OUTPUT_GROUP_WRITE_WHILE_INPUT: &str = "mdrive-output-group-write-while-input";
+    /// The LMD, a write of output 4 (coil 0x0003), which no output setup line reaches: taken, or 04/03/02.
+    pub const LMD_OUTPUT_4_WRITE: &str = "lmd-output-4-write";
     /// FC 0x41/0x42 naming a known mnemonic padded with NUL where the manuals print spaces: refused as
     /// unknown, or served as the mnemonic it pads.
     pub const MNEMONIC_PADDING: &str = "mnemonic-padding";
@@ -165,6 +167,7 @@ pub mod ids {
         MDRIVE_OUTPUT_WRITE_WHILE_INPUT,
         MDRIVE_OUTPUT_READ_WHILE_INPUT,
         MDRIVE_OUTPUT_GROUP_WRITE_WHILE_INPUT,
+        LMD_OUTPUT_4_WRITE,
         MNEMONIC_LETTER_CASE,
         MNEMONIC_PADDING,
         SD2X_FC43_READ_ZERO_COUNT,

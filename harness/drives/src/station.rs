@@ -1772,7 +1772,7 @@ impl Station {
     }
 
     /// A quantity refused (03) by [`Station::spec_checks`] for a read (FC 01-04) or a multiple write (FC 0F,
-    /// 10) whose starting address or last address is not valid either: the state diagrams of section 6
+    /// 10), or an FC 05 value refused (03), whose starting address or last address is not valid either: the state diagrams of section 6
     /// check the quantity first (03, the reference), the transaction diagram of 4.5 the address first (02);
     /// `exception-check-order` decides. The address is probed on a copy of the model with a one-item read
     /// of the table at each end of the range (for a write too: an item the model refuses to read, as a
@@ -1792,12 +1792,12 @@ impl Station {
         }
         let one = |address: u16| -> Request {
             match req {
-                Request::ReadCoils { .. } | Request::WriteMultipleCoils { .. } => {
-                    Request::ReadCoils {
-                        address,
-                        quantity: 1,
-                    }
-                }
+                Request::ReadCoils { .. }
+                | Request::WriteMultipleCoils { .. }
+                | Request::WriteSingleCoil { .. } => Request::ReadCoils {
+                    address,
+                    quantity: 1,
+                },
                 Request::ReadDiscreteInputs { .. } => Request::ReadDiscreteInputs {
                     address,
                     quantity: 1,
@@ -1826,6 +1826,8 @@ impl Station {
                 address, quantity, ..
             } => vec![(*address, *quantity)],
             Request::WriteMultipleRegisters { address, values } => vec![(*address, count(values))],
+            // FC 05 with a value other than 0xFF00 or 0x0000 (6.5's diagram tests it before the address).
+            Request::WriteSingleCoil { address, .. } => vec![(*address, 1)],
             Request::ReadWriteMultipleRegisters {
                 read_address,
                 read_quantity,

@@ -816,6 +816,17 @@ impl Mdrive {
             })
     }
 
+    /// True when a coil write of `points` (1-based) sets an output of a drive whose outputs are their own (the
+    /// LMD) that has no register of its own: the LMD's output 4, which FC 05 and OT name but the output setup
+    /// OS (lines 1-3, 001 line 1070) and the registers O1-O3 do not (`lmd-output-4-write`).
+    fn sets_unset_up_output(&self, points: Vec<usize>) -> bool {
+        !self.shared_io
+            && !self.addrs.outputs.is_empty()
+            && points
+                .into_iter()
+                .any(|k| self.addrs.outputs.get(k - 1).is_some_and(Option::is_none))
+    }
+
     /// The points (1-based) a coil write of `count` coils from `address` sets.
     fn coil_points(&self, address: u16, count: usize) -> Vec<usize> {
         let end = u32::from(address) + u32::try_from(count).unwrap_or(u32::MAX);
@@ -1529,6 +1540,14 @@ impl DataModel for Mdrive {
     }
 
     fn write_coils(&mut self, address: u16, states: &[bool]) -> Result<(), Rejection> {
+        if self.sets_unset_up_output(self.coil_points(address, states.len())) {
+            // Refused for the missing setup only where the bank would take it (an absent output 4 is 02 first).
+            self.bank.check_coil_write(address, states.len())?;
+            if let Some(refusal) = self.input_point_refusal(ids::LMD_OUTPUT_4_WRITE) {
+                return Err(refusal);
+            }
+            self.decided(ids::LMD_OUTPUT_4_WRITE);
+        }
         if self.sets_input_point(self.coil_points(address, states.len())) {
             // Refused for the setup only where the bank would take it (an unmapped coil is 02 first).
             self.bank.check_coil_write(address, states.len())?;

@@ -885,8 +885,10 @@ impl Sd2x {
         }
         // Fields the manual says to set to zero (control bits 0-6, line 608; the reserved field, line 545; the
         // address offset, line 627): the reference answers the SDO errors of the field (or ignores the
-        // reserved byte) after the other checks; a drive may refuse the value with 03 first
-        // (`sd2x-fc43-control-bits`, `sd2x-fc43-reserved-nonzero`, `sd2x-fc43-offset-nonzero`).
+        // reserved byte) after the other checks; a drive may refuse the value with 03 first, or leave the
+        // field alone, as "not used" says (`sd2x-fc43-control-bits`, `sd2x-fc43-reserved-nonzero`,
+        // `sd2x-fc43-offset-nonzero`).
+        let mut ignored = Vec::new();
         for (id, set) in [
             (
                 ids::SD2X_FC43_CONTROL_BITS,
@@ -902,8 +904,12 @@ impl Sd2x {
                 return Err(ObjectError::Exception(ExceptionCode::SERVER_DEVICE_BUSY));
             }
             self.decided(id);
-            if self.freedoms.choices().name(id) == Some("exception-03") {
-                return Err(ObjectError::Exception(ExceptionCode::ILLEGAL_DATA_VALUE));
+            match self.freedoms.choices().name(id) {
+                Some("exception-03") => {
+                    return Err(ObjectError::Exception(ExceptionCode::ILLEGAL_DATA_VALUE));
+                }
+                Some("response") => ignored.push(id),
+                _ => {}
             }
         }
         // The node-ID is the slave address (line 613), 01h..7Fh (line 546).
@@ -916,13 +922,14 @@ impl Sd2x {
                 .code(ids::SD2X_FC43_NODE_ID, ExceptionCode::ILLEGAL_DATA_ADDRESS);
             return Err(ObjectError::Exception(code));
         }
-        if a.control & !CanOpenAccess::WRITE != 0 {
+        if a.control & !CanOpenAccess::WRITE != 0 && !ignored.contains(&ids::SD2X_FC43_CONTROL_BITS)
+        {
             return Err(ObjectError::Sdo(sdo::COMMAND_INVALID));
         }
         let o = self
             .object_slot(a.index, a.subindex)
             .map_err(ObjectError::Sdo)?;
-        if a.offset != 0 {
+        if a.offset != 0 && !ignored.contains(&ids::SD2X_FC43_OFFSET_NONZERO) {
             return Err(ObjectError::Sdo(sdo::UNSUPPORTED_ACCESS));
         }
         let size = o.ty.size();

@@ -257,6 +257,37 @@ fn exception_check_order_2_checks_the_address_before_the_quantity() {
     );
 }
 
+/// FC 05 with a value neither 0xFF00 nor 0x0000 to an address that is no coil: 6.5's diagram tests the value
+/// first (03, the reference), 4.5 the address (02; libmodbus 3.1.6 does, and an LMD built on it answered 02).
+#[test]
+fn exception_check_order_2_checks_a_coil_address_before_the_value() {
+    let u = unit("lmd");
+    // FC 05 at 0x0100 (the LMD's outputs are 0x0000-0x0003) with the value 0x1234: both wrong.
+    let both = adu(1, u, &[0x05, 0x01, 0x00, 0x12, 0x34]);
+    // The same value at output 1: only the value wrong.
+    let value = adu(2, u, &[0x05, 0x00, 0x00, 0x12, 0x34]);
+    let mut reference = station("lmd", &[]);
+    let mut chosen = station("lmd", &["exception-check-order=2"]);
+    assert_eq!(serve(&mut reference, &both).0, [(1, "85 03".to_string())]);
+    assert!(
+        reference
+            .take_decisions()
+            .contains(&ids::EXCEPTION_CHECK_ORDER)
+    );
+    assert_eq!(serve(&mut chosen, &both).0, [(1, "85 02".to_string())]);
+    assert!(
+        chosen
+            .take_decisions()
+            .contains(&ids::EXCEPTION_CHECK_ORDER)
+    );
+    assert_eq!(serve(&mut chosen, &value).0, [(2, "85 03".to_string())]);
+    assert!(
+        !chosen
+            .take_decisions()
+            .contains(&ids::EXCEPTION_CHECK_ORDER)
+    );
+}
+
 /// FC 23 carries two ranges (App 6.17): a read range past the map with a write quantity of 0 is wrong in
 /// both, and the order of the checks is the drive's as for the other functions; a write range past the map
 /// with a read quantity over 125 too. Only the quantity wrong: 03 whatever the order.

@@ -237,15 +237,24 @@ impl Case {
     /// what their capture step read.
     pub fn rated(&self, p: &drives::profile::Profile, run_unit: u8) -> BTreeSet<Tag> {
         use crate::cases::safety::classify_to_unit;
-        let mut captures: Vec<Option<&[u8]>> = vec![None; self.slots()];
         let mut out = BTreeSet::new();
+        for (pdu, unit) in self.wire_pdus(p, run_unit) {
+            out.extend(classify_to_unit(p, &pdu, unit, run_unit));
+        }
+        out
+    }
+
+    /// Every request PDU the case sends, with its unit: fixed requests as they go on the wire (PDU-level
+    /// mutations applied, every request of a batch), restores as the write of what their capture step read.
+    pub fn wire_pdus(&self, p: &drives::profile::Profile, run_unit: u8) -> Vec<(Vec<u8>, u8)> {
+        let mut captures: Vec<Option<&[u8]>> = vec![None; self.slots()];
+        let mut pdus: Vec<(Vec<u8>, u8)> = Vec::new();
         for step in &self.steps {
             let (send, capture) = match step {
                 Step::Exchange { send, capture, .. } => (send, capture),
                 Step::Persist { send, .. } => (send, &None),
                 _ => continue,
             };
-            let mut pdus: Vec<(Vec<u8>, u8)> = Vec::new();
             match send {
                 Outgoing::Pdu(pdu) => pdus.push((pdu.clone(), run_unit)),
                 Outgoing::PduToUnit { pdu, unit } => pdus.push((pdu.clone(), *unit)),
@@ -265,9 +274,6 @@ impl Case {
                     }
                 }
             }
-            for (pdu, unit) in &pdus {
-                out.extend(classify_to_unit(p, pdu, *unit, run_unit));
-            }
             if let (Some(c), Step::Exchange { send, .. }) = (capture, step)
                 && let Some(slot) = captures.get_mut(*c)
                 && let Outgoing::Pdu(pdu) | Outgoing::PduToUnit { pdu, .. } = send
@@ -275,7 +281,7 @@ impl Case {
                 *slot = Some(pdu.as_slice());
             }
         }
-        out
+        pdus
     }
 
     /// The case with the classifier's rating of its own bytes added to its tags (never removing one).

@@ -364,7 +364,8 @@ pub fn reference_shown(
         FreedomKind::Outcome
             if (f.id == drives::choices::ids::MDRIVE_OUTPUT_WRITE_WHILE_INPUT
                 || f.id == drives::choices::ids::MDRIVE_OUTPUT_READ_WHILE_INPUT
-                || f.id == drives::choices::ids::MDRIVE_OUTPUT_GROUP_WRITE_WHILE_INPUT)
+                || f.id == drives::choices::ids::MDRIVE_OUTPUT_GROUP_WRITE_WHILE_INPUT
+                || f.id == drives::choices::ids::LMD_OUTPUT_4_WRITE)
                 && cx.decided(f) =>
         {
             let taken = !expected?.is_exception() && !observed?.is_exception();
@@ -1084,11 +1085,43 @@ fn outcome(
             } else if e.is_exception() {
                 served(f, request, o, fc)
             } else {
-                vec![]
+                unused_fields_echoed(f, request, e, o)
             }
         }
         _ => vec![],
     }
+}
+
+/// The SD2x FC 43 fields "not used" (the control code's bits 0-6, line 608; the address offset, line 627)
+/// left alone by a drive that serves the request (`response`): its answer may carry them as the response
+/// layout prints them (00h/80h, 0000h; the reference) or as the request had them (echoed).
+fn unused_fields_echoed(
+    f: &Freedom,
+    request: Option<&Request>,
+    e: &Response,
+    o: &Response,
+) -> Vec<Alternative> {
+    use drives::choices::ids::{SD2X_FC43_CONTROL_BITS, SD2X_FC43_OFFSET_NONZERO};
+    let (Some(Request::CanOpen(r)), Response::CanOpen(ea), Response::CanOpen(oa)) = (request, e, o)
+    else {
+        return vec![];
+    };
+    if !(f.id == SD2X_FC43_CONTROL_BITS || f.id == SD2X_FC43_OFFSET_NONZERO)
+        || !f.admits("response")
+    {
+        return vec![];
+    }
+    let mut echoed = ea.clone();
+    if oa.control == r.control {
+        echoed.control = r.control;
+    }
+    if oa.offset == r.offset {
+        echoed.offset = r.offset;
+    }
+    (echoed != *ea && echoed == *oa)
+        .then(|| Alternative::exact(Some(o.clone()), shown_named(f, "", "response")))
+        .into_iter()
+        .collect()
 }
 
 /// The request served, where the outcome freedom `f` lists it and the drive's answer `o` is of its function
@@ -1105,7 +1138,15 @@ fn served(
     }
     let echo = request.is_some_and(|r| registers_written(r).is_some() || is_coil_write(r))
         && !matches!(request, Some(Request::ReadWriteMultipleRegisters { .. }));
-    let served = Some(served_as_asked(request).unwrap_or_else(|| o.clone()));
+    let mut served = served_as_asked(request).unwrap_or_else(|| o.clone());
+    // An SD2x object access may echo the request's control code, unused bits and all.
+    if let (Response::CanOpen(t), Response::CanOpen(oa), Some(Request::CanOpen(r))) =
+        (&mut served, o, request)
+        && oa.control == r.control
+    {
+        t.control = r.control;
+    }
+    let served = Some(served);
     let shown = shown_named(f, "", "response");
     vec![if echo {
         Alternative::exact(served, shown)
@@ -1155,6 +1196,23 @@ fn served_as_asked(request: Option<&Request>) -> Option<Response> {
             Response::ReadWriteMultipleRegisters {
                 values: vec![0; usize::from(*read_quantity)],
             }
+        }
+        // An SD2x object access served whatever its unused fields held: the header as the response layout
+        // prints it (control 00h/80h, 004 line 560), or the request's own control code echoed; a read's data
+        // as many bytes as asked (values free), a write's none.
+        Request::CanOpen(a) => {
+            let count = if a.is_write() {
+                0
+            } else {
+                usize::from(a.byte_count)
+            };
+            Response::CanOpen(codec::CanOpenAccess {
+                control: a.control & codec::CanOpenAccess::WRITE,
+                reserved: 0,
+                offset: 0,
+                data: vec![0; count],
+                ..a.clone()
+            })
         }
         _ => return None,
     })

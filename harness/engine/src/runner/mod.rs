@@ -1462,19 +1462,10 @@ impl Runner {
         if self.function_outputs.is_empty() {
             return None;
         }
-        let pdus = case.steps.iter().filter_map(|s| match s {
-            Step::Exchange {
-                send: Outgoing::Pdu(p),
-                ..
-            }
-            | Step::Persist {
-                send: Outgoing::Pdu(p),
-                ..
-            } => Some(p),
-            _ => None,
-        });
-        for pdu in pdus {
-            let Ok(req) = Request::decode(pdu) else {
+        // Every request the case sends: a write inside a batch, a function-code swap that makes a write, or
+        // a restore writes the output as a plain write does.
+        for (pdu, _) in case.wire_pdus(&self.profile, self.cfg.unit) {
+            let Ok(req) = Request::decode(&pdu) else {
                 continue;
             };
             let coils = match &req {

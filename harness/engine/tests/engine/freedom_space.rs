@@ -40,6 +40,9 @@ const NOT_EXERCISED: &[(&str, &str)] = &[
     // Reading an instruction register (MA, MR, SL, ...) the profile takes as write-only: no case reads
     // one (a drive that took the read for the instruction could move).
     ("lmd", "lmd-inferred-write-only=rw"),
+    // A write of output 4 refused with 02 reads as output 4 absent (`lmd-output-4=exception-02`), which the
+    // run records instead; the catalog passes (`an_lmd_refusing_writes_of_output_4_passes` for 04 and 03).
+    ("lmd", "lmd-output-4-write=exception-02"),
     ("mdrive", "mdrive-inferred-write-only=rw"),
     // The MDrive has no read-only mnemonic, and every write-only one is a program command or a move
     // (flagged destructive or motion: its manual prints FC 0x41 for them, so a read may act).
@@ -752,14 +755,26 @@ fn a_drive_refusing_reads_of_outputs_whose_points_are_inputs_passes() {
 /// cases `include`, or all of it) give no FAIL and no NON-STRICT, and the run records the value as the drive's
 /// choice, held to throughout.
 fn refusals_pass(freedom: &str, values: &[&str], include: &[&str]) {
+    refusals_pass_on("sim:mdrive", freedom, values, include, true);
+}
+
+/// [`refusals_pass`] against `target`; the generated cases only where `generated`.
+fn refusals_pass_on(
+    target: &str,
+    freedom: &str,
+    values: &[&str],
+    include: &[&str],
+    generated_too: bool,
+) {
     let jobs: Vec<(&str, bool)> = values
         .iter()
         .flat_map(|v| [(*v, false), (*v, true)])
+        .filter(|(_, catalog)| *catalog || generated_too)
         .collect();
     assert_no_problems(jobs, |(value, catalog)| {
         let choice = format!("{freedom}={value}");
         let (out, bad) = if catalog {
-            let mut o = options("sim:mdrive", std::slice::from_ref(&choice));
+            let mut o = options(target, std::slice::from_ref(&choice));
             o.include = include.iter().map(|c| c.to_string()).collect();
             o.keep_verdicts = true;
             let out = run_quietly(&o).expect("run");
@@ -776,7 +791,7 @@ fn refusals_pass(freedom: &str, values: &[&str], include: &[&str]) {
                 .collect();
             (out, bad)
         } else {
-            generated("sim:mdrive", std::slice::from_ref(&choice), 600, 1)
+            generated(target, std::slice::from_ref(&choice), 600, 1)
         };
         let mut problems = Vec::new();
         if !bad.is_empty() {
@@ -791,6 +806,33 @@ fn refusals_pass(freedom: &str, values: &[&str], include: &[&str]) {
         }
         problems
     });
+}
+
+/// The LMD's output 4 (coil 0x0003): no output setup reaches it (OS: points 1-3, 001 line 1070), so a drive
+/// may hold point 4 as an input and refuse writes of it as the MDrive may writes of an output whose point is
+/// an input; an LMD built on libmodbus answers them 04 (`lmd-output-4-write`). Each refusal passes the
+/// generated cases (seed 1) and the catalog, and the run records it, held to throughout. (A refusal with 02
+/// is admitted too; the run records it as `lmd-output-4=exception-02`, output 4 absent for writes.)
+#[test]
+fn an_lmd_refusing_writes_of_output_4_passes() {
+    refusals_pass_on(
+        "sim:lmd",
+        "lmd-output-4-write",
+        &["exception-04", "exception-03"],
+        &[],
+        true,
+    );
+}
+
+/// The SD2x's FC 43 fields "not used" (control bits 0-6, 004 line 608; the address offset, line 627): a drive
+/// may leave them alone and serve the telegram (an SD2x built on libmodbus does). The reference taking that
+/// choice passes its catalog (whose `profile/sd2x/object/*` cases set them; generated cases do not), and the
+/// run records it.
+#[test]
+fn an_sd2x_leaving_unused_fc43_fields_alone_passes() {
+    for freedom in ["sd2x-fc43-control-bits", "sd2x-fc43-offset-nonzero"] {
+        refusals_pass_on("sim:sd2x", freedom, &["response"], &[], false);
+    }
 }
 
 /// The reference takes such writes, and the run records that as its choice (so that a drive taking one and

@@ -802,6 +802,12 @@ pub async fn wait_sd2x_status(server: &ServerHandle, want: u16) -> Result<(), Op
 /// Built under a name of this process and renamed into place: test processes running at once never see a
 /// half-written file. `Err` says what is missing or failed.
 pub fn compile_libmodbus_peer(source: &str, exe_name: &str) -> Result<PathBuf, String> {
+    compile_libmodbus(&peer_file(source), exe_name)
+}
+
+/// Build the C file `source` against libmodbus (gcc, `pkg-config --cflags --libs libmodbus`, warnings as
+/// errors) into the target's scratch directory as `exe_name`.
+pub fn compile_libmodbus(source: &Path, exe_name: &str) -> Result<PathBuf, String> {
     let flags = Command::new("pkg-config")
         .args(["--cflags", "--libs", "libmodbus"])
         .output()
@@ -816,7 +822,7 @@ pub fn compile_libmodbus_peer(source: &str, exe_name: &str) -> Result<PathBuf, S
     let tmp = dir.join(format!("{exe_name}.{}", std::process::id()));
     let out = Command::new("gcc")
         .args(["-O2", "-Wall", "-Wextra", "-Werror"])
-        .arg(peer_file(source))
+        .arg(source)
         .arg("-o")
         .arg(&tmp)
         .args(flags.split_whitespace())
@@ -824,7 +830,8 @@ pub fn compile_libmodbus_peer(source: &str, exe_name: &str) -> Result<PathBuf, S
         .map_err(|e| format!("gcc: {e}"))?;
     if !out.status.success() {
         return Err(format!(
-            "gcc {source} failed:\n{}",
+            "gcc {} failed:\n{}",
+            source.display(),
             String::from_utf8_lossy(&out.stderr)
         ));
     }

@@ -8,6 +8,21 @@ use std::sync::OnceLock;
 
 use super::{ChildGuard, STEP, line_reader, peer_file, spawn_guarded, wait_bounded};
 
+/// Start `cmd` and wait, bounded, for its first line (`listening tcp ADDR`, `listening serial DEVICE`).
+pub fn start_listening(mut cmd: Command) -> (ChildGuard, String) {
+    let mut guard = spawn_guarded(&mut cmd, Stdio::piped(), Stdio::null());
+    let stdout = guard.0.stdout.take().expect("stdout");
+    let rx = line_reader(stdout);
+    let line = rx
+        .recv_timeout(STEP)
+        .unwrap_or_else(|_| panic!("{cmd:?} printed no listening line within {STEP:?}"));
+    assert!(
+        line.starts_with("listening "),
+        "unexpected first line from {cmd:?}: {line:?}"
+    );
+    (guard, line)
+}
+
 /// A peer server of tests/peers/ running as a child (killed on drop if a test panics first).
 pub struct PeerServer {
     pub child: ChildGuard,
@@ -16,18 +31,13 @@ pub struct PeerServer {
 
 impl PeerServer {
     /// Start `cmd` (a server in `tcp 127.0.0.1 0` mode) and wait, bounded, for its `listening tcp ADDR` line.
-    pub fn start(mut cmd: Command) -> Self {
-        let mut guard = spawn_guarded(&mut cmd, Stdio::piped(), Stdio::null());
-        let stdout = guard.0.stdout.take().expect("stdout");
-        let rx = line_reader(stdout);
-        let line = rx
-            .recv_timeout(STEP)
-            .unwrap_or_else(|_| panic!("{cmd:?} printed no listening line within {STEP:?}"));
+    pub fn start(cmd: Command) -> Self {
+        let (child, line) = start_listening(cmd);
         let addr = match line.split_whitespace().collect::<Vec<_>>().as_slice() {
             ["listening", "tcp", a] => a.parse().expect("listening address"),
-            _ => panic!("unexpected first line from {cmd:?}: {line:?}"),
+            _ => panic!("unexpected first line: {line:?}"),
         };
-        Self { child: guard, addr }
+        Self { child, addr }
     }
 
     pub fn pymodbus() -> Self {

@@ -426,7 +426,14 @@ impl Choices {
 pub struct Freedoms {
     choices: Choices,
     decisions: Vec<Decision>,
+    alternatives: Vec<ModelledAlternative>,
 }
+
+/// What the model would have answered had it taken another value of a freedom that decided its answer:
+/// (the freedom, the value, the answer). Where the answer under another value depends on the drive's state
+/// and the rest of the request (a field left alone, the telegram then checked on), the oracle cannot
+/// derive it from the reference's answer; the model computes it on a copy of itself.
+pub type ModelledAlternative = (Decision, &'static str, codec::Response);
 
 impl Freedoms {
     /// Taking `choices`, with nothing decided yet.
@@ -434,6 +441,7 @@ impl Freedoms {
         Self {
             choices,
             decisions: Vec::new(),
+            alternatives: Vec::new(),
         }
     }
 
@@ -455,6 +463,16 @@ impl Freedoms {
     /// The freedoms that decided answers since the last call.
     pub fn take_decisions(&mut self) -> Vec<Decision> {
         std::mem::take(&mut self.decisions)
+    }
+
+    /// Note that under `value` of `freedom` the answer being given would have been `answer`.
+    pub fn alternative(&mut self, freedom: Decision, value: &'static str, answer: codec::Response) {
+        self.alternatives.push((freedom, value, answer));
+    }
+
+    /// The answers other values would have given since the last call ([`Freedoms::alternative`]).
+    pub fn take_alternatives(&mut self) -> Vec<ModelledAlternative> {
+        std::mem::take(&mut self.alternatives)
     }
 }
 

@@ -310,6 +310,9 @@ pub struct Station {
     /// since the last [`Station::take_counter_alternatives`]: (sub-function, reading, value), for every
     /// reading about the counter but the station's own, whether or not it gives the same value.
     counter_alternatives: Vec<(u16, &'static str, u16)>,
+    /// What the model would have answered under other values of the freedoms that decided the answers
+    /// taken with the last [`Station::take_decisions`] (dropped by the next one).
+    choice_alternatives: Vec<crate::choices::ModelledAlternative>,
     /// Where each accepted write is reported (`simulate --journal`).
     sink: Option<WriteSink>,
     /// Holding registers that keep the first value written to them (`simulate --latch`), and those of them
@@ -346,6 +349,7 @@ impl Station {
             choices: Choices::reference(),
             decisions: Vec::new(),
             counter_alternatives: Vec::new(),
+            choice_alternatives: Vec::new(),
             sink: None,
             latched: BTreeSet::new(),
             latched_taken: BTreeSet::new(),
@@ -373,6 +377,8 @@ impl Station {
             self.decisions.clear();
             self.counter_alternatives.clear();
             let _ = self.model.take_decisions();
+            let _ = self.model.take_alternatives();
+            self.choice_alternatives.clear();
         }
     }
 
@@ -453,6 +459,7 @@ impl Station {
     /// The freedoms that decided the answers given since the last call, the model's included: where an
     /// oracle must accept any admissible value, not only this drive's.
     pub fn take_decisions(&mut self) -> Vec<Decision> {
+        self.choice_alternatives = self.model.take_alternatives();
         self.decisions.extend(self.model.take_decisions());
         std::mem::take(&mut self.decisions)
     }
@@ -462,6 +469,12 @@ impl Station {
     /// reads answered since the last call: (sub-function, reading, value).
     pub fn take_counter_alternatives(&mut self) -> Vec<(u16, &'static str, u16)> {
         std::mem::take(&mut self.counter_alternatives)
+    }
+
+    /// What the model would have answered under other values of the freedoms that decided the answers taken
+    /// with the last [`Station::take_decisions`] (see [`crate::choices::Freedoms::alternative`]).
+    pub fn take_choice_alternatives(&mut self) -> Vec<crate::choices::ModelledAlternative> {
+        std::mem::take(&mut self.choice_alternatives)
     }
 
     /// The drive model.

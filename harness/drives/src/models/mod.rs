@@ -38,6 +38,12 @@ pub trait DriveModel: Send + BoxClone {
         self.freedoms().take_decisions()
     }
 
+    /// The answers other values of the deciding freedoms would have given since the last call (see
+    /// [`crate::choices::Freedoms::alternative`]).
+    fn take_alternatives(&mut self) -> Vec<crate::choices::ModelledAlternative> {
+        self.freedoms().take_alternatives()
+    }
+
     /// Take `choices` from now on where they act at run time (a refusal or an answer where a freedom
     /// leaves the choice), keeping the state. An oracle's reference drive follows what the drive under
     /// test showed it chose, so that the two keep the same state (a half of a 32-bit register the drive

@@ -51,7 +51,7 @@ use crate::choices::{Choices, Decision, Freedoms, Rejection, ids};
 use crate::faults::Fault;
 use crate::faults::FaultSet;
 use crate::profile::{Access, ObjectType, Profile, WordOrder};
-use codec::{CanOpenAccess, ExceptionCode, Request, Response};
+use codec::{CanOpenAccess, ExceptionCode, FunctionCode, Request, Response};
 
 /// Register addresses the model gives a meaning to (section 4, lines 731-759).
 pub mod reg {
@@ -868,6 +868,40 @@ impl Sd2x {
         ))
     }
 
+    /// The answer to `a` as an FC 43 response (an exception, an SDO error, or the access served).
+    fn object_response(&mut self, unit: u8, a: &CanOpenAccess) -> Response {
+        match self.object_access(unit, a) {
+            Ok(r) => r,
+            Err(ObjectError::Exception(code)) => {
+                Response::exception(FunctionCode::ENCAPSULATED_INTERFACE, code)
+            }
+            Err(ObjectError::Sdo(sdo_code)) => Response::CanOpenError { sdo_code },
+        }
+    }
+
+    /// What a drive leaving the unused field of `freedom` alone (`response`) answers to `a`: the telegram with
+    /// that field zero, and with every unused field zero (a drive may leave them all alone), answered on a copy
+    /// of this drive as it is (for the oracle: [`crate::choices::Freedoms::alternative`]). Not for the
+    /// reserved byte, which the reference leaves alone already.
+    fn unused_field_alternatives(&mut self, unit: u8, a: &CanOpenAccess, freedom: Decision) {
+        let zero_control = |x: &mut CanOpenAccess| x.control &= CanOpenAccess::WRITE;
+        let zero_offset = |x: &mut CanOpenAccess| x.offset = 0;
+        let mut this = a.clone();
+        match freedom {
+            ids::SD2X_FC43_CONTROL_BITS => zero_control(&mut this),
+            ids::SD2X_FC43_OFFSET_NONZERO => zero_offset(&mut this),
+            _ => return,
+        }
+        let mut all = a.clone();
+        zero_control(&mut all);
+        zero_offset(&mut all);
+        for zeroed in [this, all] {
+            let mut copy = self.clone();
+            let answer = copy.object_response(unit, &zeroed);
+            self.freedoms.alternative(freedom, "response", answer);
+        }
+    }
+
     fn object_access(&mut self, unit: u8, a: &CanOpenAccess) -> Result<Response, ObjectError> {
         // A byte count outside the layout's 0..4 (line 550): the reference answers the SDO length error once
         // the other checks pass; a drive may refuse the field's value with 03 first, as the specification
@@ -904,7 +938,11 @@ impl Sd2x {
                 return Err(ObjectError::Exception(ExceptionCode::SERVER_DEVICE_BUSY));
             }
             self.decided(id);
-            match self.freedoms.choices().name(id) {
+            let choice = self.freedoms.choices().name(id).map(str::to_owned);
+            if choice.as_deref() != Some("response") {
+                self.unused_field_alternatives(unit, a, id);
+            }
+            match choice.as_deref() {
                 Some("exception-03") => {
                     return Err(ObjectError::Exception(ExceptionCode::ILLEGAL_DATA_VALUE));
                 }
@@ -1053,13 +1091,7 @@ impl DriveModel for Sd2x {
         self.advance(now);
         let fc = request.function();
         let result = match request {
-            Request::CanOpen(a) => {
-                return Some(match self.object_access(unit, a) {
-                    Ok(r) => r,
-                    Err(ObjectError::Exception(code)) => Response::exception(fc, code),
-                    Err(ObjectError::Sdo(sdo_code)) => Response::CanOpenError { sdo_code },
-                });
-            }
+            Request::CanOpen(a) => return Some(self.object_response(unit, a)),
             // Registers (FC 03/04/06/10/17); FC 03 and FC 04 read the same map (line 327).
             other => match data_model::serve(self, other) {
                 Some(r) => return Some(r),

@@ -50,6 +50,9 @@ pub struct StepContext<'a> {
     /// where some reading gives another value than the reference's: (sub-function, reading, value), the
     /// readings that give the reference's value too included.
     pub counter_alternatives: &'a [(u16, &'static str, u16)],
+    /// What the reference would have answered under other values of the freedoms that decided its answer,
+    /// where the model computed it (see [`drives::choices::Freedoms::alternative`]).
+    pub choice_alternatives: &'a [drives::choices::ModelledAlternative],
     /// The target closed the connection instead of answering (Modbus/TCP).
     pub closed: bool,
     /// The MBAP length announced more bytes than were sent (Modbus/TCP): a drive that waits for them is
@@ -94,6 +97,7 @@ impl StepContext<'_> {
 /// An alternative answer a freedom admits: the answer (`None`: silence, or a close where the value shown is
 /// `close`), what the freedom's value is called, and whether the answer's data values are free (compared in
 /// structure only).
+#[derive(Debug)]
 pub struct Alternative {
     pub answer: Option<Response>,
     pub shown: Shown,
@@ -383,6 +387,13 @@ pub fn reference_shown(
         // The SD2x's outcome freedoms a drive keeps to, whichever answer it gives: the reference's, shown
         // where the drive gave it too (the other values are shown by `outcome_shown`).
         FreedomKind::Outcome if HELD_OUTCOMES.contains(&f.id.as_str()) && cx.decided(f) => {
+            // A reference leaving an unused field alone (it then computes no answer for leaving it alone):
+            // whatever the telegram got then, that is `response`.
+            if UNUSED_FIELDS.contains(&f.id.as_str())
+                && !cx.choice_alternatives.iter().any(|(id, _, _)| *id == f.id)
+            {
+                return Some(shown_named(f, "", "response"));
+            }
             let value = match expected {
                 None => "silence".to_string(),
                 Some(Response::Exception { code, .. }) => format!("exception-{:02X}", code.0),
@@ -805,7 +816,9 @@ pub fn alternatives(
         FreedomKind::Outcome
             if cx.decided(f) || cx.malformed || (cx.batch && f.id.starts_with("pipelined")) =>
         {
-            outcome(f, cx, expected, observed)
+            let mut out = outcome(f, cx, expected, observed);
+            out.extend(modelled(f, cx, observed));
+            out
         }
         FreedomKind::Outcome => vec![],
         FreedomKind::UnitIds => {
@@ -1082,8 +1095,11 @@ fn outcome(
                 } else {
                     vec![]
                 }
-            } else if e.is_exception() {
+            } else if e.is_exception() && !UNUSED_FIELDS.contains(&f.id.as_str()) {
                 served(f, request, o, fc)
+            } else if e.is_exception() {
+                // A field left alone: what the telegram gets then is the model's (`modelled`).
+                vec![]
             } else {
                 unused_fields_echoed(f, request, e, o)
             }
@@ -1092,25 +1108,38 @@ fn outcome(
     }
 }
 
-/// The SD2x FC 43 fields "not used" (the control code's bits 0-6, line 608; the address offset, line 627)
-/// left alone by a drive that serves the request (`response`): its answer may carry them as the response
-/// layout prints them (00h/80h, 0000h; the reference) or as the request had them (echoed).
+/// The SD2x FC 43 fields "not used" (the control code's bits 0-6, 004 line 608; the address offset, line
+/// 627), which a drive may leave alone (`response`).
+const UNUSED_FIELDS: &[&str] = &[
+    drives::choices::ids::SD2X_FC43_CONTROL_BITS,
+    drives::choices::ids::SD2X_FC43_OFFSET_NONZERO,
+];
+
+/// The SD2x FC 43 fields "not used" left alone by a drive that serves the request (`response`): its answer
+/// may carry them as the response layout prints them (00h/80h, 0000h, line 560; the reference) or as the
+/// request had them (echoed).
 fn unused_fields_echoed(
     f: &Freedom,
     request: Option<&Request>,
     e: &Response,
     o: &Response,
 ) -> Vec<Alternative> {
-    use drives::choices::ids::{SD2X_FC43_CONTROL_BITS, SD2X_FC43_OFFSET_NONZERO};
-    let (Some(Request::CanOpen(r)), Response::CanOpen(ea), Response::CanOpen(oa)) = (request, e, o)
-    else {
-        return vec![];
-    };
-    if !(f.id == SD2X_FC43_CONTROL_BITS || f.id == SD2X_FC43_OFFSET_NONZERO)
-        || !f.admits("response")
-    {
+    if !UNUSED_FIELDS.contains(&f.id.as_str()) || !f.admits("response") {
         return vec![];
     }
+    echoed(request, e, o)
+        .map(|answer| Alternative::exact(Some(answer), shown_named(f, "", "response")))
+        .into_iter()
+        .collect()
+}
+
+/// `e` with the control code and address offset the request had, where `o` carries them so and `e` does
+/// not (a served FC 43 telegram echoing its unused fields); the rest is compared as the step compares.
+fn echoed(request: Option<&Request>, e: &Response, o: &Response) -> Option<Response> {
+    let (Some(Request::CanOpen(r)), Response::CanOpen(ea), Response::CanOpen(oa)) = (request, e, o)
+    else {
+        return None;
+    };
     let mut echoed = ea.clone();
     if oa.control == r.control {
         echoed.control = r.control;
@@ -1118,9 +1147,24 @@ fn unused_fields_echoed(
     if oa.offset == r.offset {
         echoed.offset = r.offset;
     }
-    (echoed != *ea && echoed == *oa)
-        .then(|| Alternative::exact(Some(o.clone()), shown_named(f, "", "response")))
-        .into_iter()
+    (echoed != *ea).then_some(Response::CanOpen(echoed))
+}
+
+/// The answers the model computed for other values of `f` (`cx.choice_alternatives`), compared with the
+/// drive's as the step compares: where what a value leads to depends on the drive's state and the rest of
+/// the request (an SD2x leaving a field alone then checks the telegram on: the object, its access, the
+/// length), the model answers it on a copy of itself.
+fn modelled(f: &Freedom, cx: &StepContext<'_>, observed: Option<&Response>) -> Vec<Alternative> {
+    let Some(o) = observed else {
+        return vec![];
+    };
+    cx.choice_alternatives
+        .iter()
+        .filter(|(id, value, _)| *id == f.id && f.admits(value))
+        .map(|(_, value, answer)| {
+            let answer = echoed(cx.request, answer, o).unwrap_or_else(|| answer.clone());
+            Alternative::exact(Some(answer), shown_named(f, "", value))
+        })
         .collect()
 }
 
@@ -1138,15 +1182,7 @@ fn served(
     }
     let echo = request.is_some_and(|r| registers_written(r).is_some() || is_coil_write(r))
         && !matches!(request, Some(Request::ReadWriteMultipleRegisters { .. }));
-    let mut served = served_as_asked(request).unwrap_or_else(|| o.clone());
-    // An SD2x object access may echo the request's control code, unused bits and all.
-    if let (Response::CanOpen(t), Response::CanOpen(oa), Some(Request::CanOpen(r))) =
-        (&mut served, o, request)
-        && oa.control == r.control
-    {
-        t.control = r.control;
-    }
-    let served = Some(served);
+    let served = Some(served_as_asked(request).unwrap_or_else(|| o.clone()));
     let shown = shown_named(f, "", "response");
     vec![if echo {
         Alternative::exact(served, shown)
@@ -1196,23 +1232,6 @@ fn served_as_asked(request: Option<&Request>) -> Option<Response> {
             Response::ReadWriteMultipleRegisters {
                 values: vec![0; usize::from(*read_quantity)],
             }
-        }
-        // An SD2x object access served whatever its unused fields held: the header as the response layout
-        // prints it (control 00h/80h, 004 line 560), or the request's own control code echoed; a read's data
-        // as many bytes as asked (values free), a write's none.
-        Request::CanOpen(a) => {
-            let count = if a.is_write() {
-                0
-            } else {
-                usize::from(a.byte_count)
-            };
-            Response::CanOpen(codec::CanOpenAccess {
-                control: a.control & codec::CanOpenAccess::WRITE,
-                reserved: 0,
-                offset: 0,
-                data: vec![0; count],
-                ..a.clone()
-            })
         }
         _ => return None,
     })
@@ -1691,6 +1710,7 @@ mod tests {
             batch: false,
             decided: &[],
             counter_alternatives: &[],
+            choice_alternatives: &[],
             closed: false,
             short_of_length: false,
             gateway: false,

@@ -2509,6 +2509,7 @@ impl Runner {
         let judged_expected = expected_judged.as_deref().unwrap_or(&expected);
         let decisions = self.shadow.take_decisions();
         let counter_alternatives = self.shadow.take_counter_alternatives();
+        let choice_alternatives = self.shadow.take_choice_alternatives();
         let mut observed = Vec::new();
         let mut findings: Vec<Finding> = precondition;
         let unit = self.cfg.unit;
@@ -2629,6 +2630,7 @@ impl Runner {
                 batch: frames.len() > 1,
                 decided: &decided,
                 counter_alternatives: &counter_alternatives,
+                choice_alternatives: &choice_alternatives,
                 closed: matches!(got, Received::Closed { .. }),
                 short_of_length: frame.is_some_and(|f| f.short_of_length()),
                 gateway: framing == Framing::Tcp

@@ -95,6 +95,11 @@ impl SimTarget {
         self.end.station.take_counter_alternatives()
     }
 
+    /// See [`Station::take_choice_alternatives`].
+    pub fn take_choice_alternatives(&mut self) -> Vec<drives::choices::ModelledAlternative> {
+        self.end.station.take_choice_alternatives()
+    }
+
     /// The station (tests inspect counters and model state).
     pub fn station(&self) -> &Station {
         &self.end.station

@@ -73,6 +73,7 @@ fn judge(
         batch: false,
         decided,
         counter_alternatives: &[],
+        choice_alternatives: &[],
         closed: false,
         short_of_length: false,
         gateway,

@@ -18,3 +18,4 @@ mod run_transports;
 mod safety;
 mod shuffle;
 mod station_streams;
+mod unused_fields;

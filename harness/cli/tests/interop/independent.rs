@@ -117,6 +117,13 @@ impl Independent {
     }
 }
 
+/// The values of the state dump `a` that `b` holds otherwise, by JSON path.
+fn changed(a: &serde_json::Value, b: &serde_json::Value) -> Vec<String> {
+    let mut out = Vec::new();
+    differences(a, b, "", &mut out);
+    out
+}
+
 /// The values of `a` and `b` that differ, by JSON path.
 fn differences(a: &serde_json::Value, b: &serde_json::Value, at: &str, out: &mut Vec<String>) {
     match (a, b) {
@@ -176,8 +183,7 @@ fn run_leaving_as_found_but(
         RUN_LIMIT,
     );
     let after = sim.state();
-    let mut diff = Vec::new();
-    differences(&before, &after, "", &mut diff);
+    let mut diff = changed(&before, &after);
     diff.retain(|d| !by_design.iter().any(|p| d.starts_with(p)));
     assert!(
         diff.is_empty(),
@@ -340,8 +346,7 @@ fn an_lmd_with_a_function_output_is_not_written_and_passes() {
             RUN_LIMIT,
         );
         let after = sim.state();
-        let mut diff = Vec::new();
-        differences(&before, &after, "", &mut diff);
+        let diff = changed(&before, &after);
         assert!(
             diff.is_empty(),
             "{drive}: left changed: {diff:?}\n{out}\n{err}"
@@ -409,8 +414,7 @@ fn the_sd2x_behind_a_line_that_echoes_passes_and_is_left_as_found() {
     let extra = ["--allow-motion", "--allow-destructive"];
     let (code, out, err) = harness_bounded(None, &run_args(&target, "sd2x", &extra), RUN_LIMIT);
     let after = sim.state();
-    let mut diff = Vec::new();
-    differences(&before, &after, "", &mut diff);
+    let diff = changed(&before, &after);
     assert!(
         diff.is_empty(),
         "{drive} behind an echoing line: left changed: {diff:?}\n{out}\n{err}"
@@ -423,8 +427,7 @@ fn the_sd2x_behind_a_line_that_echoes_passes_and_is_left_as_found() {
     );
     assert_eq!(code, 2, "{drive}: {err}");
     assert!(err.contains("Add echo=on"), "{drive}: {err}");
-    let mut diff = Vec::new();
-    differences(&after, &sim.state(), "", &mut diff);
+    let diff = changed(&after, &sim.state());
     assert!(
         diff.is_empty(),
         "{drive}: the run stopped at the pre-flight changed {diff:?}"
@@ -547,8 +550,7 @@ fn run_on_serial_leaving_as_found(drive: &str, extra: &[&str]) -> (i32, String) 
     let target = format!("rtu://{}?baud=19200&parity=even", pty.b.display());
     let (code, out, err) = harness_bounded(None, &run_args(&target, "sd2x", extra), RUN_LIMIT);
     let after = sim.state();
-    let mut diff = Vec::new();
-    differences(&before, &after, "", &mut diff);
+    let diff = changed(&before, &after);
     assert!(
         diff.is_empty(),
         "{drive} {extra:?}: left changed: {diff:?}\n{out}\n{err}"

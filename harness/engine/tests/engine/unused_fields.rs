@@ -31,6 +31,31 @@ fn served(offset: u16, data: [u8; 2]) -> Response {
     })
 }
 
+/// A well-formed step sending `req` to unit 1, the reference's answer decided by `decided`.
+fn context<'a>(
+    req: &'a Request,
+    pdu: &'a [u8],
+    p: &'a drives::profile::Profile,
+    decided: &'a [drives::Decision],
+    modelled: &'a [ModelledAlternative],
+) -> StepContext<'a> {
+    StepContext {
+        request: Some(req),
+        pdu,
+        unit: 1,
+        run_unit: 1,
+        profile: p,
+        malformed: false,
+        batch: false,
+        decided,
+        counter_alternatives: &[],
+        choice_alternatives: modelled,
+        closed: false,
+        short_of_length: false,
+        gateway: false,
+    }
+}
+
 /// The alternatives of `sd2x-fc43-offset-nonzero` for a read with offset 2 that the reference refused with
 /// the offset's SDO error, the model having computed `modelled`, where the drive answered `observed`.
 fn offset_alternatives(
@@ -43,21 +68,7 @@ fn offset_alternatives(
     let req = Request::CanOpen(read(2));
     let pdu = req.to_bytes().expect("pdu");
     let decided = [SD2X_FC43_OFFSET_NONZERO];
-    let cx = StepContext {
-        request: Some(&req),
-        pdu: &pdu,
-        unit: 1,
-        run_unit: 1,
-        profile: &p,
-        malformed: false,
-        batch: false,
-        decided: &decided,
-        counter_alternatives: &[],
-        choice_alternatives: modelled,
-        closed: false,
-        short_of_length: false,
-        gateway: false,
-    };
+    let cx = context(&req, &pdu, &p, &decided, modelled);
     let refused = Response::CanOpenError {
         sdo_code: 0xFFFF_0008,
     };
@@ -95,4 +106,36 @@ fn a_drive_leaving_the_offset_alone_is_judged_by_the_models_answer() {
         !alts.iter().any(|a| a.shown.value == "response"),
         "{alts:?}"
     );
+}
+
+/// A reference leaving the offset alone (it followed the drive's `response`) answers with the offset as the
+/// response layout prints it (0000h); a drive echoing the request's offset is admitted, its values compared
+/// as the step compares. An offset the request did not carry is not.
+#[test]
+fn a_drive_echoing_the_offset_is_admitted_where_the_reference_left_it_alone() {
+    let reference = served(0, [0x10, 0x0E]);
+    let alts = offset_alternatives_after(&reference, &served(2, [0xE0, 0x15]));
+    assert!(
+        alts.iter()
+            .any(|a| a.answer == Some(served(2, [0x10, 0x0E])) && a.shown.value == "response"),
+        "{alts:?}"
+    );
+    let alts = offset_alternatives_after(&reference, &served(3, [0x10, 0x0E]));
+    assert!(alts.is_empty(), "{alts:?}");
+}
+
+/// The alternatives of `sd2x-fc43-offset-nonzero` for a read with offset 2 that the reference served (`e`),
+/// where the drive answered `observed`.
+fn offset_alternatives_after(
+    e: &Response,
+    observed: &Response,
+) -> Vec<engine::oracle::freedoms::Alternative> {
+    let reqs = Corpus::Embedded.requirements().expect("requirements");
+    let p = Corpus::Embedded.profile("sd2x").expect("sd2x");
+    let f = reqs.freedom(SD2X_FC43_OFFSET_NONZERO).expect("freedom");
+    let req = Request::CanOpen(read(2));
+    let pdu = req.to_bytes().expect("pdu");
+    let decided = [SD2X_FC43_OFFSET_NONZERO];
+    let cx = context(&req, &pdu, &p, &decided, &[]);
+    alternatives(f, &cx, Some(e), Some(observed))
 }

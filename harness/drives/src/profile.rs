@@ -310,6 +310,13 @@ pub struct Register {
     /// A read clears it (the MCode error code ER: "must be read or set to 0 to clear"): the safety classifier
     /// rates a read of it destructive, as it rates a write.
     pub read_clears: bool,
+    /// A write of it puts the drive's settings back to their initial values (the LMD's IP, "Reset all
+    /// parameters to initial values", 001 line 2172): it changes every setting a session keeps.
+    pub resets_settings: bool,
+    /// A write of it saves the working settings to non-volatile memory (MCode S, "Save", 000 line 1112, 001
+    /// line 2384): before a case writes it, every setting a session keeps is put back as found, so that
+    /// the save stores them so.
+    pub saves_settings: bool,
 }
 
 impl Register {

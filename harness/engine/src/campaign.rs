@@ -739,6 +739,8 @@ fn run_one(
         let skipped = crate::observe::CaseResult::skipped(&case.id, why);
         return Ok((case, skipped, false));
     }
+    // A save to NVM stores the settings as found, whatever the cases before changed.
+    k.before_save(runner, &case, profile);
     let result = runner.run_case(&case)?;
     if !t.is_empty() {
         let t = k.taken(&case, runner.refused_writes());

@@ -235,6 +235,43 @@ pub fn setting_params(read_back: &[u8]) -> Vec<u8> {
     out
 }
 
+/// The lines of a setting that FC 0x41 reads for several lines at once (the LMD's IS, OS and LS: "1,1,0
+/// 4,0,1" or "1,1,0;4,0,1", the form being the drive's, freedom `fc41-read-back-format`), each as the FC 0x42
+/// parameter string that sets it (`=1,1,0`). Lines are apart where a `;`, a line break or a space stands
+/// between two values; a space next to a comma or the `=` only pads (`0, 1, 0` is one line). One line for a
+/// setting of one line.
+pub fn setting_lines(read_back: &[u8]) -> Vec<Vec<u8>> {
+    let text = read_back.trim_ascii();
+    let text = text.strip_prefix(b"=").unwrap_or(text);
+    let mut lines: Vec<Vec<u8>> = Vec::new();
+    let mut line: Vec<u8> = Vec::new();
+    let mut i = 0;
+    let mut end = |line: &mut Vec<u8>| {
+        if !line.is_empty() {
+            lines.push(setting_params(line));
+            line.clear();
+        }
+    };
+    while i < text.len() {
+        let b = text[i];
+        if b == b';' {
+            end(&mut line);
+        } else if b.is_ascii_whitespace() {
+            let next = text[i..].iter().find(|c| !c.is_ascii_whitespace());
+            let padding = matches!(line.last(), None | Some(b',' | b'='))
+                || matches!(next, None | Some(b',' | b';'));
+            if !padding {
+                end(&mut line);
+            }
+        } else {
+            line.push(b);
+        }
+        i += 1;
+    }
+    end(&mut line);
+    lines
+}
+
 /// Coil states packed LSB-first, as FC 0F carries them.
 fn pack(states: &[bool]) -> Vec<u8> {
     let mut data = vec![0u8; states.len().div_ceil(8)];
@@ -255,6 +292,21 @@ mod tests {
         assert_eq!(setting_params(b"0, 1, 0"), b"=0,1,0");
         assert_eq!(setting_params(b"=16,0,0"), b"=16,0,0");
         assert_eq!(setting_params(b" 1.500 "), b"=1.500");
+    }
+
+    /// A setting read for several lines at once goes back one line per write, whichever separator the drive
+    /// reads it with; padding around commas does not part lines.
+    #[test]
+    fn a_setting_read_for_several_lines_goes_back_line_by_line() {
+        let lines = |t: &[u8]| setting_lines(t);
+        let want: Vec<Vec<u8>> = vec![b"=1,1,0".to_vec(), b"=4,0,1".to_vec(), b"=5,9,1".to_vec()];
+        assert_eq!(lines(b"1,1,0 4,0,1 5,9,1"), want);
+        assert_eq!(lines(b"=1,1,0;4,0,1;5,9,1\r\n"), want);
+        assert_eq!(lines(b"1, 1, 0\r\n4 ,0,1\n5,9 , 1"), want);
+        assert_eq!(lines(b"0, 1, 0"), vec![b"=0,1,0".to_vec()]);
+        assert_eq!(lines(b"=16,0,0"), vec![b"=16,0,0".to_vec()]);
+        assert_eq!(lines(b"0,-256000,1 1,5120000,1").len(), 2);
+        assert!(lines(b"  ").is_empty());
     }
 
     #[test]

@@ -15,7 +15,7 @@ use drives::profile::{Access, Profile, Table};
 use drives::tell::Written;
 use serde::{Deserialize, Serialize};
 
-use crate::capture::setting_params;
+use crate::capture::setting_lines;
 use crate::cases::safety::Safety;
 use crate::cases::{Case, Outgoing, Step};
 use crate::targets::TargetError;
@@ -86,7 +86,7 @@ impl Value {
     pub fn same(&self, other: &Value) -> bool {
         match (self, other) {
             (Value::Text(a), Value::Text(b)) => {
-                setting_params(a.as_bytes()) == setting_params(b.as_bytes())
+                setting_lines(a.as_bytes()) == setting_lines(b.as_bytes())
             }
             _ => self == other,
         }
@@ -118,6 +118,13 @@ pub struct Inventory {
     /// once a case has written to them: many are live values (inputs, status flags) that change by
     /// themselves, which no restore should chase.
     pub guarded: BTreeSet<String>,
+    /// Holding registers a write of which puts every setting back to its initial value (the profile's
+    /// `resets_settings`: the LMD's IP): a case writing one touches every kept item.
+    pub resets: Vec<u16>,
+    /// Holding registers a write of which saves the working settings to NVM (the profile's
+    /// `saves_settings`: MCode S): before a case writing one, every kept item is put back
+    /// ([`Keeper::before_save`]).
+    pub saves: Vec<u16>,
 }
 
 fn gate(motion: bool, destructive: bool, safety: &Safety) -> Option<String> {
@@ -221,6 +228,20 @@ pub fn inventory(profile: &Profile, safety: &Safety) -> Inventory {
         );
     }
     inv.guarded = guarded;
+    inv.resets = profile
+        .registers
+        .iter()
+        .map(|r| r.get_ref())
+        .filter(|r| r.resets_settings && r.table != Table::Input)
+        .map(|r| r.address)
+        .collect();
+    inv.saves = profile
+        .registers
+        .iter()
+        .map(|r| r.get_ref())
+        .filter(|r| r.saves_settings && r.table != Table::Input)
+        .map(|r| r.address)
+        .collect();
     inv
 }
 
@@ -336,7 +357,7 @@ pub fn write_request(item: &Item, value: &Value, profile: Option<&Profile>) -> O
         }
         (Place::Mnemonic { mnemonic }, Value::Text(t)) => Request::VendorWrite {
             mnemonic: Mnemonic::from_name(mnemonic)?,
-            params: setting_params(t.as_bytes()),
+            params: setting_lines(t.as_bytes()).into_iter().next()?,
         },
         (
             Place::Object {
@@ -349,6 +370,24 @@ pub fn write_request(item: &Item, value: &Value, profile: Option<&Profile>) -> O
         ) => Request::CanOpen(CanOpenAccess::write(*node, *index, *subindex, b.clone())),
         _ => return None,
     })
+}
+
+/// The writes that put `value` back into `item`: [`write_request`]'s one, or for a vendor setting read for
+/// several lines at once (the LMD's IS, OS, LS), one FC 0x42 per line ([`setting_lines`]). Empty when no
+/// write puts it back.
+pub fn write_requests(item: &Item, value: &Value, profile: Option<&Profile>) -> Vec<Request> {
+    match (&item.place, value) {
+        (Place::Mnemonic { mnemonic }, Value::Text(t)) => {
+            let Some(mnemonic) = Mnemonic::from_name(mnemonic) else {
+                return Vec::new();
+            };
+            setting_lines(t.as_bytes())
+                .into_iter()
+                .map(|params| Request::VendorWrite { mnemonic, params })
+                .collect()
+        }
+        _ => write_request(item, value, profile).into_iter().collect(),
+    }
 }
 
 /// An item whose value differs from the snapshot: what it was and what it is now (`None`: unreadable now).
@@ -388,7 +427,7 @@ pub type Touched = BTreeSet<String>;
 /// What a case can have changed: items whose place its requests write, or everything when a request that
 /// may write cannot be decoded (malformed on purpose).
 pub fn touched(items: &[Item], case: &Case) -> BTreeSet<String> {
-    touched_by(items, case_pdus(case))
+    touched_by(items, case_pdus(case), &[])
 }
 
 /// The request PDUs a case sends (restores aside: they write back what the case read before its writes).
@@ -487,8 +526,73 @@ fn settle_axis(
 }
 
 /// The items that requests `pdus` can have written.
-fn touched_by(items: &[Item], pdus: Vec<&[u8]>) -> BTreeSet<String> {
+/// How many more reads tell a value that changes by itself ([`Keeper::live_apart`]), and the pause before
+/// each.
+const LIVE_READS: usize = 3;
+const LIVE_GAP: std::time::Duration = std::time::Duration::from_millis(20);
+
+/// The reads `seen` (after a restore, nothing written between) as text, when they show a value that changes
+/// by itself and is off `before` by no more than twice their spread: register values only, compared as
+/// integers of their width in either word order (the nearer reading counts). `None` otherwise.
+fn live_reads(before: &Value, seen: &[Value]) -> Option<String> {
+    let Value::Words(b) = before else {
+        return None;
+    };
+    let as_ints = |w: &[u16]| -> Option<[i64; 2]> {
+        let n = w.len();
+        if n == 0 || n > 2 || w.len() != b.len() {
+            return None;
+        }
+        let signed = |x: u64| {
+            let bits = 16 * n as u32;
+            let sign = 1u64 << (bits - 1);
+            if x & sign != 0 {
+                x as i64 - (1i64 << bits)
+            } else {
+                x as i64
+            }
+        };
+        let hi = w.iter().fold(0u64, |a, x| (a << 16) | u64::from(*x));
+        let lo = w.iter().rev().fold(0u64, |a, x| (a << 16) | u64::from(*x));
+        Some([signed(hi), signed(lo)])
+    };
+    let before = as_ints(b)?;
+    let mut reads = Vec::new();
+    for v in seen {
+        let Value::Words(w) = v else { return None };
+        reads.push(as_ints(w)?);
+    }
+    if seen.windows(2).all(|p| p[0] == p[1]) {
+        return None;
+    }
+    let fits = |order: usize| {
+        let xs: Vec<i64> = reads.iter().map(|r| r[order]).collect();
+        let (min, max) = (xs.iter().min()?, xs.iter().max()?);
+        let spread = max - min;
+        let off = xs.iter().map(|x| (x - before[order]).abs()).min()?;
+        (off <= 2 * spread).then_some(())
+    };
+    if fits(0).is_none() && fits(1).is_none() {
+        return None;
+    }
+    Some(
+        seen.iter()
+            .map(ToString::to_string)
+            .collect::<Vec<_>>()
+            .join(", "),
+    )
+}
+
+/// What `pdus` can have changed among `items`: the items they write, or every item where one writes a
+/// register of `resets` (a reset of the settings to their initial values).
+fn touched_by(items: &[Item], pdus: Vec<&[u8]>, resets: &[u16]) -> BTreeSet<String> {
     let mut keys = BTreeSet::new();
+    let resetting = |w: &Written| match w {
+        Written::Holding { address, quantity } => resets
+            .iter()
+            .any(|r| *address <= *r && u32::from(*r) < u32::from(*address) + u32::from(*quantity)),
+        _ => false,
+    };
     for pdu in pdus {
         let written = match Request::decode(pdu) {
             Ok(req) => Written::of(&req),
@@ -500,6 +604,9 @@ fn touched_by(items: &[Item], pdus: Vec<&[u8]>) -> BTreeSet<String> {
             Err(_) => None,
         };
         if let Some(w) = written {
+            if resetting(&w) {
+                return items.iter().map(|i| i.key.clone()).collect();
+            }
             keys.extend(
                 items
                     .iter()
@@ -634,6 +741,11 @@ pub struct Account {
     /// unrestored.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub left_faulted: Option<(u16, u16)>,
+    /// Kept parameters that changed by themselves (a measured value on a drive with its motor attached: an
+    /// encoder count, a lead/lag): read again with nothing written between, they read otherwise each time,
+    /// within what they moved by. Not counted as unrestored; no longer put back or verified once seen.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub live: Vec<Unrestored>,
 }
 
 impl Account {
@@ -666,7 +778,7 @@ impl Account {
         ));
         if !self.unwritable.is_empty() {
             out.push(format!(
-                "  {} parameter(s) that would not write back as read, so no case wrote them: {}",
+                "  {} parameter(s) that one write would not put back as read, so no case wrote them: {}",
                 self.unwritable.len(),
                 self.unwritable
                     .iter()
@@ -681,6 +793,17 @@ impl Account {
                 self.verified_before_irreversible.len(),
                 self.verified_before_irreversible[0].name,
                 self.verified_before_irreversible[0].what()
+            ));
+        }
+        if !self.live.is_empty() {
+            out.push(format!(
+                "  {} parameter(s) that change by themselves (measured values), neither put back nor verified once seen to: {}",
+                self.live.len(),
+                self.live
+                    .iter()
+                    .map(|u| format!("{} ({})", u.name, u.reason))
+                    .collect::<Vec<_>>()
+                    .join("; ")
             ));
         }
         if let Some((before, after)) = self.left_faulted {
@@ -1146,24 +1269,20 @@ pub fn restore(
             }
             let (item, value) = (&differing[at], before[at]);
             at += 1;
-            let Some(req) = write_request(item, value, profile) else {
+            let reqs = write_requests(item, value, profile);
+            if reqs.is_empty() {
                 refused.insert(item.key.clone(), "no write puts this value back".into());
                 continue;
-            };
-            writes += 1;
-            match link.transact(&req)? {
-                Some(r) if !r.is_exception() => {
-                    refused.remove(&item.key);
-                }
-                Some(r) => {
-                    refused.insert(
-                        item.key.clone(),
-                        format!("the drive refused the write: {r:?}"),
-                    );
-                }
-                None => {
-                    refused.insert(item.key.clone(), "no answer to the write".into());
-                }
+            }
+            refused.remove(&item.key);
+            for req in &reqs {
+                writes += 1;
+                let why = match link.transact(req)? {
+                    Some(r) if !r.is_exception() => continue,
+                    Some(r) => format!("the drive refused the write: {r:?}"),
+                    None => "no answer to the write".into(),
+                };
+                refused.insert(item.key.clone(), why);
             }
             changed.push(item.clone());
         }
@@ -1212,6 +1331,11 @@ pub struct Keeper {
     scratch_journal: bool,
     /// Kept parameters that would not write back as read (see [`Account::unwritable`]): no case writes them.
     unwritable: Vec<Item>,
+    /// Kept settings read for several lines at once, which the keeper puts back line by line: no case
+    /// writes them itself (its write-back is one write), a reset of every setting may.
+    multi_line: Vec<Item>,
+    /// Kept items seen to change by themselves ([`Account::live`]): no longer put back or verified.
+    live: BTreeSet<String>,
     /// The guarded items (see [`Inventory::guarded`]) a case has written to: from then on they are put back
     /// and verified like the others.
     written: BTreeSet<String>,
@@ -1247,6 +1371,8 @@ impl Keeper {
             last_saved: None,
             scratch_journal: false,
             unwritable: Vec::new(),
+            multi_line: Vec::new(),
+            live: BTreeSet::new(),
             written: BTreeSet::new(),
             checkpoint: None,
             status_word: None,
@@ -1305,15 +1431,71 @@ impl Keeper {
 
     /// The kept items the final restore puts back: all but the guarded ones no case has written to.
     fn restored_items(&self) -> impl Iterator<Item = &Item> {
-        self.inventory
-            .items
-            .iter()
-            .filter(|i| !self.inventory.guarded.contains(&i.key) || self.written.contains(&i.key))
+        self.inventory.items.iter().filter(|i| {
+            (!self.inventory.guarded.contains(&i.key) || self.written.contains(&i.key))
+                && !self.live.contains(&i.key)
+        })
     }
 
-    /// What `case` can change among the kept items.
+    /// What `case` can change among the kept items (a reset of every setting: every one but the guarded
+    /// ones, which the profile takes as read-only, and the ones seen to change by themselves).
     pub fn touched(&self, case: &Case) -> BTreeSet<String> {
-        touched(&self.inventory.items, case)
+        let (guarded, settings): (Vec<Item>, Vec<Item>) = self
+            .inventory
+            .items
+            .iter()
+            .filter(|i| !self.live.contains(&i.key))
+            .cloned()
+            .partition(|i| self.inventory.guarded.contains(&i.key));
+        let mut keys = touched_by(&settings, case_pdus(case), &self.inventory.resets);
+        keys.extend(touched_by(&guarded, case_pdus(case), &[]));
+        keys
+    }
+
+    /// Of the items `left` differing after a restore, the ones that change by themselves go to
+    /// [`Account::live`] and are not put back or verified from then on; the others are returned. An item
+    /// changes by itself when [`LIVE_READS`] more reads, with nothing written between, do not all read the
+    /// same, and the value is off the snapshot by no more than twice what those reads spread over (an
+    /// encoder's jitter; a write the drive did not take leaves a value far off, which stays unrestored).
+    fn live_apart(
+        items: &[Item],
+        live: &mut BTreeSet<String>,
+        account: &mut Account,
+        link: &mut dyn Link,
+        left: Vec<Unrestored>,
+    ) -> Vec<Unrestored> {
+        let mut out = Vec::new();
+        for u in left {
+            let Some(item) = items.iter().find(|i| i.key == u.key).cloned() else {
+                out.push(u);
+                continue;
+            };
+            let Some(after) = u.after.clone() else {
+                out.push(u);
+                continue;
+            };
+            let mut seen = vec![after];
+            for _ in 0..LIVE_READS {
+                link.idle(LIVE_GAP);
+                match read_all(link, std::slice::from_ref(&item)) {
+                    Ok(mut m) => match m.remove(&item.key).flatten() {
+                        Some(v) => seen.push(v),
+                        None => break,
+                    },
+                    Err(_) => break,
+                }
+            }
+            if let Some(reads) = live_reads(&u.before, &seen) {
+                live.insert(u.key.clone());
+                account.live.push(Unrestored {
+                    reason: format!("read {reads} with nothing written between"),
+                    ..u
+                });
+            } else {
+                out.push(u);
+            }
+        }
+        out
     }
 
     /// What `case` can have changed, once it ran: [`touched`](Self::touched), less the guarded items (see
@@ -1337,7 +1519,8 @@ impl Keeper {
             .into_iter()
             .filter(|p| !refused.iter().any(|r| r.as_slice() == *p))
             .collect();
-        let taken = touched_by(&guarded, pdus);
+        // A reset of the settings leaves what is read-only alone.
+        let taken = touched_by(&guarded, pdus, &[]);
         all.into_iter()
             .filter(|k| !self.inventory.guarded.contains(k) || taken.contains(k))
             .collect()
@@ -1346,10 +1529,11 @@ impl Keeper {
     /// Why `case` may not run once the snapshot is taken: it can write a parameter that would not write back
     /// as read (see [`Account::unwritable`]). `None` when nothing stands in its way.
     pub fn unrestorable(&self, case: &Case) -> Option<String> {
-        if self.unwritable.is_empty() {
+        if self.unwritable.is_empty() && self.multi_line.is_empty() {
             return None;
         }
-        let keys = touched(&self.unwritable, case);
+        let mut keys = touched_by(&self.unwritable, case_pdus(case), &self.inventory.resets);
+        keys.extend(touched_by(&self.multi_line, case_pdus(case), &[]));
         let names: Vec<&str> = self
             .account
             .unwritable
@@ -1359,7 +1543,7 @@ impl Keeper {
             .collect();
         (!names.is_empty()).then(|| {
             format!(
-                "not run: it can change {}, which did not write back as read before the first write (leave as found; see the report)",
+                "not run: it can change {}, which one write did not put back as read before the first write (leave as found; see the report)",
                 names.join(", ")
             )
         })
@@ -1374,12 +1558,43 @@ impl Keeper {
             *before = status;
         }
         let read = read_all(&mut counting, &self.inventory.items);
+        // Read again, [`LIVE_READS`] times, [`LIVE_GAP`] apart: a value that differs between the reads,
+        // nothing written between, changes by itself (an encoder count, a lead/lag on a drive with its
+        // motor attached): neither put back nor verified. (An encoder jittering by ±2 reads the same four
+        // times in a row once in 125.)
+        let mut again = Vec::new();
+        for _ in 0..LIVE_READS {
+            counting.idle(LIVE_GAP);
+            again.push(read_all(&mut counting, &self.inventory.items));
+        }
         self.account.requests += counting.sent;
         let read = read?;
+        let again = again.into_iter().collect::<Result<Vec<_>, _>>()?;
         let mut snapshot = BTreeMap::new();
         let mut kept = Vec::new();
         for item in std::mem::take(&mut self.inventory.items) {
-            match read.get(&item.key).cloned().flatten() {
+            let first = read.get(&item.key).cloned().flatten();
+            let second = again
+                .iter()
+                .filter_map(|m| m.get(&item.key).cloned().flatten())
+                .find(|b| first.as_ref().is_some_and(|a| !a.same(b)));
+            if let (Some(a), Some(b)) = (&first, &second) {
+                let reason = format!("read {a}, then {b}, with nothing written between");
+                self.inventory.excluded.push(Excluded {
+                    key: item.key.clone(),
+                    name: item.name.clone(),
+                    reason: format!("it changes by itself ({reason}): a measured value, neither put back nor verified"),
+                });
+                self.account.live.push(Unrestored {
+                    key: item.key.clone(),
+                    name: item.name.clone(),
+                    before: a.clone(),
+                    after: Some(b.clone()),
+                    reason,
+                });
+                continue;
+            }
+            match first {
                 Some(v) => {
                     snapshot.insert(item.key.clone(), v);
                     kept.push(item);
@@ -1397,22 +1612,44 @@ impl Keeper {
         // write is tried with the value as found and read back; a setting it does not put back is written
         // by no case. (Registers, coils and objects go back in the form the specification fixes.)
         let sent = counting.sent;
+        // A setting read for several lines at once goes back one line per write: the keeper puts it back
+        // so (after a reset of every setting, say), but a case's own write-back is one write, so no case
+        // writes it directly.
         for item in kept
             .iter()
             .filter(|i| matches!(i.place, Place::Mnemonic { .. }))
         {
             let found = &snapshot[&item.key];
-            let Some(req) = write_request(item, found, None) else {
+            let reqs = write_requests(item, found, None);
+            if reqs.is_empty() {
                 continue;
-            };
-            let answer = counting.transact(&req)?;
+            }
+            let mut answer = None;
+            for req in &reqs {
+                answer = counting.transact(req)?;
+                if answer.as_ref().is_none_or(Response::is_exception) {
+                    break;
+                }
+            }
             let after = read_all(&mut counting, std::slice::from_ref(item))?;
             let after = after.get(&item.key).cloned().flatten();
             let why = match (&answer, &after) {
                 (None, _) => "no answer".to_string(),
                 (Some(Response::Exception { code, .. }), _) => format!("refused with {code}"),
                 (Some(r), _) if r.is_exception() => format!("refused: {r:?}"),
-                (_, Some(v)) if v.same(found) => continue,
+                (_, Some(v)) if v.same(found) && reqs.len() == 1 => continue,
+                (_, Some(v)) if v.same(found) => {
+                    self.account.unwritable.push(Excluded {
+                        key: item.key.clone(),
+                        name: item.name.clone(),
+                        reason: format!(
+                            "it reads as {} lines ({found}), which one write does not set: the keeper puts it back one line per write, as it did with the value read first",
+                            reqs.len()
+                        ),
+                    });
+                    self.multi_line.push(item.clone());
+                    continue;
+                }
                 (_, Some(v)) => format!("acknowledged, but it then read {v}"),
                 (_, None) => "acknowledged, but it then did not read back".to_string(),
             };
@@ -1530,11 +1767,7 @@ impl Keeper {
                 self.last_saved = None;
             }
         }
-        let mut counting = Counting { link, sent: 0 };
-        let restored = restore(&mut counting, &items, snapshot, Some(profile));
-        self.account.requests += counting.sent;
-        let (writes, left) = restored?;
-        self.account.restore_writes += writes;
+        let left = self.put_back(link, &items, profile)?;
         let was: Vec<Unrestored> = self.pending.values().cloned().collect();
         for i in &items {
             self.pending.remove(&i.key);
@@ -1563,26 +1796,67 @@ impl Keeper {
     /// the drive then no longer lets be read or written is listed apart
     /// ([`Account::verified_before_irreversible`]), not as unrestored. True when everything read as before.
     pub fn checkpoint(&mut self, link: &mut dyn Link, profile: &Profile) -> bool {
-        let Some(snapshot) = self.snapshot.clone() else {
-            return true;
-        };
-        if self.checkpoint.is_some() {
+        if self.snapshot.is_none() || self.checkpoint.is_some() {
             return true;
         }
         let items: Vec<Item> = self.restored_items().cloned().collect();
-        let mut counting = Counting { link, sent: 0 };
-        let restored = restore(&mut counting, &items, &snapshot, Some(profile));
-        self.account.requests += counting.sent;
-        let left: BTreeSet<String> = match restored {
-            Ok((writes, left)) => {
-                self.account.restore_writes += writes;
-                left.into_iter().map(|u| u.key).collect()
-            }
+        let left: BTreeSet<String> = match self.put_back(link, &items, profile) {
+            Ok(left) => left.into_iter().map(|u| u.key).collect(),
             Err(_) => items.iter().map(|i| i.key.clone()).collect(),
         };
         let clean = left.is_empty();
         self.checkpoint = Some((left, BTreeSet::new()));
         clean
+    }
+
+    /// Before a case that saves the working settings to NVM (it writes a register of [`Inventory::saves`]):
+    /// every kept item that differs is put back now, so that the save stores the settings as found. A case
+    /// may change a setting no request of it names (DC/IC change the variable their value names), and the
+    /// restore after each case puts back only what the case named; the save would store that change for
+    /// good. True when the case saves (whatever the restore gave: the final one says what is left).
+    pub fn before_save(&mut self, link: &mut dyn Link, case: &Case, profile: &Profile) -> bool {
+        let saves = !self.inventory.saves.is_empty()
+            && self.snapshot.is_some()
+            && case_pdus(case).iter().any(|pdu| {
+                matches!(Request::decode(pdu), Ok(req) if matches!(Written::of(&req),
+                    Some(Written::Holding { address, quantity })
+                        if self.inventory.saves.iter().any(|s| address <= *s && u32::from(*s) < u32::from(address) + u32::from(quantity))))
+            });
+        if !saves {
+            return false;
+        }
+        let items: Vec<Item> = self.restored_items().cloned().collect();
+        let _ = self.put_back(link, &items, profile);
+        true
+    }
+
+    /// Put back every item of `items` that differs from the snapshot and verify ([`restore`]), counting the
+    /// requests and writes; the items still differing, less those seen to change by themselves
+    /// ([`Keeper::live_apart`]).
+    fn put_back(
+        &mut self,
+        link: &mut dyn Link,
+        items: &[Item],
+        profile: &Profile,
+    ) -> Result<Vec<Unrestored>, TargetError> {
+        let Some(snapshot) = self.snapshot.take() else {
+            return Ok(Vec::new());
+        };
+        let mut counting = Counting { link, sent: 0 };
+        let restored =
+            restore(&mut counting, items, &snapshot, Some(profile)).map(|(writes, left)| {
+                self.account.restore_writes += writes;
+                Self::live_apart(
+                    &self.inventory.items,
+                    &mut self.live,
+                    &mut self.account,
+                    &mut counting,
+                    left,
+                )
+            });
+        self.account.requests += counting.sent;
+        self.snapshot = Some(snapshot);
+        restored
     }
 
     /// At the end (or on an interrupt, an error, a dead target): restore everything that differs and verify.
@@ -1593,8 +1867,8 @@ impl Keeper {
             return self.account.clone();
         };
         let items: Vec<Item> = self.restored_items().cloned().collect();
+        let restored = self.put_back(link, &items, profile);
         let mut counting = Counting { link, sent: 0 };
-        let restored = restore(&mut counting, &items, &snapshot, Some(profile));
         const FAULT: u16 = 1 << 3;
         if let Some(before) = self.status_word.as_ref().and_then(|(_, b)| *b)
             && before & FAULT == 0
@@ -1605,8 +1879,7 @@ impl Keeper {
         }
         self.account.requests += counting.sent;
         match restored {
-            Ok((writes, left)) => {
-                self.account.restore_writes += writes;
+            Ok(left) => {
                 // Verified before the irreversible cases, written by none since, refused now: the drive's
                 // state after those cases, not a parameter the run left changed.
                 let (apart, left): (Vec<Unrestored>, Vec<Unrestored>) =
@@ -2270,11 +2543,26 @@ mod tests {
     }
 
     /// A drive of two vendor settings: S1 reads as `0, 1, 0` and takes `=0,1,0` back; OS reads the setups of
-    /// all its lines (`1,16,1;2,16,1`) where a write sets one line, so its FC 0x42 refuses what FC 0x41 read.
+    /// all its lines (`1,16,1;2,16,1`, or apart by `sep`) where a write sets one line, so its FC 0x42 refuses
+    /// what FC 0x41 read, and takes it one line per write (none where `locked`).
     struct Settings {
         s1: String,
         os: String,
+        sep: &'static str,
+        locked: bool,
         writes: Vec<String>,
+    }
+
+    impl Settings {
+        fn new(sep: &'static str, locked: bool) -> Self {
+            Settings {
+                s1: "0, 1, 0".into(),
+                os: ["1,16,1", "2,16,1"].join(sep),
+                sep,
+                locked,
+                writes: vec![],
+            }
+        }
     }
 
     impl Link for Settings {
@@ -2292,19 +2580,39 @@ mod tests {
                     let text = String::from_utf8_lossy(params).into_owned();
                     self.writes.push(format!("{}{text}", name(mnemonic)));
                     let values = text.trim_start_matches('=');
+                    let fields: Vec<&str> = values.split(',').collect();
                     match name(mnemonic).as_str() {
-                        "S1" => self.s1 = values.split(',').collect::<Vec<_>>().join(", "),
-                        _ if values.contains(';') => {
+                        "S1" => self.s1 = fields.join(", "),
+                        _ if self.locked || values.contains(';') || fields.len() != 3 => {
                             return Ok(Some(Response::exception(
                                 FunctionCode::VENDOR_WRITE,
                                 codec::ExceptionCode::ILLEGAL_DATA_VALUE,
                             )));
                         }
-                        _ => {}
+                        _ => {
+                            // One line: it replaces the line of its number.
+                            let mut lines: Vec<String> =
+                                self.os.split(self.sep).map(str::to_string).collect();
+                            for l in &mut lines {
+                                if l.split(',').next() == Some(fields[0]) {
+                                    *l = values.to_string();
+                                }
+                            }
+                            self.os = lines.join(self.sep);
+                        }
                     }
                     Response::VendorWrite {
                         mnemonic: *mnemonic,
                         written: params.len() as u8,
+                    }
+                }
+                // IP, the reset of every setting (register 0x003C): the factory setup.
+                Request::WriteSingleRegister { address: 0x3C, .. } => {
+                    self.os = ["1,0,0", "2,0,0"].join(self.sep);
+                    self.s1 = "0, 0, 0".into();
+                    Response::WriteSingleRegister {
+                        address: 0x3C,
+                        value: 1,
                     }
                 }
                 _ => return Ok(None),
@@ -2312,34 +2620,52 @@ mod tests {
         }
     }
 
-    /// A vendor setting whose value as read does not write back is found out before the first write, and
-    /// no case may write it; one that writes back as read is kept as usual.
-    #[test]
-    fn a_setting_that_does_not_write_back_as_read_is_written_by_no_case() {
+    fn settings_keeper() -> Keeper {
         let mnemonic = |m: &str| {
             item(
                 &format!("mnemonic:{m}"),
                 Place::Mnemonic { mnemonic: m.into() },
             )
         };
-        let mut k = Keeper::new(
+        Keeper::new(
             Inventory {
                 items: vec![mnemonic("S1"), mnemonic("OS")],
+                resets: vec![0x3C],
                 ..Inventory::default()
             },
             "tcp://127.0.0.1:1".into(),
             "lmd".into(),
             1,
             None,
-        );
-        let mut drive = Settings {
-            s1: "0, 1, 0".into(),
-            os: "1,16,1;2,16,1".into(),
-            writes: vec![],
+        )
+    }
+
+    fn setting_write(m: &str) -> Case {
+        let req = Request::VendorWrite {
+            mnemonic: Mnemonic::from_name(m).expect("mnemonic"),
+            params: b"=1,16,0".to_vec(),
         };
+        one_request_case(req.to_bytes().expect("pdu"))
+    }
+
+    fn reset() -> Case {
+        let req = Request::WriteSingleRegister {
+            address: 0x3C,
+            value: 1,
+        };
+        one_request_case(req.to_bytes().expect("pdu"))
+    }
+
+    /// A vendor setting whose value as read does not write back is found out before the first write, and
+    /// no case may write it, nor reset every setting; one that writes back as read is kept as usual.
+    #[test]
+    fn a_setting_that_does_not_write_back_as_read_is_written_by_no_case() {
+        let mut k = settings_keeper();
+        let mut drive = Settings::new(";", true);
         k.take_snapshot(&mut drive).expect("snapshot");
-        // Each setting was written back as read, once, before anything changed it.
-        assert_eq!(drive.writes, ["S1=0,1,0", "OS=1,16,1;2,16,1"]);
+        // Each setting was written back as read, once, before anything changed it: OS line by line, the
+        // first line refused.
+        assert_eq!(drive.writes, ["S1=0,1,0", "OS=1,16,1"]);
         assert_eq!(
             (drive.s1.as_str(), drive.os.as_str()),
             ("0, 1, 0", "1,16,1;2,16,1")
@@ -2354,23 +2680,201 @@ mod tests {
                 .iter()
                 .any(|l| l.contains("so no case wrote them: mnemonic:OS"))
         );
-        let case = one_request_case;
-        let write = |m: &str| {
-            let req = Request::VendorWrite {
-                mnemonic: Mnemonic::from_name(m).expect("mnemonic"),
-                params: b"=1,16,0".to_vec(),
-            };
-            case(req.to_bytes().expect("pdu"))
-        };
         let read = Request::VendorRead {
             mnemonic: Mnemonic::from_name("OS").expect("mnemonic"),
         };
         let why = k
-            .unrestorable(&write("OS"))
+            .unrestorable(&setting_write("OS"))
             .expect("a write of OS may not run");
         assert!(why.contains("mnemonic:OS"), "{why}");
-        assert_eq!(k.unrestorable(&write("S1")), None);
-        assert_eq!(k.unrestorable(&case(read.to_bytes().expect("pdu"))), None);
+        assert!(
+            k.unrestorable(&reset()).is_some(),
+            "a reset of every setting would change OS"
+        );
+        assert_eq!(k.unrestorable(&setting_write("S1")), None);
+        assert_eq!(
+            k.unrestorable(&one_request_case(read.to_bytes().expect("pdu"))),
+            None
+        );
+    }
+
+    /// A setting read for all its lines at once (the LMD's OS, with the lines apart by `;` or by a space, as
+    /// an independent LMD reads it) goes back one line per write: before the first write, and after a reset
+    /// of every setting (the LMD's IP), which touches every kept item and may run; a case writing the
+    /// setting itself may not (its own write-back is one write).
+    #[test]
+    fn a_setting_read_for_several_lines_goes_back_line_by_line_after_a_reset() {
+        let p = drives::corpus::Corpus::Embedded.load("lmd").expect("lmd");
+        for sep in [";", " "] {
+            let mut k = settings_keeper();
+            let mut drive = Settings::new(sep, false);
+            k.take_snapshot(&mut drive).expect("snapshot");
+            assert_eq!(
+                drive.writes,
+                ["S1=0,1,0", "OS=1,16,1", "OS=2,16,1"],
+                "{sep:?}"
+            );
+            assert!(k.unrestorable(&setting_write("OS")).is_some(), "{sep:?}");
+            assert_eq!(k.unrestorable(&reset()), None, "{sep:?}");
+            let touched = k.touched(&reset());
+            assert_eq!(touched.len(), 2, "{touched:?}");
+            // The reset: every setting back to the factory's, then put back as found.
+            drive
+                .transact(&Request::WriteSingleRegister {
+                    address: 0x3C,
+                    value: 1,
+                })
+                .expect("reset");
+            drive.writes.clear();
+            k.after_case(&mut drive, "reset", &touched, &p)
+                .expect("restore");
+            assert_eq!(
+                drive.os,
+                ["1,16,1", "2,16,1"].join(sep),
+                "{:?}",
+                drive.writes
+            );
+            assert_eq!(drive.s1, "0, 1, 0");
+            assert_eq!(drive.writes, ["S1=0,1,0", "OS=1,16,1", "OS=2,16,1"]);
+            let a = k.finish(&mut drive, &p);
+            assert!(a.clean(), "{a:?}");
+        }
+    }
+
+    /// A drive with a parameter at 0x10 that stays as written and measured values at 0x20 (an encoder
+    /// count that jitters by ±2 around what was written, read after read) and at 0x30 (still until
+    /// `jitter_from` reads of it, then jittering); a write to 0x40 is acknowledged and not taken.
+    struct Bench {
+        regs: BTreeMap<u16, u16>,
+        reads: BTreeMap<u16, usize>,
+        jitter_from: usize,
+        seed: u32,
+    }
+
+    impl Bench {
+        fn new(jitter_from: usize) -> Self {
+            Bench {
+                regs: [(0x10, 7), (0x20, 100), (0x30, 200), (0x40, 5)].into(),
+                reads: BTreeMap::new(),
+                jitter_from,
+                seed: 1,
+            }
+        }
+
+        fn value(&mut self, a: u16) -> u16 {
+            let n = self.reads.entry(a).or_default();
+            *n += 1;
+            let n = *n;
+            let base = self.regs[&a];
+            let jitters = a == 0x20 || (a == 0x30 && n > self.jitter_from);
+            if !jitters {
+                return base;
+            }
+            // A small deterministic walk: -2..=2 around the value.
+            self.seed = self.seed.wrapping_mul(1_103_515_245).wrapping_add(12_345);
+            base.wrapping_add(((self.seed >> 16) % 5) as u16)
+                .wrapping_sub(2)
+        }
+    }
+
+    impl Link for Bench {
+        fn blocks(&self, _kind: Block) -> bool {
+            false
+        }
+
+        fn transact(&mut self, req: &Request) -> Result<Option<Response>, TargetError> {
+            Ok(Some(match req {
+                Request::ReadHoldingRegisters {
+                    address,
+                    quantity: 1,
+                } => Response::ReadHoldingRegisters {
+                    values: vec![self.value(*address)],
+                },
+                Request::WriteMultipleRegisters { address, values } => {
+                    if *address != 0x40 {
+                        self.regs.insert(*address, values[0]);
+                    }
+                    Response::WriteMultipleRegisters {
+                        address: *address,
+                        quantity: values.len() as u16,
+                    }
+                }
+                _ => return Ok(None),
+            }))
+        }
+    }
+
+    fn bench_keeper() -> Keeper {
+        Keeper::new(
+            Inventory {
+                items: [0x10, 0x20, 0x30, 0x40].map(|a| holding(a, 1)).to_vec(),
+                ..Inventory::default()
+            },
+            "tcp://127.0.0.1:1".into(),
+            "generic".into(),
+            1,
+            None,
+        )
+    }
+
+    /// A measured value that reads otherwise with nothing written between (an encoder count on a drive with
+    /// its motor attached) is neither put back nor verified: found so before the first write, or when a
+    /// restore does not read back as before and more reads keep moving, within what they move by. A
+    /// parameter whose write the drive does not take stays unrestored, and one a case moved far off is put
+    /// back.
+    #[test]
+    fn a_value_that_changes_by_itself_is_neither_put_back_nor_verified() {
+        let p = drives::corpus::Corpus::Embedded
+            .load("generic")
+            .expect("generic");
+        let mut drive = Bench::new(usize::MAX);
+        let mut k = bench_keeper();
+        k.take_snapshot(&mut drive).expect("snapshot");
+        let a = k.account();
+        assert_eq!(a.kept, 3, "{a:?}");
+        let live: Vec<&str> = a.live.iter().map(|u| u.key.as_str()).collect();
+        assert_eq!(live, ["holding:32"], "{a:?}");
+        assert!(a.lines().iter().any(|l| l.contains("change by themselves")));
+        // A case moves 0x10 and 0x40; the restore puts 0x10 back, 0x40 does not take it.
+        drive.regs.insert(0x10, 900);
+        drive.regs.insert(0x40, 6);
+        let a = k.finish(&mut drive, &p);
+        let left: Vec<&str> = a.unrestored.iter().map(|u| u.key.as_str()).collect();
+        assert_eq!(left, ["holding:64"], "{a:?}");
+        assert_eq!(drive.regs[&0x10], 7);
+
+        // 0x30 still while the snapshot reads it, jittering from then on: the final verification tells.
+        let mut drive = Bench::new(4);
+        let mut k = bench_keeper();
+        k.take_snapshot(&mut drive).expect("snapshot");
+        assert_eq!(k.account().live.len(), 1, "{:?}", k.account());
+        let a = k.finish(&mut drive, &p);
+        let live: Vec<&str> = a.live.iter().map(|u| u.key.as_str()).collect();
+        assert!(a.unrestored.iter().all(|u| u.key != "holding:48"), "{a:?}");
+        assert_eq!(live, ["holding:32", "holding:48"], "{a:?}");
+        // A value far off that keeps moving is not taken for jitter.
+        assert_eq!(
+            live_reads(
+                &Value::Words(vec![7]),
+                &[Value::Words(vec![900]), Value::Words(vec![901])]
+            ),
+            None
+        );
+        assert!(
+            live_reads(
+                &Value::Words(vec![100]),
+                &[Value::Words(vec![101]), Value::Words(vec![99])]
+            )
+            .is_some()
+        );
+        // Reads that agree show nothing moving.
+        assert_eq!(
+            live_reads(
+                &Value::Words(vec![100]),
+                &[Value::Words(vec![101]), Value::Words(vec![101])]
+            ),
+            None
+        );
     }
 
     #[test]

@@ -1101,6 +1101,10 @@ pub fn run(
                     if !touched.is_empty() && unrestorable.is_none() {
                         after = Some(touched);
                     }
+                    // A save to NVM stores the settings as found, whatever the cases before changed.
+                    if unrestorable.is_none() {
+                        k.before_save(&mut runner, &case, &profile);
+                    }
                 }
                 match unrestorable
                     .map_or_else(|| runner.run_case(&case), |why| Ok(skipped(&case, why)))
@@ -1314,6 +1318,7 @@ pub fn align_reference(
     runner: &mut crate::runner::Runner,
     profile: &Profile,
 ) {
+    runner.learn_live(&k.account().live);
     let left = k.align(&mut runner.reference(), profile);
     if !left.is_empty() {
         let _ = writeln!(
@@ -1612,5 +1617,6 @@ pub fn restore_journal(
         unwritable: Vec::new(),
         verified_before_irreversible: Vec::new(),
         left_faulted: None,
+        live: Vec::new(),
     })
 }

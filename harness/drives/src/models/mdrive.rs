@@ -923,6 +923,55 @@ impl Mdrive {
         served && self.sets_input_point(points)
     }
 
+    /// The answer to a read of outputs (FC 01 of the coils, a register read of O1-O4) with the output of
+    /// each point configured as an input read as 0: what that point drives (nothing), where the reference
+    /// reads the output latch as stored. The manual says neither (`mdrive-output-read-while-input`; an
+    /// MDrive written independently from the manual reads 0, tests/independent/mdrive-f): both are the
+    /// freedom's `response`. `None` for another request.
+    fn outputs_off_where_inputs(&self, request: &Request) -> Option<codec::Response> {
+        let input = |k: usize| self.sets_input_point([k]);
+        match request {
+            Request::ReadCoils { address, quantity } => {
+                let mut data = self
+                    .bank
+                    .read_bits(BitTable::Coils, *address, *quantity)
+                    .ok()?;
+                for k in self.coil_points(*address, usize::from(*quantity)) {
+                    if input(k) {
+                        let i = usize::from(self.outputs[k - 1].wrapping_sub(*address));
+                        if let Some(b) = data.get_mut(i / 8) {
+                            *b &= !(1 << (i % 8));
+                        }
+                    }
+                }
+                Some(codec::Response::ReadCoils { data })
+            }
+            Request::ReadHoldingRegisters { address, quantity }
+            | Request::ReadInputRegisters { address, quantity } => {
+                let table = if matches!(request, Request::ReadInputRegisters { .. }) {
+                    RegTable::Input
+                } else {
+                    RegTable::Holding
+                };
+                let mut values = self.bank.read(table, *address, *quantity).ok()?;
+                for k in self.output_register_points(*address, usize::from(*quantity)) {
+                    if input(k)
+                        && let Some(a) = self.addrs.outputs.get(k - 1).copied().flatten()
+                        && let Some(v) = values.get_mut(usize::from(a.wrapping_sub(*address)))
+                    {
+                        *v = 0;
+                    }
+                }
+                Some(if table == RegTable::Input {
+                    codec::Response::ReadInputRegisters { values }
+                } else {
+                    codec::Response::ReadHoldingRegisters { values }
+                })
+            }
+            _ => None,
+        }
+    }
+
     /// The refusal this drive chose for a read of an output whose point is an input; `None` where it serves
     /// it (the reference).
     fn output_read_refusal(&self, points: Vec<usize>) -> Option<Rejection> {
@@ -1493,6 +1542,17 @@ impl DataModel for Mdrive {
     fn note_request(&mut self, request: &Request) {
         if self.reads_input_point(request) {
             self.decided(ids::MDRIVE_OUTPUT_READ_WHILE_INPUT);
+            if self
+                .input_point_refusal(ids::MDRIVE_OUTPUT_READ_WHILE_INPUT)
+                .is_none()
+                && let Some(answer) = self.outputs_off_where_inputs(request)
+            {
+                self.bank.freedoms().alternative(
+                    ids::MDRIVE_OUTPUT_READ_WHILE_INPUT,
+                    "response",
+                    answer,
+                );
+            }
         }
         let write = match request {
             Request::WriteSingleRegister { address, value } => Some((*address, vec![*value])),

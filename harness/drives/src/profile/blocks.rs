@@ -57,6 +57,10 @@ pub(super) struct RegisterEntry {
     confirmed: bool,
     #[serde(default)]
     read_clears: bool,
+    #[serde(default)]
+    resets_settings: bool,
+    #[serde(default)]
+    saves_settings: bool,
 }
 
 /// A `[[coil]]` or `[[discrete_input]]` table: one bit, or a block of them.
@@ -306,6 +310,8 @@ impl RegisterEntry {
                 line: self.line,
                 confirmed: self.confirmed,
                 read_clears: self.read_clears,
+                resets_settings: self.resets_settings,
+                saves_settings: self.saves_settings,
             });
         }
         Ok(out)

@@ -180,3 +180,59 @@ fn lmd_discrete_inputs_at_0x002d() {
     assert_eq!(ask(&mut s, &at(0x0000)), [0x82, 0x02]);
     assert_eq!(ask(&mut s, &at(0x002D)), ask(&mut r, &at(0x0000)));
 }
+
+/// An MDrive output read while its point is configured as an input: the reference serves the latch as
+/// stored (`mdrive-output-read-while-input` = response), and offers the oracle the same read with that
+/// output as 0, what the point drives, which a drive may answer instead (the manual says neither; an
+/// independent MDrive, tests/independent/mdrive-f, reads 0).
+#[test]
+fn an_mdrive_output_read_while_its_point_is_an_input_may_read_the_latch_or_zero() {
+    let mut s = station("mdrive", &[]);
+    let setup = |s: &mut Station, params: &[u8]| {
+        let req = Request::VendorWrite {
+            mnemonic: Mnemonic::from_name("S4").expect("S4"),
+            params: params.to_vec(),
+        };
+        let r = ask(s, &req.to_bytes().expect("pdu"));
+        assert_eq!(r[0], 0x42, "{r:02X?}");
+    };
+    setup(&mut s, b"=16,0,0");
+    assert_eq!(
+        ask(&mut s, &[0x05, 0x00, 0x4E, 0xFF, 0x00]),
+        [0x05, 0x00, 0x4E, 0xFF, 0x00]
+    );
+    setup(&mut s, b"=0,0,0");
+    let _ = s.take_decisions();
+    let _ = s.take_choice_alternatives();
+    // FC 01 of outputs 3 and 4 (0x004D-0x004E): output 4 latched on, its point an input; output 3 as the
+    // reference holds it (on, as the manual's example reads it, line 557; its point an input too).
+    assert_eq!(
+        ask(&mut s, &[0x01, 0x00, 0x4D, 0x00, 0x02]),
+        [0x01, 0x01, 0x03]
+    );
+    let decided = s.take_decisions();
+    assert!(
+        decided.contains(&"mdrive-output-read-while-input"),
+        "{decided:?}"
+    );
+    let alternatives = s.take_choice_alternatives();
+    assert_eq!(
+        alternatives,
+        [(
+            "mdrive-output-read-while-input",
+            "response",
+            Response::ReadCoils { data: vec![0x00] }
+        )],
+    );
+    // The register read of O4 (0x004E) likewise.
+    let _ = ask(&mut s, &[0x03, 0x00, 0x4E, 0x00, 0x01]);
+    let _ = s.take_decisions();
+    assert_eq!(
+        s.take_choice_alternatives(),
+        [(
+            "mdrive-output-read-while-input",
+            "response",
+            Response::ReadHoldingRegisters { values: vec![0] }
+        )],
+    );
+}

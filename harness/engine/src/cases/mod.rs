@@ -44,6 +44,11 @@ pub enum Compare {
     Structure,
     /// As `Structure`, and each register value of the response lies within the profile's range.
     InRange,
+    /// As `Structure`, and each register value of the response (a 32-bit register of the profile as one
+    /// value, in the drive's word order, signed where the profile says) lies within `tolerance` of the
+    /// reference's: a value the drive measures (an actual speed, an encoder count on a drive with its motor
+    /// attached), which jitters by a few counts where the reference reads it exact.
+    Near { tolerance: u32 },
     /// Anything but silence or a malformed frame (informational reads).
     Any,
     /// The request is invalid: it may be rejected with the reference's exception, ignored (silence), or,

@@ -671,14 +671,28 @@ pub fn about_of(freedom: &str, cx: &StepContext<'_>) -> String {
     // in others: a drive keeps to its choice per function code. So with a quantity above the manual's
     // limit: each function has its own state diagram (App 6), and a drive may bound a register read by its
     // quantity (03) and a read of its few I/O points by their addresses (02), as an independent LMD does.
-    if freedom == drives::choices::ids::TRAILING_BYTES
-        || freedom == drives::choices::ids::QUANTITY_OVER_DEVICE_LIMIT
-    {
+    if freedom == drives::choices::ids::TRAILING_BYTES {
         return cx
             .pdu
             .first()
             .map(|fc| format!("FC 0x{fc:02X}"))
             .unwrap_or_default();
+    }
+    // And per whether the range runs into reserved or missing addresses: a drive that checks the addresses
+    // before its own limit answers 02 there (App 6.3, Figure 13: address + quantity) and its limit's 03 over
+    // a range it maps whole, as an independent MDrive does (tests/independent/mdrive-f).
+    if freedom == drives::choices::ids::QUANTITY_OVER_DEVICE_LIMIT {
+        let Some(fc) = cx.pdu.first() else {
+            return String::new();
+        };
+        return if cx
+            .request
+            .is_some_and(|r| every_address_mapped(r, cx.profile))
+        {
+            format!("FC 0x{fc:02X}, every address mapped")
+        } else {
+            format!("FC 0x{fc:02X}")
+        };
     }
     if freedom != PARTIAL_REGISTER_WRITE && freedom != PARTIAL_REGISTER_READ {
         return String::new();
@@ -709,6 +723,54 @@ pub fn about_of(freedom: &str, cx: &StepContext<'_>) -> String {
         };
     }
     String::new()
+}
+
+/// True when every address a read or multiple write (FC 01-04, 0F, 10) covers is one the profile maps, and
+/// reads (a read) or writes (a write): registers by the register map, coils and inputs by their lists.
+fn every_address_mapped(req: &Request, p: &drives::profile::Profile) -> bool {
+    let regs = |address: u16, quantity: u16, input: bool, write: bool| {
+        (u32::from(address)..u32::from(address) + u32::from(quantity)).all(|a| {
+            u16::try_from(a)
+                .ok()
+                .and_then(|a| p.register_at(a, input))
+                .is_some_and(|r| {
+                    if write {
+                        r.access.writable()
+                    } else {
+                        r.access.readable()
+                    }
+                })
+        })
+    };
+    let bits = |list: Vec<u16>, address: u16, quantity: u16| {
+        (u32::from(address)..u32::from(address) + u32::from(quantity))
+            .all(|a| list.iter().any(|b| u32::from(*b) == a))
+    };
+    let coils = || p.coils.iter().map(|b| b.get_ref().address).collect();
+    let inputs = || {
+        p.discrete_inputs
+            .iter()
+            .map(|b| b.get_ref().address)
+            .collect()
+    };
+    match req {
+        Request::ReadHoldingRegisters { address, quantity } => {
+            regs(*address, *quantity, false, false)
+        }
+        Request::ReadInputRegisters { address, quantity } => regs(*address, *quantity, true, false),
+        Request::WriteMultipleRegisters { address, values } => regs(
+            *address,
+            u16::try_from(values.len()).unwrap_or(u16::MAX),
+            false,
+            true,
+        ),
+        Request::ReadCoils { address, quantity }
+        | Request::WriteMultipleCoils {
+            address, quantity, ..
+        } => bits(coils(), *address, *quantity),
+        Request::ReadDiscreteInputs { address, quantity } => bits(inputs(), *address, *quantity),
+        _ => false,
+    }
 }
 
 /// True when a quantity field of a read or multiple write (FC 01-04, 0F, 10, 17) is 0.
@@ -1733,11 +1795,17 @@ mod tests {
             )
         };
         let inputs = about(&[0x02, 0x00, 0x03, 0x00, 0x05]);
-        let registers = about(&[0x03, 0x00, 0x8B, 0x00, 0x03]);
-        let other_registers = about(&[0x03, 0x00, 0x10, 0x00, 0x04]);
+        // 0x0089-0x008B: VI and the first half of VM, mapped whole; 0x003C-0x003E: IP and a reserved range.
+        let registers = about(&[0x03, 0x00, 0x89, 0x00, 0x03]);
+        let other_registers = about(&[0x03, 0x00, 0x8B, 0x00, 0x03]);
+        let into_reserved = about(&[0x03, 0x00, 0x3B, 0x00, 0x03]);
         assert_ne!(inputs, registers);
         assert_eq!(registers, other_registers);
-        assert_eq!(registers, "FC 0x03");
+        assert_eq!(registers, "FC 0x03, every address mapped");
+        // A range that runs into reserved or missing addresses is a choice of its own: a drive that checks
+        // the addresses first answers 02 there and its limit's 03 over a range it maps whole (the sixth
+        // wave's MDrive).
+        assert_eq!(into_reserved, "FC 0x03");
     }
 
     /// The check order is held per function code and per value refused: a drive may test a quantity above

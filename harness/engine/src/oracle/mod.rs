@@ -742,9 +742,85 @@ fn compare_frames(
                 in_range(&sent.pdu, o, profile, order, &mut out);
             }
         }
+        Compare::Near { tolerance } => {
+            structure(e, o, &mut out);
+            if out.is_empty() {
+                near(&sent.pdu, e, o, profile, order, *tolerance, &mut out);
+            }
+        }
         Compare::Any | Compare::RejectOrIgnore => {}
     }
     out
+}
+
+/// The first address of a register read (FC 03, 04) and whether it reads the input table: where the profile
+/// has no input register of its own, FC 04 reads the holding registers' map (the SD2x, line 327). `None` for
+/// another request.
+fn register_read(req: &[u8], p: &Profile) -> Option<(u16, bool)> {
+    match Request::decode(req) {
+        Ok(Request::ReadHoldingRegisters { address, .. }) => Some((address, false)),
+        Ok(Request::ReadInputRegisters { address, .. }) => Some((
+            address,
+            p.registers
+                .iter()
+                .any(|r| r.get_ref().table == Table::Input),
+        )),
+        _ => None,
+    }
+}
+
+/// The register values of a read response `o` that lie farther than `tolerance` from the reference's `e`
+/// ([`Compare::Near`]): each register of the profile the read covers as one value of its width, in the
+/// drive's word order, signed where the profile says; a register the profile lacks as a word.
+fn near(
+    req: &[u8],
+    e: &Response,
+    o: &Response,
+    p: &Profile,
+    order: WordOrder,
+    tolerance: u32,
+    out: &mut Vec<Finding>,
+) {
+    let Some((address, input)) = register_read(req, p) else {
+        return;
+    };
+    let values = |r: &Response| match r {
+        Response::ReadHoldingRegisters { values } | Response::ReadInputRegisters { values } => {
+            Some(values.clone())
+        }
+        _ => None,
+    };
+    let (Some(exp), Some(obs)) = (values(e), values(o)) else {
+        return;
+    };
+    let mut i = 0usize;
+    while i < obs.len().min(exp.len()) {
+        let a = address.wrapping_add(i as u16);
+        let r = p
+            .register_at(a, input)
+            .filter(|r| r.address == a && (r.table != Table::Input || input));
+        let (w, signed) = match r {
+            Some(r) if r.width == 2 && i + 1 < obs.len() => (2, r.signed),
+            Some(r) => (1, r.signed),
+            None => (1, false),
+        };
+        let value = |v: &[u16]| -> i64 {
+            match (w, signed) {
+                (2, true) => i64::from(order.join(v[i], v[i + 1]) as i32),
+                (2, false) => i64::from(order.join(v[i], v[i + 1])),
+                (_, true) => i64::from(v[i] as i16),
+                _ => i64::from(v[i]),
+            }
+        };
+        let (x, y) = (value(&exp), value(&obs));
+        if x.abs_diff(y) > u64::from(tolerance) {
+            out.push(must(format!(
+                "0x{a:04X}{} reads {y} where the reference reads {x}: more than {tolerance} apart",
+                r.map(|r| format!(" {}", r.name)).unwrap_or_default()
+            )));
+        }
+        i += w;
+    }
 }
 
 /// Where the reference or the target answers with an exception: the findings, or `None` when neither does.
@@ -962,17 +1038,8 @@ fn identification_consistent(req: &[u8], o: &Response, out: &mut Vec<Finding>) {
 
 /// Register values lie within the profile's ranges, read in the device's word order.
 fn in_range(req: &[u8], o: &Response, p: &Profile, order: WordOrder, out: &mut Vec<Finding>) {
-    let (address, input) = match Request::decode(req) {
-        Ok(Request::ReadHoldingRegisters { address, .. }) => (address, false),
-        // Where the profile has no input register of its own, FC 04 reads the holding registers' map (the
-        // SD2x, line 327).
-        Ok(Request::ReadInputRegisters { address, .. }) => (
-            address,
-            p.registers
-                .iter()
-                .any(|r| r.get_ref().table == Table::Input),
-        ),
-        _ => return,
+    let Some((address, input)) = register_read(req, p) else {
+        return;
     };
     let (Response::ReadHoldingRegisters { values } | Response::ReadInputRegisters { values }) = o
     else {
@@ -1330,5 +1397,88 @@ mod answer_tests {
             }
         }
         assert!(checked > 10_000);
+    }
+}
+
+#[cfg(test)]
+mod near_tests {
+    use super::{Observation, Sent, judge};
+    use crate::cases::Compare;
+    use crate::targets::Received;
+    use codec::{Framing, tcp};
+
+    /// The findings of a read of `quantity` registers at `address` answered `observed` where the reference
+    /// answers `expected`, compared within `tolerance`.
+    fn near(
+        profile: &str,
+        address: u16,
+        expected: &[u16],
+        observed: &[u16],
+        tolerance: u32,
+    ) -> usize {
+        let profile = drives::corpus::Corpus::Embedded.profile(profile).unwrap();
+        let order = profile.device.word_order;
+        let read = codec::Request::ReadHoldingRegisters {
+            address,
+            quantity: expected.len() as u16,
+        };
+        let sent = Sent {
+            tid: Some(1),
+            unit: 1,
+            pdu: read.to_bytes().unwrap(),
+        };
+        let frame = |values: &[u16]| {
+            let pdu = codec::Response::ReadHoldingRegisters {
+                values: values.to_vec(),
+            }
+            .to_bytes()
+            .unwrap();
+            let mut out = Vec::new();
+            tcp::encode_adu(1, 1, &pdu, &mut out).unwrap();
+            out
+        };
+        let (e, o) = (frame(expected), Received::frame(frame(observed)));
+        let compare = Compare::Near { tolerance };
+        let observation = Observation {
+            framing: Framing::Tcp,
+            sent: &sent,
+            expected: Some(&e),
+            observed: &o,
+            compare: &compare,
+            profile: &profile,
+            reference_closed: false,
+        };
+        judge(&observation, order).len()
+    }
+
+    /// A measured value within the tolerance of the reference's passes, one farther off does not; a 32-bit
+    /// register is one value in the drive's word order and sign (an encoder count of -1 jittering to 1 is 2
+    /// apart, not 65,534), so a word-order mix-up is still found.
+    #[test]
+    fn a_read_compared_near_passes_within_its_tolerance_only() {
+        // SD2x actual speed, register 2001 (0x07D1), 16-bit signed: 0 against ±1, ±10 and 11.
+        for (got, findings) in [
+            (1u16, 0),
+            (0xFFFF, 0),
+            (10, 0),
+            (0xFFF6, 0),
+            (11, 1),
+            (1000, 1),
+        ] {
+            assert_eq!(
+                near("sd2x", 0x07D1, &[0], &[got], 10),
+                findings,
+                "{got:#06X}"
+            );
+        }
+        // LMD Counter 2 (0x0007), 32-bit signed, low word first: -1 against 1, 3 and 7.
+        let lmd = |lo: u16, hi: u16| near("lmd", 0x0007, &[0xFFFF, 0xFFFF], &[lo, hi], 4);
+        assert_eq!(lmd(0x0001, 0x0000), 0);
+        assert_eq!(lmd(0x0003, 0x0000), 0);
+        assert_eq!(lmd(0x0007, 0x0000), 1);
+        // The words swapped (high word first where the drive sends low first) are far off.
+        assert_eq!(lmd(0x0000, 0x0001), 1);
+        // A structure that differs is found as with Structure.
+        assert_eq!(near("sd2x", 0x07D1, &[0, 0], &[0], 10), 1);
     }
 }

@@ -120,6 +120,21 @@ pub fn skip_reason(case: &Case, cfg: &RunConfig, framing: Framing) -> Option<Str
 type Piece = (Vec<u8>, Duration);
 
 /// A framed request ready to send.
+/// An I/O point whose output no case writes ([`Runner::learn_output_setup`]).
+#[derive(Clone, Debug)]
+struct SetupPoint {
+    line: u16,
+    /// Its type in the setup (OS for an output, IS for an input).
+    kind: i64,
+    /// Set up as an input (and as no output).
+    input: bool,
+    coil: Option<u16>,
+    /// The registers that write its output (its own, and the group registers).
+    registers: Vec<u16>,
+    /// The setting that sets the point up, where no case may write it (the MDrive's S1-S4).
+    setup: Option<codec::Mnemonic>,
+}
+
 struct Framed {
     bytes: Vec<u8>,
     sent: Sent,
@@ -180,9 +195,13 @@ pub struct Runner {
     pub restore_reconnects: u32,
     /// The case being run sends an FC 15 (Write File Record): its FC 14 reads read back what it wrote.
     case_writes_files: bool,
-    /// Outputs the drive has set up for a drive function, learned before the cases
-    /// ([`Runner::learn_output_setup`]): (line, type, the coil, the registers that write it).
-    function_outputs: Vec<(u16, i64, Option<u16>, Vec<u16>)>,
+    /// Outputs the drive has set up for a drive function, or whose point it has set up as an input, learned
+    /// before the cases ([`Runner::learn_output_setup`]).
+    function_outputs: Vec<SetupPoint>,
+    /// Holding registers seen to change by themselves before the first write (the keeper's two reads, see
+    /// [`crate::restore::Account::live`]: an encoder count, a lead/lag on a drive with its motor attached),
+    /// with the tolerance an exact read of them is compared with ([`Runner::learn_live`]).
+    live: Vec<(u16, u16, u32)>,
     /// Transaction ids of the restore's traffic: a sequence of its own, so that the cases' ids (and the
     /// snapshots of their observations) are the same with or without leaving the drive as found.
     restore_tid: u16,
@@ -396,6 +415,7 @@ impl Runner {
             restore_reconnects: 0,
             case_writes_files: false,
             function_outputs: Vec::new(),
+            live: Vec::new(),
             restore_tid: 0xA000,
             case_order,
             input_offset: 0,
@@ -1476,16 +1496,33 @@ impl Runner {
                 _ => None,
             };
             let registers = drives::requirements::registers_written(&req);
-            for (line, kind, coil, regs) in &self.function_outputs {
-                let coil_hit = matches!((coils, coil), (Some((a, q)), Some(c)) if drives::requirements::covers(a, q, *c));
+            for p in &self.function_outputs {
+                let coil_hit = matches!((coils, p.coil), (Some((a, q)), Some(c)) if drives::requirements::covers(a, q, c));
                 let reg_hit = registers.is_some_and(|(a, q)| {
-                    regs.iter().any(|r| drives::requirements::covers(a, q, *r))
+                    p.registers
+                        .iter()
+                        .any(|r| drives::requirements::covers(a, q, *r))
                 });
-                if coil_hit || reg_hit {
+                let setup_hit = matches!((&req, p.setup), (Request::VendorWrite { mnemonic, .. }, Some(m)) if *mnemonic == m);
+                if !(coil_hit || reg_hit || setup_hit) {
+                    continue;
+                }
+                let (line, kind) = (p.line, p.kind);
+                if let Some(m) = p.setup {
                     return Some(format!(
-                        "writes output {line}, which the drive has set up for a drive function (OS type {kind}, not 16, general purpose): the manual says the outputs must be configured as such (001 line 790), and writing one the drive drives would fight the drive and whatever is wired to it"
+                        "writes I/O point {line} or its setup ({}), which the drive has set up for a drive function (type {kind}, 000 lines 736-760; 0 and 16 are general purpose): a homing or limit switch, or what the function output drives, is wired to it",
+                        m.name()
                     ));
                 }
+                return Some(if p.input {
+                    format!(
+                        "writes output {line}, whose point the drive has set up as an input (IS type {kind}) and not as an output (OS lists no line {line}): the manual says the outputs must be configured as such (001 line 790), and a sensor or switch is wired to an input"
+                    )
+                } else {
+                    format!(
+                        "writes output {line}, which the drive has set up for a drive function (OS type {kind}, not 16, general purpose): the manual says the outputs must be configured as such (001 line 790), and writing one the drive drives would fight the drive and whatever is wired to it"
+                    )
+                });
             }
         }
         None
@@ -1493,14 +1530,16 @@ impl Runner {
 
     /// Learn which outputs the drive has set up for a drive function (the LMD's OS, "Output setup": type 16
     /// is a general purpose output, 17 moving, 18 fault, ..., 001 lines 1577-1581; "the outputs must be
-    /// configured as such", line 790), before the cases: one FC 0x41 read of OS. The cases that would write
-    /// such an output are SKIPPED ([`Runner::not_applicable`]): the drive drives it, refuses the write or
-    /// fights it, and a PLC may be wired to it. The read form is "line,type,active" per line, lines apart by
-    /// ';' (both drives written independently from the manual read all lines so; the manual prints none).
-    /// Not for a drive whose I/O points are shared (the MDrive's S1-S4 are set up by the cases). Best effort:
-    /// nothing is learned from an answer in another form.
+    /// configured as such", line 790), and which of its points it has set up as inputs (IS), before the
+    /// cases: one FC 0x41 read of OS, one of IS. The cases that would write such an output are SKIPPED
+    /// ([`Runner::not_applicable`]): the drive drives it, refuses the write or fights it, and a PLC, a sensor
+    /// or a switch may be wired to it. The read form is "line,type,active" per line, lines apart by ';', a
+    /// space or a line break (drives written independently from the manual read all lines so; the manual
+    /// prints none). On a drive whose I/O points are shared (the MDrive's S1-S4), see
+    /// [`Runner::learn_point_functions`]. Best effort: nothing is learned from an answer in another form.
     pub fn learn_output_setup(&mut self) {
         if self.profile.device.shared_io_points {
+            self.learn_point_functions();
             return;
         }
         let Some(os) = self.profile.mnemonic("OS").filter(|m| m.read) else {
@@ -1509,13 +1548,99 @@ impl Runner {
         let Some(mnemonic) = codec::Mnemonic::from_name(&os.name) else {
             return;
         };
-        let read = Request::VendorRead { mnemonic };
-        let answer = crate::restore::Link::transact(self, &read);
-        self.learning_reads.extend(read.to_bytes().ok());
-        let Ok(Some(codec::Response::VendorRead { params })) = answer else {
+        let Some(outputs) = self.read_setup_lines(&mnemonic) else {
             return;
         };
-        let text = String::from_utf8_lossy(&params).into_owned();
+        let inputs = self
+            .profile
+            .mnemonic("IS")
+            .filter(|m| m.read)
+            .and_then(|m| codec::Mnemonic::from_name(&m.name))
+            .and_then(|m| self.read_setup_lines(&m))
+            .unwrap_or_default();
+        let coils = self.output_coils();
+        let point = |line: u16, kind: i64, input: bool| SetupPoint {
+            line,
+            kind,
+            input,
+            coil: coils.get(usize::from(line) - 1).copied(),
+            registers: self.output_registers(line),
+            setup: None,
+        };
+        let within = |line: u16| line != 0 && usize::from(line) <= coils.len();
+        let mut found: Vec<SetupPoint> = outputs
+            .iter()
+            .filter(|(line, kind)| within(*line) && *kind != 16)
+            .map(|&(line, kind)| point(line, kind, false))
+            .collect();
+        // A point IS sets up as an input and OS lists as no output (a drive that reads each setup for the
+        // lines it has: "1,1,0 4,0,1" from IS, "2,16,1 3,17,1" from OS) is an input: its output is not one
+        // the manual lets be written (line 790), and a sensor is wired to it. Only points OS can set up as
+        // outputs ("Setup output points 1 – 3", line 1070): point 4 is an input on every LMD, and what its
+        // output answers is the freedoms lmd-output-4 and lmd-output-4-write.
+        const OS_LINES: u16 = 3;
+        found.extend(
+            inputs
+                .iter()
+                .filter(|(line, _)| {
+                    within(*line) && *line <= OS_LINES && !outputs.iter().any(|(l, _)| l == line)
+                })
+                .map(|&(line, kind)| point(line, kind, true)),
+        );
+        self.function_outputs = found;
+    }
+
+    /// The MDrive's I/O points (S1-S4, "A - I/O type", 000 lines 736-760) set up for a drive function: an
+    /// input function (homing, a limit, soft stop, jog, reset: types 1-11) or an output function (moving,
+    /// fault, ...: 17-25). A commissioned drive's homing or limit switch, or the PLC input its "moving"
+    /// output feeds, is wired to such a point: no case writes its setup or its output (the io-point cases
+    /// reconfigure the general purpose points only: 0, inputs by default, line 1263, and 16).
+    fn learn_point_functions(&mut self) {
+        let coils = self.output_coils();
+        let mut found = Vec::new();
+        for (i, coil) in coils.iter().enumerate() {
+            let line = i as u16 + 1;
+            let Some(setup) = self
+                .profile
+                .mnemonic(&format!("S{line}"))
+                .filter(|m| m.read && m.write)
+                .and_then(|m| codec::Mnemonic::from_name(&m.name))
+            else {
+                continue;
+            };
+            let read = Request::VendorRead { mnemonic: setup };
+            let answer = crate::restore::Link::transact(self, &read);
+            self.learning_reads.extend(read.to_bytes().ok());
+            let Ok(Some(codec::Response::VendorRead { params })) = answer else {
+                continue;
+            };
+            let text = String::from_utf8_lossy(&params);
+            let Some(kind) = text
+                .trim()
+                .trim_start_matches('=')
+                .split(',')
+                .next()
+                .and_then(|x| x.trim().parse::<i64>().ok())
+            else {
+                continue;
+            };
+            if kind == 0 || kind == 16 {
+                continue;
+            }
+            found.push(SetupPoint {
+                line,
+                kind,
+                input: kind < 16,
+                coil: Some(*coil),
+                registers: self.output_registers(line),
+                setup: Some(setup),
+            });
+        }
+        self.function_outputs = found;
+    }
+
+    /// The coils of the I/O points' outputs, point 1 first.
+    fn output_coils(&self) -> Vec<u16> {
         let mut coils: Vec<u16> = self
             .profile
             .coils
@@ -1523,33 +1648,92 @@ impl Runner {
             .map(|c| c.get_ref().address)
             .collect();
         coils.sort_unstable();
-        let groups: Vec<u16> = ["OT", "OL"]
+        coils
+    }
+
+    /// The registers that write the output of I/O point `line`: its own (O1-O4) and the groups (OT, OL).
+    fn output_registers(&self, line: u16) -> Vec<u16> {
+        ["OT".to_string(), "OL".to_string(), format!("O{line}")]
             .iter()
             .filter_map(|m| self.profile.register_by_mnemonic(m).map(|r| r.address))
+            .collect()
+    }
+
+    /// The lines of an I/O setup read with FC 0x41 (`mnemonic`: OS or IS), each as (line, type), in any of
+    /// the forms [`crate::capture::setting_lines`] reads; `None` where the drive answers otherwise. Counted as
+    /// a learning read.
+    fn read_setup_lines(&mut self, mnemonic: &codec::Mnemonic) -> Option<Vec<(u16, i64)>> {
+        let read = Request::VendorRead {
+            mnemonic: *mnemonic,
+        };
+        let answer = crate::restore::Link::transact(self, &read);
+        self.learning_reads.extend(read.to_bytes().ok());
+        let Ok(Some(codec::Response::VendorRead { params })) = answer else {
+            return None;
+        };
+        Some(
+            crate::capture::setting_lines(&params)
+                .iter()
+                .filter_map(|line| {
+                    let text = String::from_utf8_lossy(line);
+                    let v: Vec<i64> = text
+                        .trim_start_matches('=')
+                        .split(',')
+                        .filter_map(|x| x.trim().parse().ok())
+                        .collect();
+                    let (&line, &kind) = (v.first()?, v.get(1)?);
+                    Some((u16::try_from(line).ok()?, kind))
+                })
+                .collect(),
+        )
+    }
+
+    /// The holding registers the keeper saw change by themselves (`live`: each read twice with nothing
+    /// written between, see [`crate::restore::Account::live`]). An exact read of one is compared within
+    /// three times what it moved by (2 at least), as a measured value: a read-back of 1 written to an
+    /// encoder count that jitters by 2 reads 3 on a drive with its motor attached.
+    pub fn learn_live(&mut self, live: &[crate::restore::Unrestored]) {
+        use crate::restore::Value;
+        self.live = live
+            .iter()
+            .filter_map(|u| {
+                let address = u16::from_str_radix(u.key.strip_prefix("holding:0x")?, 16).ok()?;
+                let (Value::Words(a), Some(Value::Words(b))) = (&u.before, &u.after) else {
+                    return None;
+                };
+                if a.len() != b.len() || a.is_empty() || a.len() > 2 {
+                    return None;
+                }
+                let order = self.profile.device.word_order;
+                let int = |w: &[u16]| -> i64 {
+                    if w.len() == 2 {
+                        i64::from(order.join(w[0], w[1]) as i32)
+                    } else {
+                        i64::from(w[0] as i16)
+                    }
+                };
+                let spread = u32::try_from(int(a).abs_diff(int(b))).unwrap_or(u32::MAX);
+                Some((address, a.len() as u16, spread.saturating_mul(3).max(2)))
+            })
             .collect();
-        for group in text.trim_start_matches('=').split(';') {
-            let v: Vec<i64> = group
-                .split(',')
-                .filter_map(|x| x.trim().parse().ok())
-                .collect();
-            let (Some(&line), Some(&kind)) = (v.first(), v.get(1)) else {
-                continue;
-            };
-            let Ok(line) = u16::try_from(line) else {
-                continue;
-            };
-            if line == 0 || kind == 16 || usize::from(line) > coils.len() {
-                continue;
-            }
-            let mut registers = groups.clone();
-            registers.extend(
-                self.profile
-                    .register_by_mnemonic(&format!("O{line}"))
-                    .map(|r| r.address),
-            );
-            let coil = coils.get(usize::from(line) - 1).copied();
-            self.function_outputs.push((line, kind, coil, registers));
+    }
+
+    /// The tolerance of an exact read that covers a register seen to change by itself (`None`: none).
+    fn live_tolerance(&self, pdu: &[u8]) -> Option<u32> {
+        if self.live.is_empty() {
+            return None;
         }
+        let Ok(Request::ReadHoldingRegisters { address, quantity }) = Request::decode(pdu) else {
+            return None;
+        };
+        self.live
+            .iter()
+            .filter(|(a, w, _)| {
+                drives::requirements::covers(address, quantity, *a)
+                    || drives::requirements::covers(address, quantity, a + (w - 1))
+            })
+            .map(|(_, _, t)| *t)
+            .max()
     }
 
     /// Why `case` says nothing about this drive, as far as the run has learned it: an FC 43 request that sets
@@ -1927,7 +2111,14 @@ impl Runner {
         // The device-specific contents of a profile that declares the reference's own
         // (`device.reference_contents`): in format only against any other target.
         let in_format;
+        let near;
         let compare = match (frames.as_slice(), compare) {
+            // A register seen to change by itself (an encoder count on a drive with its motor attached):
+            // read within its jitter.
+            ([f], Compare::Exact) if let Some(tolerance) = self.live_tolerance(&f.sent.pdu) => {
+                near = Compare::Near { tolerance };
+                &near
+            }
             ([f], Compare::Exact | Compare::InRange | Compare::Structure)
                 if self.contents_free() && self.device_specific(f.sent.pdu.first()) =>
             {
@@ -2953,6 +3144,12 @@ impl Runner {
         self.sync_shadow();
         self.pace();
         self.requests += 1;
+        // Its late answer, should one come during a case, is noted as late, not taken for a step's.
+        self.remember(
+            f.sent.tid,
+            "the harness's own requests outside the cases (learning the drive's choices, leave as found)"
+                .into(),
+        );
         self.target.send(&f.bytes)?;
         self.shadow.send(&f.bytes)?;
         let _ = self.shadow.settle();

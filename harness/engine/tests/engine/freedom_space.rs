@@ -738,8 +738,10 @@ fn a_drive_refusing_writes_of_outputs_whose_points_are_inputs_passes() {
 }
 
 /// The same for reads of an output whose point is configured as an input (`mdrive-output-read-while-input`):
-/// the MDrive manual says an output reads 0 while its point is an input (line 532) and gives no exception for
-/// it, but an I/O-point drive may refuse the read as of an address it does not serve there (02) or as a
+/// the MDrive manual does not say what such a read answers (line 532 says only that the outputs must be
+/// configured as such) and gives no exception for it; a drive may serve it (the latch, or 0: what the point
+/// drives, see drives' `an_mdrive_output_read_while_its_point_is_an_input_may_read_the_latch_or_zero`), or
+/// refuse the read as of an address it does not serve there (02) or as a
 /// device failure (04). Each refusal passes the generated cases (seed 1) and the catalog (the golden "read
 /// outputs" example and the register reads of O1-O4 meet it), and the run records it.
 #[test]

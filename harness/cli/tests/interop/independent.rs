@@ -656,8 +656,9 @@ fn the_catalogs_pass_the_sixth_wave_and_leave_it_as_found() {
 /// Generated cases against the sixth wave, with and without every flag (the SD2x without: with them a case
 /// can trip its watchdog, and the run leaves it faulted, saying so, see tests/independent/README.md): PASS,
 /// nothing left changed. Before the fixes, 2,000 generated cases (seed 2, every flag) FAILed 30 against the
-/// MDrive (writes of its "moving" output) and 69 against the LMD, whose NVM they left changed; seed 13 left
-/// the LMD's V1 off by one in NVM (a DC, then a save).
+/// MDrive (writes of its "moving" output) and 69 against the LMD, whose NVM they left changed; with the
+/// settings put back before a save but not the rest, the LMD's 1,000 of seed 2 still leave V1 off by one in
+/// NVM (a DC, then a save: `Keeper::before_save`).
 #[test]
 fn generated_runs_leave_the_sixth_wave_as_found() {
     let all = ["--allow-motion", "--allow-destructive"];
@@ -666,8 +667,8 @@ fn generated_runs_leave_the_sixth_wave_as_found() {
             run_leaving_as_found(drive, scheme, &["--generated", "1000", "--seed", "1"]);
         assert_pass(drive, code, &out);
     }
-    for (drive, seed) in [("mdrive-f", "2"), ("lmd-f", "2"), ("lmd-f", "13")] {
-        let mut args = vec!["--generated", "1000", "--seed", seed];
+    for drive in ["mdrive-f", "lmd-f"] {
+        let mut args = vec!["--generated", "1000", "--seed", "2"];
         args.extend(all);
         let (code, out) = run_leaving_as_found_but(drive, &[], "tcp", &args, &LAST_MOVE);
         assert_pass(drive, code, &out);

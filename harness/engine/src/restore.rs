@@ -1440,15 +1440,18 @@ impl Keeper {
     /// What `case` can change among the kept items (a reset of every setting: every one but the guarded
     /// ones, which the profile takes as read-only, and the ones seen to change by themselves).
     pub fn touched(&self, case: &Case) -> BTreeSet<String> {
-        let (guarded, settings): (Vec<Item>, Vec<Item>) = self
-            .inventory
-            .items
-            .iter()
-            .filter(|i| !self.live.contains(&i.key))
-            .cloned()
-            .partition(|i| self.inventory.guarded.contains(&i.key));
-        let mut keys = touched_by(&settings, case_pdus(case), &self.inventory.resets);
-        keys.extend(touched_by(&guarded, case_pdus(case), &[]));
+        let pdus = case_pdus(case);
+        let mut keys = touched_by(&self.inventory.items, pdus.clone(), &self.inventory.resets);
+        if !self.live.is_empty() {
+            keys.retain(|k| !self.live.contains(k));
+        }
+        // A guarded item counts only where a request names it (a reset leaves what is read-only alone).
+        if !self.inventory.resets.is_empty()
+            && keys.iter().any(|k| self.inventory.guarded.contains(k))
+        {
+            let named = touched_by(&self.inventory.items, pdus, &[]);
+            keys.retain(|k| !self.inventory.guarded.contains(k) || named.contains(k));
+        }
         keys
     }
 

@@ -120,6 +120,10 @@ pub fn skip_reason(case: &Case, cfg: &RunConfig, framing: Framing) -> Option<Str
 type Piece = (Vec<u8>, Duration);
 
 /// A framed request ready to send.
+/// Who sent a request of the harness's own outside the cases, for a late answer to it.
+const OWN_REQUESTS: &str =
+    "the harness's own requests outside the cases (learning the drive's choices, leave as found)";
+
 /// An I/O point whose output no case writes ([`Runner::learn_output_setup`]).
 #[derive(Clone, Debug)]
 struct SetupPoint {
@@ -3145,11 +3149,7 @@ impl Runner {
         self.pace();
         self.requests += 1;
         // Its late answer, should one come during a case, is noted as late, not taken for a step's.
-        self.remember(
-            f.sent.tid,
-            "the harness's own requests outside the cases (learning the drive's choices, leave as found)"
-                .into(),
-        );
+        self.remember(f.sent.tid, OWN_REQUESTS.into());
         self.target.send(&f.bytes)?;
         self.shadow.send(&f.bytes)?;
         let _ = self.shadow.settle();

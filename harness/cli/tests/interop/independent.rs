@@ -197,6 +197,16 @@ fn run_leaving_as_found_but(
     (code, out)
 }
 
+/// [`assert_pass`], and no NON-STRICT either: the drive held to every choice it showed.
+fn assert_strict_pass(drive: &str, code: i32, out: &str) {
+    assert_pass(drive, code, out);
+    let result = out
+        .lines()
+        .rfind(|l| l.starts_with("RESULT:"))
+        .unwrap_or("");
+    assert!(!result.contains("NON-STRICT"), "{drive}: {result}\n{out}");
+}
+
 fn assert_pass(drive: &str, code: i32, out: &str) {
     let result = out
         .lines()
@@ -636,21 +646,22 @@ const LAST_MOVE: [&str; 3] = [
 /// in a form with the lines apart by spaces), and with every flag its IP (a reset of every setting) and S
 /// left its NVM and two settings changed (NOT RESTORED); the MDrive's FAILed writes of its "moving" output
 /// and an exact read-back of its jittering position; the SD2x's FAILed its actual speed of 0.1 Hz at
-/// standstill.
+/// standstill. No NON-STRICT either: the MDrive answers 02 to a read of 5 registers (limit 4) over a range
+/// with unmapped addresses and 03 over a mapped one, which `quantity-over-device-limit` now holds apart.
 #[test]
 fn the_catalogs_pass_the_sixth_wave_and_leave_it_as_found() {
     let all = ["--allow-motion", "--allow-destructive"];
     for (drive, scheme) in [("mdrive-f", "tcp"), ("lmd-f", "tcp"), ("sd2x-f", "rtu+tcp")] {
         let (code, out) = run_leaving_as_found(drive, scheme, &[]);
-        assert_pass(drive, code, &out);
+        assert_strict_pass(drive, code, &out);
         let (code, out) = run_leaving_as_found_but(drive, &[], scheme, &all, &LAST_MOVE);
-        assert_pass(drive, code, &out);
+        assert_strict_pass(drive, code, &out);
     }
     if !socat_or_skip("independent::the_catalogs_pass_the_sixth_wave (sd2x-f)") {
         return;
     }
     let (code, out) = run_on_serial_leaving_as_found("sd2x-f", &all);
-    assert_pass("sd2x-f", code, &out);
+    assert_strict_pass("sd2x-f", code, &out);
 }
 
 /// Generated cases against the sixth wave, with and without every flag (the SD2x without: with them a case
@@ -658,19 +669,21 @@ fn the_catalogs_pass_the_sixth_wave_and_leave_it_as_found() {
 /// nothing left changed. Before the fixes, 2,000 generated cases (seed 2, every flag) FAILed 30 against the
 /// MDrive (writes of its "moving" output) and 69 against the LMD, whose NVM they left changed; with the
 /// settings put back before a save but not the rest, the LMD's 1,000 of seed 2 still leave V1 off by one in
-/// NVM (a DC, then a save: `Keeper::before_save`).
+/// NVM (a DC, then a save: `Keeper::before_save`). No NON-STRICT: before the reference took the MDrive's
+/// I/O setups (read before the cases; a run without --allow-motion keeps none), 1,000 cases of seed 1 showed
+/// 10 (its output 4 taken, a general purpose output, then output 2 refused, an input).
 #[test]
 fn generated_runs_leave_the_sixth_wave_as_found() {
     let all = ["--allow-motion", "--allow-destructive"];
     for (drive, scheme) in [("mdrive-f", "tcp"), ("lmd-f", "tcp"), ("sd2x-f", "rtu+tcp")] {
         let (code, out) =
             run_leaving_as_found(drive, scheme, &["--generated", "1000", "--seed", "1"]);
-        assert_pass(drive, code, &out);
+        assert_strict_pass(drive, code, &out);
     }
     for drive in ["mdrive-f", "lmd-f"] {
         let mut args = vec!["--generated", "1000", "--seed", "2"];
         args.extend(all);
         let (code, out) = run_leaving_as_found_but(drive, &[], "tcp", &args, &LAST_MOVE);
-        assert_pass(drive, code, &out);
+        assert_strict_pass(drive, code, &out);
     }
 }

@@ -1594,7 +1594,8 @@ impl Runner {
         self.function_outputs = found;
     }
 
-    /// The MDrive's I/O points (S1-S4, "A - I/O type", 000 lines 736-760) set up for a drive function: an
+    /// The MDrive's I/O points (S1-S4, "A - I/O type", 000 lines 736-760), each read before the cases and
+    /// given to the reference drive, and those set up for a drive function: an
     /// input function (homing, a limit, soft stop, jog, reset: types 1-11) or an output function (moving,
     /// fault, ...: 17-25). A commissioned drive's homing or limit switch, or the PLC input its "moving"
     /// output feeds, is wired to such a point: no case writes its setup or its output (the io-point cases
@@ -1618,6 +1619,15 @@ impl Runner {
             let Ok(Some(codec::Response::VendorRead { params })) = answer else {
                 continue;
             };
+            // The reference takes the drive's setup of the point, which a run without --allow-motion does
+            // not keep (writing it back is rated motion): it judges the outputs as the drive has them set up
+            // (a write of an output whose point is an input is `mdrive-output-write-while-input`, of one
+            // whose point is an output not).
+            let own = Request::VendorWrite {
+                mnemonic: setup,
+                params: crate::capture::setting_params(&params),
+            };
+            let _ = crate::restore::Link::transact(&mut self.reference(), &own);
             let text = String::from_utf8_lossy(&params);
             let Some(kind) = text
                 .trim()

@@ -127,12 +127,20 @@ pub struct Inventory {
     pub saves: Vec<u16>,
 }
 
+/// How the reasons of [`gate`] begin.
+const GATED_MOTION: &str = "motion:";
+const GATED_DESTRUCTIVE: &str = "destructive:";
+
 fn gate(motion: bool, destructive: bool, safety: &Safety) -> Option<String> {
     if motion && !safety.allow_motion {
-        return Some("motion: writing it back could move the motor (this run does not write it without --allow-motion)".into());
+        return Some(format!(
+            "{GATED_MOTION} writing it back could move the motor (this run does not write it without --allow-motion)"
+        ));
     }
     if destructive && !safety.allow_destructive {
-        return Some("destructive: not written back without --allow-destructive".into());
+        return Some(format!(
+            "{GATED_DESTRUCTIVE} not written back without --allow-destructive"
+        ));
     }
     None
 }
@@ -581,6 +589,16 @@ fn live_reads(before: &Value, seen: &[Value]) -> Option<String> {
             .collect::<Vec<_>>()
             .join(", "),
     )
+}
+
+/// True when one of `pdus` writes a holding register of `addresses`.
+fn writes_any(pdus: &[&[u8]], addresses: &[u16]) -> bool {
+    !addresses.is_empty()
+        && pdus.iter().any(|pdu| {
+            matches!(Request::decode(pdu).ok().as_ref().and_then(Written::of),
+                Some(Written::Holding { address, quantity })
+                    if addresses.iter().any(|a| address <= *a && u32::from(*a) < u32::from(address) + u32::from(quantity)))
+        })
 }
 
 /// What `pdus` can have changed among `items`: the items they write, or every item where one writes a
@@ -1532,6 +1550,23 @@ impl Keeper {
     /// Why `case` may not run once the snapshot is taken: it can write a parameter that would not write back
     /// as read (see [`Account::unwritable`]). `None` when nothing stands in its way.
     pub fn unrestorable(&self, case: &Case) -> Option<String> {
+        // A reset of every setting also resets the settings this run keeps none of (motion or destructive
+        // ones without their flags: the LMD's MS, IS): nothing would put them back.
+        let gated: Vec<&str> = self
+            .inventory
+            .excluded
+            .iter()
+            .filter(|e| {
+                e.reason.starts_with(GATED_MOTION) || e.reason.starts_with(GATED_DESTRUCTIVE)
+            })
+            .map(|e| e.name.as_str())
+            .collect();
+        if !gated.is_empty() && writes_any(&case_pdus(case), &self.inventory.resets) {
+            return Some(format!(
+                "not run: it resets every setting, and this run keeps and puts back none of {} (left out without --allow-motion or --allow-destructive; leave as found)",
+                gated.join(", ")
+            ));
+        }
         if self.unwritable.is_empty() && self.multi_line.is_empty() {
             return None;
         }
@@ -1818,14 +1853,7 @@ impl Keeper {
     /// restore after each case puts back only what the case named; the save would store that change for
     /// good. True when the case saves (whatever the restore gave: the final one says what is left).
     pub fn before_save(&mut self, link: &mut dyn Link, case: &Case, profile: &Profile) -> bool {
-        let saves = !self.inventory.saves.is_empty()
-            && self.snapshot.is_some()
-            && case_pdus(case).iter().any(|pdu| {
-                matches!(Request::decode(pdu), Ok(req) if matches!(Written::of(&req),
-                    Some(Written::Holding { address, quantity })
-                        if self.inventory.saves.iter().any(|s| address <= *s && u32::from(*s) < u32::from(address) + u32::from(quantity))))
-            });
-        if !saves {
+        if self.snapshot.is_none() || !writes_any(&case_pdus(case), &self.inventory.saves) {
             return false;
         }
         let items: Vec<Item> = self.restored_items().cloned().collect();
@@ -2878,6 +2906,37 @@ mod tests {
             ),
             None
         );
+    }
+
+    /// A reset of every setting does not run where the run keeps some setting of the drive out (a motion
+    /// setting without --allow-motion: the LMD's MS, IS): nothing would put it back. With every setting
+    /// kept, it runs (and the keeper puts all back after it).
+    #[test]
+    fn a_reset_of_every_setting_does_not_run_where_a_setting_is_left_out() {
+        let p = drives::corpus::Corpus::Embedded.load("lmd").expect("lmd");
+        let reset_case = |safety: &Safety| {
+            let mut k = Keeper::new(
+                inventory(&p, safety),
+                "tcp://127.0.0.1:1".into(),
+                "lmd".into(),
+                1,
+                None,
+            );
+            k.snapshot = Some(BTreeMap::new());
+            k.unrestorable(&reset())
+        };
+        let why = reset_case(&Safety {
+            allow_destructive: true,
+            ..Safety::default()
+        })
+        .expect("left out: the motion settings");
+        assert!(why.contains("resets every setting"), "{why}");
+        let all = Safety {
+            allow_destructive: true,
+            allow_motion: true,
+            ..Safety::default()
+        };
+        assert_eq!(reset_case(&all), None);
     }
 
     #[test]

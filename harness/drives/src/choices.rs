@@ -21,6 +21,7 @@ pub mod ids {
     pub const VALUE_OUT_OF_RANGE: &str = "value-out-of-range";
     /// The exception code for a write to a read-only register or object: 02, 03 or 04.
     pub const WRITE_READ_ONLY: &str = "write-read-only-exception";
+    pub const READ_WRITE_ONLY: &str = "read-write-only-exception";
     /// A quantity above the device's limit but within the spec's: 03, or 02 when the range runs past the map.
     pub const QUANTITY_OVER_DEVICE_LIMIT: &str = "quantity-over-device-limit";
     /// A read that starts or ends inside a 32-bit register: served, or 02/03/04.
@@ -94,6 +95,7 @@ pub mod ids {
     pub const PDU_OVER_253: &str = "pdu-over-253";
     /// The MDrive, a write to the output of an I/O point configured as an input: taken, or 04/03/02.
     pub const MDRIVE_OUTPUT_WRITE_WHILE_INPUT: &str = "mdrive-output-write-while-input";
+    pub const MDRIVE_ENCODER_ABSENT: &str = "mdrive-encoder-absent";
     /// The MDrive, a read of the output of an I/O point configured as an input: served, or 02/04.
     pub const MDRIVE_OUTPUT_READ_WHILE_INPUT: &str = "mdrive-output-read-while-input";
     /// The MDrive, a write of the outputs as a group (OT, OL) while a point is an input: taken, or 04/03/02.
@@ -132,6 +134,7 @@ pub mod ids {
     pub const ALL: &[&str] = &[
         VALUE_OUT_OF_RANGE,
         WRITE_READ_ONLY,
+        READ_WRITE_ONLY,
         QUANTITY_OVER_DEVICE_LIMIT,
         PARTIAL_REGISTER_READ,
         PARTIAL_REGISTER_WRITE,
@@ -165,6 +168,7 @@ pub mod ids {
         MBAP_LENGTH_LONG,
         PDU_OVER_253,
         MDRIVE_OUTPUT_WRITE_WHILE_INPUT,
+        MDRIVE_ENCODER_ABSENT,
         MDRIVE_OUTPUT_READ_WHILE_INPUT,
         MDRIVE_OUTPUT_GROUP_WRITE_WHILE_INPUT,
         LMD_OUTPUT_4_WRITE,

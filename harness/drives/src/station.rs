@@ -16,14 +16,14 @@
 //! 01, see [`DiagCounter::serial_line_only`]); the bus counters (0B, 0C, 0E, 0F) only count RTU traffic, the
 //! exception, NAK and busy counts, the event counter and the event log count every transport's.
 
-use std::collections::{BTreeSet, VecDeque};
+use std::collections::{BTreeMap, BTreeSet, VecDeque};
 use std::time::Duration;
 
 use crate::choices::{Choices, Decision, Rejection, ids};
 use crate::faults::{Fault, FaultSet};
 use crate::models::DriveModel;
 use crate::profile::{DiagCounter, Profile};
-use crate::requirements::FreedomKind;
+use crate::requirements::{FreedomKind, FreedomValue};
 use crate::tell::{self, WriteRecord, WriteSink, Written};
 use codec::codes::{diag, event};
 use codec::framer::{DiscardReason, FramerEvent, RtuFramer, RtuTiming};
@@ -313,12 +313,18 @@ pub struct Station {
     /// What the model would have answered under other values of the freedoms that decided the answers
     /// taken with the last [`Station::take_decisions`] (dropped by the next one).
     choice_alternatives: Vec<crate::choices::ModelledAlternative>,
+    /// Those the station itself computed since the last [`Station::take_decisions`] (the layout's request
+    /// of a PDU longer than its layout, served: `trailing-bytes = response`).
+    own_alternatives: Vec<crate::choices::ModelledAlternative>,
     /// Where each accepted write is reported (`simulate --journal`).
     sink: Option<WriteSink>,
     /// Holding registers that keep the first value written to them (`simulate --latch`), and those of them
     /// written once already.
     latched: BTreeSet<u16>,
     latched_taken: BTreeSet<u16>,
+    /// Holding registers that read off their value by a few counts (`simulate --jitter`): the amplitude, the
+    /// reads before the jitter starts, and the reads so far.
+    jitter: BTreeMap<u16, Jitter>,
     /// The exception the ADU being answered gets whatever its PDU holds (see [`Station::refuse`]).
     forced: Option<ExceptionCode>,
     /// The ADU just answered asks for the connection to be closed (`truncated-pdu=close`).
@@ -332,6 +338,14 @@ pub struct Station {
     /// Someone takes the decisions and counter alternatives ([`Station::take_decisions`]); when not (see
     /// [`Station::forgetting_decisions`]) they are dropped as each new input arrives.
     observed: bool,
+}
+
+/// See [`Station::with_jitter`].
+#[derive(Clone, Debug)]
+struct Jitter {
+    amplitude: u16,
+    after: u32,
+    reads: u32,
 }
 
 impl Station {
@@ -350,9 +364,11 @@ impl Station {
             decisions: Vec::new(),
             counter_alternatives: Vec::new(),
             choice_alternatives: Vec::new(),
+            own_alternatives: Vec::new(),
             sink: None,
             latched: BTreeSet::new(),
             latched_taken: BTreeSet::new(),
+            jitter: BTreeMap::new(),
             forced: None,
             close_requested: false,
             length_decided: false,
@@ -379,6 +395,7 @@ impl Station {
             let _ = self.model.take_decisions();
             let _ = self.model.take_alternatives();
             self.choice_alternatives.clear();
+            self.own_alternatives.clear();
         }
     }
 
@@ -397,8 +414,61 @@ impl Station {
         self
     }
 
+    /// The same station whose holding register `address` reads off its value by up to `amplitude` counts
+    /// (+1, -1, +2, -2, 0, ... capped at `amplitude`) from its `after`-th read on (a 16-bit register: the
+    /// word is offset): a measured value on a drive with its motor attached, an encoder count jittering at
+    /// standstill, that starts to move only after the reads a run makes before its first write (what
+    /// `Runner::recheck_live` must tell apart from a wrong value). The stored value does not change.
+    pub fn with_jitter(mut self, address: u16, amplitude: u16, after: u32) -> Self {
+        self.jitter.insert(
+            address,
+            Jitter {
+                amplitude,
+                after,
+                reads: 0,
+            },
+        );
+        self
+    }
+
+    /// A read answer with the jittering registers it covers offset (see [`Station::with_jitter`]).
+    fn jittered(&mut self, req: &Request, resp: Option<Response>) -> Option<Response> {
+        let Request::ReadHoldingRegisters { address, quantity } = req else {
+            return resp;
+        };
+        let Some(Response::ReadHoldingRegisters { mut values }) = resp else {
+            return resp;
+        };
+        let end = u32::from(*address) + u32::from(*quantity);
+        for (a, j) in self
+            .jitter
+            .range_mut(*address..)
+            .take_while(|(a, _)| u32::from(**a) < end)
+        {
+            j.reads = j.reads.saturating_add(1);
+            if j.reads <= j.after {
+                continue;
+            }
+            const STEPS: [i32; 5] = [1, -1, 2, -2, 0];
+            let amp = i32::from(j.amplitude);
+            let step = STEPS[(j.reads - j.after) as usize % STEPS.len()].clamp(-amp, amp);
+            if let Some(v) = values.get_mut(usize::from(a - address)) {
+                *v = (i32::from(*v) + step) as u16;
+            }
+        }
+        Some(Response::ReadHoldingRegisters { values })
+    }
+
     /// Answer `req` through the model, reporting an accepted write and honouring latched registers.
     fn handle_model(&mut self, now: Duration, unit: u8, req: &Request) -> Option<Response> {
+        let resp = self.handle_model_plain(now, unit, req);
+        if self.jitter.is_empty() {
+            return resp;
+        }
+        self.jittered(req, resp)
+    }
+
+    fn handle_model_plain(&mut self, now: Duration, unit: u8, req: &Request) -> Option<Response> {
         let written = Written::of(req);
         let latched = match &written {
             Some(Written::Holding { address, quantity }) if !self.latched.is_empty() => (*address
@@ -459,7 +529,9 @@ impl Station {
     /// The freedoms that decided the answers given since the last call, the model's included: where an
     /// oracle must accept any admissible value, not only this drive's.
     pub fn take_decisions(&mut self) -> Vec<Decision> {
-        self.choice_alternatives = self.model.take_alternatives();
+        let mut alternatives = std::mem::take(&mut self.own_alternatives);
+        alternatives.extend(self.model.take_alternatives());
+        self.choice_alternatives = alternatives;
         self.decisions.extend(self.model.take_decisions());
         std::mem::take(&mut self.decisions)
     }
@@ -1323,6 +1395,22 @@ impl Station {
                     // Longer than its function's layout: 03 (the reference), no answer, or on Modbus/TCP
                     // the connection closed.
                     self.decisions.push(ids::TRAILING_BYTES);
+                    // Or the layout's request served, as this drive answers it (on a copy): a read of half
+                    // a register it refuses is refused so (tests/independent/lmd-g).
+                    if let Some((_, extra)) = Request::decode_layout_prefix(pdu)
+                        && let Some(layout) = pdu.get(..pdu.len().saturating_sub(extra))
+                    {
+                        let mut scratch = self.clone();
+                        scratch.sink = None;
+                        scratch
+                            .choices
+                            .set(ids::TRAILING_BYTES, FreedomValue::Text("response".into()));
+                        if let Some((Some(answer), _)) = scratch.process(now, unit, fc, layout, via)
+                        {
+                            self.own_alternatives
+                                .push((ids::TRAILING_BYTES, "response", answer));
+                        }
+                    }
                     match self.choices.name(ids::TRAILING_BYTES) {
                         Some("silence") => return Some((None, false)),
                         Some("close") => {

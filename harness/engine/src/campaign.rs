@@ -321,9 +321,14 @@ pub fn campaign(
     if !base.faults.0.is_empty() && !base.target.is_sim() {
         return Err(SessionError::FaultNeedsSim);
     }
-    let cfg = config(base, &profile);
-    let mut runner =
-        crate::session::open_checked_runner(base, &profile, &cfg, &Expectations::default())?;
+    let mut cfg = config(base, &profile);
+    let mut runner = crate::session::open_checked_runner(
+        base,
+        &profile,
+        &mut cfg,
+        &Expectations::default(),
+        log,
+    )?;
     if !cfg.is_sim && !cfg.safety.read_only && opts.allow_writes {
         let allowed = |yes: bool| if yes { "ALLOWED" } else { "not sent" };
         let _ = writeln!(

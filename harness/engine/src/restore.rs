@@ -536,8 +536,11 @@ fn settle_axis(
 /// The items that requests `pdus` can have written.
 /// How many more reads tell a value that changes by itself ([`Keeper::live_apart`]), and the pause before
 /// each.
-const LIVE_READS: usize = 3;
-const LIVE_GAP: std::time::Duration = std::time::Duration::from_millis(20);
+/// Eight reads in all: an encoder count toggling between two values reads the same eight times in a row
+/// once in 128, one jittering by ±1 once in 2,187, by ±2 once in 78,125 (four reads 20 ms apart, as
+/// before 2026-11-29: once in 8, 27 and 125). The pauses add up to 56 ms, as the three of 20 ms did.
+const LIVE_READS: usize = 7;
+const LIVE_GAP: std::time::Duration = std::time::Duration::from_millis(8);
 
 /// The reads `seen` (after a restore, nothing written between) as text, when they show a value that changes
 /// by itself and is off `before` by no more than twice their spread: register values only, compared as
@@ -1598,8 +1601,8 @@ impl Keeper {
         let read = read_all(&mut counting, &self.inventory.items);
         // Read again, [`LIVE_READS`] times, [`LIVE_GAP`] apart: a value that differs between the reads,
         // nothing written between, changes by itself (an encoder count, a lead/lag on a drive with its
-        // motor attached): neither put back nor verified. (An encoder jittering by ±2 reads the same four
-        // times in a row once in 125.)
+        // motor attached): neither put back nor verified. (An encoder jittering by ±2 reads the same eight
+        // times in a row once in 78,125; see [`LIVE_READS`].)
         let mut again = Vec::new();
         for _ in 0..LIVE_READS {
             counting.idle(LIVE_GAP);
@@ -2875,7 +2878,7 @@ mod tests {
         assert_eq!(drive.regs[&0x10], 7);
 
         // 0x30 still while the snapshot reads it, jittering from then on: the final verification tells.
-        let mut drive = Bench::new(4);
+        let mut drive = Bench::new(LIVE_READS + 1);
         let mut k = bench_keeper();
         k.take_snapshot(&mut drive).expect("snapshot");
         assert_eq!(k.account().live.len(), 1, "{:?}", k.account());

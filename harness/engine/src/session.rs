@@ -550,14 +550,38 @@ pub(crate) fn open_runner(
 
 /// [`open_runner`] with the [`preflight`] first: a target that does not answer, or a line that echoes, is
 /// said before the runner's own reads (each of which would wait its timeout, or read an echo).
+///
+/// Where no `--unit` was given and the profile's unit id gets no answer over Modbus/TCP but one of the ids
+/// a device that is not a gateway answers does (0xFF, 0: TCP guide 4.4.1.3; neither manual states the
+/// MDrive's or the LMD's), the run takes that one: `cfg.unit` is set to it and `log` says so.
 pub(crate) fn open_checked_runner(
     opts: &Options,
     profile: &Profile,
-    cfg: &RunConfig,
+    cfg: &mut RunConfig,
     expectations: &Expectations,
+    log: &mut dyn Write,
 ) -> Result<Runner, SessionError> {
     let mut runner = open_unlearned(opts, profile, cfg, expectations)?;
-    preflight(opts, profile, &mut runner)?;
+    if let Some(unit) = preflight(opts, profile, &mut runner)? {
+        let _ = writeln!(
+            log,
+            "unit id: {} (the profile's) gets no answer, unit {unit} does: the run uses unit {unit} (the TCP implementation guide, 4.4.1.3, recommends 0xFF for a device that is not a gateway; --unit to choose)",
+            cfg.unit
+        );
+        // The connection closed first: a drive with one connection slot frees it (see
+        // `TcpTarget::close_gracefully`).
+        drop(runner);
+        cfg.unit = unit;
+        runner = open_unlearned(opts, profile, cfg, expectations)?;
+        preflight(
+            &Options {
+                unit: Some(unit),
+                ..opts.clone()
+            },
+            profile,
+            &mut runner,
+        )?;
+    }
     learn_choices(&mut runner);
     Ok(runner)
 }
@@ -568,6 +592,7 @@ fn learn_choices(runner: &mut Runner) {
     runner.learn_word_order();
     runner.learn_fc43_form();
     runner.learn_input_addressing();
+    runner.learn_partial_register_read();
     runner.learn_output_setup();
 }
 
@@ -639,13 +664,15 @@ fn liveness_of(opts: &Options) -> Option<crate::liveness::Liveness> {
 /// Before the first case: a known-good read of the profile over the target's framing. No Modbus answer
 /// within the bound is [`SessionError::NotAnswering`] (exit 2), saying what was tried and why it may not
 /// have answered, or what answered instead. Nothing is sent on `sim:` targets or without `opts.liveness`.
+/// `Some(unit)`: no `--unit` was given, and over Modbus/TCP the profile's unit id gets no answer where
+/// `unit` gets one (the caller runs at `unit`).
 pub fn preflight(
     opts: &Options,
     profile: &Profile,
     runner: &mut Runner,
-) -> Result<(), SessionError> {
+) -> Result<Option<u8>, SessionError> {
     let Some(bounds) = liveness_of(opts) else {
-        return Ok(());
+        return Ok(None);
     };
     let pdu = crate::cases::catalog::known_good_read(profile);
     let unit = opts.unit.unwrap_or(profile.device.default_unit);
@@ -662,7 +689,7 @@ pub fn preflight(
         unit,
         bounds.probe_timeout,
     ) {
-        None => Ok(()),
+        None => Ok(None),
         Some(mut m) => {
             // Silence on Modbus/TCP: is it the unit id? The same read at the unit ids a device that is not a
             // gateway commonly answers (TCP guide 4.4.1.3: 0xFF recommended, 0 accepted too). Reads only; not
@@ -671,6 +698,9 @@ pub fn preflight(
                 let short = bounds.probe_timeout.min(Duration::from_millis(500));
                 for other in [255u8, 0, 1].into_iter().filter(|u| *u != unit) {
                     if runner.answers_at_unit(&pdu, other, short)? {
+                        if opts.unit.is_none() {
+                            return Ok(Some(other));
+                        }
                         m = format!(
                             "{m}. The same read at unit {other} is answered: the device's unit id is likely {other} (the TCP implementation guide, 4.4.1.3, recommends 0xFF for a device that is not a gateway): run again with --unit {other}"
                         );
@@ -985,7 +1015,7 @@ pub fn run(
     progress: &mut dyn FnMut(usize, usize, &str, Verdict),
 ) -> Result<RunOutcome, SessionError> {
     let profile = resolve_profile(opts, log)?;
-    let cfg = config(opts, &profile);
+    let mut cfg = config(opts, &profile);
     let expectations = check_options(opts, &profile, &cfg, log)?;
     // One seed for the whole run, chosen before anything is generated.
     let mut opts = opts.clone();
@@ -996,7 +1026,7 @@ pub fn run(
     let requirements = requirements_of(&opts.corpus)?;
     let planned = catalog_plan(opts, &profile, &requirements)?;
     let generator = generator(opts, &profile);
-    let mut runner = open_checked_runner(opts, &profile, &cfg, &expectations)?;
+    let mut runner = open_checked_runner(opts, &profile, &mut cfg, &expectations, log)?;
     let mut watch = Watch::new(opts, &profile);
     if let Some(w) = watch.as_ref() {
         runner.watch_mid_case(w.probe.clone(), w.bounds.probe_timeout);

@@ -77,6 +77,25 @@ pub struct SimulateArgs {
     /// writes without taking them (repeatable; a drive that latches a setting until power cycle).
     #[arg(long = "latch", value_name = "ADDR", value_parser = parse_address)]
     latch: Vec<u16>,
+    /// A 16-bit holding register that reads off its value by up to N counts (+1, -1, +2, -2, 0, ...) from
+    /// its K-th read on (default 0), as a measured value on a drive with its motor attached (repeatable;
+    /// the stored value does not change).
+    #[arg(long = "jitter", value_name = "ADDR=N[@K]", value_parser = parse_jitter)]
+    jitter: Vec<(u16, u16, u32)>,
+}
+
+fn parse_jitter(s: &str) -> Result<(u16, u16, u32), String> {
+    let (addr, rest) = s
+        .split_once('=')
+        .ok_or_else(|| format!("`{s}`: expected ADDR=N[@K], e.g. 0x0005=2@20"))?;
+    let (n, k) = rest.split_once('@').unwrap_or((rest, "0"));
+    let n = n
+        .parse()
+        .map_err(|e| format!("`{s}`: the amplitude `{n}` is not a count: {e}"))?;
+    let k = k
+        .parse()
+        .map_err(|e| format!("`{s}`: the reads before it starts, `{k}`, is not a count: {e}"))?;
+    Ok((parse_address(addr)?, n, k))
 }
 
 fn parse_address(s: &str) -> Result<u16, String> {
@@ -347,6 +366,9 @@ fn prepare(args: &SimulateArgs) -> Result<(Station, ServerConfig, String), Strin
     )
     .with_choices(choices)
     .with_latched(args.latch.iter().copied());
+    for &(address, amplitude, after) in &args.jitter {
+        station = station.with_jitter(address, amplitude, after);
+    }
     let mut presets = Vec::new();
     if let Some(p) = &args.preset {
         let text = std::fs::read_to_string(p)

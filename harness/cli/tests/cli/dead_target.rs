@@ -154,10 +154,11 @@ fn nothing_but_the_preflight_read_goes_to_a_target_that_does_not_answer() {
 }
 
 /// A Modbus/TCP server that answers only unit id 255 (and 0), as the TCP implementation guide recommends for a
-/// device that is not a gateway (a drive written independently from the MDrive manual does so): the run at the
-/// profile's unit 1 gets no answer, and the error says which unit id answers the same read.
+/// device that is not a gateway (drives written independently from the MDrive and LMD manuals do so): a run
+/// without `--unit` gets no answer at the profile's unit 1 and runs at 255, saying so; a run told `--unit 1`
+/// exits 2, and the error says which unit id answers the same read.
 #[test]
-fn a_server_of_another_unit_id_is_told_which_one_answers() {
+fn a_server_of_another_unit_id_is_run_at_the_one_that_answers_unless_told_otherwise() {
     let sim = SimProcess::start(&[
         "--profile",
         "generic",
@@ -170,7 +171,15 @@ fn a_server_of_another_unit_id_is_told_which_one_answers() {
     ]);
     let target = sim.tcp_url();
     let (code, _, err, took) = harness_timed(
-        &["run", "--target", &target, "--profile", "generic"],
+        &[
+            "run",
+            "--target",
+            &target,
+            "--profile",
+            "generic",
+            "--unit",
+            "1",
+        ],
         Duration::from_secs(60),
     );
     assert_eq!(code, 2, "{err}");
@@ -179,7 +188,7 @@ fn a_server_of_another_unit_id_is_told_which_one_answers() {
         err.contains("unit 255 is answered") && err.contains("--unit 255"),
         "{err}"
     );
-    // With it, the run goes ahead.
+    // Without it, the run goes ahead at 255.
     let (code, out, err, _) = harness_timed(
         &[
             "run",
@@ -187,15 +196,20 @@ fn a_server_of_another_unit_id_is_told_which_one_answers() {
             &target,
             "--profile",
             "generic",
-            "--unit",
-            "255",
             "--read-only",
             "--no-progress",
         ],
         Duration::from_secs(120),
     );
     assert!(code == 0 || code == 1, "{out}{err}");
-    assert!(out.contains("RESULT:"), "{out}{err}");
+    assert!(out.contains("RESULT: PASS"), "{out}{err}");
+    assert!(
+        err.contains(
+            "unit id: 1 (the profile's) gets no answer, unit 255 does: the run uses unit 255"
+        ),
+        "{err}"
+    );
+    assert!(err.contains("(unit 255)"), "{err}");
 }
 
 #[test]

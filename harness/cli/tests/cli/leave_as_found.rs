@@ -1260,3 +1260,53 @@ fn a_drive_that_closes_idle_connections_is_run_paced_and_left_as_found() {
     }
     drive.assert_reads_as(&before, "not left as found");
 }
+
+/// A measured value the reads before the first write found still (`simulate --jitter 0x002C=2@9`: HT reads
+/// off by up to 2 counts from its tenth read on, its stored value unchanged): the case that writes HT and reads
+/// it back reads it off; the run reads it four more times, finds it moving, and compares it within what it
+/// moves (`Runner::recheck_live`), saying so in the step. Nothing FAILs, and the drive is left as found. A
+/// value read wrong the same way every time is no measurement: with `--fault word-order` beside the jitter, the
+/// 32-bit reads still FAIL.
+#[test]
+fn a_register_found_moving_only_during_the_cases_is_read_within_what_it_moves() {
+    // An MDrive whose HT jitters from its tenth read on, with `faults` injected.
+    let jittering = |faults: &[&str]| {
+        let mut args = vec![
+            "--profile",
+            "mdrive",
+            "--listen",
+            "127.0.0.1:0",
+            "--jitter",
+            "0x002C=2@9",
+        ];
+        args.extend_from_slice(faults);
+        SimProcess::start(&args)
+    };
+    let sim = jittering(&[]);
+    let target = sim.tcp_url();
+    let dir = TempDir::new("jitter");
+    let report = dir.path().join("report");
+    let report = report.to_str().expect("utf-8");
+    let (code, out, err) = harness_bounded(
+        None,
+        &run_args(&target, "mdrive", &["--report", report]),
+        RUN_LIMIT,
+    );
+    assert_eq!(code, 0, "{out}{err}");
+    assert!(out.contains("RESULT: PASS"), "{out}");
+    assert!(
+        out.contains("every kept parameter reads as before"),
+        "{out}"
+    );
+    let cases = std::fs::read_to_string(Path::new(report).join("cases.jsonl")).expect("cases");
+    assert!(
+        cases.contains("showed 0x002C read ") && cases.contains("changing by itself"),
+        "no step says HT was found moving"
+    );
+
+    let sim = jittering(&["--fault", "word-order"]);
+    let target = sim.tcp_url();
+    let (code, out, err) = harness_bounded(None, &run_args(&target, "mdrive", &[]), RUN_LIMIT);
+    assert_eq!(code, 1, "{out}{err}");
+    assert!(out.contains("FAIL profile/mdrive/read/0x0089-vi"), "{out}");
+}

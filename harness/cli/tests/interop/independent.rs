@@ -1,8 +1,9 @@
-//! Drives written independently from the manuals (tests/independent/): eighteen simulators, six of each
+//! Drives written independently from the manuals (tests/independent/): twenty-one simulators, seven of each
 //! drive by authors who had the manuals, the public Modbus specifications and tests/independent/BRIEF.md
 //! (the second wave, `*-b`: BRIEF-b.md; the third, `*-c`: BRIEF-c.md; the fourth, `*-d`: BRIEF-d.md; the fifth, `*-e`, built
 //! on pymodbus and libmodbus: BRIEF-e.md; the sixth, `*-f`, commissioned drives on a bench with their motors
-//! attached: BRIEF-f.md), and never saw this code nor each
+//! attached: BRIEF-f.md; the seventh, `*-g`, unusual but admissible choices: BRIEF-g.md), and never saw this
+//! code nor each
 //! other's. Where they conform to the manuals the harness must give them no FAIL, and it must leave every
 //! value of their state (their own dump, `--state`) as it found it. Each fix they led to is in the log
 //! (README, "Independent drives").
@@ -691,4 +692,67 @@ fn generated_runs_leave_the_sixth_wave_as_found() {
         let (code, out) = run_leaving_as_found_but(drive, &[], "tcp", &args, &LAST_MOVE);
         assert_strict_pass(drive, code, &out);
     }
+}
+
+/// The seventh wave (BRIEF-g.md): teams that take, wherever the manual and the specifications leave a choice,
+/// the less common admissible one (unit ids 255 and 0 only, 04 for every value the motion processor refuses,
+/// halves of 32-bit registers refused, a pad byte after an FC 0x41 string, mnemonics a product lacks refused
+/// with 01, a truncated request dropped or refused by where it is cut). Each catalog PASSes, with and
+/// without every flag, and leaves its drive as found. Before the fixes: the MDrive's and the LMD's runs did
+/// not start (unit 1 unanswered), then the LMD's stopped at the keeper's first reads (its FC 0x41 pad byte
+/// read as no answer); the MDrive's catalog FAILed EE (refused on a unit without encoder) and with the flags
+/// DC and IC (04, not 03); the LMD's FAILed MU (01). Their NON-STRICT are the connection both close on a
+/// protocol id other than 0, where the TCP guide (4.4.2.2) has the frame discarded.
+#[test]
+fn the_catalogs_pass_the_seventh_wave_and_leave_it_as_found() {
+    let all = ["--allow-motion", "--allow-destructive"];
+    for (drive, scheme) in [("mdrive-g", "tcp"), ("lmd-g", "tcp"), ("sd2x-g", "rtu+tcp")] {
+        let (code, out) = run_leaving_as_found(drive, scheme, &[]);
+        assert_pass(drive, code, &out);
+        let (code, out) = run_leaving_as_found(drive, scheme, &all);
+        assert_pass(drive, code, &out);
+    }
+}
+
+/// Generated cases against the seventh wave: PASS, nothing left changed. The LMD's first case of seed 1
+/// (an FC 03 of half a register with a byte after its layout) FAILed before the drive's refusal of halves was
+/// learned before the cases and the reference offered the layout's request as the drive answers it.
+#[test]
+fn generated_runs_pass_the_seventh_wave() {
+    for (drive, scheme, cases) in [
+        ("lmd-g", "tcp", "300"),
+        ("mdrive-g", "tcp", "20"),
+        ("sd2x-g", "rtu+tcp", "100"),
+    ] {
+        let (code, out) =
+            run_leaving_as_found(drive, scheme, &["--generated", cases, "--seed", "1"]);
+        assert_pass(drive, code, &out);
+    }
+}
+
+/// The seventh wave's MDrive checks VI against VM with VI's old value (tests/independent/mdrive-g/sim.py,
+/// `check_write`: the new value is not yet among the pending ones). It takes a VI above VM, then refuses
+/// every VI below it, also the one the run writes back. The harness FAILs the write it should have refused
+/// (case 26 of seed 1: the reference answers 03) and says VI is NOT RESTORED (exit 3), naming the refusal:
+/// a drive bug, found.
+#[test]
+fn the_seventh_wave_mdrives_initial_velocity_check_is_caught() {
+    let sim = Independent::start_with("mdrive-g", &[]);
+    let target = sim.target("tcp");
+    let (code, out, err) = harness_bounded(
+        None,
+        &run_args(&target, "mdrive", &["--generated", "40", "--seed", "1"]),
+        RUN_LIMIT,
+    );
+    assert_eq!(code, 3, "{out}\n{err}");
+    assert!(out.contains("FAIL gen/1/26/write-reg"), "{out}");
+    assert!(
+        out.contains("where the reference answers with exception FC 0x90, exception 3"),
+        "{out}"
+    );
+    assert!(
+        out.contains("NOT RESTORED holding:0x0089 (Set initial velocity)")
+            && out.contains("the drive refused the write"),
+        "{out}"
+    );
 }

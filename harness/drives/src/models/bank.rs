@@ -286,7 +286,11 @@ impl RegisterBank {
                     let w = self.words(slot.reg, slot.value);
                     out.push(w.get(half).copied().unwrap_or(0));
                 }
-                Some(_) => return Err(ExceptionCode::ILLEGAL_DATA_ADDRESS.into()),
+                Some(_) => {
+                    return Err(self
+                        .choices()
+                        .reject(ids::READ_WRITE_ONLY, ExceptionCode::ILLEGAL_DATA_ADDRESS));
+                }
                 None if self.reserved_readable => out.push(0),
                 None => return Err(ExceptionCode::ILLEGAL_DATA_ADDRESS.into()),
             }
@@ -375,12 +379,12 @@ impl RegisterBank {
             // In range, but a value whose meaning the manual leaves open (`safe_values`): a drive may refuse
             // it (`value-meaning-open`).
             if slot.reg.meaning_open(value)
-                && self.choices().name(ids::VALUE_MEANING_OPEN) == Some("exception-03")
+                && let Some(code) = self
+                    .choices()
+                    .get(ids::VALUE_MEANING_OPEN)
+                    .and_then(Choices::exception_value)
             {
-                return Err(Rejection::by(
-                    ids::VALUE_MEANING_OPEN,
-                    ExceptionCode::ILLEGAL_DATA_VALUE,
-                ));
+                return Err(Rejection::by(ids::VALUE_MEANING_OPEN, code));
             }
             changes.push(Change {
                 address: slot.reg.address,

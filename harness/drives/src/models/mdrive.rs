@@ -873,6 +873,19 @@ impl Mdrive {
         out
     }
 
+    /// True when `changes` switch on an encoder function (EE, encoder enable, 0x001E; PM, position
+    /// maintenance, 0x005C: "MDrivePlus only", lines 1044 and 1100) of an MDrive: a unit built without the
+    /// optional encoder may refuse it (`mdrive-encoder-absent`).
+    fn enables_encoder_function(&self, changes: &[Change]) -> bool {
+        self.profile.device.id == "mdrive"
+            && changes.iter().any(|c| {
+                c.value != 0
+                    && self.profile.registers.iter().map(|r| r.get_ref()).any(|r| {
+                        r.address == c.address && matches!(r.mnemonic.as_deref(), Some("EE" | "PM"))
+                    })
+            })
+    }
+
     /// The refusal this drive chose under `freedom` for a write of an output whose point is an input
     /// (`=exception-XX`); `None` where it takes the write (the reference).
     fn input_point_refusal(&self, freedom: Decision) -> Option<Rejection> {
@@ -1320,6 +1333,20 @@ impl Mdrive {
         // Printable ASCII only, so this cannot fail; an empty string stands in if it ever did.
         let text = std::str::from_utf8(params).unwrap_or_default();
         let key = m.name.to_ascii_uppercase();
+        // An encoder function switched on (see `enables_encoder_function`): decided, and refused by a drive
+        // that chose so.
+        if self.profile.device.id == "mdrive"
+            && matches!(key.as_str(), "EE" | "PM")
+            && matches!(kind, VendorKind::Setting { .. })
+            && split_values(text)
+                .first()
+                .is_some_and(|v| v.parse::<i64>().is_ok_and(|v| v != 0))
+        {
+            self.decided(ids::MDRIVE_ENCODER_ABSENT);
+            if let Some(refusal) = self.input_point_refusal(ids::MDRIVE_ENCODER_ABSENT) {
+                return Response::exception(fc, refusal.code);
+            }
+        }
         let result = match kind {
             VendorKind::Command { takes_params } => self.run_command(&key, text, takes_params),
             // The faulty drive checks the parameters as a setting's but does not store them.
@@ -1513,6 +1540,11 @@ impl DataModel for Mdrive {
         })?;
         self.check_limits(&changes)?;
         self.check_motion(&changes)?;
+        if self.enables_encoder_function(&changes)
+            && let Some(refusal) = self.input_point_refusal(ids::MDRIVE_ENCODER_ABSENT)
+        {
+            return Err(refusal);
+        }
         // Last: a write the drive could not take anyway is refused for that (its own freedoms decide the code).
         let freedoms = self.input_point_freedoms(&changes);
         if self.group_write_clears && freedoms.contains(&ids::MDRIVE_OUTPUT_GROUP_WRITE_WHILE_INPUT)
@@ -1567,6 +1599,13 @@ impl DataModel for Mdrive {
         if let Some((address, words)) = write {
             for freedom in self.refused_value_freedoms(address, &words) {
                 self.decided(freedom);
+            }
+            if self
+                .bank
+                .plan_write(address, &words)
+                .is_ok_and(|changes| self.enables_encoder_function(&changes))
+            {
+                self.decided(ids::MDRIVE_ENCODER_ABSENT);
             }
         }
     }

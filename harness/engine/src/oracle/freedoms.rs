@@ -230,7 +230,9 @@ fn item_name(item: &Item) -> String {
     match (&item.name, item.register, &item.mnemonic, item.object) {
         (Some(n), _, _, _) => n.clone(),
         (None, Some(r), _, _) => format!("0x{r:04X}"),
-        (None, None, Some(m), _) => m.clone(),
+        // Apart from a register of the same name (the LMD's MU is both): a drive may refuse the mnemonic
+        // with a code of the vendor functions' error tables and the register with its own.
+        (None, None, Some(m), _) => format!("{m} (FC 0x41/0x42)"),
         (None, None, None, Some(o)) => format!("object {o}"),
         _ => item
             .coil
@@ -527,8 +529,16 @@ pub fn unambiguous(
                 "access"
             }
             FreedomKind::ExceptionCode
-                if f.id == drives::choices::ids::WRITE_READ_ONLY && cx.decided(f) =>
+                if (f.id == drives::choices::ids::WRITE_READ_ONLY
+                    || f.id == drives::choices::ids::READ_WRITE_ONLY)
+                    && cx.decided(f) =>
             {
+                // A range that also runs into an address the profile does not map may be refused for
+                // that (02) before the item's access is looked at (an independent MDrive reads 0x001B-0x001E,
+                // DC with a reserved register, as 02 and DC alone as 04): a second reason.
+                if covers_unmapped(cx) && !reasons.contains(&"address") {
+                    reasons.push("address");
+                }
                 "access"
             }
             // Nor is a quantity over the device's limit served or refused: its refusal's code is
@@ -560,6 +570,18 @@ pub fn unambiguous(
         .into_iter()
         .filter(|s| !named.contains(&s.freedom.as_str()))
         .collect()
+}
+
+/// True when the registers the request reads or writes include an address the profile maps to no register.
+fn covers_unmapped(cx: &StepContext<'_>) -> bool {
+    let Some((a, q)) = cx
+        .request
+        .and_then(|r| registers_read(r).or_else(|| registers_written(r)))
+    else {
+        return false;
+    };
+    (u32::from(a)..u32::from(a) + u32::from(q))
+        .any(|x| cx.profile.register_at(x as u16, false).is_none())
 }
 
 /// True when a register (or coil) at either end of the request's range (the addresses the reference tries for the
@@ -604,6 +626,17 @@ pub fn outcome_shown(f: &Freedom, cx: &StepContext<'_>, kind: &str) -> Option<Sh
     (f.kind == FreedomKind::Outcome && about && listed).then(|| shown_named(f, "", kind))
 }
 
+/// Where the data a request's byte count counts begin (its fields before them: function code, addresses,
+/// quantities, the byte count), for the functions whose layout has one (App 6.11, 6.12, 6.14, 6.15, 6.17).
+fn counted_data_from(fc: u8) -> Option<usize> {
+    match fc {
+        0x0F | 0x10 => Some(6),
+        0x17 => Some(10),
+        0x14 | 0x15 => Some(2),
+        _ => None,
+    }
+}
+
 /// What a choice shown at this step is about within its freedom: for the answer to a read or write of part
 /// of a 32-bit register, the register whose width the manual gives two ways (a drive may take its first
 /// register for all of it, and keep to another choice for the others); otherwise the whole freedom ("").
@@ -639,9 +672,13 @@ pub fn about_of(freedom: &str, cx: &StepContext<'_>) -> String {
     }
     // FC 08's data field is N x 2 bytes (App 6.8): a field of an odd size is no telegram of the layout, one of
     // an even size other than the manual's 2 bytes is; a drive may echo the one and refuse the other.
+    // And a field cut short of the manual's 2 bytes is a request cut short: a drive may drop it as a frame
+    // it cannot parse and refuse a longer one with 03 (tests/independent/sd2x-g).
     if freedom == drives::choices::ids::SD2X_DIAGNOSTIC_DATA_SIZE {
         let data = cx.pdu.len().saturating_sub(3);
-        return if data % 2 == 1 {
+        return if data < 2 {
+            "cut short".into()
+        } else if data % 2 == 1 {
             "odd size".into()
         } else {
             "even size".into()
@@ -677,6 +714,20 @@ pub fn about_of(freedom: &str, cx: &StepContext<'_>) -> String {
             .first()
             .map(|fc| format!("FC 0x{fc:02X}"))
             .unwrap_or_default();
+    }
+    // A request cut short: each function has its own state diagram (App 6), and where its layout has a byte
+    // count, a PDU cut inside the fields before it cannot be parsed at all (the serial line guide: a frame
+    // in error, no answer), while one cut inside the data it counts holds a byte count the data do not match
+    // (App 7: the implied length is incorrect, 03). A drive may drop the one and refuse the other, as an
+    // independent SD2x does (tests/independent/sd2x-g), and keeps to each per function code.
+    if freedom == drives::choices::ids::TRUNCATED_PDU {
+        let Some(&fc) = cx.pdu.first() else {
+            return String::new();
+        };
+        return match counted_data_from(fc) {
+            Some(n) if cx.pdu.len() >= n => format!("FC 0x{fc:02X}, data short of its byte count"),
+            _ => format!("FC 0x{fc:02X}"),
+        };
     }
     // And per whether the range runs into reserved or missing addresses: a drive that checks the addresses
     // before its own limit answers 02 there (App 6.3, Figure 13: address + quantity) and its limit's 03 over
@@ -1009,10 +1060,20 @@ fn optional(
         }
         Some(o) => {
             if let Some((ofn, code)) = exception_of(o) {
-                let absent = f
-                    .values
-                    .iter()
-                    .any(|v| drives::Choices::exception_value(v) == Some(code));
+                // A mnemonic the product lacks, named in FC 0x41/0x42: their error tables list 01, 02, 03
+                // or 04 for any refusal (MDrive lines 958-962 and 998-1002, LMD 1131-1135 and 1192-1196;
+                // `unknown-mnemonic-exception`), and an open-loop LMD may refuse MU with 01, the mnemonic
+                // naming an action it does not have (tests/independent/lmd-g).
+                let vendor_code = item.mnemonic.is_some()
+                    && matches!(
+                        req,
+                        Request::VendorRead { .. } | Request::VendorWrite { .. }
+                    )
+                    && (1..=4).contains(&code.0);
+                let absent = vendor_code
+                    || f.values
+                        .iter()
+                        .any(|v| drives::Choices::exception_value(v) == Some(code));
                 if absent && ofn.without_exception_bit() == fc && expected != observed {
                     out.push(Alternative::exact(
                         Some(Response::exception(fc, code)),
@@ -1806,6 +1867,47 @@ mod tests {
         // the addresses first answers 02 there and its limit's 03 over a range it maps whole (the sixth
         // wave's MDrive).
         assert_eq!(into_reserved, "FC 0x03");
+    }
+
+    /// A request cut short is a choice per function code, and, where the layout has a byte count, per whether
+    /// the cut falls inside the data it counts (sd2x-g drops an FC 10 cut inside its fields and refuses one
+    /// cut inside its data with 03).
+    #[test]
+    fn a_request_cut_short_is_a_choice_per_function_and_per_where_it_is_cut() {
+        let profile = drives::corpus::Corpus::Embedded
+            .profile("sd2x")
+            .expect("sd2x");
+        let about = |pdu: &[u8]| {
+            let cx = StepContext {
+                request: None,
+                ..cx_for(&Request::ReadExceptionStatus, pdu, &profile)
+            };
+            about_of(drives::choices::ids::TRUNCATED_PDU, &cx)
+        };
+        // FC 10 of one register at 0x07E5 with its value cut to one byte, and cut before its byte count.
+        let in_data = about(&[0x10, 0x07, 0xE5, 0x00, 0x01, 0x02, 0x36]);
+        let in_fields = about(&[0x10, 0x07, 0xE5, 0x00]);
+        assert_eq!(in_data, "FC 0x10, data short of its byte count");
+        assert_eq!(in_fields, "FC 0x10");
+        assert_ne!(about(&[0x06, 0x0B, 0xB8, 0x00]), in_fields);
+        assert_eq!(about(&[0x03, 0x0B]), about(&[0x03, 0x0B, 0xB8, 0x00]));
+        assert_eq!(
+            about(&[0x17, 0, 0, 0, 1, 0, 0, 0, 1, 2, 0]),
+            "FC 0x17, data short of its byte count"
+        );
+        // FC 08's data field cut short of the manual's 2 bytes is held apart from one longer than it (sd2x-g
+        // drops the one and refuses the other with 03).
+        let size = |pdu: &[u8]| {
+            let cx = StepContext {
+                request: None,
+                ..cx_for(&Request::ReadExceptionStatus, pdu, &profile)
+            };
+            about_of(drives::choices::ids::SD2X_DIAGNOSTIC_DATA_SIZE, &cx)
+        };
+        assert_eq!(size(&[0x08, 0x00, 0x00]), "cut short");
+        assert_eq!(size(&[0x08, 0x00, 0x00, 0x12]), "cut short");
+        assert_eq!(size(&[0x08, 0x00, 0x00, 1, 2, 3, 4]), "even size");
+        assert_eq!(size(&[0x08, 0x00, 0x00, 1, 2, 3]), "odd size");
     }
 
     /// The check order is held per function code and per value refused: a drive may test a quantity above

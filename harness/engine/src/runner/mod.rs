@@ -379,6 +379,10 @@ const RECENT_REQUESTS: usize = 256;
 /// reads and writes); by default [`BUSY_WITHIN`]. Drives written independently from the manuals were busy
 /// for up to 3 s (an LMD's upgrade mode, UG).
 const BUSY_FIRST_PAUSE: Duration = Duration::from_millis(20);
+/// How many more reads tell a register that changes by itself after an exact read of it FAILed
+/// ([`Runner::recheck_live`]), and the pause before each.
+const LIVE_RECHECKS: usize = 4;
+const LIVE_RECHECK_GAP: Duration = Duration::from_millis(8);
 const BUSY_PAUSE_MAX: Duration = Duration::from_millis(100);
 pub const BUSY_WITHIN: Duration = Duration::from_secs(5);
 
@@ -594,6 +598,62 @@ impl Runner {
         );
         self.input_offset = OFFSET;
         self.follow_reading(freedom, EXAMPLE, &origin);
+    }
+
+    /// Learn before the cases whether the drive serves a read of one half of a 32-bit holding register
+    /// (freedom `partial-register-read`): one FC 03 of the first half of the profile's first readable
+    /// 32-bit register whose width the manual does not give two ways. A refusal (02, 03 or 04) is followed
+    /// from then on. Generated cases combine a half read with another freedom in one step (a request one
+    /// byte longer than its layout that the drive serves as the layout's request, `trailing-bytes =
+    /// response`); judged before the drive showed its choice for halves, the pair read as a FAIL
+    /// (tests/independent/lmd-g, seed 1, the first case). Over Modbus/TCP only: there a late answer to
+    /// the read is told by its transaction id; on an RTU line it would be taken for the first case's.
+    pub fn learn_partial_register_read(&mut self) {
+        if self.target.framing() != Framing::Tcp {
+            return;
+        }
+        let requirements = Arc::clone(&self.requirements);
+        let id = self.profile.device.id.clone();
+        let Some(freedom) = requirements
+            .freedom(drives::choices::ids::PARTIAL_REGISTER_READ)
+            .filter(|f| f.applies_to(&id))
+        else {
+            return;
+        };
+        if self.profile.function(0x03u8).is_none() {
+            return;
+        }
+        let Some(address) = self
+            .profile
+            .registers
+            .iter()
+            .map(|r| r.get_ref())
+            .filter(|r| {
+                r.width == 2 && r.table != Table::Input && !r.width_disputed && r.access.readable()
+            })
+            .map(|r| r.address)
+            .min()
+        else {
+            return;
+        };
+        let read = Request::ReadHoldingRegisters {
+            address,
+            quantity: 1,
+        };
+        let answer = crate::restore::Link::transact(self, &read);
+        self.learning_reads.extend(read.to_bytes().ok());
+        let Ok(Some(codec::Response::Exception { code, .. })) = answer else {
+            return;
+        };
+        let value = format!("exception-{:02X}", code.0);
+        if !freedom.admits(&value) {
+            return;
+        }
+        let origin = format!(
+            "(learned before the cases: FC 03 of one register at 0x{address:04X}, the first half of a 32-bit register, refused with {:02X})",
+            code.0
+        );
+        self.follow_reading(freedom, &value, &origin);
     }
 
     /// The drive follows the other reading `value` of `freedom`, learned before the cases: recorded as its
@@ -2258,6 +2318,13 @@ impl Runner {
         loop {
             let refused_before = self.refused_writes.len();
             let mut r = self.exchange(send, compare, capture, note, wire)?;
+            if let Some(told) = self.recheck_live(send, compare, &r)? {
+                let again = self.exchange(send, compare, capture, note, wire)?;
+                r = StepResult {
+                    note: format!("{}: {told}", again.note),
+                    ..again
+                };
+            }
             let busy = r.verdict == Verdict::Fail
                 && !matches!(send, Outgoing::Batch(_))
                 && answered_exception(framing, &r, &[codec::ExceptionCode::SERVER_DEVICE_BUSY]);
@@ -2289,6 +2356,109 @@ impl Runner {
             self.sync_shadow();
             self.busy_pause(&mut pause);
         }
+    }
+
+    /// Where an exact read of holding registers FAILed with values (no exception, as many as asked) on a
+    /// drive that is not the reference: read them [`LIVE_RECHECKS`] more times, [`LIVE_RECHECK_GAP`] apart,
+    /// nothing written between. Registers that read otherwise between those reads change by themselves: a
+    /// measured value on a drive with its motor attached (an encoder count jittering at standstill) that
+    /// the keeper's reads before the first write happened to read the same each time (a count toggling
+    /// between two values does so once in 128, see [`crate::restore`]). From then on an exact read of them is
+    /// compared within three times what they moved, as for those the keeper found ([`Runner::learn_live`]),
+    /// and the step is done again: what the reason is, `None` where nothing moved (the FAIL stands: a value
+    /// read wrong the same way every time, a word order mixed up, is no measurement).
+    fn recheck_live(
+        &mut self,
+        send: &Outgoing,
+        compare: &Compare,
+        r: &StepResult,
+    ) -> Result<Option<String>, TargetError> {
+        if r.verdict != Verdict::Fail || self.cfg.is_sim || !matches!(compare, Compare::Exact) {
+            return Ok(None);
+        }
+        let Outgoing::Pdu(pdu) = send else {
+            return Ok(None);
+        };
+        let Ok(Request::ReadHoldingRegisters { address, quantity }) = Request::decode(pdu) else {
+            return Ok(None);
+        };
+        let framing = self.target.framing();
+        let values_of = |a: Option<codec::Response>| match a {
+            Some(codec::Response::ReadHoldingRegisters { values })
+                if values.len() == usize::from(quantity) =>
+            {
+                Some(values)
+            }
+            _ => None,
+        };
+        let [Received::Frame { bytes, .. }] = r.observed.as_slice() else {
+            return Ok(None);
+        };
+        let Some(first) = values_of(crate::readings::decode_response(framing, bytes)) else {
+            return Ok(None);
+        };
+        let mut reads = vec![first];
+        for _ in 0..LIVE_RECHECKS {
+            self.idle(LIVE_RECHECK_GAP);
+            let answer = self.transact_pdu(pdu)?;
+            let Some(values) = values_of(answer.and_then(|a| codec::Response::decode(&a).ok()))
+            else {
+                return Ok(None);
+            };
+            reads.push(values);
+        }
+        let order = self.profile.device.word_order;
+        let mut moved = Vec::new();
+        let mut i = 0usize;
+        while i < usize::from(quantity) {
+            let a = address.wrapping_add(i as u16);
+            let reg = self
+                .profile
+                .register_at(a, false)
+                .filter(|r| r.address == a);
+            let (w, signed) = match reg {
+                Some(r) if r.width == 2 && i + 1 < usize::from(quantity) => (2, r.signed),
+                Some(r) => (1, r.signed),
+                None => (1, false),
+            };
+            let ints: Vec<i64> = reads
+                .iter()
+                .map(|v| match (w, signed) {
+                    (2, true) => i64::from(order.join(v[i], v[i + 1]) as i32),
+                    (2, false) => i64::from(order.join(v[i], v[i + 1])),
+                    (_, true) => i64::from(v[i] as i16),
+                    _ => i64::from(v[i]),
+                })
+                .collect();
+            let (lo, hi) = (
+                ints.iter().copied().min().unwrap_or(0),
+                ints.iter().copied().max().unwrap_or(0),
+            );
+            if hi > lo {
+                let seen: Vec<String> = ints.iter().map(i64::to_string).collect();
+                moved.push((a, w as u16, hi.abs_diff(lo), seen.join(", ")));
+            }
+            i += w;
+        }
+        if moved.is_empty() {
+            return Ok(None);
+        }
+        let mut told = Vec::new();
+        for (a, w, spread, seen) in moved {
+            let tolerance = u32::try_from(spread.saturating_mul(3))
+                .unwrap_or(u32::MAX)
+                .max(2);
+            match self.live.iter_mut().find(|(x, _, _)| *x == a) {
+                Some(e) => e.2 = e.2.max(tolerance),
+                None => self.live.push((a, w, tolerance)),
+            }
+            told.push(format!("0x{a:04X} read {seen}"));
+        }
+        Ok(Some(format!(
+            "the first read did not match, and {} more reads with nothing written between showed {} changing by itself (a measured value): read again, compared within three times what it moved",
+            LIVE_RECHECKS,
+            told.join("; ")
+        )))
     }
 
     /// Wait `pause` for a drive that answered Server Busy, and double it for the next time (up to

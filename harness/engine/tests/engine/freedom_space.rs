@@ -44,6 +44,9 @@ const NOT_EXERCISED: &[(&str, &str)] = &[
     // run records instead; the catalog passes (`an_lmd_refusing_writes_of_output_4_passes` for 04 and 03).
     ("lmd", "lmd-output-4-write=exception-02"),
     ("mdrive", "mdrive-inferred-write-only=rw"),
+    // Nor is a refusal of such a read, whatever its code.
+    ("mdrive", "read-write-only-exception=4"),
+    ("lmd", "read-write-only-exception=4"),
     // The MDrive has no read-only mnemonic, and every write-only one is a program command or a move
     // (flagged destructive or motion: its manual prints FC 0x41 for them, so a read may act).
     ("mdrive", "mnemonic-access-exception=1"),
@@ -59,6 +62,10 @@ const NOT_EXERCISED: &[(&str, &str)] = &[
     ("mdrive", "value-meaning-open=exception-03"),
     ("lmd", "value-meaning-open=exception-03"),
     ("sd2x", "value-meaning-open=exception-03"),
+    ("generic", "value-meaning-open=exception-04"),
+    ("mdrive", "value-meaning-open=exception-04"),
+    ("lmd", "value-meaning-open=exception-04"),
+    ("sd2x", "value-meaning-open=exception-04"),
     // A drive busy after an NVM save: the runner sends a request answered Server Busy (06) again until
     // the drive is free (App 7), so no verdict records the choice; the catalog with it PASSes here, and
     // without the retransmission it FAILs (runner tests `a_request_answered_server_busy_is_sent_again_*`).

@@ -646,14 +646,6 @@ fn decode_normal_response(fc: FunctionCode, r: &mut Reader<'_>) -> Result<Respon
         0x41 => {
             let at = r.pos();
             let bc = r.u8("byte count")? as usize;
-            // "Response n bytes n=N or N+1" (MDrive manual line 956, LMD manual line 1129): the parameter
-            // string may be followed by one byte the count leaves out (a pad to an even length, as an
-            // independent LMD sends, tests/independent/lmd-g); the string is the N bytes counted.
-            if bc + 1 == r.remaining() {
-                let params = r.take("parameter string", bc)?.to_vec();
-                r.take("pad byte", 1)?;
-                return Ok(Response::VendorRead { params });
-            }
             if bc != r.remaining() {
                 return Err(mismatch(
                     at,

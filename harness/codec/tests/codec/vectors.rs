@@ -497,24 +497,19 @@ fn encode_error_leaves_buffer_unchanged() {
     assert_eq!(out, vec![0xEE]);
 }
 
-/// FC 0x41's response: "Response n bytes n=N or N+1" (MDrive manual line 956, LMD manual line 1129): the
-/// parameter string may be followed by one byte its count leaves out (an independent LMD pads odd lengths
-/// with 0x00). Two bytes more, or one fewer, are no such response.
+/// FC 0x41's response: "Response n bytes n=N or N+1" (MDrive manual line 956, LMD manual line 1129). The codec
+/// stays strict, so that a decoded answer re-encodes to its bytes (the fuzz target `tcp_adu` holds it to
+/// that): a byte after the counted string is a trailing byte here; the runner leaves it out where it judges
+/// answers (`vendor_read_unpadded`).
 #[test]
-fn a_vendor_read_answer_may_carry_one_byte_its_count_leaves_out() {
+fn a_vendor_read_answer_with_a_byte_after_its_count_is_strictly_a_trailing_byte() {
     let exact = Response::decode(&[0x41, 0x01, 0x30]).expect("N bytes");
-    let padded = Response::decode(&[0x41, 0x01, 0x30, 0x00]).expect("N+1 bytes");
-    assert_eq!(exact, padded);
     assert_eq!(
-        padded,
+        exact,
         Response::VendorRead {
             params: b"0".to_vec()
         }
     );
-    assert!(Response::decode(&[0x41, 0x01, 0x30, 0x00, 0x00]).is_err());
+    assert!(Response::decode(&[0x41, 0x01, 0x30, 0x00]).is_err());
     assert!(Response::decode(&[0x41, 0x02, 0x30]).is_err());
-    // In an MBAP frame whose length counts the pad.
-    let adu = [0xA1, 0xCB, 0, 0, 0, 5, 0xFF, 0x41, 0x01, 0x30, 0x00];
-    let a = tcp::decode_adu(&adu).expect("a Modbus/TCP ADU");
-    assert_eq!(Response::decode(a.pdu).expect("a response"), exact);
 }

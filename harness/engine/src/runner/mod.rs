@@ -629,7 +629,11 @@ impl Runner {
             .iter()
             .map(|r| r.get_ref())
             .filter(|r| {
-                r.width == 2 && r.table != Table::Input && !r.width_disputed && r.access.readable()
+                r.width == 2
+                    && r.table != Table::Input
+                    && !r.width_disputed
+                    && !r.read_clears
+                    && r.access.readable()
             })
             .map(|r| r.address)
             .min()
@@ -769,29 +773,30 @@ impl Runner {
 
     /// An answer frame of the target or the reference drive in the form the cases are judged in: a
     /// well-formed FC 43 / MEI 0x0D answer of a drive that follows the SD2x example's form (see
-    /// [`Runner::learn_fc43_form`]) with the layout's Reserved byte put back (framing rebuilt). `None` for
-    /// every other frame, which is judged as it came (a malformed answer stays malformed).
+    /// [`Runner::learn_fc43_form`]) with the layout's Reserved byte put back; an FC 0x41 answer with the
+    /// one byte after its counted string that the MDrive and LMD manuals allow left out
+    /// ([`vendor_read_unpadded`]); framing rebuilt. `None` for every other frame, which is judged as it came
+    /// (a malformed answer stays malformed).
     fn in_case_form(&self, frame: &[u8]) -> Option<Vec<u8>> {
-        if !self.fc43_without_reserved {
-            return None;
-        }
+        let judged = |pdu: &[u8]| {
+            if self.fc43_without_reserved
+                && let Some(long) = canopen_answer_with_reserved(pdu)
+            {
+                return Some(long);
+            }
+            vendor_read_unpadded(pdu)
+        };
         let mut out = Vec::with_capacity(frame.len() + 1);
         match self.target.framing() {
             Framing::Tcp => {
-                let adu = tcp::decode_adu(frame).ok()?;
-                let long = canopen_answer_with_reserved(adu.pdu)?;
-                tcp::encode_adu(
-                    adu.header.transaction_id,
-                    adu.header.unit_id,
-                    &long,
-                    &mut out,
-                )
-                .ok()?;
+                let (header, pdu) = tcp_adu_parts(frame)?;
+                let pdu = judged(pdu)?;
+                tcp::encode_adu(header.0, header.1, &pdu, &mut out).ok()?;
             }
             _ => {
                 let adu = rtu::decode_adu(frame).ok()?;
-                let long = canopen_answer_with_reserved(adu.pdu)?;
-                rtu::encode_adu(adu.address, &long, &mut out).ok()?;
+                let pdu = judged(adu.pdu)?;
+                rtu::encode_adu(adu.address, &pdu, &mut out).ok()?;
             }
         }
         Some(out)
@@ -3569,6 +3574,30 @@ fn inputs_agree(registers: &[u16], inputs: &[bool], note: &str) -> StepResult {
     }
 }
 
+/// An FC 0x41 answer PDU whose parameter string is followed by one byte its count leaves out, without that
+/// byte: "Response n bytes n=N or N+1" (MDrive manual line 956, LMD manual line 1129; an independent LMD pads
+/// a string of odd length with 0x00, tests/independent/lmd-g). `None` for any other PDU. The codec stays
+/// strict (a decoded answer re-encodes to its bytes): the pad is left out where answers are judged.
+fn vendor_read_unpadded(pdu: &[u8]) -> Option<Vec<u8>> {
+    match pdu {
+        [0x41, count, rest @ ..] if rest.len() == usize::from(*count) + 1 => {
+            Some(pdu[..pdu.len() - 1].to_vec())
+        }
+        _ => None,
+    }
+}
+
+/// The transaction id and unit id of a Modbus/TCP ADU, and its PDU, where the MBAP header is well-formed
+/// and its length counts the bytes that follow it (whatever the PDU holds).
+fn tcp_adu_parts(frame: &[u8]) -> Option<((u16, u8), &[u8])> {
+    let header = frame.get(..tcp::MBAP_LEN)?;
+    let tid = u16::from_be_bytes([header[0], header[1]]);
+    let protocol = u16::from_be_bytes([header[2], header[3]]);
+    let length = usize::from(u16::from_be_bytes([header[4], header[5]]));
+    let pdu = frame.get(tcp::MBAP_LEN..)?;
+    (protocol == 0 && length == pdu.len() + 1).then_some(((tid, header[6]), pdu))
+}
+
 /// An FC 43 / MEI 0x0D answer PDU in the SD2x example's form (no Reserved byte) in the layout's form, when it
 /// is a well-formed answer in it.
 fn canopen_answer_with_reserved(pdu: &[u8]) -> Option<Vec<u8>> {
@@ -3582,6 +3611,27 @@ fn canopen_answer_with_reserved(pdu: &[u8]) -> Option<Vec<u8>> {
 
 #[cfg(test)]
 pub(super) mod tests {
+
+    /// "Response n bytes n=N or N+1" (MDrive manual line 956, LMD manual line 1129): an FC 0x41 answer with one
+    /// byte after its counted string is judged without it; with none, two, or a count that does not match, it
+    /// is judged as it came. A Modbus/TCP ADU is rebuilt around the PDU whatever it holds.
+    #[test]
+    fn a_vendor_read_answer_is_judged_without_the_byte_its_count_leaves_out() {
+        assert_eq!(
+            super::vendor_read_unpadded(&[0x41, 0x01, 0x30, 0x00]),
+            Some(vec![0x41, 0x01, 0x30])
+        );
+        assert_eq!(super::vendor_read_unpadded(&[0x41, 0x01, 0x30]), None);
+        assert_eq!(
+            super::vendor_read_unpadded(&[0x41, 0x01, 0x30, 0x00, 0x00]),
+            None
+        );
+        assert_eq!(super::vendor_read_unpadded(&[0x42, 0x01, 0x30, 0x00]), None);
+        let adu = [0xA1, 0xCB, 0, 0, 0, 5, 0xFF, 0x41, 0x01, 0x30, 0x00];
+        let ((tid, unit), pdu) = super::tcp_adu_parts(&adu).expect("an ADU");
+        assert_eq!((tid, unit, pdu), (0xA1CB, 0xFF, &adu[7..]));
+        assert_eq!(super::tcp_adu_parts(&adu[..10]), None);
+    }
 
     #[test]
     fn inputs_agree_fails_two_inputs_that_differ_and_reports_one() {

@@ -786,7 +786,8 @@ impl Runner {
             }
             vendor_read_unpadded(pdu)
         };
-        let mut out = Vec::with_capacity(frame.len() + 1);
+        // Every answer passes here: nothing is allocated unless it changes.
+        let mut out = Vec::new();
         match self.target.framing() {
             Framing::Tcp => {
                 let (header, pdu) = tcp_adu_parts(frame)?;

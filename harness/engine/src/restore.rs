@@ -1100,6 +1100,36 @@ pub fn read_all(
     Ok(out)
 }
 
+/// A 32-bit parameter the drive does not read whole but reads as one register is kept, read and put back as
+/// that one register (`items` and `read` changed to match): the MDrive and LMD manuals print LT as
+/// "0x009C – 0x009D" with "Bytes 2" (MDrive line 1147, LMD line 2666), and an eighth-wave MDrive and LMD
+/// both take it as one 16-bit register, refusing the pair with 02; the runs wrote its first register and,
+/// the pair unread, left it changed. A drive that reads neither leaves it out, as before.
+fn narrow_unread_pairs(
+    link: &mut dyn Link,
+    items: &mut [Item],
+    read: &mut BTreeMap<String, Option<Value>>,
+) -> Result<(), TargetError> {
+    for item in items.iter_mut() {
+        let Place::Holding { address, width: 2 } = item.place else {
+            continue;
+        };
+        if !matches!(read.get(&item.key), Some(None)) {
+            continue;
+        }
+        let narrow = Item {
+            place: Place::Holding { address, width: 1 },
+            ..item.clone()
+        };
+        let got = read_all(link, std::slice::from_ref(&narrow))?;
+        if let Some(Some(v)) = got.get(&item.key) {
+            read.insert(item.key.clone(), Some(v.clone()));
+            *item = narrow;
+        }
+    }
+    Ok(())
+}
+
 /// Where a parameter that a block read can cover lies: (holding register or coil, first address, registers
 /// or coils); `None` for the others.
 fn span(place: &Place) -> Option<(bool, u32, u32)> {
@@ -1598,7 +1628,10 @@ impl Keeper {
         if let Some((_, before)) = self.status_word.as_mut() {
             *before = status;
         }
-        let read = read_all(&mut counting, &self.inventory.items);
+        let mut read = read_all(&mut counting, &self.inventory.items);
+        if let Ok(first) = read.as_mut() {
+            narrow_unread_pairs(&mut counting, &mut self.inventory.items, first)?;
+        }
         // Read again, [`LIVE_READS`] times, [`LIVE_GAP`] apart: a value that differs between the reads,
         // nothing written between, changes by itself (an encoder count, a lead/lag on a drive with its
         // motor attached): neither put back nor verified. (An encoder jittering by ±2 reads the same eight
@@ -2132,6 +2165,42 @@ mod tests {
             &format!("holding:{address}"),
             Place::Holding { address, width },
         )
+    }
+
+    /// A 32-bit parameter the target does not read whole (register 3 is not there) but reads as one register
+    /// is kept as that one register, read and put back at its width; one it reads whole, or not at all,
+    /// stays as it was.
+    #[test]
+    fn a_pair_read_only_as_one_register_is_kept_as_one() {
+        let mut fake = Fake::three();
+        let mut items = vec![holding(0, 2), holding(2, 2), holding(5, 2)];
+        let mut read = read_all(&mut fake, &items).expect("reads");
+        assert_eq!(read["holding:2"], None, "the pair 2-3 is not read whole");
+        narrow_unread_pairs(&mut fake, &mut items, &mut read).expect("reads");
+        assert_eq!(read["holding:0"], Some(Value::Words(vec![10, 11])));
+        assert_eq!(read["holding:2"], Some(Value::Words(vec![12])));
+        assert_eq!(read["holding:5"], None);
+        assert_eq!(
+            items[0].place,
+            Place::Holding {
+                address: 0,
+                width: 2
+            }
+        );
+        assert_eq!(
+            items[1].place,
+            Place::Holding {
+                address: 2,
+                width: 1
+            }
+        );
+        assert_eq!(
+            items[2].place,
+            Place::Holding {
+                address: 5,
+                width: 2
+            }
+        );
     }
 
     /// Adjacent registers are read in one request, each parameter at its width; a gap or a coil starts

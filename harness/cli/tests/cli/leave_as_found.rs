@@ -1310,3 +1310,52 @@ fn a_register_found_moving_only_during_the_cases_is_read_within_what_it_moves() 
     assert_eq!(code, 1, "{out}{err}");
     assert!(out.contains("FAIL profile/mdrive/read/0x0089-vi"), "{out}");
 }
+
+/// A case that reads a value to put back and cannot (its answer does not decode: fault `truncated-response`)
+/// stops before its write: nothing it could not undo is sent. Without the fault the same case writes, reads
+/// back and puts back, so the stop is the fault's doing. (An eighth-wave MDrive, before the harness read its
+/// FC 0x41 answers, had TR written and left changed this way: tests/independent/README.md.)
+#[test]
+fn a_case_whose_value_to_put_back_cannot_be_read_sends_no_write() {
+    let case = "profile/mdrive/write/0x002C-ht";
+    let steps = |extra: &[&str]| {
+        let mut args = vec!["--cases", case];
+        args.extend_from_slice(extra);
+        let (_dir, report, (code, out, err)) =
+            test_support::sim_run_reported("uncaptured", "sim:mdrive", &args);
+        let lines = std::fs::read_to_string(report.join("cases.jsonl")).expect("cases.jsonl");
+        let line = lines
+            .lines()
+            .next()
+            .unwrap_or_else(|| panic!("{out}\n{err}"));
+        let v: serde_json::Value = serde_json::from_str(line).expect("json");
+        (
+            code,
+            v["result"]["steps"].as_array().cloned().unwrap_or_default(),
+        )
+    };
+    let sent_writes = |steps: &[serde_json::Value]| {
+        steps
+            .iter()
+            .filter_map(|s| s["sent"].as_str())
+            .filter(|hex| {
+                // The PDU's function code: byte 7 of a Modbus/TCP ADU.
+                hex.split(' ')
+                    .nth(7)
+                    .is_some_and(|fc| fc == "10" || fc == "06")
+            })
+            .count()
+    };
+    let (code, healthy) = steps(&[]);
+    assert_eq!(code, 0, "{healthy:#?}");
+    assert!(sent_writes(&healthy) >= 2, "{healthy:#?}");
+    let (code, faulty) = steps(&["--fault", "truncated-response"]);
+    assert_eq!(code, 1, "{faulty:#?}");
+    assert_eq!(sent_writes(&faulty), 0, "a write went out: {faulty:#?}");
+    assert_eq!(faulty.len(), 1, "{faulty:#?}");
+    let findings = faulty[0]["findings"].to_string();
+    assert!(
+        findings.contains("the case stops before its write"),
+        "{findings}"
+    );
+}

@@ -1,8 +1,9 @@
-//! Drives written independently from the manuals (tests/independent/): twenty-one simulators, seven of each
+//! Drives written independently from the manuals (tests/independent/): twenty-four simulators, eight of each
 //! drive by authors who had the manuals, the public Modbus specifications and tests/independent/BRIEF.md
 //! (the second wave, `*-b`: BRIEF-b.md; the third, `*-c`: BRIEF-c.md; the fourth, `*-d`: BRIEF-d.md; the fifth, `*-e`, built
 //! on pymodbus and libmodbus: BRIEF-e.md; the sixth, `*-f`, commissioned drives on a bench with their motors
-//! attached: BRIEF-f.md; the seventh, `*-g`, unusual but admissible choices: BRIEF-g.md), and never saw this
+//! attached: BRIEF-f.md; the seventh, `*-g`, unusual but admissible choices: BRIEF-g.md; the eighth, `*-h`, the
+//! less obvious reading wherever a manual reads two ways: BRIEF-h.md), and never saw this
 //! code nor each
 //! other's. Where they conform to the manuals the harness must give them no FAIL, and it must leave every
 //! value of their state (their own dump, `--state`) as it found it. Each fix they led to is in the log
@@ -755,4 +756,155 @@ fn the_seventh_wave_mdrives_initial_velocity_check_is_caught() {
             && out.contains("the drive refused the write"),
         "{out}"
     );
+}
+
+/// The FAIL lines of a run's output (`FAIL <case>` and the findings indented under it): case id -> findings.
+fn fails(out: &str) -> BTreeMap<String, String> {
+    let mut found = BTreeMap::new();
+    let mut current: Option<String> = None;
+    for line in out.lines() {
+        if let Some(id) = line.strip_prefix("FAIL ") {
+            current = Some(id.trim().to_string());
+            found.insert(id.trim().to_string(), String::new());
+        } else if let (Some(id), Some(finding)) = (&current, line.strip_prefix("     ")) {
+            if let Some(f) = found.get_mut(id) {
+                f.push_str(finding);
+                f.push('\n');
+            }
+        } else {
+            current = None;
+        }
+    }
+    found
+}
+
+/// Every FAIL of `out` is one of the readings the harness does not admit (`expected`: a word of the finding
+/// each), and the catalog (`catalog`: all of them) FAILs each.
+fn assert_fails_only(drive: &str, out: &str, expected: &[(&str, &str)], catalog: bool) {
+    let got = fails(out);
+    for (id, findings) in &got {
+        let known = expected
+            .iter()
+            .any(|(e, word)| (id == e || id.starts_with("gen/")) && findings.contains(word));
+        assert!(known, "{drive}: unexpected FAIL {id}: {findings}\n{out}");
+    }
+    if catalog {
+        let ids: Vec<&str> = expected.iter().map(|(e, _)| *e).collect();
+        let got_ids: Vec<&str> = got.keys().map(String::as_str).collect();
+        assert_eq!(
+            got_ids.len(),
+            ids.len(),
+            "{drive}: {got_ids:?} against {ids:?}\n{out}"
+        );
+        for id in ids {
+            assert!(got.contains_key(id), "{drive}: {id} did not FAIL\n{out}");
+        }
+    }
+}
+
+/// (case, a word of its finding) of each FAIL a drive's run must show.
+type NotAdmitted = &'static [(&'static str, &'static str)];
+
+/// The readings of the eighth wave the harness does not admit (tests/independent/README.md, "What the
+/// eighth wave found"): (drive, scheme, (case, a word of its finding)).
+const EIGHTH_WAVE_NOT_ADMITTED: [(&str, &str, NotAdmitted); 3] = [
+    // HM's empty Default cell read as 0 (Range 1-4, line 1055); MS's "Bytes 1" read as 256 held in a byte,
+    // 0 (the table beside it lists 0x0048=256 as a setting, line 1081).
+    (
+        "mdrive-h",
+        "tcp",
+        &[
+            ("profile/mdrive/read/0x002B-hm", "outside 1..=4"),
+            ("profile/mdrive/read/0x0048-ms", "outside 1..=256"),
+        ],
+    ),
+    // FC 01 refused unless it starts at 0x0000 (the request table's Value column, line 796), where the
+    // LMD's own FC 05 range (0x0000-0x0003) makes coils 1-3 addresses it has.
+    (
+        "lmd-h",
+        "tcp",
+        &[
+            (
+                "golden/lmd/4.2.3/write-output-3/request",
+                "exception FC 0x81, exception 2",
+            ),
+            (
+                "profile/lmd/coil/1-output-2",
+                "exception FC 0x81, exception 2",
+            ),
+            (
+                "profile/lmd/coil/2-output-3",
+                "exception FC 0x81, exception 2",
+            ),
+        ],
+    ),
+    // FC 43 data big-endian as the example prints them (lines 1334-1335), against the little-endian rule
+    // with its own worked examples (lines 638-650, 771).
+    (
+        "sd2x-h",
+        "rtu+tcp",
+        &[
+            (
+                "profile/sd2x/object/2-hardware-id/agrees-with-register",
+                "read big-endian would agree",
+            ),
+            (
+                "profile/sd2x/object/5-hardware-version/agrees-with-register",
+                "read big-endian would agree",
+            ),
+            (
+                "profile/sd2x/object/16-software-id/agrees-with-register",
+                "read big-endian would agree",
+            ),
+            (
+                "profile/sd2x/object/17-software-version/agrees-with-register",
+                "read big-endian would agree",
+            ),
+            (
+                "profile/sd2x/object/177-speed-scaling/agrees-with-register",
+                "read big-endian would agree",
+            ),
+            (
+                "profile/sd2x/object/182-current-scaling/agrees-with-register",
+                "read big-endian would agree",
+            ),
+        ],
+    ),
+];
+
+/// The eighth wave (BRIEF-h.md): teams that took the less obvious reading wherever their manual reads two
+/// ways. The readings the harness admits PASS: FC 0x41's 2-byte count with its pad byte (it stopped the LMD's
+/// run before its first case), LT as one register, the MDrive's write limit of 2, a double-axis SD2x that
+/// answers the next address too. The ones it does not admit FAIL, each with the reason in its finding, and
+/// nothing else does; every drive is left as found.
+#[test]
+fn the_eighth_wave_fails_only_the_readings_not_admitted_and_is_left_as_found() {
+    for (drive, scheme, expected) in EIGHTH_WAVE_NOT_ADMITTED {
+        let (code, out) = run_leaving_as_found(drive, scheme, &[]);
+        assert_eq!(code, 1, "{drive}\n{out}");
+        assert_fails_only(drive, &out, expected, true);
+    }
+}
+
+/// Generated cases against the eighth wave's MDrive and LMD, which take LT ("0x009C – 0x009D", "Bytes 2")
+/// as one register and refuse the pair: the cases write its first register, and before the keeper read it
+/// as one register it was left changed (2000 -> 16757 on the MDrive, 2000 -> 62145 on the LMD, seed 1). Now
+/// it is put back, and every FAIL is a reading not admitted.
+#[test]
+fn generated_runs_leave_the_eighth_wave_as_found() {
+    for (drive, scheme, _) in &EIGHTH_WAVE_NOT_ADMITTED[..2] {
+        let (_, out) = run_leaving_as_found(drive, scheme, &["--generated", "1000", "--seed", "1"]);
+        let read_reg = [("", "outside 1..=")];
+        let coils = [("", "exception FC 0x81, exception 2")];
+        let generated: &[(&str, &str)] = if *drive == "mdrive-h" {
+            &read_reg
+        } else {
+            &coils
+        };
+        assert_fails_only(drive, &out, generated, false);
+        assert!(
+            out.contains("restore write(s)") && !out.contains(" 0 restore write(s)"),
+            "{drive}: nothing was put back, so as found proves nothing\n{out}"
+        );
+    }
 }

@@ -241,8 +241,22 @@ fn vi_must_stay_below_vm() {
         );
         assert_eq!(s.read32(0x008B), 1001);
     }
-    // Both in one request (MDrive allows 4 registers): the pair is checked as written.
+    // Above the profile's write limit of 2 (the byte count row, line 672) the request is refused (03).
     let mut s = Sim::new("mdrive", &[]);
+    assert_eq!(
+        s.ask("10 00 89 00 04 08 00 00 07 D0 00 00 0B B8"),
+        "90 03",
+        "4 registers"
+    );
+    // Both in one request, on a drive taking 4 registers ('Qty of addresses 1 to 4', line 671): the pair is
+    // checked as written.
+    let mut p = crate::support::profile("mdrive");
+    for f in &mut p.functions {
+        if f.code == FunctionCode::WRITE_MULTIPLE_REGISTERS {
+            f.max_quantity = Some(4);
+        }
+    }
+    let mut s = Sim::with(p, &[]);
     assert_eq!(
         s.ask("10 00 89 00 04 08 00 00 07 D0 00 00 0B B8"),
         "10 00 89 00 04",

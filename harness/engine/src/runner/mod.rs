@@ -1948,8 +1948,9 @@ impl Runner {
                     let mut r =
                         self.exchange_patiently(send, compare, *capture, note, &mut wire)?;
                     let stop = self.stall_after(&mut r, &case.steps[k + 1..])?;
+                    let uncaptured = self.uncaptured(*capture, &mut r, &case.steps[k + 1..]);
                     steps.push(r);
-                    if stop {
+                    if stop || uncaptured {
                         break;
                     }
                 }
@@ -2142,10 +2143,20 @@ impl Runner {
                     vec![]
                 } else {
                     let swapped = matches!(r, [a, b] if order.join(*b, *a) == o);
+                    // The object's data bytes taken big-endian: the SD2x example's byte order (lines
+                    // 1334-1335), against the rule stated twice with its own worked example (little-endian,
+                    // lines 638-650 and 771), which the harness holds to (freedom `sd2x-fc43-reserved-byte`'s
+                    // note: that reading is not admitted).
+                    let width = if matches!(r, [_]) { 2 } else { 4 };
+                    let big = o.to_le_bytes()[..width]
+                        .iter()
+                        .fold(0u32, |acc, b| acc << 8 | u32::from(*b));
                     vec![format!(
                         "the registers read 0x{v:08X} ({order:?}) but the object reads 0x{o:08X}{}",
                         if swapped {
                             ": the two views disagree on the word order"
+                        } else if big == v {
+                            ": the object's data bytes read big-endian would agree (as in the example at lines 1334-1335); FC 43 data are little-endian (lines 638-650, 771)"
                         } else {
                             ""
                         }
@@ -2163,6 +2174,32 @@ impl Runner {
             }
         };
         comparison(note, findings)
+    }
+
+    /// True when a read that was to capture a value for the case to put back filled nothing (refused, not
+    /// answered, or answered in a form no reading of the manual gives) and a later step of the case writes:
+    /// the case stops there, saying so in `r`, because a write whose old value was not read could not be
+    /// undone. An eighth-wave MDrive answering a setting's read in a form the harness did not read yet had
+    /// that setting changed and left so; an LMD refusing a read of one coil took its write. The step's own
+    /// verdict judges the read.
+    fn uncaptured(&self, capture: Option<usize>, r: &mut StepResult, rest: &[Step]) -> bool {
+        let Some(slot) = capture else {
+            return false;
+        };
+        if self.slots.get(slot).is_some_and(Option::is_some) {
+            return false;
+        }
+        let writes_later = rest.iter().any(|s| {
+            matches!(s, Step::Exchange { send: Outgoing::Pdu(p), .. } if crate::cases::safety::is_write(p))
+        });
+        if !writes_later {
+            return false;
+        }
+        r.findings.push(
+            "nothing was captured to restore: the case stops before its write, which could not be undone"
+                .into(),
+        );
+        true
     }
 
     fn exchange(
@@ -2407,7 +2444,8 @@ impl Runner {
         for _ in 0..LIVE_RECHECKS {
             self.idle(LIVE_RECHECK_GAP);
             let answer = self.transact_pdu(pdu)?;
-            let Some(values) = values_of(answer.and_then(|a| codec::Response::decode(&a).ok()))
+            let Some(values) =
+                values_of(answer.and_then(|a| crate::readings::decode_response_pdu(&a)))
             else {
                 return Ok(None);
             };
@@ -3316,7 +3354,7 @@ impl crate::restore::Link for Runner {
             self.restore_reconnects += 1;
             answer = self.transact_pdu(&pdu)?;
         }
-        Ok(answer.and_then(|r| codec::Response::decode(&r).ok()))
+        Ok(answer.and_then(|r| crate::readings::decode_response_pdu(&r)))
     }
 }
 

@@ -28,10 +28,12 @@ pub(super) fn cases(cx: &mut Ctx) {
 
 /// The slave address the addressing cases send to: one that is not the drive's (nor broadcast).
 fn other_slave(unit: u8) -> u8 {
-    if unit == 247 {
-        246
+    // The same axis of another device: a double-axis SD2x owns two addresses, ID switch x 2 + 1 and + 2
+    // (its manual, line 183), so the next address may be the target's own other axis, which answers.
+    if unit > 245 {
+        unit - 2
     } else {
-        unit.wrapping_add(1).max(1)
+        unit.wrapping_add(2).max(1)
     }
 }
 

@@ -126,6 +126,8 @@ pub mod ids {
     pub const SD2X_DIAGNOSTIC_UNUSED_DATA: &str = "sd2x-diagnostic-unused-data";
     /// SD2x FC 08/00 with a data field other than 2 bytes: echoed, exception 03, or silence.
     pub const SD2X_DIAGNOSTIC_DATA_SIZE: &str = "sd2x-diagnostic-data-size";
+    /// SD2x FC 43 SDO error code: little-endian (the reference), or in the order the code is printed.
+    pub const SD2X_SDO_ERROR_BYTE_ORDER: &str = "sd2x-sdo-error-byte-order";
     /// After S (NVM save), CP or UG: every request, or the writes, answered Server Busy (06) for 400 ms.
     /// Taken by the station (see `MODELLED`); no answer is a decision of it (the runner asks again).
     pub const BUSY_AFTER_LONG_COMMAND: &str = "busy-after-long-command";
@@ -183,6 +185,7 @@ pub mod ids {
         SD2X_DIAGNOSTIC_CHECK_ORDER,
         SD2X_DIAGNOSTIC_UNUSED_DATA,
         SD2X_DIAGNOSTIC_DATA_SIZE,
+        SD2X_SDO_ERROR_BYTE_ORDER,
     ];
 }
 

@@ -1203,7 +1203,7 @@ impl Station {
                 if completed {
                     self.start_long_command(now, pdu);
                 }
-                (resp, completed)
+                (self.sdo_error_in_drive_order(resp), completed)
             }
         };
         let exception = resp.as_ref().and_then(|r| match r {
@@ -1293,6 +1293,28 @@ impl Station {
 
     /// Answer one request: (the response or silence, whether the message completed normally). `None` when the
     /// drive went silent for good.
+    /// An SDO error code as this drive sends it: little-endian, as the reference does, or in the order the
+    /// code is printed (freedom `sd2x-sdo-error-byte-order`), the other order offered as its alternative.
+    fn sdo_error_in_drive_order(&mut self, resp: Option<Response>) -> Option<Response> {
+        let Some(Response::CanOpenError { sdo_code }) = resp else {
+            return resp;
+        };
+        let printed = self.choices.name(ids::SD2X_SDO_ERROR_BYTE_ORDER) == Some("printed-order");
+        let swapped = Response::CanOpenError {
+            sdo_code: sdo_code.swap_bytes(),
+        };
+        let own = Response::CanOpenError { sdo_code };
+        self.decisions.push(ids::SD2X_SDO_ERROR_BYTE_ORDER);
+        let (answer, other, other_answer) = if printed {
+            (swapped, "little-endian", own)
+        } else {
+            (own, "printed-order", swapped)
+        };
+        self.own_alternatives
+            .push((ids::SD2X_SDO_ERROR_BYTE_ORDER, other, other_answer));
+        Some(answer)
+    }
+
     fn process(
         &mut self,
         now: Duration,

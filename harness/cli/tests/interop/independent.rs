@@ -886,7 +886,7 @@ fn the_eighth_wave_fails_only_the_readings_not_admitted_and_is_left_as_found() {
     }
 }
 
-/// Generated cases against the eighth wave's MDrive and LMD, which take LT ("0x009C – 0x009D", "Bytes 2")
+/// Generated cases against the eighth wave. The MDrive and LMD take LT ("0x009C – 0x009D", "Bytes 2")
 /// as one register and refuse the pair: the cases write its first register, and before the keeper read it
 /// as one register it was left changed (2000 -> 16757 on the MDrive, 2000 -> 62145 on the LMD, seed 1). Now
 /// it is put back, and every FAIL is a reading not admitted.
@@ -907,4 +907,13 @@ fn generated_runs_leave_the_eighth_wave_as_found() {
             "{drive}: nothing was put back, so as found proves nothing\n{out}"
         );
     }
+    // The SD2x sends SDO error codes in the order they are printed (FF FF 00 0A): admitted
+    // (`sd2x-sdo-error-byte-order`); 38 of 1,000 cases of seed 1 FAILed before.
+    let (code, out) =
+        run_leaving_as_found("sd2x-h", "rtu+tcp", &["--generated", "300", "--seed", "1"]);
+    assert_pass("sd2x-h", code, &out);
+    assert!(
+        out.contains("sd2x-sdo-error-byte-order = printed-order"),
+        "sd2x-h: no SDO error shown\n{out}"
+    );
 }

@@ -236,3 +236,25 @@ fn an_mdrive_output_read_while_its_point_is_an_input_may_read_the_latch_or_zero(
         )],
     );
 }
+
+/// An SDO error code sent in the order the code is printed (FF FF 00 0B for 0xFFFF000B,
+/// `sd2x-sdo-error-byte-order=printed-order`), where the reference sends it little-endian (0B 00 FF FF).
+#[test]
+fn sd2x_sdo_error_code_in_printed_order() {
+    // A read of object 534, which the dictionary does not have.
+    let read = Request::CanOpen(codec::CanOpenAccess::read(1, 534, 0, 2))
+        .to_bytes()
+        .expect("encodes");
+    let reference = ask(&mut station("sd2x", &[]), &read);
+    let printed = ask(
+        &mut station("sd2x", &["sd2x-sdo-error-byte-order=printed-order"]),
+        &read,
+    );
+    assert_eq!(reference.first(), Some(&0xAB), "{reference:02X?}");
+    assert_eq!(reference[reference.len() - 4..], [0x0B, 0x00, 0xFF, 0xFF]);
+    assert_eq!(
+        printed[..printed.len() - 4],
+        reference[..reference.len() - 4]
+    );
+    assert_eq!(printed[printed.len() - 4..], [0xFF, 0xFF, 0x00, 0x0B]);
+}

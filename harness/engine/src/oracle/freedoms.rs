@@ -377,6 +377,13 @@ pub fn reference_shown(
             let taken = !expected?.is_exception() && !observed?.is_exception();
             taken.then(|| shown_named(f, "", "response"))
         }
+        // An SDO error sent as the reference sends it: the drive's byte order, held against the other.
+        FreedomKind::Reading
+            if f.id == drives::choices::ids::SD2X_SDO_ERROR_BYTE_ORDER && cx.decided(f) =>
+        {
+            let sdo = |r: &Response| matches!(r, Response::CanOpenError { .. });
+            (sdo(expected?) && sdo(observed?)).then(|| shown(f, "", first))
+        }
         FreedomKind::FieldValue if f.id == drives::choices::ids::SD2X_FC43_READ_ZERO_COUNT => {
             let value = match expected? {
                 Response::CanOpenError { .. } => "sdo-error",
@@ -1001,6 +1008,14 @@ pub fn alternatives(
         }
         FreedomKind::StatusBits => status_bits(f, cx, expected, observed),
         FreedomKind::FieldValue => field_value(f, cx, expected, observed),
+        // The SDO error code in the other byte order, as the model gives it (where it decided one).
+        FreedomKind::Reading if f.id == drives::choices::ids::SD2X_SDO_ERROR_BYTE_ORDER => {
+            if cx.decided(f) {
+                modelled(f, cx, observed)
+            } else {
+                vec![]
+            }
+        }
         FreedomKind::Reading => reading(f, cx, expected, observed),
         FreedomKind::Counter => {
             // Another reading of what the counter counts: the value it gives, for the same sub-function.

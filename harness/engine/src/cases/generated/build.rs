@@ -1272,6 +1272,16 @@ fn wrong_unit(cx: &GenContext, b: &Built, unit: u8, tags: &mut BTreeSet<Tag>) ->
     if u == cx.unit {
         u = u.wrapping_add(1);
     }
+    // A double-axis SD2x owns two addresses, ID switch x 2 + 1 (axis A) and + 2 (axis B) (its manual, line
+    // 183): the other axis of the run's may answer. The same axis of the next device does not.
+    let partner = if cx.unit % 2 == 1 {
+        cx.unit.wrapping_add(1)
+    } else {
+        cx.unit.wrapping_sub(1)
+    };
+    if cx.profile.device.id == "sd2x" && cx.unit != 0 && u == partner {
+        u = u.wrapping_add(2);
+    }
     let t = pdu_tags(&cx.profile, &b.pdu);
     if t.contains(&Tag::Write) {
         // Another drive on the bus (all of them, for a broadcast) may act on it.

@@ -76,6 +76,7 @@ pub enum Fault {
     HighFunctionServed,
     MeiTypeServed,
     NulPaddingBusy,
+    SdoErrorOrderInconsistent,
 }
 
 impl Fault {
@@ -420,6 +421,11 @@ impl Fault {
             Fault::NulPaddingBusy,
             "nul-padding-busy",
             "MDrive/LMD FC 0x41/0x42: a known mnemonic padded with NUL instead of spaces is answered with exception 06 (busy): neither refused as unknown nor served (mnemonic-padding)",
+        ),
+        (
+            Fault::SdoErrorOrderInconsistent,
+            "sdo-error-order-inconsistent",
+            "SD2x FC 43: SDO error codes answering a write go in the printed order, those answering a read little-endian: each order is admissible (sd2x-sdo-error-byte-order), the two together are not one choice",
         ),
     ];
 

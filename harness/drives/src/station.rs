@@ -1203,7 +1203,7 @@ impl Station {
                 if completed {
                     self.start_long_command(now, pdu);
                 }
-                (self.sdo_error_in_drive_order(resp), completed)
+                (self.sdo_error_in_drive_order(resp, pdu), completed)
             }
         };
         let exception = resp.as_ref().and_then(|r| match r {
@@ -1295,11 +1295,18 @@ impl Station {
     /// drive went silent for good.
     /// An SDO error code as this drive sends it: little-endian, as the reference does, or in the order the
     /// code is printed (freedom `sd2x-sdo-error-byte-order`), the other order offered as its alternative.
-    fn sdo_error_in_drive_order(&mut self, resp: Option<Response>) -> Option<Response> {
+    /// `Fault::SdoErrorOrderInconsistent`: the order by the request's direction (its control code's bit 7).
+    fn sdo_error_in_drive_order(&mut self, resp: Option<Response>, pdu: &[u8]) -> Option<Response> {
         let Some(Response::CanOpenError { sdo_code }) = resp else {
             return resp;
         };
-        let printed = self.choices.name(ids::SD2X_SDO_ERROR_BYTE_ORDER) == Some("printed-order");
+        let printed = if self.faults.has(Fault::SdoErrorOrderInconsistent) {
+            // FC 43 / MEI 0x0D: the control code follows the MEI type; bit 7 set is a write (SD2x 5.6.1).
+            pdu.get(2)
+                .is_some_and(|control| control & codec::mei::CanOpenAccess::WRITE != 0)
+        } else {
+            self.choices.name(ids::SD2X_SDO_ERROR_BYTE_ORDER) == Some("printed-order")
+        };
         let swapped = Response::CanOpenError {
             sdo_code: sdo_code.swap_bytes(),
         };

@@ -637,6 +637,13 @@ pub(crate) const CHOICE_WITNESSES: &[(&str, &str, &str)] = &[
         "sim:sd2x",
         "profile/sd2x/fc08/unused-data/*",
     ),
+    // SDO error codes in printed order for writes, little-endian for reads: the writes of read-only objects
+    // show one order, the refused reads the other.
+    (
+        "sdo-error-order-inconsistent",
+        "sim:sd2x",
+        "profile/sd2x/object/*",
+    ),
 ];
 
 #[test]

@@ -25,7 +25,7 @@ const SEEDS: [u64; 3] = [1, 0x5EED, 0xDEAD_BEEF_CAFE];
 /// profile: FC 01 quantity 2001 (0x07D1) read as 209 runs past the map (02, `exception-check-order`) while
 /// FC 03 quantity 126 stays refused as a quantity (03). A homing that never ends keeps the axis moving for good:
 /// every case after the first HM write that waits for rest FAILs.
-const ORDER_BOUND: [Fault; 7] = [
+const ORDER_BOUND: [Fault; 8] = [
     Fault::StopAfterMalformed,
     Fault::LateResponse,
     Fault::RangeCodeInconsistent,
@@ -38,6 +38,9 @@ const ORDER_BOUND: [Fault; 7] = [
     // first), 03 to a write whose byte count disagrees with its quantity (a decode error): both admissible
     // (`exception-check-order`), the two together are a change of mind, found wherever the second comes.
     Fault::QuantityUnchecked,
+    // SDO error codes in one byte order for writes and the other for reads: whichever comes first is the
+    // drive's choice.
+    Fault::SdoErrorOrderInconsistent,
 ];
 
 /// Case id -> verdict, and the ids in run order.

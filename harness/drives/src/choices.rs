@@ -62,6 +62,9 @@ pub mod ids {
     pub const MDRIVE_PROGRAM_CONTROL_FUNCTION: &str = "mdrive-program-control-function";
     /// A PDU too short for its function code: exception 03, silence, or (Modbus/TCP) a close.
     pub const TRUNCATED_PDU: &str = "truncated-pdu";
+    /// RTU, a frame not as long as its function code's length rules make it: the reference's answer, or
+    /// silence (the frame sized by those rules fails its CRC, or waits for bytes that never come).
+    pub const RTU_LENGTH_FRAMING: &str = "rtu-length-framing";
     /// Both the quantity and the address (range) wrong: 03 (quantity checked first) or 02 (address first).
     pub const EXCEPTION_CHECK_ORDER: &str = "exception-check-order";
     /// A quantity above the manual's limit but within the specification's: refused (03 or 02, the code is
@@ -96,6 +99,8 @@ pub mod ids {
     /// The MDrive, a write to the output of an I/O point configured as an input: taken, or 04/03/02.
     pub const MDRIVE_OUTPUT_WRITE_WHILE_INPUT: &str = "mdrive-output-write-while-input";
     pub const MDRIVE_ENCODER_ABSENT: &str = "mdrive-encoder-absent";
+    /// The MDrive and the LMD, PM switched on while EE (encoder functions) is off: taken, or 04/03.
+    pub const POSITION_MAINTENANCE_WITHOUT_ENCODER: &str = "position-maintenance-without-encoder";
     /// The MDrive, a read of the output of an I/O point configured as an input: served, or 02/04.
     pub const MDRIVE_OUTPUT_READ_WHILE_INPUT: &str = "mdrive-output-read-while-input";
     /// The MDrive, a write of the outputs as a group (OT, OL) while a point is an input: taken, or 04/03/02.
@@ -156,6 +161,7 @@ pub mod ids {
         LMD_ESC_WIRE_FORM,
         MDRIVE_PROGRAM_CONTROL_FUNCTION,
         TRUNCATED_PDU,
+        RTU_LENGTH_FRAMING,
         TRAILING_BYTES,
         QUANTITY_OVER_DEVICE_LIMIT_SERVED,
         VALUE_MEANING_OPEN,
@@ -171,6 +177,7 @@ pub mod ids {
         PDU_OVER_253,
         MDRIVE_OUTPUT_WRITE_WHILE_INPUT,
         MDRIVE_ENCODER_ABSENT,
+        POSITION_MAINTENANCE_WITHOUT_ENCODER,
         MDRIVE_OUTPUT_READ_WHILE_INPUT,
         MDRIVE_OUTPUT_GROUP_WRITE_WHILE_INPUT,
         LMD_OUTPUT_4_WRITE,

@@ -1330,6 +1330,34 @@ impl Station {
         pdu: &[u8],
         via: Via,
     ) -> Option<(Option<Response>, bool)> {
+        // On a serial line, a frame whose length is not the one its function code's layout gives (a byte
+        // count off, cut short, bytes after the layout): a slave that sizes frames by those rules (as RTU
+        // slaves do) takes the frame to end elsewhere, where its CRC fails, or waits for bytes that never
+        // come, and answers nothing (serial 2.4.2): the reference's answer, or silence
+        // (`rtu-length-framing`). A function code without a length rule is ended by silence alike. Decided
+        // after the freedoms of the request itself (`truncated-pdu`, `trailing-bytes`), so that where one of
+        // them explains a silence too, the drive's choice is recorded as that one's.
+        let length_off = matches!(via, Via::Rtu { .. }) && !rtu_length_agrees(unit, pdu);
+        if length_off && self.choices.name(ids::RTU_LENGTH_FRAMING) == Some("silence") {
+            self.decisions.push(ids::RTU_LENGTH_FRAMING);
+            return Some((None, false));
+        }
+        let answer = self.process_request(now, unit, fc, pdu, via);
+        if length_off {
+            self.decisions.push(ids::RTU_LENGTH_FRAMING);
+        }
+        answer
+    }
+
+    /// [`Station::process`] of a request whose frame the drive took whole.
+    fn process_request(
+        &mut self,
+        now: Duration,
+        unit: u8,
+        fc: FunctionCode,
+        pdu: &[u8],
+        via: Via,
+    ) -> Option<(Option<Response>, bool)> {
         let supported = !fc.is_exception()
             && (self.profile().function(fc).is_some()
                 || (self.faults.has(Fault::UndeclaredFunctionServed)
@@ -2287,4 +2315,34 @@ fn quantity_asked(req: &Request) -> Option<(FunctionCode, usize)> {
         }
         _ => None,
     }
+}
+
+/// False when the RTU frame of `pdu` to `unit` is not as long as the request length rules of its function code
+/// (App 6, the byte counts included) make it: shorter than they need, or of another length. True where no rule
+/// sizes the function code (silence ends such a frame), and for FC 08.
+fn rtu_length_agrees(unit: u8, pdu: &[u8]) -> bool {
+    // FC 08's Return Query Data loops back data of any size (App 6.8.1): no rule sizes it.
+    if pdu.first() == Some(&0x08) {
+        return true;
+    }
+    let agrees = |pdu: &[u8]| {
+        let mut adu = Vec::with_capacity(pdu.len() + 3);
+        adu.push(unit);
+        adu.extend_from_slice(pdu);
+        adu.extend_from_slice(&[0, 0]);
+        match codec::framer::expected_len(Direction::Request, &adu, &[]) {
+            codec::FrameLen::Known(a, b) => a == adu.len() || b == adu.len(),
+            codec::FrameLen::NeedMore => false,
+            codec::FrameLen::Unknown => true,
+        }
+    };
+    // The SD2x's FC 43 in the form its example prints, without the Reserved byte (`sd2x-fc43-reserved-byte`):
+    // as long as the layout's form with that byte put back.
+    let example_form = pdu.starts_with(&[0x2B, 0x0D]) && pdu.len() > 3 && {
+        let mut layout = pdu[..3].to_vec();
+        layout.push(0);
+        layout.extend_from_slice(&pdu[3..]);
+        agrees(&layout)
+    };
+    agrees(pdu) || example_form
 }

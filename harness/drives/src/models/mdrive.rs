@@ -876,14 +876,36 @@ impl Mdrive {
     /// True when `changes` switch on an encoder function (EE, encoder enable, 0x001E; PM, position
     /// maintenance, 0x005C: "MDrivePlus only", lines 1044 and 1100) of an MDrive: a unit built without the
     /// optional encoder may refuse it (`mdrive-encoder-absent`).
-    fn enables_encoder_function(&self, changes: &[Change]) -> bool {
-        self.profile.device.id == "mdrive"
-            && changes.iter().any(|c| {
-                c.value != 0
-                    && self.profile.registers.iter().map(|r| r.get_ref()).any(|r| {
-                        r.address == c.address && matches!(r.mnemonic.as_deref(), Some("EE" | "PM"))
-                    })
-            })
+    /// The freedom that decides a write switching on an encoder function: PM switched on while EE stays 0
+    /// (`position-maintenance-without-encoder`, both products: EE "Enable encoder functions", PM "position
+    /// maintenance functions"), else EE or PM switched on in an MDrive (`mdrive-encoder-absent`); `None`
+    /// for any other write.
+    fn encoder_function_freedom(&self, changes: &[Change]) -> Option<Decision> {
+        let address_of = |name: &str| {
+            self.profile
+                .registers
+                .iter()
+                .map(|r| r.get_ref())
+                .find(|r| r.mnemonic.as_deref() == Some(name))
+                .map(|r| r.address)
+        };
+        let (ee, pm) = (address_of("EE")?, address_of("PM")?);
+        let sets = |address: u16| changes.iter().find(|c| c.address == address);
+        let ee_after = match sets(ee) {
+            Some(c) => c.value,
+            None => self
+                .bank
+                .read(RegTable::Holding, ee, 1)
+                .map_or(0, |v| i64::from(v[0])),
+        };
+        if sets(pm).is_some_and(|c| c.value != 0) && ee_after == 0 {
+            return Some(ids::POSITION_MAINTENANCE_WITHOUT_ENCODER);
+        }
+        (self.profile.device.id == "mdrive"
+            && [ee, pm]
+                .into_iter()
+                .any(|a| sets(a).is_some_and(|c| c.value != 0)))
+        .then_some(ids::MDRIVE_ENCODER_ABSENT)
     }
 
     /// The refusal this drive chose under `freedom` for a write of an output whose point is an input
@@ -1335,15 +1357,23 @@ impl Mdrive {
         let key = m.name.to_ascii_uppercase();
         // An encoder function switched on (see `enables_encoder_function`): decided, and refused by a drive
         // that chose so.
-        if self.profile.device.id == "mdrive"
-            && matches!(key.as_str(), "EE" | "PM")
-            && matches!(kind, VendorKind::Setting { .. })
+        let switched_on = matches!(kind, VendorKind::Setting { .. })
             && split_values(text)
                 .first()
-                .is_some_and(|v| v.parse::<i64>().is_ok_and(|v| v != 0))
+                .is_some_and(|v| v.parse::<i64>().is_ok_and(|v| v != 0));
+        let register = self
+            .profile
+            .registers
+            .iter()
+            .map(|r| r.get_ref())
+            .find(|r| r.mnemonic.as_deref() == Some(key.as_str()))
+            .map(|r| r.address);
+        if let Some(freedom) = register
+            .filter(|_| switched_on && matches!(key.as_str(), "EE" | "PM"))
+            .and_then(|address| self.encoder_function_freedom(&[Change { address, value: 1 }]))
         {
-            self.decided(ids::MDRIVE_ENCODER_ABSENT);
-            if let Some(refusal) = self.input_point_refusal(ids::MDRIVE_ENCODER_ABSENT) {
+            self.decided(freedom);
+            if let Some(refusal) = self.input_point_refusal(freedom) {
                 return Response::exception(fc, refusal.code);
             }
         }
@@ -1540,8 +1570,8 @@ impl DataModel for Mdrive {
         })?;
         self.check_limits(&changes)?;
         self.check_motion(&changes)?;
-        if self.enables_encoder_function(&changes)
-            && let Some(refusal) = self.input_point_refusal(ids::MDRIVE_ENCODER_ABSENT)
+        if let Some(freedom) = self.encoder_function_freedom(&changes)
+            && let Some(refusal) = self.input_point_refusal(freedom)
         {
             return Err(refusal);
         }
@@ -1600,12 +1630,13 @@ impl DataModel for Mdrive {
             for freedom in self.refused_value_freedoms(address, &words) {
                 self.decided(freedom);
             }
-            if self
+            if let Some(freedom) = self
                 .bank
                 .plan_write(address, &words)
-                .is_ok_and(|changes| self.enables_encoder_function(&changes))
+                .ok()
+                .and_then(|changes| self.encoder_function_freedom(&changes))
             {
-                self.decided(ids::MDRIVE_ENCODER_ABSENT);
+                self.decided(freedom);
             }
         }
     }

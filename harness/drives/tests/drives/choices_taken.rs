@@ -258,3 +258,82 @@ fn sd2x_sdo_error_code_in_printed_order() {
     );
     assert_eq!(printed[printed.len() - 4..], [0xFF, 0xFF, 0x00, 0x0B]);
 }
+
+/// PM (0x005C) switched on while EE (0x001E) is off, refused by a drive taking
+/// `position-maintenance-without-encoder=exception-04` (an independent closed-loop LMD does): refused only while
+/// EE reads 0, taken once EE is 1, and taken by the reference either way.
+#[test]
+fn position_maintenance_refused_while_the_encoder_is_off() {
+    // FC 16 of one register (the MDrive and the LMD have no FC 06); its echo: 10, address, quantity 1.
+    let write = |address: u16, value: u16| {
+        Request::WriteMultipleRegisters {
+            address,
+            values: vec![value],
+        }
+        .to_bytes()
+        .expect("encodes")
+    };
+    let echo = |address: u16| {
+        let [hi, lo] = address.to_be_bytes();
+        vec![0x10, hi, lo, 0x00, 0x01]
+    };
+    let pm_on = write(0x005C, 1);
+    for stem in ["lmd", "mdrive"] {
+        let mut reference = station(stem, &[]);
+        assert_eq!(
+            ask(&mut reference, &pm_on),
+            echo(0x005C),
+            "{stem}: the reference takes PM = 1 with EE = 0"
+        );
+        let mut s = station(stem, &["position-maintenance-without-encoder=exception-04"]);
+        assert_eq!(
+            ask(&mut s, &pm_on),
+            [0x90, 0x04],
+            "{stem}: PM = 1 with EE = 0"
+        );
+        assert_eq!(
+            ask(&mut s, &write(0x005C, 0)),
+            echo(0x005C),
+            "{stem}: PM = 0"
+        );
+        assert_eq!(
+            ask(&mut s, &write(0x001E, 1)),
+            echo(0x001E),
+            "{stem}: EE = 1"
+        );
+        assert_eq!(
+            ask(&mut s, &pm_on),
+            echo(0x005C),
+            "{stem}: PM = 1 with EE = 1"
+        );
+    }
+}
+
+/// An RTU frame not as long as its function code's rules make it (FC 16 whose byte count says 2 where 4
+/// data bytes follow), intact otherwise: the reference refuses it (03); a drive that sizes frames by the
+/// byte count finds the CRC wrong where the count ends and answers nothing (`rtu-length-framing=silence`).
+/// The same drive answers a frame of the right length, and Modbus/TCP frames are not its to ignore.
+#[test]
+fn rtu_frame_of_another_length_than_its_rules_give_is_ignored_by_a_length_framing_drive() {
+    let rtu_ask = |s: &mut Station, pdu: &[u8]| {
+        let mut frame = Vec::new();
+        codec::rtu::encode_adu(1, pdu, &mut frame).expect("encodes");
+        s.rtu_frame(Duration::ZERO, &frame).map(|w| {
+            codec::rtu::decode_adu(&w.bytes)
+                .expect("answer")
+                .pdu
+                .to_vec()
+        })
+    };
+    let mismatched = [0x10, 0x0B, 0xB8, 0x00, 0x02, 0x02, 0x00, 0x00, 0x00, 0x00];
+    let read = [0x03, 0x07, 0xD0, 0x00, 0x01];
+    let mut reference = station("sd2x", &[]);
+    assert_eq!(rtu_ask(&mut reference, &mismatched), Some(vec![0x90, 0x03]));
+    let mut s = station("sd2x", &["rtu-length-framing=silence"]);
+    assert_eq!(rtu_ask(&mut s, &mismatched), None);
+    assert!(rtu_ask(&mut s, &read).is_some_and(|r| r[0] == 0x03));
+    let mut tcp = station("mdrive", &["rtu-length-framing=silence"]);
+    let mut m = mismatched;
+    m[1..3].copy_from_slice(&[0x00, 0x89]);
+    assert_eq!(ask(&mut tcp, &m), [0x90, 0x03], "Modbus/TCP");
+}

@@ -467,6 +467,20 @@ pub fn unambiguous(
             s
         })
         .collect();
+    // A frame not as long as its function's rules make it (`rtu-length-framing`) that another freedom of the
+    // request explains alike (a truncated PDU's silence): the drive's choice is that one's, which is held per
+    // function code; the framing freedom is left to the frames only it explains.
+    let framing = drives::choices::ids::RTU_LENGTH_FRAMING;
+    let shown: Vec<Shown> = if shown.iter().any(|s| {
+        s.freedom == framing
+            && shown
+                .iter()
+                .any(|o| o.freedom != framing && o.value == s.value)
+    }) {
+        shown.into_iter().filter(|s| s.freedom != framing).collect()
+    } else {
+        shown
+    };
     let value_codes = requirements.freedom(drives::choices::ids::VALUE_OUT_OF_RANGE);
     let item_bound = |id: &str| {
         applicable

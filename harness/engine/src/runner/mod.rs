@@ -2277,9 +2277,13 @@ impl Runner {
         let sent = self.send_pieces(&frames, &pieces, wire)?;
         let result =
             self.receive_and_judge(&frames, &pieces, sent, compare, capture, note, wire)?;
-        // A well-formed frame no length rule sizes was ended by the drive if it answered it.
+        // A well-formed frame no length rule sizes was ended by the drive if it answered it, unless a shorter
+        // part of it is a frame too (its last two bytes the CRC of the rest): a drive that ends such frames
+        // at the first CRC that fits (as independent SD2x tests/independent/sd2x-i does, FC 0x7C 00 00 00 00
+        // 50 00 cut after 0x50) answered that part and holds the rest, which the silence must clear.
+        let cut_short = |f: &Framed| (4..f.bytes.len()).any(|n| codec::rtu::crc_ok(&f.bytes[..n]));
         if self.resync_rtu
-            && !frames.iter().any(|f| f.malformed)
+            && !frames.iter().any(|f| f.malformed || cut_short(f))
             && result
                 .observed
                 .iter()
@@ -2798,15 +2802,18 @@ impl Runner {
     }
 
     /// RTU on a real target: after a frame the drive may still hold (see `send_pieces`), the line's t3.5
-    /// (the carrier's 50 ms over TCP) before the next one.
+    /// before the next one. Over TCP, where no line sets it, twice the carrier's 50 ms: a drive or device
+    /// server that ends frames after a silence of its own choosing may well choose the same 50 ms, and then
+    /// a request sent after exactly that long races its timer (independent SD2x tests/independent/sd2x-i lost
+    /// the liveness read sent 50.2 ms after the answer to a frame with a byte after its CRC).
     fn resync_if_due(&mut self) {
         if std::mem::take(&mut self.resync_rtu) {
-            let t3_5 = self
-                .target
-                .rtu_timing()
-                .unwrap_or_else(codec::RtuTiming::tcp_carrier)
-                .t3_5;
-            self.target.idle(t3_5);
+            let silence = match self.target.rtu_timing() {
+                Some(t) if t.is_line() => t.t3_5,
+                Some(t) => t.t3_5 * 2,
+                None => codec::RtuTiming::tcp_carrier().t3_5 * 2,
+            };
+            self.target.idle(silence);
             self.sync_shadow();
         }
     }
@@ -3073,14 +3080,44 @@ impl Runner {
                 profile: &self.profile,
                 reference_closed,
             };
-            let judged = oracle::judge_admitting(&observation, &applicable, &cx)
-                // Where several freedoms explain the answer, the one that agrees with the drive's earlier choices.
-                .agreeing(|s| self.choices.agrees(s));
+            let judged = oracle::judge_admitting(&observation, &applicable, &cx);
+            // Where several admissible answers explain the drive's (its answer is not the reference's), a
+            // freedom whose every explanation contradicts what the drive showed before (an item it read,
+            // refused now as if it lacked it) is no reason for the answer, if another explanation agrees with
+            // everything the drive showed: the answer is that one's (PM refused while EE is off, after PM was
+            // read, tests/independent/lmd-i). Where the drive's answer is the reference's, or no explanation
+            // agrees, nothing is set aside: a drive changing its mind is found.
+            let agrees_all = |j: &oracle::Judged| j.shown.iter().all(|s| self.choices.agrees(s));
+            let explanations: Vec<&oracle::Judged> = std::iter::once(&judged)
+                .chain(judged.others.iter())
+                .collect();
+            let contradicted: Vec<&str> = if judged.others.is_empty() {
+                Vec::new()
+            } else {
+                applicable
+                    .iter()
+                    .map(|f| f.id.as_str())
+                    .filter(|id| {
+                        let of = |j: &oracle::Judged| j.shown.iter().any(|s| s.freedom == *id);
+                        let mut mine = explanations.iter().filter(|j| of(j)).peekable();
+                        mine.peek().is_some()
+                            && mine.all(|j| !agrees_all(j))
+                            && explanations.iter().any(|j| !of(j) && agrees_all(j))
+                    })
+                    .collect()
+            };
+            let reasons: Vec<&drives::requirements::Freedom> = applicable
+                .iter()
+                .copied()
+                .filter(|f| !contradicted.contains(&f.id.as_str()))
+                .collect();
+            // Where several freedoms explain the answer, the one that agrees with the drive's earlier choices.
+            let judged = judged.agreeing(|s| self.choices.agrees(s));
             let kind = oracle::outcome_kind(framing, seen);
             let mut judged = judged;
             judged.shown = oracle::freedoms::unambiguous(
                 judged.shown,
-                &applicable,
+                &reasons,
                 &cx,
                 kind.as_deref(),
                 &requirements,

@@ -3,7 +3,9 @@
 //! rule whose first eight bytes are a valid frame (an appended byte equal to the CRC's low byte: the CRC of
 //! the longer frame then starts with the old CRC's high byte) left its last byte in the drive's framer,
 //! which took it with the next request as one garbled frame: the healthy simulator "failed" the following
-//! liveness read (seed 1, case gen/1/123/read-reg-bytecount).
+//! liveness read (seed 1, case gen/1/123/read-reg-bytecount). Over TCP the silence is twice the carrier's
+//! 50 ms: a drive or device server ending frames after 50 ms of its own lost a liveness read sent 50.2 ms
+//! after the answer (tests/independent/sd2x-i).
 
 use test_support::{SimProcess, harness_reported, read_json, run_args};
 
@@ -23,4 +25,28 @@ fn generated_cases_over_rtu_over_tcp_pass_on_a_healthy_simulator() {
         .find(|c| c["id"] == "gen/1/123/read-reg-bytecount")
         .expect("the case ran");
     assert_eq!(case["verdict"], "PASS", "{case}");
+    // Its wire: the malformed frame, its answer, then the liveness read at least 100 ms after the last byte.
+    let line = std::fs::read_to_string(report.join("cases.jsonl"))
+        .expect("cases.jsonl")
+        .lines()
+        .find(|l| l.contains("\"gen/1/123/read-reg-bytecount\""))
+        .map(str::to_string)
+        .expect("the case's line");
+    let record: serde_json::Value = serde_json::from_str(&line).expect("json");
+    let wire = record["result"]["wire"].as_array().expect("wire");
+    let malformed = wire
+        .iter()
+        .position(|w| w["intended_malformed"] == true)
+        .expect("the malformed frame");
+    let next_tx = wire[malformed + 1..]
+        .iter()
+        .position(|w| w["dir"] == "tx")
+        .map(|i| malformed + 1 + i)
+        .expect("the liveness read");
+    let at = |i: usize| wire[i]["at"].as_u64().expect("at");
+    let gap = at(next_tx) - at(next_tx - 1);
+    assert!(
+        gap >= 100_000,
+        "{gap} µs of silence before the next frame: {wire:?}"
+    );
 }

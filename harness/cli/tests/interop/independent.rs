@@ -917,3 +917,81 @@ fn generated_runs_leave_the_eighth_wave_as_found() {
         "sd2x-h: no SDO error shown\n{out}"
     );
 }
+
+/// The last motion commands an LMD of the ninth wave reads back (MA, MR and SL "read back the last command",
+/// tests/independent/lmd-i/DECISIONS.md; HI and HM likewise): a run allowed to move sends them, and putting
+/// them back would send the command again (HI and HM have no value 0 to send). The harness leaves them out
+/// of what it keeps, saying why ("write-only: cannot be read back" by the manual's table).
+const LMD_I_COMMANDS_READ_BACK: [&str; 7] = [
+    "/holding_registers/0x002A",
+    "/holding_registers/0x002B",
+    "/holding_registers/0x0046",
+    "/holding_registers/0x0047",
+    "/items/HI",
+    "/items/HM",
+    "/items/MR",
+];
+
+/// The ninth wave (BRIEF-i.md): firmware whose parameters depend on each other and on the drive's state, and
+/// which enforces the ties (VI below VM, HT + MT, MS's steps, outputs writable only as outputs, writes refused
+/// while moving, the SD2x's clipped setpoints and watchdog). Each catalog PASSes and leaves its drive as
+/// found, with and without every flag, but for one tie the SD2x's author added beyond the manual: the
+/// watchdog cannot be 0 while the power stage is on (tests/independent/sd2x-i/DECISIONS.md, T9), where the
+/// manual says "To deactivate watchdog monitoring, enter the value 0" (004 line 870) without a state, so
+/// the enable sequence, which runs with the watchdog off, FAILs there. Before the fixes, with the flags: the
+/// LMD FAILed its PM write (refused with 04 while EE is off: now `position-maintenance-without-encoder`), and
+/// the SD2x FAILed the FC 16 whose byte count disagrees with its data (it sizes frames by the byte count, so
+/// the CRC fails and it is silent: now `rtu-length-framing`).
+#[test]
+fn the_catalogs_pass_the_ninth_wave_and_leave_it_as_found() {
+    let all = ["--allow-motion", "--allow-destructive"];
+    for (drive, scheme) in [("mdrive-i", "tcp"), ("lmd-i", "tcp"), ("sd2x-i", "rtu+tcp")] {
+        let (code, out) = run_leaving_as_found(drive, scheme, &[]);
+        assert_strict_pass(drive, code, &out);
+    }
+    let (code, out) = run_leaving_as_found("mdrive-i", "tcp", &all);
+    assert_strict_pass("mdrive-i", code, &out);
+    let (code, out) =
+        run_leaving_as_found_but("lmd-i", &[], "tcp", &all, &LMD_I_COMMANDS_READ_BACK);
+    assert_strict_pass("lmd-i", code, &out);
+    assert!(
+        out.contains("position-maintenance-without-encoder = exception-04"),
+        "lmd-i: PM's refusal not recorded\n{out}"
+    );
+    let (code, out) = run_leaving_as_found("sd2x-i", "rtu+tcp", &all);
+    assert_eq!(code, 1, "sd2x-i\n{out}");
+    assert_fails_only(
+        "sd2x-i",
+        &out,
+        &[(
+            "profile/sd2x/ds402/enable-sequence",
+            "exception FC 0x90, exception 3",
+        )],
+        true,
+    );
+    assert!(
+        out.contains("rtu-length-framing = silence (spec/app-6.12/byte-count-mismatch/fc-0x10"),
+        "sd2x-i: the byte count's silence not recorded\n{out}"
+    );
+}
+
+/// Generated cases against the ninth wave's SD2x over RTU over TCP (300 of seed 1). It sizes frames by their function
+/// code and byte count, ends a frame of an unknown function at the first CRC that fits, and drops what follows
+/// a CRC error until 50 ms of silence. Before the fixes 21 of 1,000 cases FAILed: malformed frames it ignores
+/// (now `rtu-length-framing`), a read lost after an FC 0x7C frame whose first 7 bytes carry a valid CRC (case 148; the
+/// drive answered those and held the 8th: the harness now waits out the silence after such a frame), and a
+/// liveness read sent 50.2 ms after a malformed frame, racing the drive's own 50 ms (the harness now waits
+/// twice the carrier's 50 ms). `--silence 100` keeps the run short: the drive answers within a millisecond.
+#[test]
+fn generated_runs_pass_the_ninth_wave_sd2x() {
+    let (code, out) = run_leaving_as_found(
+        "sd2x-i",
+        "rtu+tcp",
+        &["--generated", "300", "--seed", "1", "--silence", "100"],
+    );
+    assert_strict_pass("sd2x-i", code, &out);
+    assert!(
+        out.contains("rtu-length-framing = silence"),
+        "sd2x-i: no frame of another length met\n{out}"
+    );
+}

@@ -1,9 +1,10 @@
-//! Drives written independently from the manuals (tests/independent/): twenty-four simulators, eight of each
+//! Drives written independently from the manuals (tests/independent/): twenty-seven simulators, nine of each
 //! drive by authors who had the manuals, the public Modbus specifications and tests/independent/BRIEF.md
 //! (the second wave, `*-b`: BRIEF-b.md; the third, `*-c`: BRIEF-c.md; the fourth, `*-d`: BRIEF-d.md; the fifth, `*-e`, built
 //! on pymodbus and libmodbus: BRIEF-e.md; the sixth, `*-f`, commissioned drives on a bench with their motors
 //! attached: BRIEF-f.md; the seventh, `*-g`, unusual but admissible choices: BRIEF-g.md; the eighth, `*-h`, the
-//! less obvious reading wherever a manual reads two ways: BRIEF-h.md), and never saw this
+//! less obvious reading wherever a manual reads two ways: BRIEF-h.md; the ninth, `*-i`, parameters tied to each
+//! other and to the drive's state: BRIEF-i.md), and never saw this
 //! code nor each
 //! other's. Where they conform to the manuals the harness must give them no FAIL, and it must leave every
 //! value of their state (their own dump, `--state`) as it found it. Each fix they led to is in the log

@@ -569,6 +569,9 @@ pub fn unambiguous(
             {
                 continue;
             }
+            // Nor is a frame's length on a serial line a reason for one code or another: it decides only
+            // whether the drive took the frame whole (and answered as the request asks) or ignored it.
+            FreedomKind::Outcome if f.id == drives::choices::ids::RTU_LENGTH_FRAMING => continue,
             // An SDO error freedom is no reason for an exception: it chooses among SDO errors only.
             FreedomKind::ExceptionCode | FreedomKind::Outcome if cx.decided(f) => f.id.as_str(),
             _ => continue,

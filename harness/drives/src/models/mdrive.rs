@@ -307,6 +307,9 @@ struct Addrs {
     ht: Option<u16>,
     mt: Option<u16>,
     hm: Option<u16>,
+    /// Encoder enable and position maintenance (`encoder_function_freedom`).
+    ee: Option<u16>,
+    pm: Option<u16>,
     /// Registers mirroring outputs 1.. (O1, O2, ...).
     outputs: Vec<Option<u16>>,
     /// Registers mirroring inputs 1.. (I1, I2, ...).
@@ -626,6 +629,8 @@ impl Mdrive {
             ht: at("HT"),
             mt: at("MT"),
             hm: at("HM"),
+            ee: at("EE"),
+            pm: at("PM"),
             outputs: (1..=outputs.len()).map(|k| at(&format!("O{k}"))).collect(),
             inputs: (1..=inputs.len()).map(|k| at(&format!("I{k}"))).collect(),
             output_groups: ["OT", "OL"].iter().filter_map(|m| at(m)).collect(),
@@ -881,23 +886,9 @@ impl Mdrive {
     /// maintenance functions"), else EE or PM switched on in an MDrive (`mdrive-encoder-absent`); `None`
     /// for any other write.
     fn encoder_function_freedom(&self, changes: &[Change]) -> Option<Decision> {
-        let address_of = |name: &str| {
-            self.profile
-                .registers
-                .iter()
-                .map(|r| r.get_ref())
-                .find(|r| r.mnemonic.as_deref() == Some(name))
-                .map(|r| r.address)
-        };
-        let (ee, pm) = (address_of("EE")?, address_of("PM")?);
+        let (ee, pm) = (self.addrs.ee?, self.addrs.pm?);
         let sets = |address: u16| changes.iter().find(|c| c.address == address);
-        let ee_after = match sets(ee) {
-            Some(c) => c.value,
-            None => self
-                .bank
-                .read(RegTable::Holding, ee, 1)
-                .map_or(0, |v| i64::from(v[0])),
-        };
+        let ee_after = sets(ee).map_or_else(|| self.bank.value(ee).unwrap_or(0), |c| c.value);
         if sets(pm).is_some_and(|c| c.value != 0) && ee_after == 0 {
             return Some(ids::POSITION_MAINTENANCE_WITHOUT_ENCODER);
         }
@@ -1361,15 +1352,13 @@ impl Mdrive {
             && split_values(text)
                 .first()
                 .is_some_and(|v| v.parse::<i64>().is_ok_and(|v| v != 0));
-        let register = self
-            .profile
-            .registers
-            .iter()
-            .map(|r| r.get_ref())
-            .find(|r| r.mnemonic.as_deref() == Some(key.as_str()))
-            .map(|r| r.address);
+        let register = match key.as_str() {
+            "EE" => self.addrs.ee,
+            "PM" => self.addrs.pm,
+            _ => None,
+        };
         if let Some(freedom) = register
-            .filter(|_| switched_on && matches!(key.as_str(), "EE" | "PM"))
+            .filter(|_| switched_on)
             .and_then(|address| self.encoder_function_freedom(&[Change { address, value: 1 }]))
         {
             self.decided(freedom);

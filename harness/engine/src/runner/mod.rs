@@ -3088,12 +3088,12 @@ impl Runner {
             // read, tests/independent/lmd-i). Where the drive's answer is the reference's, or no explanation
             // agrees, nothing is set aside: a drive changing its mind is found.
             let agrees_all = |j: &oracle::Judged| j.shown.iter().all(|s| self.choices.agrees(s));
-            let explanations: Vec<&oracle::Judged> = std::iter::once(&judged)
-                .chain(judged.others.iter())
-                .collect();
             let contradicted: Vec<&str> = if judged.others.is_empty() {
                 Vec::new()
             } else {
+                let explanations: Vec<&oracle::Judged> = std::iter::once(&judged)
+                    .chain(judged.others.iter())
+                    .collect();
                 applicable
                     .iter()
                     .map(|f| f.id.as_str())

@@ -2810,8 +2810,7 @@ impl Runner {
         if std::mem::take(&mut self.resync_rtu) {
             let silence = match self.target.rtu_timing() {
                 Some(t) if t.is_line() => t.t3_5,
-                Some(t) => t.t3_5 * 2,
-                None => codec::RtuTiming::tcp_carrier().t3_5 * 2,
+                _ => codec::RtuTiming::tcp_carrier().t3_5 * 2,
             };
             self.target.idle(silence);
             self.sync_shadow();

@@ -274,7 +274,7 @@ impl std::fmt::Display for DiscardReason {
                 f,
                 "CRC mismatch: expected 0x{expected:04X}, received 0x{received:04X}"
             ),
-            DiscardReason::TooShort => write!(f, "fewer than 4 bytes before t3.5 silence"),
+            DiscardReason::TooShort => write!(f, "fewer than 4 bytes before a silence"),
             DiscardReason::Overlong => write!(f, "over 256 bytes without a frame boundary"),
         }
     }
@@ -316,6 +316,9 @@ pub struct RtuFramer {
     /// The length `buf` must reach before `cut` could emit or drop anything (see [`next_cut`]): bytes that
     /// keep it shorter are appended without looking.
     next_cut: usize,
+    /// The silence that ends a frame the rules say is not complete yet (at least t3.5; see
+    /// [`RtuFramer::with_incomplete_wait`]).
+    incomplete_wait: Duration,
 }
 
 /// The length after `len` at which a cut could next happen, given what the rules say about the buffer at
@@ -353,6 +356,33 @@ impl RtuFramer {
             max_gap: Duration::ZERO,
             rule: FrameLen::NeedMore,
             next_cut: next_cut(FrameLen::NeedMore, 0),
+            incomplete_wait: timing.t3_5,
+        }
+    }
+
+    /// Wait `wait` (if longer than t3.5) before silence ends a frame that the length rules say has more bytes
+    /// to come. For a master reading answers through a host's serial port: a USB adapter hands over the
+    /// bytes it received when its latency timer runs out (16 ms by default on FTDI chips), so the host sees
+    /// pauses inside a frame the line carried whole. A frame the rules size is cut as soon as it is complete,
+    /// and one no rule sizes still ends at t3.5.
+    pub fn with_incomplete_wait(mut self, wait: Duration) -> Self {
+        self.incomplete_wait = wait.max(self.timing.t3_5);
+        self
+    }
+
+    /// The silence that ends the bytes held: [`RtuFramer::with_incomplete_wait`]'s wait while the rules say
+    /// more are to come (they need more to tell the length, or a length they give is not reached), else t3.5.
+    fn silence(&self) -> Duration {
+        let len = self.buf.len();
+        let incomplete = match self.rule {
+            FrameLen::NeedMore => true,
+            FrameLen::Known(a, b) => a.max(b) > len,
+            FrameLen::Unknown => false,
+        };
+        if incomplete {
+            self.incomplete_wait
+        } else {
+            self.timing.t3_5
         }
     }
 
@@ -369,7 +399,7 @@ impl RtuFramer {
     /// When `poll` should next be called (the end of the t3.5 silence after the last byte), if bytes are held.
     /// Saturates at `Duration::MAX` for a clock that far on (a caller's time base is its own).
     pub fn deadline(&self) -> Option<Duration> {
-        (!self.buf.is_empty()).then(|| self.last.saturating_add(self.timing.t3_5))
+        (!self.buf.is_empty()).then(|| self.last.saturating_add(self.silence()))
     }
 
     /// Feed bytes that arrived at `now` (one timestamp per chunk).
@@ -388,7 +418,7 @@ impl RtuFramer {
         if !self.buf.is_empty() {
             // One gap for the chunk: it ends the held bytes by silence, or it is the gap before their next byte.
             let gap = now.saturating_sub(self.last);
-            if gap >= self.timing.t3_5 {
+            if gap >= self.silence() {
                 self.end_by_silence(events);
             } else if !bytes.is_empty() {
                 self.max_gap = self.max_gap.max(gap);
@@ -428,7 +458,7 @@ impl RtuFramer {
 
     /// [`poll`](Self::poll), appending the events to `events`.
     pub fn poll_into(&mut self, now: Duration, events: &mut Vec<FramerEvent>) {
-        if !self.buf.is_empty() && now.saturating_sub(self.last) >= self.timing.t3_5 {
+        if !self.buf.is_empty() && now.saturating_sub(self.last) >= self.silence() {
             self.end_by_silence(events);
         }
     }

@@ -28,6 +28,8 @@ pub mod ids {
     pub const PARTIAL_REGISTER_READ: &str = "partial-register-read";
     /// A write that covers half of a 32-bit register: 02, 03, 04, or accepted.
     pub const PARTIAL_REGISTER_WRITE: &str = "partial-register-write";
+    /// A register read or write covering several items of the map (MDrive, LMD): served, or 02/03/04.
+    pub const MULTI_ITEM_ACCESS: &str = "multi-item-access";
     /// A function code the profile does not list: 01, or served.
     pub const SERVED_EXTRA_FUNCTION: &str = "served-extra-function";
     /// FC 0x41/0x42 with a mnemonic the drive does not know.
@@ -54,6 +56,8 @@ pub mod ids {
     /// FC 0x41 read of a setting whose write format has fewer values than its read example (the MDrive's
     /// TR): the example's count, or the format's.
     pub const FC41_READ_BACK_FIELDS: &str = "fc41-read-back-fields";
+    /// The LMD's S1-S4 read back with the example's three values, or the two an LMD input setting has.
+    pub const LMD_INPUT_SETUP_FIELDS: &str = "lmd-input-setup-fields";
     /// A parameterless FC 0x42 command (E, PS, RS, CP, ESC): byte count 0, or no byte count at all.
     pub const FC42_PARAMETERLESS_BYTE_COUNT: &str = "fc42-parameterless-byte-count";
     /// The LMD's ESC on the wire: 20 20 20 1B (the reversal rule) or 20 20 1B 20 (as printed).
@@ -145,6 +149,7 @@ pub mod ids {
         QUANTITY_OVER_DEVICE_LIMIT,
         PARTIAL_REGISTER_READ,
         PARTIAL_REGISTER_WRITE,
+        MULTI_ITEM_ACCESS,
         SERVED_EXTRA_FUNCTION,
         UNKNOWN_MNEMONIC,
         MNEMONIC_ACCESS,
@@ -157,6 +162,7 @@ pub mod ids {
         FC41_BYTE_COUNT_WIDTH,
         FC41_READ_BACK_FORMAT,
         FC41_READ_BACK_FIELDS,
+        LMD_INPUT_SETUP_FIELDS,
         FC42_PARAMETERLESS_BYTE_COUNT,
         LMD_ESC_WIRE_FORM,
         MDRIVE_PROGRAM_CONTROL_FUNCTION,

@@ -1337,7 +1337,8 @@ impl Station {
         // (`rtu-length-framing`). A function code without a length rule is ended by silence alike. Decided
         // after the freedoms of the request itself (`truncated-pdu`, `trailing-bytes`), so that where one of
         // them explains a silence too, the drive's choice is recorded as that one's.
-        let length_off = matches!(via, Via::Rtu { .. }) && !rtu_length_agrees(unit, pdu);
+        let length_off = matches!(via, Via::Rtu { .. })
+            && !rtu_length_agrees(unit, pdu, self.profile().function(fc).is_some());
         if length_off && self.choices.name(ids::RTU_LENGTH_FRAMING) == Some("silence") {
             self.decisions.push(ids::RTU_LENGTH_FRAMING);
             return Some((None, false));
@@ -1575,7 +1576,14 @@ impl Station {
         } else if let Some(code) = self.partial_read_refused(&req) {
             self.decisions.push(ids::PARTIAL_REGISTER_READ);
             Some(Response::exception(fc, code))
+        } else if let Some(code) = self.multi_item_refused(&req) {
+            self.decisions.push(ids::MULTI_ITEM_ACCESS);
+            Some(Response::exception(fc, code))
         } else {
+            // A range over several items of the map, served: the drive's choice too (`multi-item-access`).
+            if self.covers_several_items(&req) {
+                self.decisions.push(ids::MULTI_ITEM_ACCESS);
+            }
             // Served or refused, the answer to a read inside a 32-bit register is the drive's choice (every
             // model: the SD2x's too).
             if self.splits_pair(&req) && !self.decisions.contains(&ids::PARTIAL_REGISTER_READ) {
@@ -1798,6 +1806,64 @@ impl Station {
     fn partial_read_refused(&self, req: &Request) -> Option<ExceptionCode> {
         let code = Choices::exception_value(self.choices.get(ids::PARTIAL_REGISTER_READ)?)?;
         self.splits_pair(req).then_some(code)
+    }
+
+    /// The exception a drive taking one item of the register map a request answers a range over several with
+    /// (`multi-item-access` chosen `exception-XX`), when `req` is such a read or write.
+    fn multi_item_refused(&self, req: &Request) -> Option<ExceptionCode> {
+        let code = Choices::exception_value(self.choices.get(ids::MULTI_ITEM_ACCESS)?)?;
+        self.covers_several_items(req).then_some(code)
+    }
+
+    /// True when `req` (FC 03, 04, 16) covers two or more items of the register map, each completely, within
+    /// the profile's quantity limit for the function, and the profile is one `multi-item-access` applies to
+    /// (the manuals that say a request needs no more than one parameter).
+    fn covers_several_items(&self, req: &Request) -> bool {
+        let (input, address, quantity) = match req {
+            Request::ReadHoldingRegisters { address, quantity } => (false, *address, *quantity),
+            Request::ReadInputRegisters { address, quantity } => (true, *address, *quantity),
+            Request::WriteMultipleRegisters { address, values } => (
+                false,
+                *address,
+                u16::try_from(values.len()).unwrap_or(u16::MAX),
+            ),
+            _ => return false,
+        };
+        let profile = self.model.profile();
+        // Within the device's quantity limit: a quantity over it is `quantity-over-device-limit`'s.
+        let limit = profile
+            .function(req.function())
+            .and_then(|f| f.max_quantity)
+            .unwrap_or(u16::MAX);
+        if quantity < 2 || quantity > limit {
+            return false;
+        }
+        let applies = crate::corpus::Corpus::Embedded
+            .requirements_shared()
+            .is_ok_and(|r| {
+                r.freedom(ids::MULTI_ITEM_ACCESS)
+                    .is_some_and(|f| f.applies_to(&profile.device.id))
+            });
+        if !applies {
+            return false;
+        }
+        let end = u32::from(address) + u32::from(quantity);
+        let (mut a, mut items) = (u32::from(address), 0);
+        while a < end {
+            let Some(r) = u16::try_from(a)
+                .ok()
+                .and_then(|a| profile.register_at(a, input))
+            else {
+                return false;
+            };
+            let r_end = u32::from(r.address) + u32::from(r.width);
+            if u32::from(r.address) != a || r_end > end {
+                return false;
+            }
+            items += 1;
+            a = r_end;
+        }
+        items > 1
     }
 
     /// True when `req` reads (FC 03, 04, 23) a range that starts or ends inside a 32-bit register.
@@ -2319,11 +2385,15 @@ fn quantity_asked(req: &Request) -> Option<(FunctionCode, usize)> {
 
 /// False when the RTU frame of `pdu` to `unit` is not as long as the request length rules of its function code
 /// (App 6, the byte counts included) make it: shorter than they need, or of another length. True where no rule
-/// sizes the function code (silence ends such a frame), and for FC 08.
-fn rtu_length_agrees(unit: u8, pdu: &[u8]) -> bool {
-    // FC 08's Return Query Data loops back data of any size (App 6.8.1): no rule sizes it.
-    if pdu.first() == Some(&0x08) {
-        return true;
+/// sizes the function code (silence ends such a frame), and for FC 08. `listed`: the profile lists the function
+/// code; the MDrive's vendor functions 0x41 and 0x42 are sized only where it does, since a drive of another
+/// vendor knows no layout for them (a CRC scan or silence ends such a frame, and the drive answers 01).
+fn rtu_length_agrees(unit: u8, pdu: &[u8], listed: bool) -> bool {
+    match pdu.first() {
+        // FC 08's Return Query Data loops back data of any size (App 6.8.1): no rule sizes it.
+        Some(0x08) => return true,
+        Some(0x41 | 0x42) if !listed => return true,
+        _ => {}
     }
     let agrees = |pdu: &[u8]| {
         let mut adu = Vec::with_capacity(pdu.len() + 3);

@@ -996,3 +996,49 @@ fn generated_runs_pass_the_ninth_wave_sd2x() {
         "sd2x-i: no frame of another length met\n{out}"
     );
 }
+
+/// The tenth wave (BRIEF-j.md): drives with the timing and communication stack of a real product, written
+/// by three more authors from the manuals. Each serves one request at a time in arrival order with a
+/// processing time (a few ms for a read, 150-320 ms for a save to NVM, 25-45 ms for identification strings
+/// "from flash", more while moving and on a connection's first request), sends long answers in pieces with
+/// Nagle on, and takes at most four connections; the SD2x sends its answer at the line's pace (over TCP
+/// packed by a 4 ms device-server timer, on a serial line byte by byte). Their catalogs PASS with the flags
+/// (every case runs), the LMD's without them too, and leave them as found. Before the fixes: the LMD, which
+/// takes one parameter a request (its reading of "you will not need to read more than two consecutive
+/// registers per request"), FAILed the inputs' FC 03 read of I1-I2 (now read one register a request; a read over several items is
+/// `multi-item-access`) and, with the flags, S1-S4 read back with the two values an LMD input setting has
+/// (`lmd-input-setup-fields`); on a serial line the SD2x's answers, paced byte by byte through socat, came
+/// to the host with pauses past t3.5, and the harness cut them (32 FAIL): a frame its length rules say is
+/// incomplete now waits 20 ms for its next byte, as behind a USB adapter's latency timer.
+#[test]
+fn the_catalogs_pass_the_tenth_wave_and_leave_it_as_found() {
+    let all = ["--allow-motion", "--allow-destructive"];
+    // With the flags (every case runs); the LMD without them too (the read over two parameters is no write).
+    let runs: [(&str, &str, &[&str]); 4] = [
+        ("mdrive-j", "tcp", &all),
+        ("lmd-j", "tcp", &[]),
+        ("lmd-j", "tcp", &all),
+        ("sd2x-j", "rtu+tcp", &all),
+    ];
+    for (drive, scheme, extra) in runs {
+        let (code, out) = run_leaving_as_found(drive, scheme, extra);
+        assert_strict_pass(drive, code, &out);
+        if drive == "lmd-j" {
+            assert!(
+                out.contains("multi-item-access = exception-02 (profile/lmd/multi-item/read/"),
+                "lmd-j: the refusal of a read over two parameters not recorded\n{out}"
+            );
+        }
+        if drive == "lmd-j" && !extra.is_empty() {
+            assert!(
+                out.contains("lmd-input-setup-fields [S1] = two"),
+                "lmd-j: S1's two values not recorded\n{out}"
+            );
+        }
+    }
+    if !socat_or_skip("independent::the_catalogs_pass_the_tenth_wave (sd2x-j on a serial line)") {
+        return;
+    }
+    let (code, out) = run_on_serial_leaving_as_found("sd2x-j", &all);
+    assert_strict_pass("sd2x-j", code, &out);
+}

@@ -186,6 +186,41 @@ fn framer_reports_bad_crc_after_silence() {
     );
 }
 
+/// Reading answers through a host's port (`with_incomplete_wait`): a frame the rules say is incomplete
+/// waits the longer wait for its next byte, a complete one is cut at once, and bytes no rule sizes (or past
+/// every length the rules give) still end at t3.5.
+#[test]
+fn framer_waits_longer_for_the_rest_of_a_frame_its_rules_size() {
+    let wait = Duration::from_millis(20);
+    let t35 = timing().t3_5;
+    let answer = rtu_frame(1, &raw![0x03, 0x04, 0x00, 0x50, 0x12, 0x34]);
+    let mut f =
+        RtuFramer::new(Direction::Response, timing(), Vec::new()).with_incomplete_wait(wait);
+    assert!(f.push(Duration::ZERO, &answer[..5]).is_empty());
+    assert_eq!(f.deadline(), Some(wait), "incomplete: the longer wait");
+    assert!(f.poll(t35 * 3).is_empty(), "past t3.5, within the wait");
+    let later = Duration::from_millis(15);
+    assert_eq!(frames(&f.push(later, &answer[5..])), vec![answer.clone()]);
+    assert_eq!(f.deadline(), None);
+    // Cut short: discarded once the wait is out, not at t3.5.
+    assert!(f.push(later * 2, &answer[..5]).is_empty());
+    assert!(f.poll(later * 2 + t35 * 2).is_empty());
+    let ev = f.poll(later * 2 + wait);
+    assert!(
+        matches!(&ev[..], [FramerEvent::Discarded { bytes, .. }] if bytes == &answer[..5]),
+        "{ev:?}"
+    );
+    // A function code no rule sizes: t3.5, as without the wait.
+    let unknown = rtu_frame(1, &raw![0x64, 0x01, 0x02]);
+    assert!(f.push(later * 4, &unknown).is_empty());
+    assert_eq!(f.deadline(), Some(later * 4 + t35));
+    assert_eq!(frames(&f.poll(later * 4 + t35)), vec![unknown]);
+    // Without the wait: t3.5 for an incomplete frame too.
+    let mut plain = RtuFramer::new(Direction::Response, timing(), Vec::new());
+    assert!(plain.push(Duration::ZERO, &answer[..5]).is_empty());
+    assert_eq!(plain.deadline(), Some(t35));
+}
+
 /// A caller's clock is its own: bytes held at a time near `Duration::MAX` give a deadline that saturates
 /// instead of overflowing (it panicked in `last + t3_5`), and silence still ends them.
 #[test]

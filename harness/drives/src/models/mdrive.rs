@@ -1259,6 +1259,17 @@ impl Mdrive {
                 values.truncate(n);
             }
         }
+        // The LMD's S1-S4 (MDrive syntax, its example's three values): a drive taking them for its input
+        // setting may keep two (`lmd-input-setup-fields`).
+        if self.profile.device.id == "lmd"
+            && matches!(key.as_str(), "S1" | "S2" | "S3" | "S4")
+            && values.len() == 3
+        {
+            self.decided(ids::LMD_INPUT_SETUP_FIELDS);
+            if self.bank.choices().name(ids::LMD_INPUT_SETUP_FIELDS) == Some("two") {
+                values.truncate(2);
+            }
+        }
         self.decided(ids::FC41_READ_BACK_FORMAT);
         let params = if self.bank.choices().name(ids::FC41_READ_BACK_FORMAT) == Some("as-written") {
             // "Written or read in normal sequence" (000 line 727): as a setting is written, "=0,1,0".

@@ -336,4 +336,38 @@ fn rtu_frame_of_another_length_than_its_rules_give_is_ignored_by_a_length_framin
     let mut m = mismatched;
     m[1..3].copy_from_slice(&[0x00, 0x89]);
     assert_eq!(ask(&mut tcp, &m), [0x90, 0x03], "Modbus/TCP");
+    // The MDrive's vendor function 0x41 has a layout only where the profile lists it: an SD2x knows none, so a
+    // cut-short 0x41 is no frame of another length to it (it answers 01 whatever the framing), while on a
+    // profile with 0x41 it is one.
+    let cut_41 = [0x41, 0x20, 0x20];
+    assert_eq!(rtu_ask(&mut s, &cut_41), Some(vec![0xC1, 0x01]), "sd2x");
+    let mut m = station("mdrive", &["rtu-length-framing=silence"]);
+    assert_eq!(rtu_ask(&mut m, &cut_41), None, "mdrive over RTU");
+}
+
+/// `multi-item-access`: a drive taking one parameter a request refuses a read or write over two whole items
+/// (with the code it chose) and serves each alone; a read over the device's quantity limit, or one cutting a
+/// 32-bit item, is another freedom's, and the reference serves the two items as one block.
+#[test]
+fn a_one_parameter_drive_refuses_a_range_over_two_items() {
+    // LMD I1-I2 (0x002D, 0x002E: one register each).
+    let two = [0x03, 0x00, 0x2D, 0x00, 0x02];
+    let one = [0x03, 0x00, 0x2D, 0x00, 0x01];
+    let mut reference = station("lmd", &[]);
+    assert_eq!(ask(&mut reference, &two)[..2], [0x03, 0x04]);
+    for (value, code) in [("exception-02", 0x02), ("exception-04", 0x04)] {
+        let mut s = station("lmd", &[&format!("multi-item-access={value}")]);
+        assert_eq!(ask(&mut s, &two), [0x83, code], "{value}");
+        assert_eq!(
+            ask(&mut s, &one)[..2],
+            [0x03, 0x02],
+            "{value}: one item alone"
+        );
+        // A write over two one-register parameters (CW 0x000E, D1 0x000F) is refused alike, and changes
+        // nothing.
+        let before = ask(&mut s, &[0x03, 0x00, 0x0F, 0x00, 0x01]);
+        let write = [0x10, 0x00, 0x0E, 0x00, 0x02, 0x04, 0x00, 0x00, 0x00, 0x05];
+        assert_eq!(ask(&mut s, &write), [0x90, code], "{value}: write");
+        assert_eq!(ask(&mut s, &[0x03, 0x00, 0x0F, 0x00, 0x01]), before);
+    }
 }

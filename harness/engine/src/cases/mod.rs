@@ -179,9 +179,13 @@ pub enum Step {
     /// Close and reopen the connection.
     Reconnect,
     /// The 32-bit value captured as a register pair (in the profile's word order) in slot `registers`
-    /// equals the FC 43 object value (little-endian) captured in slot `object`.
+    /// equals the FC 43 object value (little-endian) captured in slot `object`; or the registers of slot
+    /// `registers` and then of slots `more_registers` (each read alone: a drive may take one item a request)
+    /// mirror the discrete inputs captured in slot `object`, one each.
     Agree {
         registers: usize,
+        #[serde(default, skip_serializing_if = "Vec::is_empty")]
+        more_registers: Vec<usize>,
         object: usize,
         note: String,
     },
@@ -318,8 +322,14 @@ impl Case {
                     capture: Some(c), ..
                 } => Some(c + 1),
                 Step::Agree {
-                    registers, object, ..
-                } => Some(registers.max(object) + 1),
+                    registers,
+                    more_registers,
+                    object,
+                    ..
+                } => more_registers
+                    .iter()
+                    .fold(*registers.max(object), |m, r| m.max(*r))
+                    .checked_add(1),
                 Step::EventLogShifted { before, after, .. } => Some(before.max(after) + 1),
                 _ => None,
             })

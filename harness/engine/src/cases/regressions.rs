@@ -84,6 +84,8 @@ pub struct StepFile {
     pub wait_us: Option<u64>,
     #[serde(skip_serializing_if = "Option::is_none")]
     pub registers: Option<usize>,
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub more_registers: Vec<usize>,
     #[serde(skip_serializing_if = "Option::is_none")]
     pub object: Option<usize>,
     #[serde(skip_serializing_if = "Option::is_none")]
@@ -218,11 +220,13 @@ fn step_file(step: &Step) -> StepFile {
         }
         Step::Agree {
             registers,
+            more_registers,
             object,
             note,
         } => {
             f.kind = StepKind::Agree;
             f.registers = Some(*registers);
+            f.more_registers = more_registers.clone();
             f.object = Some(*object);
             f.note = Some(note.clone());
         }
@@ -305,6 +309,7 @@ fn step_of(i: usize, f: &StepFile) -> Result<Step, RegressionError> {
         },
         StepKind::Agree => Step::Agree {
             registers: f.registers.ok_or_else(|| at("agree needs registers"))?,
+            more_registers: f.more_registers.clone(),
             object: f.object.ok_or_else(|| at("agree needs object"))?,
             note: f.note.clone().unwrap_or_default(),
         },
@@ -582,6 +587,7 @@ mod tests {
                 Step::Reconnect,
                 Step::Agree {
                     registers: 0,
+                    more_registers: vec![],
                     object: 1,
                     note: "agree".into(),
                 },

@@ -158,6 +158,7 @@ pub const LMD_EXAMPLE_INPUT_OFFSET: u16 = 0x002D;
 /// `fc41-read-back-fields` by id).
 fn may_touch(f: &Freedom) -> bool {
     f.id == drives::choices::ids::FC41_READ_BACK_FIELDS
+        || f.id == drives::choices::ids::LMD_INPUT_SETUP_FIELDS
         || f.id == drives::choices::ids::GATEWAY_NO_RESPONSE
         || matches!(
             f.kind,
@@ -208,6 +209,13 @@ fn touches(f: &Freedom, cx: &StepContext<'_>) -> bool {
     // Any FC 0x41 read (the alternative is there only for a setting whose format and example disagree).
     if f.id == drives::choices::ids::FC41_READ_BACK_FIELDS {
         return matches!(req, Request::VendorRead { .. });
+    }
+    // An FC 0x41 read of S1-S4.
+    if f.id == drives::choices::ids::LMD_INPUT_SETUP_FIELDS {
+        return matches!(req, Request::VendorRead { .. })
+            && f.items
+                .iter()
+                .any(|item| item_touched(item, req, cx.profile));
     }
     match f.kind {
         FreedomKind::Optional | FreedomKind::Access => f
@@ -1537,6 +1545,24 @@ fn field_value(
                 vec![Alternative::exact(
                     Some(o.clone()),
                     shown_named(f, name, "format-count"),
+                )]
+            } else {
+                vec![]
+            }
+        }
+        (
+            drives::choices::ids::LMD_INPUT_SETUP_FIELDS,
+            Response::VendorRead { params: ep },
+            Response::VendorRead { params: op },
+            Some(Request::VendorRead { mnemonic }),
+        ) => {
+            // The example's three values, of which the drive keeps the first two.
+            let (ev, ov) = (parameter_values(ep), parameter_values(op));
+            if ev.len() == 3 && ov.len() == 2 && same_values(&ev[..2], &ov) {
+                let name = mnemonic.name();
+                vec![Alternative::exact(
+                    Some(o.clone()),
+                    shown_named(f, name.trim(), "two"),
                 )]
             } else {
                 vec![]

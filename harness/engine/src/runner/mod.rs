@@ -1930,9 +1930,10 @@ impl Runner {
                 }
                 Step::Agree {
                     registers,
+                    more_registers,
                     object,
                     note,
-                } => steps.push(self.agree(*registers, *object, note)),
+                } => steps.push(self.agree(*registers, more_registers, *object, note)),
                 Step::EventLogShifted {
                     before,
                     after,
@@ -2124,12 +2125,20 @@ impl Runner {
 
     /// A register pair and its mirroring object must hold the same value; registers that mirror discrete
     /// inputs one each (the MDrive/LMD I1-I4) must hold the inputs' states.
-    fn agree(&self, registers: usize, object: usize, note: &str) -> StepResult {
+    fn agree(&self, registers: usize, more: &[usize], object: usize, note: &str) -> StepResult {
         let order = self.profile.device.word_order;
         let kept = |slot: usize| self.slots.get(slot).and_then(Option::as_ref);
         let regs = kept(registers).and_then(Captured::registers);
-        if let (Some(r), Some(inputs)) = (regs, kept(object).and_then(Captured::inputs)) {
-            return inputs_agree(r, inputs, note);
+        if let Some(inputs) = kept(object).and_then(Captured::inputs) {
+            // Every register slot filled, in order (one read's refusal leaves nothing to compare).
+            let all: Option<Vec<u16>> = std::iter::once(registers)
+                .chain(more.iter().copied())
+                .map(|s| kept(s).and_then(Captured::registers).map(<[u16]>::to_vec))
+                .collect::<Option<Vec<_>>>()
+                .map(|v| v.concat());
+            if let Some(r) = all {
+                return inputs_agree(&r, inputs, note);
+            }
         }
         let obj = kept(object).and_then(Captured::object_value);
         let findings = match (regs, obj) {
@@ -2802,14 +2811,16 @@ impl Runner {
     }
 
     /// RTU on a real target: after a frame the drive may still hold (see `send_pieces`), the line's t3.5
-    /// before the next one. Over TCP, where no line sets it, twice the carrier's 50 ms: a drive or device
-    /// server that ends frames after a silence of its own choosing may well choose the same 50 ms, and then
-    /// a request sent after exactly that long races its timer (independent SD2x tests/independent/sd2x-i lost
-    /// the liveness read sent 50.2 ms after the answer to a frame with a byte after its CRC).
+    /// before the next one. Over TCP, where no line sets it, the gap the target URL gives (`?gap=MS`), else
+    /// twice the carrier's 50 ms: a drive or device server that ends frames after a silence of its own
+    /// choosing may well choose the same 50 ms, and then a request sent after exactly that long races its
+    /// timer (independent SD2x tests/independent/sd2x-i lost the liveness read sent 50.2 ms after the answer
+    /// to a frame with a byte after its CRC).
     fn resync_if_due(&mut self) {
         if std::mem::take(&mut self.resync_rtu) {
-            let silence = match self.target.rtu_timing() {
-                Some(t) if t.is_line() => t.t3_5,
+            let silence = match (self.target.rtu_timing(), self.target.resync_gap()) {
+                (Some(t), _) if t.is_line() => t.t3_5,
+                (_, Some(gap)) => gap,
                 _ => codec::RtuTiming::tcp_carrier().t3_5 * 2,
             };
             self.target.idle(silence);

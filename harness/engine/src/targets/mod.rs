@@ -153,6 +153,12 @@ pub trait Target {
         None
     }
 
+    /// RTU over TCP: the silence the device behind the connection needs to end a frame, when the user gave
+    /// it (`rtu+tcp://HOST:PORT?gap=MS`).
+    fn resync_gap(&self) -> Option<Duration> {
+        None
+    }
+
     /// Whether the silence before an answer can be measured on this target (see [`crate::timing`]), and if
     /// not, why.
     fn answer_gap_measurable(&self) -> Result<(), String> {
@@ -176,9 +182,10 @@ pub fn open(
             connect_timeout,
             false,
         )?),
-        TargetUrl::RtuOverTcp { host, port } => {
-            Box::new(net::TcpTarget::connect(host, *port, connect_timeout, true)?)
-        }
+        TargetUrl::RtuOverTcp { host, port, gap_ms } => Box::new(
+            net::TcpTarget::connect(host, *port, connect_timeout, true)?
+                .with_resync_gap(gap_ms.map(|g| Duration::from_millis(u64::from(g)))),
+        ),
         TargetUrl::Serial {
             path,
             baud,

@@ -28,6 +28,8 @@ pub struct TcpTarget {
     /// When the target last sent bytes on this connection, if it has since the harness's last send (nothing
     /// of the harness's is outstanding on it then).
     answered_at: Option<Instant>,
+    /// RTU over TCP: the silence the device needs to end a frame (`?gap=MS`), if given.
+    resync_gap: Option<Duration>,
 }
 
 /// Every address `host` names (a name may have several: `localhost` is 127.0.0.1 and ::1), in the
@@ -88,6 +90,12 @@ fn rtu_over_tcp_timing() -> RtuTiming {
 }
 
 impl TcpTarget {
+    /// RTU over TCP: leave `gap` of silence after a frame the device may still hold (`?gap=MS`).
+    pub fn with_resync_gap(mut self, gap: Option<Duration>) -> Self {
+        self.resync_gap = gap;
+        self
+    }
+
     /// Connect within `timeout`; `rtu` selects RTU-over-TCP framing.
     pub fn connect(
         host: &str,
@@ -118,6 +126,7 @@ impl TcpTarget {
             fin_sent: None,
             fresh: false,
             answered_at: None,
+            resync_gap: None,
         };
         // A name with several addresses: the first that takes a connection is the target (as
         // `TcpStream::connect` does); where none does, the first is tried again as below.
@@ -313,6 +322,10 @@ impl Drop for TcpTarget {
 }
 
 impl Target for TcpTarget {
+    fn resync_gap(&self) -> Option<Duration> {
+        self.resync_gap.filter(|_| self.rtu)
+    }
+
     fn end_sending(&mut self) -> Result<bool, TargetError> {
         let Some(s) = self.stream.as_ref() else {
             return Ok(false);

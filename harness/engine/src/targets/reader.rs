@@ -42,6 +42,17 @@ impl FrameReader {
         }
     }
 
+    /// An RTU reader for answers read through a host's serial port on a line with `timing`: a frame the
+    /// length rules say is not complete waits `wait` for its next byte (see
+    /// [`RtuFramer::with_incomplete_wait`]).
+    pub fn rtu_through_host(timing: RtuTiming, wait: Duration) -> Self {
+        FrameReader::Rtu {
+            framer: RtuFramer::new(Direction::Response, timing, Vec::new())
+                .with_incomplete_wait(wait),
+            ready: VecDeque::new(),
+        }
+    }
+
     fn take_events(ready: &mut VecDeque<Received>, evs: Vec<FramerEvent>) {
         for ev in evs {
             ready.push_back(match ev {

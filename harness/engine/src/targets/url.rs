@@ -1,4 +1,4 @@
-//! Target URLs: `tcp://host:port`, `rtu+tcp://host:port`, `rtu:///dev/ttyX?baud=..&parity=..&stop=..&echo=..`,
+//! Target URLs: `tcp://host:port`, `rtu+tcp://host:port[?gap=MS]`, `rtu:///dev/ttyX?baud=..&parity=..&stop=..&echo=..`,
 //! `sim:PROFILE`
 //! (`PROFILE` a corpus profile's name or a profile file: `sim:./my.toml`, `sim:/abs/x.toml?transport=rtu`).
 
@@ -11,8 +11,14 @@ use codec::{CharFormat, Parity};
 pub enum TargetUrl {
     /// Modbus/TCP.
     Tcp { host: String, port: u16 },
-    /// RTU frames over a TCP connection (serial gateways, `simulate --rtu-over-tcp`).
-    RtuOverTcp { host: String, port: u16 },
+    /// RTU frames over a TCP connection (serial gateways, `simulate --rtu-over-tcp`). `gap_ms` (`?gap=MS`):
+    /// the silence the device behind the connection needs to end a frame (a device server's or drive's own
+    /// frame timeout), left after a frame it may still hold; `None`: twice the carrier's 50 ms.
+    RtuOverTcp {
+        host: String,
+        port: u16,
+        gap_ms: Option<u32>,
+    },
     /// RTU on a serial device.
     Serial {
         path: String,
@@ -31,7 +37,7 @@ pub enum TargetUrl {
 /// Why a target URL was rejected.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
 #[error(
-    "bad target `{url}`: {reason}\n  expected one of: tcp://HOST:PORT, rtu+tcp://HOST:PORT, rtu:///dev/ttyUSB0?baud=19200&parity=even&stop=1, sim:PROFILE, sim:PATH.toml"
+    "bad target `{url}`: {reason}\n  expected one of: tcp://HOST:PORT, rtu+tcp://HOST:PORT?gap=MS, rtu:///dev/ttyUSB0?baud=19200&parity=even&stop=1, sim:PROFILE, sim:PATH.toml"
 )]
 pub struct UrlError {
     pub url: String,
@@ -82,6 +88,21 @@ fn host_port(url: &str, rest: &str) -> Result<(String, u16), UrlError> {
     Ok((host, port))
 }
 
+/// The `key=value` pairs of a URL's query (`a=1&b=2`), each checked to be one.
+fn query_pairs(
+    query: &str,
+    err: impl Fn(String) -> UrlError,
+) -> Result<Vec<(&str, &str)>, UrlError> {
+    query
+        .split('&')
+        .filter(|s| !s.is_empty())
+        .map(|kv| {
+            kv.split_once('=')
+                .ok_or_else(|| err(format!("`{kv}` is not key=value")))
+        })
+        .collect()
+}
+
 impl TargetUrl {
     /// Parse a target URL, naming precisely what is wrong.
     pub fn parse(url: &str) -> Result<Self, UrlError> {
@@ -117,8 +138,27 @@ impl TargetUrl {
             return Ok(TargetUrl::Tcp { host, port });
         }
         if let Some(rest) = url.strip_prefix("rtu+tcp://") {
+            let (rest, query) = rest.split_once('?').unwrap_or((rest, ""));
             let (host, port) = host_port(url, rest)?;
-            return Ok(TargetUrl::RtuOverTcp { host, port });
+            let mut gap_ms = None;
+            for (k, v) in query_pairs(query, err)? {
+                match k {
+                    "gap" => {
+                        gap_ms = Some(
+                            v.parse::<u32>()
+                                .ok()
+                                .filter(|g| (1..=10_000).contains(g))
+                                .ok_or_else(|| {
+                                    err(format!(
+                                        "gap `{v}` is not a number of milliseconds from 1 to 10000 (the silence the device behind the connection needs to end a frame)"
+                                    ))
+                                })?,
+                        )
+                    }
+                    _ => return Err(err(format!("unknown rtu+tcp option `{k}` (gap)"))),
+                }
+            }
+            return Ok(TargetUrl::RtuOverTcp { host, port, gap_ms });
         }
         if let Some(rest) = url.strip_prefix("rtu://") {
             let (path, query) = rest.split_once('?').unwrap_or((rest, ""));
@@ -128,10 +168,7 @@ impl TargetUrl {
                 ));
             }
             let (mut baud, mut parity, mut stop, mut echo) = (19_200u32, Parity::Even, 1u8, false);
-            for kv in query.split('&').filter(|s| !s.is_empty()) {
-                let (k, v) = kv
-                    .split_once('=')
-                    .ok_or_else(|| err(format!("`{kv}` is not key=value")))?;
+            for (k, v) in query_pairs(query, err)? {
                 match k {
                     "baud" => {
                         baud = v
@@ -200,10 +237,17 @@ impl fmt::Display for TargetUrl {
                 write!(f, "tcp://[{host}]:{port}")
             }
             TargetUrl::Tcp { host, port } => write!(f, "tcp://{host}:{port}"),
-            TargetUrl::RtuOverTcp { host, port } if host.contains(':') => {
-                write!(f, "rtu+tcp://[{host}]:{port}")
+            TargetUrl::RtuOverTcp { host, port, gap_ms } => {
+                if host.contains(':') {
+                    write!(f, "rtu+tcp://[{host}]:{port}")?;
+                } else {
+                    write!(f, "rtu+tcp://{host}:{port}")?;
+                }
+                match gap_ms {
+                    Some(g) => write!(f, "?gap={g}"),
+                    None => Ok(()),
+                }
             }
-            TargetUrl::RtuOverTcp { host, port } => write!(f, "rtu+tcp://{host}:{port}"),
             TargetUrl::Serial {
                 path,
                 baud,
@@ -241,6 +285,17 @@ impl fmt::Display for TargetUrl {
 mod tests {
     use super::TargetUrl;
 
+    /// `url` parses as `want`, and prints as something that parses the same.
+    fn parses_and_prints(url: &str, want: &TargetUrl) {
+        let got = TargetUrl::parse(url).unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(&got, want, "{url}");
+        assert_eq!(
+            TargetUrl::parse(&got.to_string()).as_ref(),
+            Ok(&got),
+            "{url} prints as it parses"
+        );
+    }
+
     #[test]
     fn sim_targets_take_a_profile_name_or_a_file() {
         let sim = |profile: &str, rtu| TargetUrl::Sim {
@@ -261,13 +316,7 @@ mod tests {
             ),
             ("sim:///abs/x.toml", sim("/abs/x.toml", None)),
         ] {
-            let got = TargetUrl::parse(url).unwrap_or_else(|e| panic!("{e}"));
-            assert_eq!(got, want, "{url}");
-            assert_eq!(
-                TargetUrl::parse(&got.to_string()).as_ref(),
-                Ok(&got),
-                "{url} prints as it parses"
-            );
+            parses_and_prints(url, &want);
         }
         let e = TargetUrl::parse("sim:").unwrap_err();
         assert!(e.reason.contains("sim:./my.toml"), "{e}");
@@ -300,5 +349,44 @@ mod tests {
         assert!(e.reason.contains("echo `maybe` is not on or off"), "{e}");
         let e = TargetUrl::parse("rtu:///dev/ttyUSB0?loopback=1").unwrap_err();
         assert!(e.reason.contains("(baud, parity, stop, echo)"), "{e}");
+    }
+
+    #[test]
+    fn rtu_over_tcp_targets_take_the_devices_frame_gap() {
+        let rtu_tcp = |host: &str, port, gap_ms| TargetUrl::RtuOverTcp {
+            host: host.into(),
+            port,
+            gap_ms,
+        };
+        for (url, want) in [
+            ("rtu+tcp://127.0.0.1:4001", rtu_tcp("127.0.0.1", 4001, None)),
+            (
+                "rtu+tcp://127.0.0.1:4001?gap=250",
+                rtu_tcp("127.0.0.1", 4001, Some(250)),
+            ),
+            ("rtu+tcp://[::1]?gap=20", rtu_tcp("::1", 502, Some(20))),
+            (
+                "rtu+tcp://localhost/?gap=5",
+                rtu_tcp("localhost", 502, Some(5)),
+            ),
+        ] {
+            parses_and_prints(url, &want);
+        }
+        for (url, says) in [
+            ("rtu+tcp://127.0.0.1:4001?gap=0", "gap `0` is not a number"),
+            (
+                "rtu+tcp://127.0.0.1:4001?gap=2s",
+                "gap `2s` is not a number",
+            ),
+            ("rtu+tcp://127.0.0.1:4001?gap", "`gap` is not key=value"),
+            (
+                "rtu+tcp://127.0.0.1:4001?baud=9600",
+                "unknown rtu+tcp option `baud` (gap)",
+            ),
+            ("rtu+tcp://?gap=5", "no host"),
+        ] {
+            let e = TargetUrl::parse(url).unwrap_err();
+            assert!(e.reason.contains(says), "{url}: {e}");
+        }
     }
 }

@@ -105,7 +105,7 @@ fn views_agree(cx: &mut Ctx) {
             vec![
                 capture(Outgoing::Pdu(read_reg), Compare::InRange, 0, "read the register pair"),
                 capture(Outgoing::Pdu(read_obj), Compare::Structure, 1, "read the object"),
-                Step::Agree { registers: 0, object: 1, note: "both views agree".into() },
+                Step::Agree { registers: 0, more_registers: vec![], object: 1, note: "both views agree".into() },
             ],
         );
     }

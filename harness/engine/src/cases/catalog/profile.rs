@@ -16,6 +16,7 @@ use drives::profile::{Register, Table};
 pub(super) fn cases(cx: &mut Ctx) {
     registers(cx);
     half_registers(cx);
+    multi_item_read(cx);
     reserved(cx);
     coils(cx);
     outputs_of_input_points(cx);
@@ -591,33 +592,41 @@ fn inputs_agree_with_registers(cx: &mut Ctx) {
     {
         return;
     }
-    // Two at a time: both manuals' prose says no more than two consecutive registers per request (MDrive
-    // line 616, LMD line 900), and the FC 02 read of the same two inputs is compared with them.
+    // Two inputs at a time, each register read alone: both manuals' prose says a parameter needs no more than
+    // one request (MDrive lines 616 and 660, LMD lines 898-902), and a drive may refuse a read over two
+    // (`multi-item-access`); the FC 02 read of the same two inputs is compared with both registers, so that
+    // the two inputs' order is seen.
     let mut steps = Vec::new();
-    for (c, k) in (0..n).step_by(2).enumerate() {
-        let quantity = (n - k).min(2) as u16;
-        let (regs, bits) = (2 * c, 2 * c + 1);
-        steps.push(capture(
-            Outgoing::Pdu(pdu(&cx.read_request(
-                start + k as u16,
-                quantity,
-                Table::Holding,
-            ))),
-            Compare::InRange,
-            regs,
-            format!("read I{}-I{}", k + 1, k + usize::from(quantity)),
-        ));
+    let mut slot = 0;
+    for k in (0..n).step_by(2) {
+        let quantity = (n - k).min(2);
+        let regs: Vec<usize> = (slot..slot + quantity).collect();
+        let bits = slot + quantity;
+        slot = bits + 1;
+        for (j, &s) in regs.iter().enumerate() {
+            steps.push(capture(
+                Outgoing::Pdu(pdu(&cx.read_request(
+                    start + (k + j) as u16,
+                    1,
+                    Table::Holding,
+                ))),
+                Compare::InRange,
+                s,
+                format!("read I{}", k + j + 1),
+            ));
+        }
         steps.push(capture(
             Outgoing::Pdu(pdu(&Request::ReadDiscreteInputs {
                 address: first + k as u16,
-                quantity,
+                quantity: quantity as u16,
             })),
             Compare::Structure,
             bits,
-            format!("read inputs {}-{}", k + 1, k + usize::from(quantity)),
+            format!("read inputs {}-{}", k + 1, k + quantity),
         ));
         steps.push(Step::Agree {
-            registers: regs,
+            registers: regs[0],
+            more_registers: regs[1..].to_vec(),
             object: bits,
             note: "each input has its register's state".into(),
         });
@@ -972,6 +981,66 @@ fn half_registers(cx: &mut Ctx) {
             steps,
         );
     }
+}
+
+/// A read over two items of the register map in one request (freedom `multi-item-access`: both manuals say
+/// a parameter needs no more than one request, MDrive line 616, LMD lines 898-902; the spec allows 02, 03 or
+/// 04 for "the combination of reference number and transfer length is invalid"). Two adjacent plain
+/// parameters, within the device's quantity limit; any admissible answer passes, and the choice log holds
+/// the drive to it for every other such read or write.
+fn multi_item_read(cx: &mut Ctx) {
+    let p = cx.p;
+    let pid = &p.device.id;
+    let applies = drives::corpus::Corpus::Embedded
+        .requirements_shared()
+        .is_ok_and(|r| {
+            r.freedom(drives::choices::ids::MULTI_ITEM_ACCESS)
+                .is_some_and(|f| f.applies_to(pid))
+        });
+    let limit = p
+        .function(FunctionCode::READ_HOLDING_REGISTERS)
+        .and_then(|f| f.max_quantity)
+        .unwrap_or(125);
+    if !applies || !cx.supports(FunctionCode::READ_HOLDING_REGISTERS) {
+        return;
+    }
+    let plain = |r: &Register| {
+        r.confirmed
+            && r.table != Table::Input
+            && r.access.readable()
+            && !r.read_clears
+            && !r.width_disputed
+            && !freedom_item(Some(r.address), None)
+    };
+    let regs: Vec<&Register> = p.registers.iter().map(|r| r.get_ref()).collect();
+    let Some((a, b)) = regs.iter().find_map(|a| {
+        let b = regs.iter().find(|b| u32::from(b.address) == a.end())?;
+        (plain(a) && plain(b) && u16::from(a.width) + u16::from(b.width) <= limit)
+            .then_some((*a, *b))
+    }) else {
+        return;
+    };
+    let quantity = u16::from(a.width) + u16::from(b.width);
+    cx.push(
+        format!("profile/{pid}/multi-item/read/{}-{}", reg_slug(a), reg_slug(b)),
+        format!("read {} and {} in one request", a.name, b.name),
+        format!(
+            "{} register map: 0x{:04X} {} and 0x{:04X} {}; spec §7 exception 02",
+            p.device.name, a.address, a.name, b.address, b.name
+        ),
+        format!(
+            "A read of the two parameters 0x{:04X}-0x{:04X} in one request is answered with both, or refused \
+             with 02, 03 or 04; the drive gives the same answer to every read or write over several parameters.",
+            a.address,
+            u32::from(a.address) + u32::from(quantity) - 1
+        ),
+        vec![],
+        vec![exchange(
+            Outgoing::Pdu(pdu(&cx.read_request(a.address, quantity, Table::Holding))),
+            Compare::Structure,
+            "both parameters",
+        )],
+    );
 }
 
 /// FC 0x41 of a write-only mnemonic and FC 0x42 of a read-only one (freedom `mnemonic-access-exception`:

@@ -271,8 +271,10 @@ fn writable_by_freedom(profile: &Profile) -> BTreeSet<u16> {
         .collect()
 }
 
-/// Why an entry is left out: `draft` (the reason, for a draft entry not confirmed), read-only, write-only (it
-/// cannot be read back), or what `gated` says of a read/write entry.
+/// Why an entry is left out: `draft` (the reason, for a draft entry not confirmed), read-only, write-only (the
+/// manual gives no read of it; a drive that reads back an instruction's last operand, as an independent LMD
+/// does with MA, MR, SL, HI and HM, would run the instruction again if it were written back), or what `gated`
+/// says of a read/write entry.
 fn access_reason(
     draft: Option<&str>,
     access: Access,
@@ -283,7 +285,10 @@ fn access_reason(
     }
     match access {
         Access::Ro => Some("read-only".to_string()),
-        Access::Wo => Some("write-only: cannot be read back".to_string()),
+        Access::Wo => Some(
+            "write-only by the manual: not read, and not written back (a write runs it again)"
+                .to_string(),
+        ),
         Access::Rw => gated(),
     }
 }

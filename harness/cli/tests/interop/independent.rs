@@ -922,7 +922,7 @@ fn generated_runs_leave_the_eighth_wave_as_found() {
 /// The last motion commands an LMD of the ninth wave reads back (MA, MR and SL "read back the last command",
 /// tests/independent/lmd-i/DECISIONS.md; HI and HM likewise): a run allowed to move sends them, and putting
 /// them back would send the command again (HI and HM have no value 0 to send). The harness leaves them out
-/// of what it keeps, saying why ("write-only: cannot be read back" by the manual's table).
+/// of what it keeps, saying why ("write-only by the manual: not read, and not written back" by the manual's table).
 const LMD_I_COMMANDS_READ_BACK: [&str; 7] = [
     "/holding_registers/0x002A",
     "/holding_registers/0x002B",

@@ -84,7 +84,8 @@ Exit codes:
 pub struct RunArgs {
     /// The endpoint: tcp://HOST:PORT, rtu+tcp://HOST:PORT[?gap=MS] (gap: the silence the device server or drive
     /// needs to end a frame, left after a frame it may still hold; default 100), rtu:///dev/ttyX?baud=19200&parity=even&stop=1
-    /// (add &echo=on for a two-wire RS-485 adapter that gives back what it sends), or sim:PROFILE (the in-process reference drive of a corpus profile, or of a profile file:
+    /// (add &byte_timeout=MS for how long an answer that is not complete waits for its next byte, default 50:
+    /// a USB adapter hands over bytes when its latency timer runs out; add &echo=on for a two-wire RS-485 adapter that gives back what it sends), or sim:PROFILE (the in-process reference drive of a corpus profile, or of a profile file:
     /// sim:./my.toml, sim:/abs/x.toml?transport=rtu).
     #[arg(long, default_value = "sim:sd2x")]
     target: String,

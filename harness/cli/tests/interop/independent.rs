@@ -1009,7 +1009,7 @@ fn generated_runs_pass_the_ninth_wave_sd2x() {
 /// `multi-item-access`) and, with the flags, S1-S4 read back with the two values an LMD input setting has
 /// (`lmd-input-setup-fields`); on a serial line the SD2x's answers, paced byte by byte through socat, came
 /// to the host with pauses past t3.5, and the harness cut them (32 FAIL): a frame its length rules say is
-/// incomplete now waits 20 ms for its next byte, as behind a USB adapter's latency timer.
+/// incomplete now waits 50 ms for its next byte, as behind a USB adapter's latency timer.
 #[test]
 fn the_catalogs_pass_the_tenth_wave_and_leave_it_as_found() {
     let all = ["--allow-motion", "--allow-destructive"];

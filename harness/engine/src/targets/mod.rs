@@ -191,7 +191,12 @@ pub fn open(
             baud,
             format,
             echo,
-        } => Box::new(serial::SerialTarget::open(path, *baud, *format)?.with_echo(*echo)),
+            byte_timeout_ms,
+        } => Box::new(
+            serial::SerialTarget::open(path, *baud, *format)?
+                .with_echo(*echo)
+                .with_byte_timeout(byte_timeout_ms.map(|t| Duration::from_millis(u64::from(t)))),
+        ),
         TargetUrl::Sim { profile, rtu } => {
             // The drive under test: nobody takes its decisions (the reference's are the oracle's).
             let station = sim_station(profile)?.forgetting_decisions();

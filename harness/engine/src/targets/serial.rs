@@ -34,7 +34,8 @@ const ECHO_ALLOWANCE: Duration = Duration::from_millis(100);
 /// line carried whole in pieces, a USB adapter handing over what it received when its latency timer runs
 /// out (16 ms by default on FTDI chips), a pseudo-terminal when its writer is paced or the machine busy.
 /// The line's own timing (t1.5 between characters) is the drive's to keep, and the host cannot see it.
-pub const HOST_BYTE_TIMEOUT: Duration = Duration::from_millis(20);
+/// 50 ms: the FTDI default with room for a busy host; `byte_timeout=MS` in the URL sets another.
+pub const HOST_BYTE_TIMEOUT: Duration = Duration::from_millis(50);
 
 /// The local echo still due.
 #[derive(Debug, Default)]
@@ -105,6 +106,15 @@ impl SerialTarget {
             reader: FrameReader::rtu_through_host(timing, HOST_BYTE_TIMEOUT),
             echo: None,
         })
+    }
+
+    /// Wait `timeout` (instead of [`HOST_BYTE_TIMEOUT`]) for the next byte of an answer the length rules say
+    /// is not complete (`byte_timeout=MS`: an adapter whose latency timer is set longer).
+    pub fn with_byte_timeout(mut self, timeout: Option<Duration>) -> Self {
+        if let Some(t) = timeout {
+            self.reader = FrameReader::rtu_through_host(self.timing, t);
+        }
+        self
     }
 
     /// Expect the line to give back every byte sent (`echo=on`).
@@ -454,7 +464,7 @@ pub(crate) mod tests {
         });
         assert_eq!(frame(t.recv(Duration::from_secs(1)).expect("recv")), answer);
         paced.join().expect("the writer");
-        // Cut after 5 of its 9 bytes: garbage once 20 ms pass without the rest, not a frame.
+        // Cut after 5 of its 9 bytes: garbage once the host's wait passes without the rest, not a frame.
         t.send(&read).expect("send");
         sent(&mut master, read.len());
         master.write_all(&answer[..5]).expect("the first bytes");
@@ -479,6 +489,20 @@ pub(crate) mod tests {
             "{:?}",
             started.elapsed()
         );
+        // `byte_timeout=200`: pieces 100 ms apart are still one answer.
+        let (t, mut master, _slave) = line(false);
+        let mut t = t.with_byte_timeout(Some(Duration::from_millis(200)));
+        t.send(&read).expect("send");
+        sent(&mut master, read.len());
+        let mut writer = master.try_clone_native().expect("a second handle");
+        let pieces = answer.clone();
+        let paced = std::thread::spawn(move || {
+            writer.write_all(&pieces[..4]).expect("the first piece");
+            std::thread::sleep(Duration::from_millis(100));
+            writer.write_all(&pieces[4..]).expect("the rest");
+        });
+        assert_eq!(frame(t.recv(Duration::from_secs(1)).expect("recv")), answer);
+        paced.join().expect("the writer");
     }
 
     /// Without echo=on the echo is what the target hears first: the frame the cases would judge (which is why

@@ -1,4 +1,4 @@
-//! Target URLs: `tcp://host:port`, `rtu+tcp://host:port[?gap=MS]`, `rtu:///dev/ttyX?baud=..&parity=..&stop=..&echo=..`,
+//! Target URLs: `tcp://host:port`, `rtu+tcp://host:port[?gap=MS]`, `rtu:///dev/ttyX?baud=..&parity=..&stop=..&echo=..&byte_timeout=..`,
 //! `sim:PROFILE`
 //! (`PROFILE` a corpus profile's name or a profile file: `sim:./my.toml`, `sim:/abs/x.toml?transport=rtu`).
 
@@ -27,6 +27,9 @@ pub enum TargetUrl {
         /// The line gives back what the harness sends (`echo=on`: a two-wire RS-485 adapter that hears its
         /// own transmitter); each request's echo is checked and dropped before the answer is read.
         echo: bool,
+        /// How long an answer the length rules say is incomplete waits for its next byte, in ms
+        /// (`byte_timeout=MS`; `None`: [`super::serial::HOST_BYTE_TIMEOUT`]).
+        byte_timeout_ms: Option<u32>,
     },
     /// The in-process reference drive of a profile (no sockets, virtual clock); `rtu` overrides the
     /// profile's native framing (`sim:generic?transport=rtu`). `profile` is a corpus name or a file path
@@ -103,6 +106,23 @@ fn query_pairs(
         .collect()
 }
 
+/// The value of option `key` as a number of milliseconds from 1 to 10,000; `what` says what it sets.
+fn millis(
+    key: &str,
+    v: &str,
+    what: &str,
+    err: impl Fn(String) -> UrlError,
+) -> Result<u32, UrlError> {
+    v.parse::<u32>()
+        .ok()
+        .filter(|t| (1..=10_000).contains(t))
+        .ok_or_else(|| {
+            err(format!(
+                "{key} `{v}` is not a number of milliseconds from 1 to 10000 ({what})"
+            ))
+        })
+}
+
 impl TargetUrl {
     /// Parse a target URL, naming precisely what is wrong.
     pub fn parse(url: &str) -> Result<Self, UrlError> {
@@ -144,16 +164,9 @@ impl TargetUrl {
             for (k, v) in query_pairs(query, err)? {
                 match k {
                     "gap" => {
-                        gap_ms = Some(
-                            v.parse::<u32>()
-                                .ok()
-                                .filter(|g| (1..=10_000).contains(g))
-                                .ok_or_else(|| {
-                                    err(format!(
-                                        "gap `{v}` is not a number of milliseconds from 1 to 10000 (the silence the device behind the connection needs to end a frame)"
-                                    ))
-                                })?,
-                        )
+                        let what =
+                            "the silence the device behind the connection needs to end a frame";
+                        gap_ms = Some(millis(k, v, what, err)?);
                     }
                     _ => return Err(err(format!("unknown rtu+tcp option `{k}` (gap)"))),
                 }
@@ -168,6 +181,7 @@ impl TargetUrl {
                 ));
             }
             let (mut baud, mut parity, mut stop, mut echo) = (19_200u32, Parity::Even, 1u8, false);
+            let mut byte_timeout_ms = None;
             for (k, v) in query_pairs(query, err)? {
                 match k {
                     "baud" => {
@@ -201,9 +215,14 @@ impl TargetUrl {
                             _ => return Err(err(format!("echo `{v}` is not on or off"))),
                         }
                     }
+                    "byte_timeout" => {
+                        let what =
+                            "how long an answer that is not complete waits for its next byte";
+                        byte_timeout_ms = Some(millis(k, v, what, err)?);
+                    }
                     _ => {
                         return Err(err(format!(
-                            "unknown option `{k}` (baud, parity, stop, echo)"
+                            "unknown option `{k}` (baud, parity, stop, echo, byte_timeout)"
                         )));
                     }
                 }
@@ -216,6 +235,7 @@ impl TargetUrl {
                     stop_bits: stop,
                 },
                 echo,
+                byte_timeout_ms,
             });
         }
         Err(err(match url.split_once("://") {
@@ -253,6 +273,7 @@ impl fmt::Display for TargetUrl {
                 baud,
                 format,
                 echo,
+                byte_timeout_ms,
             } => {
                 let p = match format.parity {
                     Parity::None => "none",
@@ -264,7 +285,11 @@ impl fmt::Display for TargetUrl {
                     "rtu://{path}?baud={baud}&parity={p}&stop={}{}",
                     format.stop_bits,
                     if *echo { "&echo=on" } else { "" }
-                )
+                )?;
+                match byte_timeout_ms {
+                    Some(t) => write!(f, "&byte_timeout={t}"),
+                    None => Ok(()),
+                }
             }
             TargetUrl::Sim { profile, rtu: None } => write!(f, "sim:{profile}"),
             TargetUrl::Sim {
@@ -339,6 +364,7 @@ mod tests {
                     stop_bits: 2
                 },
                 echo: true,
+                byte_timeout_ms: None,
             }
         );
         assert_eq!(TargetUrl::parse(&got.to_string()).as_ref(), Ok(&got));
@@ -348,7 +374,23 @@ mod tests {
         let e = TargetUrl::parse("rtu:///dev/ttyUSB0?echo=maybe").unwrap_err();
         assert!(e.reason.contains("echo `maybe` is not on or off"), "{e}");
         let e = TargetUrl::parse("rtu:///dev/ttyUSB0?loopback=1").unwrap_err();
-        assert!(e.reason.contains("(baud, parity, stop, echo)"), "{e}");
+        assert!(
+            e.reason
+                .contains("(baud, parity, stop, echo, byte_timeout)"),
+            "{e}"
+        );
+        let slow = TargetUrl::parse("rtu:///dev/ttyUSB0?byte_timeout=64")
+            .unwrap_or_else(|e| panic!("{e}"));
+        assert!(matches!(
+            slow,
+            TargetUrl::Serial {
+                byte_timeout_ms: Some(64),
+                ..
+            }
+        ));
+        assert_eq!(TargetUrl::parse(&slow.to_string()).as_ref(), Ok(&slow));
+        let e = TargetUrl::parse("rtu:///dev/ttyUSB0?byte_timeout=0").unwrap_err();
+        assert!(e.reason.contains("byte_timeout `0` is not a number"), "{e}");
     }
 
     #[test]

@@ -1156,4 +1156,11 @@ impl Corpus {
             Corpus::Dir(_) => Ok(Arc::new(self.requirements()?)),
         }
     }
+
+    /// True when the corpus has freedom `id` and it applies to profile `profile` (false when the
+    /// requirements do not load).
+    pub fn freedom_applies(&self, id: &str, profile: &str) -> bool {
+        self.requirements_shared()
+            .is_ok_and(|r| r.freedom(id).is_some_and(|f| f.applies_to(profile)))
+    }
 }

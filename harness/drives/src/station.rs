@@ -1838,13 +1838,9 @@ impl Station {
         if quantity < 2 || quantity > limit {
             return false;
         }
-        let applies = crate::corpus::Corpus::Embedded
-            .requirements_shared()
-            .is_ok_and(|r| {
-                r.freedom(ids::MULTI_ITEM_ACCESS)
-                    .is_some_and(|f| f.applies_to(&profile.device.id))
-            });
-        if !applies {
+        if !crate::corpus::Corpus::Embedded
+            .freedom_applies(ids::MULTI_ITEM_ACCESS, &profile.device.id)
+        {
             return false;
         }
         let end = u32::from(address) + u32::from(quantity);

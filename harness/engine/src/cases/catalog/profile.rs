@@ -992,11 +992,7 @@ fn multi_item_read(cx: &mut Ctx) {
     let p = cx.p;
     let pid = &p.device.id;
     let applies = drives::corpus::Corpus::Embedded
-        .requirements_shared()
-        .is_ok_and(|r| {
-            r.freedom(drives::choices::ids::MULTI_ITEM_ACCESS)
-                .is_some_and(|f| f.applies_to(pid))
-        });
+        .freedom_applies(drives::choices::ids::MULTI_ITEM_ACCESS, pid);
     let limit = p
         .function(FunctionCode::READ_HOLDING_REGISTERS)
         .and_then(|f| f.max_quantity)

@@ -218,6 +218,7 @@ fn case_ops(p: &Profile, steps: &[Step]) -> Vec<u8> {
             Step::Reconnect
             | Step::Agree { .. }
             | Step::EventLogShifted { .. }
+            | Step::ClearedUnlessFlagged { .. }
             | Step::Until { .. } => {}
         }
     }

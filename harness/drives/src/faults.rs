@@ -77,6 +77,7 @@ pub enum Fault {
     MeiTypeServed,
     NulPaddingBusy,
     SdoErrorOrderInconsistent,
+    ErrorRecordKept,
 }
 
 impl Fault {
@@ -426,6 +427,11 @@ impl Fault {
             Fault::SdoErrorOrderInconsistent,
             "sdo-error-order-inconsistent",
             "SD2x FC 43: SDO error codes answering a write go in the printed order, those answering a read little-endian: each order is admissible (sd2x-sdo-error-byte-order), the two together are not one choice",
+        ),
+        (
+            Fault::ErrorRecordKept,
+            "error-record-kept",
+            "MDrive/LMD: ER holds the code of a past error (86) while EF reads 0 (no error condition now), and a write of 0 to ER is acknowledged but not applied: the record survives the clear the manual gives it (\"must be read or set to 0 to clear\")",
         ),
     ];
 

@@ -310,6 +310,10 @@ pub struct Register {
     /// A read clears it (the MCode error code ER: "must be read or set to 0 to clear"): the safety classifier
     /// rates a read of it destructive, as it rates a write.
     pub read_clears: bool,
+    /// An error record (MCode ER) whose drive says with this register (MCode EF, 0 or 1) whether an error
+    /// condition exists now: while the flag is set, the drive may record the error again right after a
+    /// clear, so a record read back non-zero after its clear is judged with the flag.
+    pub condition_flag: Option<u16>,
     /// A write of it puts the drive's settings back to their initial values (the LMD's IP, "Reset all
     /// parameters to initial values", 001 line 2172): it changes every setting a session keeps.
     pub resets_settings: bool,
@@ -914,6 +918,21 @@ impl Profile {
                     at,
                     format!(
                         "register 0x{:04X} `{}`: runs past address 0xFFFF",
+                        reg.address, reg.name
+                    ),
+                ));
+            }
+            if let Some(flag) = reg.condition_flag
+                && !self
+                    .registers
+                    .iter()
+                    .map(|r| r.get_ref())
+                    .any(|f| f.address == flag && f.width == 1 && f.access.readable())
+            {
+                return Err((
+                    at,
+                    format!(
+                        "register 0x{:04X} `{}`: condition_flag 0x{flag:04X} is not a readable one-register register of the profile",
                         reg.address, reg.name
                     ),
                 ));

@@ -1042,3 +1042,67 @@ fn the_catalogs_pass_the_tenth_wave_and_leave_it_as_found() {
     let (code, out) = run_on_serial_leaving_as_found("sd2x-j", &all);
     assert_strict_pass("sd2x-j", code, &out);
 }
+
+/// The eleventh wave (BRIEF-k.md): drives on a bench in a state that is not ready, written by three more
+/// authors from the manuals. The MDrive Hybrid carries a latched locked-rotor fault (LR 1, EF 1, ER 86, the
+/// bridge off) that only CF clears; the LMD has its logic supply only (EF 1, ER 120 recorded again at once
+/// after any clear, the motor supply missing); the SD2x is in the CiA 402 fault state with a latched
+/// watchdog error (status 0x7038, error code 0x8130) that a fault reset clears. Without the flags the
+/// catalogs PASS and leave every fault, flag and code as found. With them every case runs and PASSes: before
+/// the fixes the MDrive's and the LMD's write of 0 to ER FAILed, read back non-zero, which a drive whose
+/// error condition is still there (EF 1) may do (`Step::ClearedUnlessFlagged`: now INFORMATIONAL where EF
+/// reads 1, FAIL where it reads 0); and the SD2x's watchdog case FAILed, its fault reset written in the same
+/// FC 16 as the watchdog's 0, which that drive applied after the reset (the watchdog now goes off in a write
+/// of its own first). With the flags the cases that clear a fault clear it, by design: the MDrive's CF
+/// (motion, destructive) and the SD2x's fault reset.
+#[test]
+fn the_catalogs_pass_the_eleventh_wave_and_leave_its_faults_as_found() {
+    for (drive, scheme) in [("mdrive-k", "tcp"), ("lmd-k", "tcp"), ("sd2x-k", "rtu+tcp")] {
+        let (code, out) = run_leaving_as_found(drive, scheme, &[]);
+        assert_strict_pass(drive, code, &out);
+    }
+    let all = ["--allow-motion", "--allow-destructive"];
+    // What CF (the MDrive's clear of the locked rotor) and the SD2x's fault reset change on purpose.
+    let mdrive_cleared = [
+        "/registers/0x001F",
+        "/registers/0x0021",
+        "/registers/0x008F",
+        "/registers/0x0099",
+        "/registers/0x009B",
+        "/status/",
+    ];
+    let sd2x_reset = [
+        "/drive_status/",
+        "/input_registers_txpdo/2000",
+        "/input_registers_txpdo/2005",
+        "/objects/67/",
+        "/objects/70/",
+        "/registers/2000",
+        "/registers/2005",
+    ];
+    let runs: [(&str, &str, &[&str]); 3] = [
+        ("mdrive-k", "tcp", &mdrive_cleared),
+        ("lmd-k", "tcp", &[]),
+        ("sd2x-k", "rtu+tcp", &sd2x_reset),
+    ];
+    for (drive, scheme, by_design) in runs {
+        let (code, out) = run_leaving_as_found_but(drive, &[], scheme, &all, by_design);
+        assert_strict_pass(drive, code, &out);
+    }
+    // The write of 0 to ER alone, the fault still latched: read back 86 with EF 1, which the case takes as
+    // the condition recorded again (INFORMATIONAL), not as a record that survived its clear.
+    let (code, out) = run_leaving_as_found(
+        "mdrive-k",
+        "tcp",
+        &[
+            "--allow-destructive",
+            "--cases",
+            "profile/mdrive/write/0x0021-er",
+        ],
+    );
+    assert_pass("mdrive-k", code, &out);
+    assert!(
+        out.contains("RESULT: PASS (1 INFORMATIONAL)"),
+        "mdrive-k: the ER case did not see the error recorded again\n{out}"
+    );
+}

@@ -116,6 +116,9 @@ const MDRIVE_IO_TYPES: &[i64] = &[0, 1, 2, 3, 5, 7, 8, 11, 16, 17, 18, 20, 21, 2
 const LMD_INPUT_TYPES: &[i64] = &[0, 1, 2, 3, 5, 7, 8, 11, 12];
 
 /// LMD IS: lines 1-4 take the digital input types, line 5 (analog) 9 voltage / 10 current (001 lines 1437-1484).
+/// The error code `Fault::ErrorRecordKept` leaves in ER (any non-zero code would do).
+const PAST_ERROR_CODE: i64 = 86;
+
 fn lmd_input_setup_ok(v: &[i64]) -> bool {
     match v {
         [5, mode, ..] => *mode == 9 || *mode == 10,
@@ -596,6 +599,9 @@ pub struct Mdrive {
     params_unchecked: bool,
     /// `Fault::VendorWriteNotApplied`: an FC 0x42 write of a setting is acknowledged but not stored.
     write_not_applied: bool,
+    /// `Fault::ErrorRecordKept`: the error record (ER) starts with a past error's code, and writes to it are
+    /// acknowledged but not applied.
+    error_record_kept: Option<u16>,
     /// The I/O points are shared between inputs and outputs and set up with S1..Sn (the MDrive): output k
     /// (coil k, register Ok) is point k, and OT/OL set them all.
     shared_io: bool,
@@ -678,8 +684,16 @@ impl Mdrive {
             homing: false,
             params_unchecked: faults.has(Fault::MnemonicParamsUnchecked),
             write_not_applied: faults.has(Fault::VendorWriteNotApplied),
+            error_record_kept: None,
             shared_io,
         };
+        if faults.has(Fault::ErrorRecordKept)
+            && let Some(er) = model.bank.address_of("ER")
+        {
+            // A past error's code (EF, which the model keeps at 0, says no error condition exists now).
+            model.bank.set_value(er, PAST_ERROR_CODE);
+            model.error_record_kept = Some(er);
+        }
         model.refresh();
         model
     }
@@ -1641,7 +1655,10 @@ impl DataModel for Mdrive {
         }
     }
 
-    fn commit(&mut self, changes: Vec<Change>) {
+    fn commit(&mut self, mut changes: Vec<Change>) {
+        if let Some(er) = self.error_record_kept {
+            changes.retain(|c| c.address != er);
+        }
         for freedom in self.input_point_freedoms(&changes) {
             // Taken although a point it sets is an input: a drive may refuse it (see `plan_write`).
             self.decided(freedom);

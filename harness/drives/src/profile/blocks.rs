@@ -57,6 +57,7 @@ pub(super) struct RegisterEntry {
     confirmed: bool,
     #[serde(default)]
     read_clears: bool,
+    condition_flag: Option<u16>,
     #[serde(default)]
     resets_settings: bool,
     #[serde(default)]
@@ -310,6 +311,7 @@ impl RegisterEntry {
                 line: self.line,
                 confirmed: self.confirmed,
                 read_clears: self.read_clears,
+                condition_flag: self.condition_flag,
                 resets_settings: self.resets_settings,
                 saves_settings: self.saves_settings,
             });

@@ -200,6 +200,16 @@ pub enum Step {
         max_new: usize,
         note: String,
     },
+    /// The error record captured in slot `record` (read right after the write of 0 that clears it) reads 0,
+    /// or the error flag captured in slot `flag` reads non-zero: an error condition still exists, and the
+    /// drive may record it again at once (MCode ER, "must be read or set to 0 to clear", and EF, "indicates
+    /// whether an error condition exists": MDrive lines 1045-1047, LMD 2075-2087). A record that survives its
+    /// clear while the flag says no error exists fails.
+    ClearedUnlessFlagged {
+        record: usize,
+        flag: usize,
+        note: String,
+    },
 }
 
 /// A conformance case.
@@ -331,6 +341,7 @@ impl Case {
                     .fold(*registers.max(object), |m, r| m.max(*r))
                     .checked_add(1),
                 Step::EventLogShifted { before, after, .. } => Some(before.max(after) + 1),
+                Step::ClearedUnlessFlagged { record, flag, .. } => Some(record.max(flag) + 1),
                 _ => None,
             })
             .max()

@@ -50,6 +50,7 @@ pub enum StepKind {
     Reconnect,
     Agree,
     EventLogShifted,
+    ClearedUnlessFlagged,
     Until,
     Persist,
 }
@@ -94,6 +95,11 @@ pub struct StepFile {
     pub after: Option<usize>,
     #[serde(skip_serializing_if = "Option::is_none")]
     pub max_new: Option<usize>,
+    /// `cleared_unless_flagged`: the slots of the error record and of the error flag.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub record: Option<usize>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub flag: Option<usize>,
     #[serde(skip_serializing_if = "Option::is_none")]
     pub mutation: Option<Mutation>,
     /// `until`: the value the register must come to (in the bits of `mask`, all of them where absent), the
@@ -242,6 +248,12 @@ fn step_file(step: &Step) -> StepFile {
             f.max_new = Some(*max_new);
             f.note = Some(note.clone());
         }
+        Step::ClearedUnlessFlagged { record, flag, note } => {
+            f.kind = StepKind::ClearedUnlessFlagged;
+            f.record = Some(*record);
+            f.flag = Some(*flag);
+            f.note = Some(note.clone());
+        }
     }
     f
 }
@@ -321,6 +333,15 @@ fn step_of(i: usize, f: &StepFile) -> Result<Step, RegressionError> {
             max_new: f
                 .max_new
                 .ok_or_else(|| at("event_log_shifted needs max_new"))?,
+            note: f.note.clone().unwrap_or_default(),
+        },
+        StepKind::ClearedUnlessFlagged => Step::ClearedUnlessFlagged {
+            record: f
+                .record
+                .ok_or_else(|| at("cleared_unless_flagged needs record"))?,
+            flag: f
+                .flag
+                .ok_or_else(|| at("cleared_unless_flagged needs flag"))?,
             note: f.note.clone().unwrap_or_default(),
         },
         StepKind::Exchange => {
@@ -596,6 +617,11 @@ mod tests {
                     after: 1,
                     max_new: 6,
                     note: "shifted".into(),
+                },
+                Step::ClearedUnlessFlagged {
+                    record: 0,
+                    flag: 1,
+                    note: "cleared".into(),
                 },
             ],
             requirements: Vec::new(),

@@ -1940,6 +1940,9 @@ impl Runner {
                     max_new,
                     note,
                 } => steps.push(self.event_log_shifted(*before, *after, *max_new, note)),
+                Step::ClearedUnlessFlagged { record, flag, note } => {
+                    steps.push(self.cleared_unless_flagged(*record, *flag, note));
+                }
                 Step::Exchange {
                     send,
                     compare,
@@ -2121,6 +2124,40 @@ impl Runner {
             }
         };
         comparison(note, findings)
+    }
+
+    /// See [`Step::ClearedUnlessFlagged`]: the record read after its clear is 0, or the flag says an error
+    /// condition still exists (then the clear is not seen: INFORMATIONAL).
+    fn cleared_unless_flagged(&self, record: usize, flag: usize, note: &str) -> StepResult {
+        let kept = |slot: usize| {
+            self.slots
+                .get(slot)
+                .and_then(Option::as_ref)
+                .and_then(Captured::registers)
+                .and_then(|r| r.first().copied())
+        };
+        match (kept(record), kept(flag)) {
+            (Some(0), _) => comparison(note, vec![]),
+            (Some(code), Some(0)) => comparison(
+                note,
+                vec![format!(
+                    "the error record reads {code} after the write of 0 that clears it, and the error flag reads 0: no error condition exists that it could record again"
+                )],
+            ),
+            (Some(code), Some(f)) => step_of(
+                note.to_string(),
+                Verdict::Informational,
+                vec![format!(
+                    "the error record reads {code} again after the write of 0 that clears it, and the error flag reads {f}: an error condition still exists, which the drive may record again at once; the clear is not seen"
+                )],
+            ),
+            // A read refused or unanswered is judged by its own step.
+            _ => step_of(
+                format!("{note}: not compared, a read gave no register (see its step)"),
+                Verdict::Skipped,
+                vec![],
+            ),
+        }
     }
 
     /// A register pair and its mirroring object must hold the same value; registers that mirror discrete

@@ -576,6 +576,19 @@ pub(crate) const WITNESSES: &[(&str, &str, &str)] = &[
         "sim:lmd",
         "profile/lmd/mnemonic/s1/write",
     ),
+    // An error record that survives its clear while the error flag says no error condition exists; a record
+    // read back non-zero with the flag set is admissible (the condition recorded again: tests/independent/
+    // mdrive-k, lmd-k), so the flag is what the case holds it to.
+    (
+        "error-record-kept",
+        "sim:mdrive",
+        "profile/mdrive/write/0x0021-er",
+    ),
+    (
+        "error-record-kept",
+        "sim:lmd",
+        "profile/lmd/write/0x0021-er",
+    ),
     // The identification conformity level that does not match the objects and access served (issue 15).
     (
         "conformity-level-wrong",

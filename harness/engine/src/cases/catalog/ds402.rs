@@ -109,13 +109,22 @@ impl ProcessData {
         }))
     }
 
-    /// Fault reset, watchdog off, back to switch on disabled.
+    /// Watchdog off, fault reset, back to switch on disabled. The watchdog goes off in a write of its own
+    /// first: a drive may apply the registers of one FC 16 in any order, and take the fault reset while the
+    /// watchdog that tripped it is still set and expired, which it may refuse to reset, the cause still
+    /// being there (tests/independent/sd2x-k); control word 0 there also makes the reset's bit 7 a rising
+    /// edge, whatever was written before.
     fn reset(&self) -> Vec<Step> {
         vec![
             exchange(
+                self.write(CMD_DISABLE_VOLTAGE, 0),
+                Compare::Exact,
+                "watchdog off, control word 0",
+            ),
+            exchange(
                 self.write(CMD_FAULT_RESET, 0),
                 Compare::Exact,
-                "fault reset (0x80), watchdog off",
+                "fault reset (0x80)",
             ),
             exchange(
                 self.write(CMD_DISABLE_VOLTAGE, 0),

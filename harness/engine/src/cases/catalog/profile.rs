@@ -181,7 +181,10 @@ fn register_write(cx: &mut Ctx, r: &Register, read: &[u8], tags: &[Tag]) {
     let mut a = Around::new();
     write_precondition(cx, &mut a, r);
     mcode::free_partner(cx, &mut a, r);
-    if r.access.readable() {
+    // An error record whose drive flags a present error condition (MCode ER and EF) is not kept: a read
+    // clears it and only 0 is written to it, so the record cannot be put back (its `why`).
+    let record = r.condition_flag.filter(|_| r.access.readable());
+    if r.access.readable() && record.is_none() {
         a.keep_register(cx, r, Compare::InRange);
     }
     if mcode::starts_move(r) {
@@ -190,7 +193,36 @@ fn register_write(cx: &mut Ctx, r: &Register, read: &[u8], tags: &[Tag]) {
     mcode::undo_step_instruction(cx, &mut a, r, v);
     settle_after(cx, &mut a, r);
     let mut steps = vec![mcode::command(cx, r, v, format!("write {v}"))];
-    if r.access.readable() {
+    if let Some(flag) = record {
+        // Cleared, or recorded again while the flag says the error condition is still there.
+        let (record_slot, flag_slot) = (a.slot(), a.slot());
+        let flag_name =
+            cx.p.registers
+                .iter()
+                .map(|f| f.get_ref())
+                .find(|f| f.address == flag)
+                .map_or_else(|| format!("0x{flag:04X}"), |f| f.name.clone());
+        steps.push(capture(
+            Outgoing::Pdu(read.to_vec()),
+            Compare::Structure,
+            record_slot,
+            format!("read back {v}"),
+        ));
+        steps.push(capture(
+            Outgoing::Pdu(pdu(&cx.read_request(flag, 1, Table::Holding))),
+            Compare::InRange,
+            flag_slot,
+            format!("read {flag_name} (0x{flag:04X})"),
+        ));
+        steps.push(Step::ClearedUnlessFlagged {
+            record: record_slot,
+            flag: flag_slot,
+            note: format!(
+                "{} reads {v}, or {flag_name} says an error condition still exists",
+                r.name
+            ),
+        });
+    } else if r.access.readable() {
         steps.push(exchange(
             Outgoing::Pdu(read.to_vec()),
             Compare::Exact,
@@ -202,7 +234,10 @@ fn register_write(cx: &mut Ctx, r: &Register, read: &[u8], tags: &[Tag]) {
         format!("profile/{pid}/write/{}", reg_slug(r)),
         format!("write {} in range and read it back", r.name),
         format!("{} register map: 0x{:04X} {}", p.device.name, r.address, r.name),
-        format!("Register 0x{:04X} accepts {v} and reads it back unchanged, in the device's word order.", r.address),
+        match record {
+            Some(flag) => format!("Register 0x{:04X} accepts {v}, which clears it, and reads 0 after, unless register 0x{flag:04X} says an error condition still exists (which the drive may record again at once).", r.address),
+            None => format!("Register 0x{:04X} accepts {v} and reads it back unchanged, in the device's word order.", r.address),
+        },
         tags.to_vec(),
         steps,
     );

@@ -767,6 +767,17 @@ pub struct Account {
     /// unrestored.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub left_faulted: Option<(u16, u16)>,
+    /// A CiA 402 drive found faulted and left without the fault: the status word before the first write
+    /// and at the end. A fault reset a case the flags allowed cleared it; the fault and its error code cannot
+    /// be put back. Said, not counted as unrestored.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub fault_cleared: Option<(u16, u16)>,
+    /// The profile's error flag (a register an error record names as its `condition_flag`: MCode EF, "an
+    /// error condition exists") where it reads otherwise at the end than before the first write: its
+    /// address, before, after. A case the flags allowed cleared an error condition (MCode CF) or left one.
+    /// Said, not counted as unrestored.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub error_flag_changed: Option<(u16, u16, u16)>,
     /// Kept parameters that changed by themselves (a measured value on a drive with its motor attached: an
     /// encoder count, a lead/lag): read again with nothing written between, they read otherwise each time,
     /// within what they moved by. Not counted as unrestored; no longer put back or verified once seen.
@@ -838,6 +849,27 @@ impl Account {
                  (0x{after:04X}, CiA 402 bit 3): a case the flags allowed tripped it. Its parameters are as found; \
                  the fault is not reset by the harness (a fault reset is a state change of its own)"
             ));
+        }
+        if let Some((before, after)) = self.fault_cleared {
+            out.push(format!(
+                "  NOTE: the drive was found faulted (status word 0x{before:04X}, CiA 402 bit 3) and is left \
+                 without the fault (0x{after:04X}): a fault reset a case the flags allowed sent cleared it. A \
+                 fault and its error code cannot be put back"
+            ));
+        }
+        if let Some((address, before, after)) = self.error_flag_changed {
+            out.push(if before != 0 && after == 0 {
+                format!(
+                    "  NOTE: the drive's error flag (0x{address:04X}) read {before} before the first write and reads 0 \
+                     now: a case the flags allowed cleared the error condition. It cannot be put back"
+                )
+            } else {
+                format!(
+                    "  WARNING: the drive's error flag (0x{address:04X}) read {before} before the first write and \
+                     reads {after} now: a case the flags allowed left an error condition. Its parameters are as \
+                     found; the harness does not clear the error (a clear is a state change of its own)"
+                )
+            });
         }
         for u in &self.unrestored {
             out.push(format!(
@@ -1400,6 +1432,9 @@ pub struct Keeper {
     /// A CiA 402 status word to read before the first write and at the end (see [`Keeper::watch_status`]),
     /// and what it read before.
     status_word: Option<(Request, Option<u16>)>,
+    /// The profile's error flag to read before the first write and at the end (see
+    /// [`Keeper::watch_status`]), and what it read before.
+    error_flag: Option<(Request, Option<u16>)>,
 }
 
 impl Keeper {
@@ -1432,16 +1467,17 @@ impl Keeper {
             written: BTreeSet::new(),
             checkpoint: None,
             status_word: None,
+            error_flag: None,
         }
     }
 
-    /// Read the profile's CiA 402 status word (a read-only register named "Status Word") before the first
-    /// write and at the end, and say when the drive was found without a fault and is left faulted.
+    /// Read the profile's CiA 402 status word (a read-only register named "Status Word") and its error flag
+    /// (the `condition_flag` of an error record: MCode EF) before the first write and at the end, and say
+    /// when a run leaves a drive found without a fault faulted, a drive found faulted without its fault, or
+    /// its error flag otherwise than found.
     pub fn watch_status(mut self, profile: &Profile) -> Self {
-        let word = profile.registers.iter().map(|r| r.get_ref()).find(|r| {
-            r.width == 1 && r.access == Access::Ro && r.name.eq_ignore_ascii_case("status word")
-        });
-        self.status_word = word.map(|r| {
+        let registers = || profile.registers.iter().map(|r| r.get_ref());
+        let read_of = |r: &drives::profile::Register| {
             let read = match r.table {
                 Table::Input => Request::ReadInputRegisters {
                     address: r.address,
@@ -1453,13 +1489,31 @@ impl Keeper {
                 },
             };
             (read, None)
-        });
+        };
+        self.status_word = registers()
+            .find(|r| {
+                r.width == 1 && r.access == Access::Ro && r.name.eq_ignore_ascii_case("status word")
+            })
+            .map(read_of);
+        self.error_flag = registers()
+            .find_map(|r| r.condition_flag)
+            .and_then(|flag| registers().find(|r| r.address == flag && r.width == 1))
+            .map(read_of);
         self
     }
 
     /// The status word as the drive answers it now (`None`: no status word, or no answer).
     fn read_status(&self, link: &mut dyn Link) -> Option<u16> {
-        let (read, _) = self.status_word.as_ref()?;
+        Self::read_one(self.status_word.as_ref(), link)
+    }
+
+    /// The error flag as the drive answers it now (`None`: no error flag, or no answer).
+    fn read_error_flag(&self, link: &mut dyn Link) -> Option<u16> {
+        Self::read_one(self.error_flag.as_ref(), link)
+    }
+
+    fn read_one(watched: Option<&(Request, Option<u16>)>, link: &mut dyn Link) -> Option<u16> {
+        let (read, _) = watched?;
         match link.transact(read).ok()?? {
             Response::ReadInputRegisters { values } | Response::ReadHoldingRegisters { values } => {
                 values.first().copied()
@@ -1632,6 +1686,10 @@ impl Keeper {
         let status = self.read_status(&mut counting);
         if let Some((_, before)) = self.status_word.as_mut() {
             *before = status;
+        }
+        let flag = self.read_error_flag(&mut counting);
+        if let Some((_, before)) = self.error_flag.as_mut() {
+            *before = flag;
         }
         let mut read = read_all(&mut counting, &self.inventory.items);
         if let Ok(first) = read.as_mut() {
@@ -1943,11 +2001,21 @@ impl Keeper {
         let mut counting = Counting { link, sent: 0 };
         const FAULT: u16 = 1 << 3;
         if let Some(before) = self.status_word.as_ref().and_then(|(_, b)| *b)
-            && before & FAULT == 0
             && let Some(after) = self.read_status(&mut counting)
-            && after & FAULT != 0
         {
-            self.account.left_faulted = Some((before, after));
+            match (before & FAULT != 0, after & FAULT != 0) {
+                (false, true) => self.account.left_faulted = Some((before, after)),
+                (true, false) => self.account.fault_cleared = Some((before, after)),
+                _ => {}
+            }
+        }
+        if let Some((read, Some(before))) = self.error_flag.as_ref()
+            && let Some(after) = self.read_error_flag(&mut counting)
+            && (*before != 0) != (after != 0)
+            && let Request::ReadHoldingRegisters { address, .. }
+            | Request::ReadInputRegisters { address, .. } = read
+        {
+            self.account.error_flag_changed = Some((*address, *before, after));
         }
         self.account.requests += counting.sent;
         match restored {
@@ -2394,10 +2462,12 @@ mod tests {
             .expect("sd2x");
         let dir = std::env::temp_dir().join(format!("keeper-fault-{}", std::process::id()));
         std::fs::create_dir_all(&dir).expect("dir");
-        for (found, left, said) in [
-            (0x1270u16, 0x1238u16, true),
-            (0x1270, 0x1270, false),
-            (0x1238, 0x1238, false),
+        // (found, left, left faulted said, fault cleared said)
+        for (found, left, faulted, cleared) in [
+            (0x1270u16, 0x1238u16, true, false),
+            (0x1270, 0x1270, false, false),
+            (0x1238, 0x1238, false, false),
+            (0x1238, 0x1270, false, true),
         ] {
             let mut fake = Fake::three();
             fake.regs.insert(2000, found);
@@ -2407,11 +2477,56 @@ mod tests {
             assert!(account.clean());
             assert_eq!(
                 account.left_faulted.is_some(),
-                said,
+                faulted,
+                "{found:#06X} -> {left:#06X}"
+            );
+            assert_eq!(
+                account.fault_cleared.is_some(),
+                cleared,
                 "{found:#06X} -> {left:#06X}"
             );
             let text = account.lines().join("\n");
-            assert_eq!(text.contains("left faulted (0x1238"), said, "{text}");
+            assert_eq!(text.contains("left faulted (0x1238"), faulted, "{text}");
+            assert_eq!(
+                text.contains("found faulted (status word 0x1238"),
+                cleared,
+                "{text}"
+            );
+        }
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    /// The MCode error flag (EF, the `condition_flag` of ER) read before the first write and at the end: a
+    /// run that clears an error condition (a CF the flags allowed) or leaves one says so. Not when it reads
+    /// the same.
+    #[test]
+    fn an_error_flag_changed_by_a_run_is_said() {
+        let mdrive = drives::corpus::Corpus::Embedded
+            .profile("mdrive")
+            .expect("mdrive");
+        let dir = std::env::temp_dir().join(format!("keeper-flag-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).expect("dir");
+        for (found, left, said) in [
+            (1u16, 0u16, Some("cleared the error condition")),
+            (0, 1, Some("left an error condition")),
+            (1, 1, None),
+            (0, 0, None),
+        ] {
+            let mut fake = Fake::three();
+            fake.regs.insert(0x001F, found);
+            let mut k = keeper_watching(&mut fake, &dir.join("journal.json"), Some(&mdrive));
+            fake.regs.insert(0x001F, left);
+            let account = k.finish(&mut fake, &mdrive);
+            assert!(account.clean());
+            assert_eq!(
+                account.error_flag_changed,
+                said.map(|_| (0x001F, found, left)),
+                "{found} -> {left}"
+            );
+            let text = account.lines().join("\n");
+            if let Some(words) = said {
+                assert!(text.contains(words), "{text}");
+            }
         }
         let _ = std::fs::remove_dir_all(&dir);
     }

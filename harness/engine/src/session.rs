@@ -1647,6 +1647,8 @@ pub fn restore_journal(
         unwritable: Vec::new(),
         verified_before_irreversible: Vec::new(),
         left_faulted: None,
+        fault_cleared: None,
+        error_flag_changed: None,
         live: Vec::new(),
     })
 }

@@ -1502,6 +1502,31 @@ impl Keeper {
         self
     }
 
+    /// What the drive's watched status said before the first write when it was not healthy: a CiA 402 fault
+    /// (status word bit 3), an error condition (the error flag non-zero). `None` when healthy or not read.
+    pub fn found_state(&self) -> Option<String> {
+        let mut said = Vec::new();
+        if let Some((_, Some(word))) = &self.status_word
+            && word & (1 << 3) != 0
+        {
+            said.push(format!(
+                "in fault (status word 0x{word:04X}, CiA 402 bit 3)"
+            ));
+        }
+        if let Some((
+            Request::ReadHoldingRegisters { address, .. }
+            | Request::ReadInputRegisters { address, .. },
+            Some(flag),
+        )) = &self.error_flag
+            && *flag != 0
+        {
+            said.push(format!(
+                "with an error condition (error flag 0x{address:04X} reads {flag})"
+            ));
+        }
+        (!said.is_empty()).then(|| said.join(" and "))
+    }
+
     /// The status word as the drive answers it now (`None`: no status word, or no answer).
     fn read_status(&self, link: &mut dyn Link) -> Option<u16> {
         Self::read_one(self.status_word.as_ref(), link)
@@ -2472,6 +2497,12 @@ mod tests {
             let mut fake = Fake::three();
             fake.regs.insert(2000, found);
             let mut k = keeper_watching(&mut fake, &dir.join("journal.json"), Some(&sd2x));
+            assert_eq!(
+                k.found_state().is_some(),
+                found & 0x08 != 0,
+                "{found:#06X}: {:?}",
+                k.found_state()
+            );
             fake.regs.insert(2000, left);
             let account = k.finish(&mut fake, &sd2x);
             assert!(account.clean());
@@ -2515,6 +2546,11 @@ mod tests {
             let mut fake = Fake::three();
             fake.regs.insert(0x001F, found);
             let mut k = keeper_watching(&mut fake, &dir.join("journal.json"), Some(&mdrive));
+            assert_eq!(
+                k.found_state(),
+                (found != 0)
+                    .then(|| format!("with an error condition (error flag 0x001F reads {found})"))
+            );
             fake.regs.insert(0x001F, left);
             let account = k.finish(&mut fake, &mdrive);
             assert!(account.clean());

@@ -1381,6 +1381,12 @@ fn log_snapshot(log: &mut dyn Write, k: &crate::restore::Keeper) {
             e.name, e.reason
         );
     }
+    if let Some(state) = k.found_state() {
+        let _ = writeln!(
+            log,
+            "leave as found: the drive was found {state}; the end of the run says whether it is left so"
+        );
+    }
 }
 
 /// The directory of a snapshot file (created when the file is to be written).

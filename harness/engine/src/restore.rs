@@ -1431,10 +1431,44 @@ pub struct Keeper {
     checkpoint: Option<(BTreeSet<String>, BTreeSet<String>)>,
     /// A CiA 402 status word to read before the first write and at the end (see [`Keeper::watch_status`]),
     /// and what it read before.
-    status_word: Option<(Request, Option<u16>)>,
+    status_word: Option<Watched>,
     /// The profile's error flag to read before the first write and at the end (see
     /// [`Keeper::watch_status`]), and what it read before.
-    error_flag: Option<(Request, Option<u16>)>,
+    error_flag: Option<Watched>,
+}
+
+/// A one-register state the keeper reads before the first write and at the end (see
+/// [`Keeper::watch_status`]): where it is, and what it read before.
+#[derive(Clone, Debug)]
+struct Watched {
+    address: u16,
+    read: Request,
+    before: Option<u16>,
+}
+
+impl Watched {
+    fn of(r: &drives::profile::Register) -> Self {
+        let (address, quantity) = (r.address, 1);
+        let read = match r.table {
+            Table::Input => Request::ReadInputRegisters { address, quantity },
+            _ => Request::ReadHoldingRegisters { address, quantity },
+        };
+        Self {
+            address,
+            read,
+            before: None,
+        }
+    }
+
+    /// The register as the drive answers it now (`None`: no answer, or not a register).
+    fn read(&self, link: &mut dyn Link) -> Option<u16> {
+        match link.transact(&self.read).ok()?? {
+            Response::ReadInputRegisters { values } | Response::ReadHoldingRegisters { values } => {
+                values.first().copied()
+            }
+            _ => None,
+        }
+    }
 }
 
 impl Keeper {
@@ -1477,28 +1511,15 @@ impl Keeper {
     /// its error flag otherwise than found.
     pub fn watch_status(mut self, profile: &Profile) -> Self {
         let registers = || profile.registers.iter().map(|r| r.get_ref());
-        let read_of = |r: &drives::profile::Register| {
-            let read = match r.table {
-                Table::Input => Request::ReadInputRegisters {
-                    address: r.address,
-                    quantity: 1,
-                },
-                _ => Request::ReadHoldingRegisters {
-                    address: r.address,
-                    quantity: 1,
-                },
-            };
-            (read, None)
-        };
         self.status_word = registers()
             .find(|r| {
                 r.width == 1 && r.access == Access::Ro && r.name.eq_ignore_ascii_case("status word")
             })
-            .map(read_of);
+            .map(Watched::of);
         self.error_flag = registers()
             .find_map(|r| r.condition_flag)
-            .and_then(|flag| registers().find(|r| r.address == flag && r.width == 1))
-            .map(read_of);
+            .and_then(|flag| profile.register_at(flag, false))
+            .map(Watched::of);
         self
     }
 
@@ -1506,18 +1527,18 @@ impl Keeper {
     /// (status word bit 3), an error condition (the error flag non-zero). `None` when healthy or not read.
     pub fn found_state(&self) -> Option<String> {
         let mut said = Vec::new();
-        if let Some((_, Some(word))) = &self.status_word
+        if let Some(word) = self.status_word.as_ref().and_then(|w| w.before)
             && word & (1 << 3) != 0
         {
             said.push(format!(
                 "in fault (status word 0x{word:04X}, CiA 402 bit 3)"
             ));
         }
-        if let Some((
-            Request::ReadHoldingRegisters { address, .. }
-            | Request::ReadInputRegisters { address, .. },
-            Some(flag),
-        )) = &self.error_flag
+        if let Some(Watched {
+            address,
+            before: Some(flag),
+            ..
+        }) = &self.error_flag
             && *flag != 0
         {
             said.push(format!(
@@ -1525,26 +1546,6 @@ impl Keeper {
             ));
         }
         (!said.is_empty()).then(|| said.join(" and "))
-    }
-
-    /// The status word as the drive answers it now (`None`: no status word, or no answer).
-    fn read_status(&self, link: &mut dyn Link) -> Option<u16> {
-        Self::read_one(self.status_word.as_ref(), link)
-    }
-
-    /// The error flag as the drive answers it now (`None`: no error flag, or no answer).
-    fn read_error_flag(&self, link: &mut dyn Link) -> Option<u16> {
-        Self::read_one(self.error_flag.as_ref(), link)
-    }
-
-    fn read_one(watched: Option<&(Request, Option<u16>)>, link: &mut dyn Link) -> Option<u16> {
-        let (read, _) = watched?;
-        match link.transact(read).ok()?? {
-            Response::ReadInputRegisters { values } | Response::ReadHoldingRegisters { values } => {
-                values.first().copied()
-            }
-            _ => None,
-        }
     }
 
     /// The journal is a scratch file nobody asked for: remove it when the run ends with every kept
@@ -1708,13 +1709,11 @@ impl Keeper {
     /// read are left out with the reason.
     pub fn take_snapshot(&mut self, link: &mut dyn Link) -> Result<(), SnapshotError> {
         let mut counting = Counting { link, sent: 0 };
-        let status = self.read_status(&mut counting);
-        if let Some((_, before)) = self.status_word.as_mut() {
-            *before = status;
-        }
-        let flag = self.read_error_flag(&mut counting);
-        if let Some((_, before)) = self.error_flag.as_mut() {
-            *before = flag;
+        for w in [&mut self.status_word, &mut self.error_flag]
+            .into_iter()
+            .flatten()
+        {
+            w.before = w.read(&mut counting);
         }
         let mut read = read_all(&mut counting, &self.inventory.items);
         if let Ok(first) = read.as_mut() {
@@ -2025,8 +2024,9 @@ impl Keeper {
         let restored = self.put_back(link, &items, profile);
         let mut counting = Counting { link, sent: 0 };
         const FAULT: u16 = 1 << 3;
-        if let Some(before) = self.status_word.as_ref().and_then(|(_, b)| *b)
-            && let Some(after) = self.read_status(&mut counting)
+        if let Some(w) = &self.status_word
+            && let Some(before) = w.before
+            && let Some(after) = w.read(&mut counting)
         {
             match (before & FAULT != 0, after & FAULT != 0) {
                 (false, true) => self.account.left_faulted = Some((before, after)),
@@ -2034,13 +2034,12 @@ impl Keeper {
                 _ => {}
             }
         }
-        if let Some((read, Some(before))) = self.error_flag.as_ref()
-            && let Some(after) = self.read_error_flag(&mut counting)
-            && (*before != 0) != (after != 0)
-            && let Request::ReadHoldingRegisters { address, .. }
-            | Request::ReadInputRegisters { address, .. } = read
+        if let Some(w) = &self.error_flag
+            && let Some(before) = w.before
+            && let Some(after) = w.read(&mut counting)
+            && (before != 0) != (after != 0)
         {
-            self.account.error_flag_changed = Some((*address, *before, after));
+            self.account.error_flag_changed = Some((w.address, before, after));
         }
         self.account.requests += counting.sent;
         match restored {

@@ -197,10 +197,7 @@ fn register_write(cx: &mut Ctx, r: &Register, read: &[u8], tags: &[Tag]) {
         // Cleared, or recorded again while the flag says the error condition is still there.
         let (record_slot, flag_slot) = (a.slot(), a.slot());
         let flag_name =
-            cx.p.registers
-                .iter()
-                .map(|f| f.get_ref())
-                .find(|f| f.address == flag)
+            cx.p.register_at(flag, false)
                 .map_or_else(|| format!("0x{flag:04X}"), |f| f.name.clone());
         steps.push(capture(
             Outgoing::Pdu(read.to_vec()),

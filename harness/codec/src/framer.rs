@@ -319,6 +319,11 @@ pub struct RtuFramer {
     /// The silence that ends a frame the rules say is not complete yet (at least t3.5; see
     /// [`RtuFramer::with_incomplete_wait`]).
     incomplete_wait: Duration,
+    /// A slave's own address ([`RtuFramer::listen_as`]): a request it sees for another slave is followed on
+    /// the line by that slave's reply, which it hears too.
+    own: Option<u8>,
+    /// The slave whose reply may come next: the address of the last request seen for another slave.
+    reply_from: Option<u8>,
 }
 
 /// The length after `len` at which a cut could next happen, given what the rules say about the buffer at
@@ -357,7 +362,20 @@ impl RtuFramer {
             rule: FrameLen::NeedMore,
             next_cut: next_cut(FrameLen::NeedMore, 0),
             incomplete_wait: timing.t3_5,
+            own: None,
+            reply_from: None,
         }
+    }
+
+    /// Frame requests as the slave at `own` hears them on a multi-drop line (serial line spec 2.1: up to 247
+    /// slaves on one bus): after a request for another slave comes that slave's reply, which the request
+    /// layouts do not size (an FC 03 reply is shorter than an FC 03 request), so that the reply and the
+    /// master's next request, when it follows within the carrier's wait, would be cut as one run of bytes and
+    /// discarded. A frame from the slave just addressed is sized by the response layouts as well as the
+    /// request layouts, and the CRC picks (a slave that takes the next frame after a request for another
+    /// slave as its reply, as libmodbus's does).
+    pub fn listen_as(&mut self, own: u8) {
+        self.own = Some(own);
     }
 
     /// Wait `wait` (if longer than t3.5) before silence ends a frame that the length rules say has more bytes
@@ -479,6 +497,19 @@ impl RtuFramer {
     fn rule(&mut self) -> FrameLen {
         if self.rule == FrameLen::NeedMore {
             self.rule = expected_len(self.direction, &self.buf, &self.vendor);
+            if self.reply_from.is_some() && self.reply_from == self.buf.first().copied() {
+                self.rule = match (
+                    expected_len(Direction::Response, &self.buf, &self.vendor),
+                    self.rule,
+                ) {
+                    (FrameLen::NeedMore, _) => FrameLen::NeedMore,
+                    (FrameLen::Known(a, 0), FrameLen::Known(b, 0)) if a != b => {
+                        FrameLen::Known(a, b)
+                    }
+                    (FrameLen::Known(a, b), FrameLen::Unknown) => FrameLen::Known(a, b),
+                    (_, request) => request,
+                };
+            }
         }
         self.rule
     }
@@ -505,6 +536,14 @@ impl RtuFramer {
 
     fn emit(&mut self, n: usize, events: &mut Vec<FramerEvent>) {
         let bytes = self.buf[..n].to_vec();
+        // A request for another slave (not a broadcast, not the reply just awaited): its reply may come next.
+        let first = bytes[0];
+        self.reply_from = match self.own {
+            Some(own) if first != own && first != 0 && self.reply_from != Some(first) => {
+                Some(first)
+            }
+            _ => None,
+        };
         if n == self.buf.len() {
             self.buf.clear();
         } else {

@@ -419,6 +419,13 @@ pub struct VendorMnemonic {
     pub destructive: bool,
     /// Why `motion` / `destructive` are set (or deliberately not): the manual line (`file:line`) that justifies it.
     pub why: Option<String>,
+    /// The manual documents no FC 0x41 read of it on this drive, and a drive may read it as the line of
+    /// this point of the setting the manual does document (the LMD's S1-S4, known only from an FC 0x42
+    /// example copied from the MDrive manual, and its IS, read "=line,type,active"): a value read that
+    /// begins with this number may be that line, whose fields are not the ones the setting's write takes.
+    /// Where the flags keep such a setting (it is `motion` or `destructive`), the leave-as-found keeper
+    /// makes no trial write of such a value (see `Keeper::take_snapshot` in the engine).
+    pub read_as_line: Option<u8>,
     pub note: Option<String>,
     pub line: Option<u32>,
 }

@@ -942,6 +942,8 @@ impl Station {
     /// Feed bytes received on an RTU line at `now`; returns replies for frames completed by them.
     pub fn serve_rtu(&mut self, now: Duration, port: &mut RtuPort, bytes: &[u8]) -> Vec<Wire> {
         self.forget_unobserved();
+        // On a multi-drop line the replies of the other slaves are heard too.
+        port.framer.listen_as(self.unit);
         let events = port.framer.push(now, bytes);
         self.rtu_events(now, events, port.answer_silence())
     }

@@ -322,6 +322,7 @@ pub fn campaign(
         return Err(SessionError::FaultNeedsSim);
     }
     let mut cfg = config(base, &profile);
+    crate::session::check_foreign(base, &profile, cfg.unit)?;
     let mut runner = crate::session::open_checked_runner(
         base,
         &profile,
@@ -329,6 +330,7 @@ pub fn campaign(
         &Expectations::default(),
         log,
     )?;
+    let foreign = crate::session::survey_line(base, &profile, cfg.unit, &mut runner, log)?;
     if !cfg.is_sim && !cfg.safety.read_only && opts.allow_writes {
         let allowed = |yes: bool| if yes { "ALLOWED" } else { "not sent" };
         let _ = writeln!(
@@ -370,6 +372,7 @@ pub fn campaign(
     let outcome = fuzz_loop(
         opts,
         &profile,
+        foreign,
         &cfg,
         &mut runner,
         keeper.as_mut(),
@@ -435,6 +438,7 @@ type Ran = (Case, crate::observe::CaseResult, bool);
 fn fuzz_loop(
     opts: &CampaignOptions,
     profile: &drives::profile::Profile,
+    foreign: Option<u8>,
     cfg: &crate::runner::RunConfig,
     runner: &mut crate::runner::Runner,
     mut keeper: Option<&mut crate::restore::Keeper>,
@@ -443,7 +447,7 @@ fn fuzz_loop(
     tick: &mut impl FnMut(u64, f64, usize),
 ) -> Result<CampaignOutcome, SessionError> {
     let framing = runner.framing();
-    let generator = Generator::new(profile, cfg.unit, opts.seed);
+    let generator = Generator::new(profile, cfg.unit, opts.seed).on_line(foreign);
     let probe = probe_case(profile);
     let started = Instant::now();
     let mut last_tick = Instant::now();

@@ -125,6 +125,12 @@ pub struct Inventory {
     /// `saves_settings`: MCode S): before a case writing one, every kept item is put back
     /// ([`Keeper::before_save`]).
     pub saves: Vec<u16>,
+    /// Keys of the vendor settings kept because the flags allow what they set up (the profile marks them
+    /// motion or destructive: an I/O point's setup, which may make an input a limit or a homing input) whose
+    /// FC 0x41 read the manual does not document and that a drive may read as a line of another setting
+    /// (the profile's `read_as_line`), with that line's number. One whose value read begins with it gets no
+    /// trial write before the first write (see [`Keeper::take_snapshot`]).
+    pub reassigning: BTreeMap<String, u8>,
 }
 
 /// How the reasons of [`gate`] begin.
@@ -210,6 +216,9 @@ pub fn inventory(profile: &Profile, safety: &Safety) -> Inventory {
             }
             (true, true) => gate(m.motion, m.destructive, safety),
         };
+        if let (None, true, Some(line)) = (&reason, m.motion || m.destructive, m.read_as_line) {
+            inv.reassigning.insert(format!("mnemonic:{}", m.name), line);
+        }
         let place = Place::Mnemonic {
             mnemonic: m.name.clone(),
         };
@@ -1699,7 +1708,7 @@ impl Keeper {
             .collect();
         (!names.is_empty()).then(|| {
             format!(
-                "not run: it can change {}, which one write did not put back as read before the first write (leave as found; see the report)",
+                "not run: it can change {}, which one write did not put back as read before the first write, or which was not tried (leave as found; see the report)",
                 names.join(", ")
             )
         })
@@ -1776,11 +1785,38 @@ impl Keeper {
         // A setting read for several lines at once goes back one line per write: the keeper puts it back
         // so (after a reset of every setting, say), but a case's own write-back is one write, so no case
         // writes it directly.
+        //
+        // The trial write is itself a write: a drive that reads a setting in another form than it takes
+        // (the twelfth wave's LMD reads S1 as IS's line, "1, 0, 1" = line, type, active, and takes S1 as
+        // type, active, sink) takes the fields for others, and a field it does not read back (sink or
+        // source) cannot be put back at all. So a setting whose read the manual does not document, whose
+        // setup the flags allow (an input that may become a limit or a homing input), and whose value read
+        // begins with the number of the line it may be read as (the profile's `read_as_line`: S1 read
+        // "1, ..."), gets no trial write: it may be that line, or the write's fields with a first field that
+        // happens to be the same (input 1 a homing input, type 1), which only a write tells apart. No case
+        // writes it, and it is never written. Any other value (the reference's "0, 0, 0", the tenth wave's
+        // "0, 1", freedom `lmd-input-setup-fields`) cannot be the line, and the trial is made; so it is where
+        // the manual gives the form, as the MDrive's for S1-S4 (line 730).
         for item in kept
             .iter()
             .filter(|i| matches!(i.place, Place::Mnemonic { .. }))
         {
             let found = &snapshot[&item.key];
+            if let (Some(&line), Value::Text(t)) =
+                (self.inventory.reassigning.get(&item.key), found)
+                && t.trim_start_matches('=').split(',').next().map(str::trim)
+                    == Some(&line.to_string())
+            {
+                self.account.unwritable.push(Excluded {
+                    key: item.key.clone(),
+                    name: item.name.clone(),
+                    reason: format!(
+                        "it reads {found}, which may be the line of point {line} of another setting (the manual documents no read of it), and it sets up what the flags allow (an I/O point, a limit): a write of it as read, to try whether it puts the setting back, may be taken as other fields and change it, so none is made and no case writes it"
+                    ),
+                });
+                self.unwritable.push(item.clone());
+                continue;
+            }
             let reqs = write_requests(item, found, None);
             if reqs.is_empty() {
                 continue;
@@ -2954,6 +2990,53 @@ mod tests {
             k.unrestorable(&one_request_case(read.to_bytes().expect("pdu"))),
             None
         );
+    }
+
+    /// A setting whose read the manual does not document, that sets up what only the flags allow (the LMD's
+    /// S1, an input that may become a limit or a homing input), read beginning with the number of the line
+    /// it may be read as (`read_as_line`), gets no trial write before the first write: the twelfth wave's
+    /// LMD reads S1 as IS's line ("1, 0, 1": line, type, active) and takes S1 as type, active, sink, so
+    /// writing back what it read made input 1 a homing input, sourcing, which no read shows. No case may
+    /// write it. Read otherwise ("0, 1", the tenth wave's LMD: type and active), or kept without the flags'
+    /// reason, it gets its trial write.
+    #[test]
+    fn a_reassigning_setting_read_as_a_line_gets_no_trial_write() {
+        let mut k = settings_keeper();
+        k.inventory.reassigning.insert("mnemonic:S1".into(), 1);
+        let mut drive = Settings::new(";", true);
+        drive.s1 = "1, 0, 1".into();
+        k.take_snapshot(&mut drive).expect("snapshot");
+        assert_eq!(drive.writes, ["OS=1,16,1"], "no write of S1");
+        assert_eq!(drive.s1, "1, 0, 1");
+        let a = k.account();
+        let s1 = a
+            .unwritable
+            .iter()
+            .find(|e| e.key == "mnemonic:S1")
+            .expect("S1 is written by no case");
+        assert!(
+            s1.reason.contains("may be the line of point 1") && s1.reason.contains("none is made"),
+            "{}",
+            s1.reason
+        );
+        let why = k
+            .unrestorable(&setting_write("S1"))
+            .expect("a write of S1 may not run");
+        assert!(why.contains("mnemonic:S1"), "{why}");
+        // Without the flags' reason to keep it (not reassigning), the same drive gets the trial write, and the
+        // write taken in another form is what the trial finds.
+        let mut k = settings_keeper();
+        let mut drive = Settings::new(";", true);
+        drive.s1 = "1, 0, 1".into();
+        k.take_snapshot(&mut drive).expect("snapshot");
+        assert_eq!(drive.writes, ["S1=1,0,1", "OS=1,16,1"]);
+        let mut k = settings_keeper();
+        k.inventory.reassigning.insert("mnemonic:S1".into(), 1);
+        let mut drive = Settings::new(";", true);
+        drive.s1 = "0, 1".into();
+        k.take_snapshot(&mut drive).expect("snapshot");
+        assert_eq!(drive.writes, ["S1=0,1", "OS=1,16,1"]);
+        assert_eq!(k.unrestorable(&setting_write("S1")), None);
     }
 
     /// A setting read for all its lines at once (the LMD's OS, with the lines apart by `;` or by a space, as

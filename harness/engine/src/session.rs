@@ -33,6 +33,10 @@ pub struct Options {
     pub profile: Option<String>,
     pub corpus: Corpus,
     pub unit: Option<u8>,
+    /// A slave address no device on the line answers (`--foreign-address`): the cases that check a frame
+    /// for another slave goes unanswered send to it. `None`: found by the line survey at the start of a run
+    /// against an RTU device ([`survey_line`]).
+    pub foreign: Option<u8>,
     /// How long to wait for answers and for silence.
     pub timing: Timing,
     pub connect_timeout: Duration,
@@ -98,6 +102,7 @@ impl Options {
             profile: None,
             corpus: Corpus::Embedded,
             unit: None,
+            foreign: None,
             timing: Timing::default(),
             connect_timeout: Duration::from_secs(3),
             safety: Safety::default(),
@@ -152,6 +157,10 @@ pub enum SessionError {
     Regressions(#[from] crate::cases::regressions::RegressionError),
     #[error("no snapshot at {}: write it with --update-snapshot", .0.display())]
     NoSnapshot(PathBuf),
+    #[error(
+        "--foreign-address {0} is the drive's own address{1}: give an address no device on the line answers"
+    )]
+    ForeignIsOwn(u8, &'static str),
     #[error("cannot create directory {}: {source}", path.display())]
     CreateDir {
         path: PathBuf,
@@ -414,7 +423,8 @@ fn catalog_plan(
     let golden = opts.corpus.golden(&profile.device.id)?;
     let framing = run_framing(opts, profile)?;
     let unit = opts.unit.unwrap_or(profile.device.default_unit);
-    let mut all = crate::cases::catalog::build(profile, golden.as_ref(), framing, unit);
+    let mut all =
+        crate::cases::catalog::build_on_line(profile, golden.as_ref(), framing, unit, opts.foreign);
     all.extend(crate::cases::catalog::regressions(
         &opts.corpus,
         profile,
@@ -494,6 +504,7 @@ pub fn generator(opts: &Options, profile: &Profile) -> Option<Generator> {
             opts.unit.unwrap_or(profile.device.default_unit),
             opts.seed.unwrap_or_else(generated::clock_seed),
         )
+        .on_line(opts.foreign)
     })
 }
 
@@ -711,6 +722,82 @@ pub fn preflight(
             Err(SessionError::NotAnswering(m))
         }
     }
+}
+
+/// The line survey: where the drive is a serial-line slave (an RTU target, or an RTU drive behind a
+/// gateway), the address its cases send another slave's frames to ("a frame not addressed to the slave is
+/// discarded", serial line spec 2.5.1.1 and 2.4.2) must be one no other device on the line answers. A line
+/// has up to 247 slaves (spec 2.1) and machine builders number them from 1 up, so the address next but one
+/// to the drive's, which the cases used alone, is often another device's, whose answer the cases took for
+/// the drive's. The survey sends the known-good read to [`foreign_candidates`] in turn and takes the first
+/// that nothing answers (silence; behind a gateway also its exceptions 0A and 0B, which say that no device
+/// answered): the run's cases then send there. The addresses that answered are said in `log`, as another
+/// device on the line or the drive answering them too, which the run cannot tell apart; where every
+/// candidate answers, the drive is taken to answer frames for any address, and the cases send to the first
+/// (and FAIL). Reads only. A `sim:` target is alone on its line: the first address, without a survey (so
+/// its cases are those a survey of it would give); nothing over Modbus/TCP to a device that speaks it
+/// itself. `--foreign-address` chooses the address and skips the survey.
+///
+/// [`foreign_candidates`]: crate::cases::catalog::rtu::foreign_candidates
+pub(crate) fn survey_line(
+    opts: &Options,
+    profile: &Profile,
+    unit: u8,
+    runner: &mut Runner,
+    log: &mut dyn Write,
+) -> Result<Option<u8>, SessionError> {
+    let framing = runner.framing();
+    // A line: RTU framing, or Modbus/TCP to a drive that speaks RTU only (a gateway in front of its line).
+    let line = framing == codec::Framing::Rtu || !profile.speaks_tcp();
+    if opts.foreign.is_some() || !line {
+        return Ok(opts.foreign);
+    }
+    let candidates = crate::cases::catalog::rtu::foreign_candidates(profile, unit);
+    if opts.target.is_sim() {
+        // The in-process drive is alone on its line: the first address, as a survey would find it (so
+        // that the cases are the same in process and over a transport).
+        return Ok(Some(candidates[0]));
+    }
+    let pdu = crate::cases::catalog::known_good_read(profile);
+    let mut answered: Vec<String> = Vec::new();
+    for &c in &candidates {
+        let heard = runner.heard_at_unit(&pdu, c, opts.timing.silence)?;
+        let nobody = match &heard {
+            None => true,
+            // A gateway's own answer that no device answered.
+            Some(b) => matches!(
+                crate::readings::decode_response(framing, b),
+                Some(codec::Response::Exception { code, .. }) if code.is_gateway()
+            ),
+        };
+        if nobody {
+            if answered.is_empty() {
+                let _ = writeln!(
+                    log,
+                    "line: nothing answers slave {c}: the cases that send a frame for another slave send it there (--foreign-address to choose)"
+                );
+            } else {
+                let _ = writeln!(
+                    log,
+                    "line: {}: another device on the line, or the drive answering that address as well (with the drive alone on its line, --foreign-address {} judges it); nothing answers slave {c}, and the cases that send a frame for another slave send it there",
+                    answered.join("; "),
+                    candidates[0]
+                );
+            }
+            return Ok(Some(c));
+        }
+        answered.push(format!(
+            "slave {c} answered a read ({})",
+            crate::liveness::hex(heard.as_deref().unwrap_or_default())
+        ));
+    }
+    let _ = writeln!(
+        log,
+        "line: {}: the drive answers frames for other slaves (or devices sit at every one of these addresses); the cases send to slave {}",
+        answered.join("; "),
+        candidates[0]
+    );
+    Ok(Some(candidates[0]))
 }
 
 /// A run's watch over a real target: when an answer that was due does not come, a liveness probe (the
@@ -949,7 +1036,30 @@ fn check_options(
     {
         return Err(SessionError::NoSnapshot(snap.path.clone()));
     }
+    check_foreign(opts, profile, cfg.unit)?;
     Ok(expectations)
+}
+
+/// `--foreign-address` may not be an address of the drive's own (the unit's, or a double-axis SD2x's other
+/// axis's: its manual, line 183).
+pub(crate) fn check_foreign(
+    opts: &Options,
+    profile: &Profile,
+    unit: u8,
+) -> Result<(), SessionError> {
+    match opts.foreign {
+        Some(f) if f == unit => Err(SessionError::ForeignIsOwn(f, "")),
+        Some(f)
+            if profile.device.id == "sd2x"
+                && f == crate::cases::catalog::rtu::sd2x_partner(unit) =>
+        {
+            Err(SessionError::ForeignIsOwn(
+                f,
+                " (a double-axis SD2x's other axis: its manual, line 183)",
+            ))
+        }
+        _ => Ok(()),
+    }
 }
 
 /// The header of every report of the run.
@@ -1024,9 +1134,16 @@ pub fn run(
     }
     let opts = &opts;
     let requirements = requirements_of(&opts.corpus)?;
+    // The plan is checked before the target is opened (a corpus error is said first), and made again once
+    // the line survey has chosen where another slave's frames go.
+    catalog_plan(opts, &profile, &requirements)?;
+    let mut runner = open_checked_runner(opts, &profile, &mut cfg, &expectations, log)?;
+    let opts = &Options {
+        foreign: survey_line(opts, &profile, cfg.unit, &mut runner, log)?,
+        ..opts.clone()
+    };
     let planned = catalog_plan(opts, &profile, &requirements)?;
     let generator = generator(opts, &profile);
-    let mut runner = open_checked_runner(opts, &profile, &mut cfg, &expectations, log)?;
     let mut watch = Watch::new(opts, &profile);
     if let Some(w) = watch.as_ref() {
         runner.watch_mid_case(w.probe.clone(), w.bounds.probe_timeout);

@@ -64,6 +64,17 @@ impl PeerServer {
         Self::start(c)
     }
 
+    /// bench/line.py joining the RTU-over-TCP drives at `drops` into one multi-drop line, with `args`
+    /// (`--hear-replies off`, ...), served to the master over RTU over TCP.
+    pub fn line(drops: &[SocketAddr], args: &[&str]) -> Self {
+        let mut c = Command::new("python3");
+        c.arg(std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../bench/line.py"))
+            .args(drops.iter().map(ToString::to_string))
+            .args(args)
+            .args(["--lifetime", "900"]);
+        Self::start(c)
+    }
+
     /// SIGTERM by pid, then the exit status (bounded).
     pub fn terminate(mut self) -> ExitStatus {
         let pid = self.child.0.id() as libc::pid_t;

@@ -37,6 +37,13 @@ pub struct FuzzArgs {
     /// Unit id / slave address (default: the profile's).
     #[arg(long)]
     unit: Option<u8>,
+    /// A slave address no device on the line answers: the cases that check that a frame for another slave
+    /// goes unanswered send it there. Default: found at the start of a run against an RTU drive (direct or
+    /// behind a gateway) among the address next but one to the drive's, 247 and 124, the first that nothing
+    /// answers; on a line where the drive is alone, the drive's neighbour's address (--unit + 2) judges
+    /// strictly.
+    #[arg(long, value_name = "ADDRESS", value_parser = clap::value_parser!(u8).range(1..=247))]
+    foreign_address: Option<u8>,
     /// How long to fuzz: 30s, 10m, 1h, 500ms.
     #[arg(long, default_value = "60s")]
     duration: String,
@@ -153,6 +160,7 @@ pub fn run(args: &FuzzArgs) -> ExitCode {
     base.profile = args.profile.clone();
     base.corpus = Corpus::Embedded;
     base.unit = args.unit;
+    base.foreign = args.foreign_address;
     base.timing.timeout = Duration::from_millis(args.timeout.max(1));
     base.timing.silence = Duration::from_millis(args.silence.max(1));
     base.liveness = Some(engine::liveness::Liveness {

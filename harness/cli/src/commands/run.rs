@@ -98,6 +98,13 @@ pub struct RunArgs {
     /// Unit id (Modbus/TCP) or slave address (RTU); default: the profile's.
     #[arg(long)]
     unit: Option<u8>,
+    /// A slave address no device on the line answers: the cases that check that a frame for another slave
+    /// goes unanswered send it there. Default: found at the start of a run against an RTU drive (direct or
+    /// behind a gateway) among the address next but one to the drive's, 247 and 124, the first that nothing
+    /// answers; on a line where the drive is alone, the drive's neighbour's address (--unit + 2) judges
+    /// strictly.
+    #[arg(long, value_name = "ADDRESS", value_parser = clap::value_parser!(u8).range(1..=247))]
+    foreign_address: Option<u8>,
     /// Write reports into this directory: index.json, cases.jsonl (every case, one line each), cases/ (a
     /// file per case that did not PASS), junit.xml, report.html, session.pcapng.
     #[arg(long)]
@@ -261,6 +268,7 @@ pub fn run(args: &RunArgs) -> ExitCode {
     opts.profile = args.profile.clone();
     opts.corpus = Corpus::from_option(args.corpus.as_deref());
     opts.unit = args.unit;
+    opts.foreign = args.foreign_address;
     opts.timing.timeout = Duration::from_millis(args.timeout.max(1));
     opts.liveness = Some(engine::liveness::Liveness {
         probe_timeout: Duration::from_millis(args.preflight_timeout.max(1)),

@@ -10,6 +10,7 @@ mod generated_snapshots;
 mod html_browser;
 mod junit_schema;
 mod leave_as_found;
+mod multi_drop;
 mod pipeline;
 mod profiles;
 mod rtu_resync;

@@ -94,7 +94,8 @@ impl Independent {
     }
 
     /// The simulator's whole state (SIGUSR1: it writes the file), without the FC 08 counters, which any
-    /// traffic changes, and the measured values a sixth-wave drive changes by itself (`live`).
+    /// traffic changes (`diagnostic_counters`, at any depth: a twelfth-wave line keeps them per device),
+    /// and the measured values a sixth-wave drive changes by itself (`live`).
     fn state(&self) -> serde_json::Value {
         let _ = std::fs::remove_file(&self.state);
         let pid = self.child.0.id() as libc::pid_t;
@@ -111,14 +112,22 @@ impl Independent {
         };
         let mut v: serde_json::Value = serde_json::from_str(&text).expect("state JSON");
         if let Some(o) = v.as_object_mut() {
-            o.remove("diagnostic_counters");
             o.remove("live");
         }
+        without_counters(&mut v);
         v
     }
 
     fn target(&self, scheme: &str) -> String {
         format!("{scheme}://{}", self.addr())
+    }
+}
+
+/// `v` without its `diagnostic_counters` keys, at any depth.
+fn without_counters(v: &mut serde_json::Value) {
+    if let Some(o) = v.as_object_mut() {
+        o.remove("diagnostic_counters");
+        o.values_mut().for_each(without_counters);
     }
 }
 
@@ -1126,4 +1135,64 @@ fn the_catalogs_pass_the_eleventh_wave_and_leave_its_faults_as_found() {
         out.contains("RESULT: PASS (1 INFORMATIONAL)"),
         "mdrive-k: the ER case did not see the error recorded again\n{out}"
     );
+}
+
+/// The twelfth wave (BRIEF-l.md): drives that are not alone. The MDrive Plus2 and the LMD (closed loop) each
+/// keep an HMI connected (a client inside the simulator, holding one of four connection slots and polling
+/// status and measured items 20 times a second); the SD2x is one device of a multi-drop RS-485 line: the
+/// drive at slave 1, an I/O module at 2 and a second SD2x at 3, every device hearing every frame.
+///
+/// Without and with the flags every catalog PASSes and every device is left as found (the LMD's upgrade
+/// mode aside, which its UG sets for good, by design). Before the fixes:
+/// - the SD2x's catalog FAILed `rtu/address/other-slave-silence` (and with the flags `rtu/fc08/counters`):
+///   its frame for "another slave" went to slave 3, the second SD2x, which answered. The line survey at the
+///   start of the run now finds an address nothing answers (247 here) and says that slave 3 answered;
+/// - with the flags the LMD was left with inputs 1-3 set up as homing inputs, sourcing: the keeper's trial
+///   write of S1-S4 as read before the first write ("1, 0, 1", which this LMD reads as IS's line: line, type,
+///   active) was taken as type 1, active 0, source. A setting whose read the manual does not document and
+///   that a drive may read as another setting's line (the profile's `read_as_line`: the LMD's S1-S4 and
+///   IS), whose setup the flags allow, read beginning with its line's number, now gets no trial write, and
+///   no case writes it.
+#[test]
+fn the_catalogs_pass_the_twelfth_wave_and_leave_it_and_its_line_as_found() {
+    let all = ["--allow-motion", "--allow-destructive"];
+    for (drive, scheme) in [("mdrive-l", "tcp"), ("lmd-l", "tcp"), ("sd2x-l", "rtu+tcp")] {
+        let (code, out) = run_leaving_as_found(drive, scheme, &[]);
+        assert_strict_pass(drive, code, &out);
+    }
+    for (drive, scheme, by_design) in [
+        ("mdrive-l", "tcp", &[][..]),
+        ("lmd-l", "tcp", &["/upgrade_mode:"][..]),
+        ("sd2x-l", "rtu+tcp", &[][..]),
+    ] {
+        let (code, out) = run_leaving_as_found_but(drive, &[], scheme, &all, by_design);
+        assert_strict_pass(drive, code, &out);
+    }
+    // The survey's line, and the LMD's S1 left untried, are said.
+    let sim = Independent::start("sd2x-l");
+    let (code, out, err) = harness_bounded(
+        None,
+        &run_args(
+            &sim.target("rtu+tcp"),
+            "sd2x",
+            &["--cases", "rtu/address/*"],
+        ),
+        RUN_LIMIT,
+    );
+    assert_eq!(code, 0, "{out}\n{err}");
+    assert!(
+        err.contains("line: slave 3 answered a read (03 03 02")
+            && err.contains("nothing answers slave 247"),
+        "sd2x-l: the survey is not said\n{err}"
+    );
+    // The SD2x line behind a Modbus/TCP gateway: a generated run's frames for another unit go where the
+    // survey found nothing (247), not to slave 4 or 2 (the I/O module).
+    let (code, out) =
+        run_leaving_as_found("sd2x-l", "gateway", &["--generated", "300", "--seed", "3"]);
+    assert_strict_pass("sd2x-l", code, &out);
+    if !socat_or_skip("independent::the_catalogs_pass_the_twelfth_wave (sd2x-l on a serial line)") {
+        return;
+    }
+    let (code, out) = run_on_serial_leaving_as_found("sd2x-l", &[]);
+    assert_strict_pass("sd2x-l", code, &out);
 }

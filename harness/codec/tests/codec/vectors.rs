@@ -157,6 +157,33 @@ fn framer_cuts_two_back_to_back_frames() {
     assert_eq!(max_gap, gap);
 }
 
+/// A slave on a multi-drop line hears the master's request to another slave, that slave's reply and the
+/// master's next request, here in one run of bytes (the reply followed within the carrier's wait). Sized by
+/// the request layouts alone, the 7-byte FC 03 reply and the request after it are one run of bytes that no
+/// length cuts, discarded at the silence: the request for this slave is lost. Listening as slave 3
+/// (`listen_as`), the frame after a request for slave 1 is sized by the response layouts too, and all three
+/// are cut.
+#[test]
+fn a_slave_on_a_line_hears_another_slaves_reply_and_the_request_after_it() {
+    let to_1 = rtu_frame(1, &raw![0x03, 0x0B, 0xB8, 0x00, 0x01]);
+    let reply_1 = rtu_frame(1, &raw![0x03, 0x02, 0x00, 0x00]);
+    let to_3 = rtu_frame(3, &raw![0x03, 0x0B, 0xB8, 0x00, 0x01]);
+    let stream = [to_1.clone(), reply_1.clone(), to_3.clone()].concat();
+    let t0 = Duration::from_millis(5);
+    let mut plain = RtuFramer::new(Direction::Request, timing(), Vec::new());
+    let mut ev = plain.push(t0, &stream);
+    ev.extend(plain.poll(t0 + timing().t3_5));
+    assert_eq!(frames(&ev[..1]), vec![to_1.clone()]);
+    assert!(
+        matches!(&ev[1..], [FramerEvent::Discarded { bytes, .. }] if bytes.len() == 15),
+        "{ev:?}"
+    );
+    let mut slave = RtuFramer::new(Direction::Request, timing(), Vec::new());
+    slave.listen_as(3);
+    assert_eq!(frames(&slave.push(t0, &stream)), vec![to_1, reply_1, to_3]);
+    assert!(slave.pending().is_empty());
+}
+
 #[test]
 fn framer_reports_bad_crc_after_silence() {
     let bad = raw![0x01, 0x03, 0x07, 0xD0, 0x00, 0x01, 0x84, 0x88].to_vec();

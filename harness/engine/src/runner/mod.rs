@@ -1046,6 +1046,30 @@ impl Runner {
             == crate::liveness::Heard::Modbus)
     }
 
+    /// What the target sends back to the read `pdu` addressed to another unit id or slave address `unit`
+    /// within `bound` (the reference drive does not see it): the bytes of the first frame, or of whatever
+    /// came (a garbled frame: two devices answering at once), or `None` for nothing. The line survey
+    /// ([`crate::session`]) asks this of the addresses it may send another slave's frames to.
+    pub fn heard_at_unit(
+        &mut self,
+        pdu: &[u8],
+        unit: u8,
+        bound: Duration,
+    ) -> Result<Option<Vec<u8>>, TargetError> {
+        let f = self.frame(pdu, unit, None);
+        self.target.drain();
+        self.remember(f.sent.tid, format!("the read at unit {unit}"));
+        self.requests += 1;
+        self.target.send(&f.bytes)?;
+        let heard = match self.target.recv(bound)? {
+            Received::Frame { bytes, .. } | Received::Garbage { bytes, .. } => bytes,
+            Received::Silence { partial, .. } | Received::Closed { partial, .. } => partial,
+        };
+        // Whatever else comes belongs to this request (a second answer, the rest of a collision).
+        self.target.drain();
+        Ok((!heard.is_empty()).then_some(heard))
+    }
+
     /// Remember a request's transaction id (Modbus/TCP), to attribute a late answer to it.
     fn remember(&mut self, tid: Option<u16>, by: String) {
         if let Some(tid) = tid {

@@ -12,7 +12,7 @@ mod golden;
 mod mcode;
 mod profile;
 pub mod public_fc;
-mod rtu;
+pub mod rtu;
 mod spec;
 mod tcp;
 
@@ -59,6 +59,8 @@ fn capture(send: Outgoing, compare: Compare, slot: usize, note: impl Into<String
 struct Ctx<'a> {
     p: &'a Profile,
     unit: u8,
+    /// The slave address the cases send another slave's frames to (see [`rtu::other_slave`]).
+    foreign: u8,
     cases: Vec<Case>,
 }
 
@@ -68,6 +70,7 @@ impl<'a> Ctx<'a> {
         Ctx {
             p,
             unit,
+            foreign: rtu::other_slave(unit),
             cases: Vec::new(),
         }
     }
@@ -201,9 +204,23 @@ pub fn slug_of_length(s: &str, max: usize) -> String {
 
 /// Build the catalog for a profile on a transport.
 pub fn build(p: &Profile, golden: Option<&GoldenFile>, framing: Framing, unit: u8) -> Vec<Case> {
+    build_on_line(p, golden, framing, unit, None)
+}
+
+/// [`build`], with the cases that send a frame for another slave sending it to `foreign` (an address the
+/// line survey found no device answering, or the user's `--foreign-address`); `None`: the address next but
+/// one to the drive's ([`rtu::other_slave`]).
+pub fn build_on_line(
+    p: &Profile,
+    golden: Option<&GoldenFile>,
+    framing: Framing,
+    unit: u8,
+    foreign: Option<u8>,
+) -> Vec<Case> {
     let mut cx = Ctx {
         p,
         unit,
+        foreign: foreign.unwrap_or_else(|| rtu::other_slave(unit)),
         cases: Vec::new(),
     };
     if let Some(g) = golden {
@@ -278,11 +295,7 @@ pub fn regressions(
     unit: u8,
 ) -> Result<Vec<Case>, crate::cases::regressions::RegressionError> {
     let cases = crate::cases::regressions::load_regressions(corpus, &p.device.id)?;
-    let cx = Ctx {
-        p,
-        unit,
-        cases: Vec::new(),
-    };
+    let cx = Ctx::bare(p, unit);
     Ok(cases
         .into_iter()
         .map(|c| around_writes(&cx, c).classified(p, unit))

@@ -6,7 +6,7 @@ use crate::cases::{Compare, Mutation, Outgoing, Tag};
 use codec::FunctionCode;
 use codec::Request;
 use codec::codes::diag;
-use drives::profile::{Access, Register, Table};
+use drives::profile::{Access, Profile, Register, Table};
 
 /// The RTU suite, family by family.
 pub(super) fn cases(cx: &mut Ctx) {
@@ -26,14 +26,43 @@ pub(super) fn cases(cx: &mut Ctx) {
     }
 }
 
-/// The slave address the addressing cases send to: one that is not the drive's (nor broadcast).
-fn other_slave(unit: u8) -> u8 {
+/// The slave address the addressing cases send to where no line survey chose one: one that is not the
+/// drive's (nor broadcast). On a line with other devices it may be one of theirs; the survey at the start of
+/// a run against an RTU device tries it first and then [`FOREIGN_CANDIDATES`] (`session::survey_line`).
+pub(crate) fn other_slave(unit: u8) -> u8 {
     // The same axis of another device: a double-axis SD2x owns two addresses, ID switch x 2 + 1 and + 2
     // (its manual, line 183), so the next address may be the target's own other axis, which answers.
     if unit > 245 {
         unit - 2
     } else {
         unit.wrapping_add(2).max(1)
+    }
+}
+
+/// The addresses the line survey tries after [`other_slave`], in order: the highest unicast address and one
+/// in the middle of the range, which a line numbered from 1 up (as machine builders number them) rarely
+/// reaches.
+pub const FOREIGN_CANDIDATES: [u8; 2] = [247, 124];
+
+/// The addresses the line survey tries for a drive at `unit`, in order: [`other_slave`] and then
+/// [`FOREIGN_CANDIDATES`], leaving out the drive's own and, for a double-axis SD2x, its other axis's.
+pub fn foreign_candidates(p: &Profile, unit: u8) -> Vec<u8> {
+    let mut out = vec![other_slave(unit)];
+    for c in FOREIGN_CANDIDATES {
+        if c != unit && !(p.device.id == "sd2x" && c == sd2x_partner(unit)) && !out.contains(&c) {
+            out.push(c);
+        }
+    }
+    out
+}
+
+/// The other axis's address of a double-axis SD2x at `unit`: ID switch x 2 + 1 (axis A) and + 2 (axis B)
+/// (its manual, line 183).
+pub fn sd2x_partner(unit: u8) -> u8 {
+    if unit % 2 == 1 {
+        unit.wrapping_add(1)
+    } else {
+        unit.wrapping_sub(1)
     }
 }
 
@@ -85,7 +114,7 @@ fn crc_and_addressing(cx: &mut Ctx) {
             cx.liveness(),
         ],
     );
-    let other = other_slave(cx.unit);
+    let other = cx.foreign;
     cx.push(
         "rtu/address/other-slave-silence".into(),
         format!("a request to slave {other} is ignored by slave {}", cx.unit),
@@ -239,7 +268,7 @@ fn return_query_data(cx: &mut Ctx) {
 /// The FC 08 counters after a known sequence of frames.
 fn counters(cx: &mut Ctx) {
     let read = known_good_read(cx.p);
-    let other = other_slave(cx.unit);
+    let other = cx.foreign;
     let mut steps = vec![
         exchange(
             Outgoing::Pdu(diag(diag::CLEAR_COUNTERS, 0)),

@@ -15,6 +15,7 @@ use super::spec::{
 };
 use crate::cases::catalog::known_good_read;
 use crate::cases::catalog::public_fc::{self, Exercise, Prelude};
+use crate::cases::catalog::rtu::sd2x_partner;
 use crate::{Case, Compare, Level, Mutation, Outgoing, Step, Tag};
 use codec::FunctionCode;
 use codec::codes::diag;
@@ -26,6 +27,9 @@ use drives::profile::{Bit, Object, Profile, Register, Table, VendorMnemonic};
 pub struct GenContext {
     profile: Profile,
     unit: u8,
+    /// An address the line survey found no device answering (or the user's `--foreign-address`): where set,
+    /// the frames for "another unit" that may reach another device on the line go to it.
+    foreign: Option<u8>,
     pub(super) regs: Vec<Register>,
     pub(super) wide: Vec<Register>,
     pub(super) holding: Vec<u16>,
@@ -60,6 +64,13 @@ fn pick<T>(list: &[T], i: impl Into<usize>) -> Option<&T> {
 }
 
 impl GenContext {
+    /// The same lists, with the frames for another unit sent to `foreign` where it is set (see
+    /// [`wrong_unit`]).
+    pub fn on_line(mut self, foreign: Option<u8>) -> Self {
+        self.foreign = foreign;
+        self
+    }
+
     /// The lists a profile's generators draw from, for requests to `unit`.
     pub fn new(profile: &Profile, unit: u8) -> Self {
         let mut regs: Vec<Register> = profile
@@ -103,6 +114,7 @@ impl GenContext {
         Self {
             profile: profile.clone(),
             unit,
+            foreign: None,
             wide,
             holding,
             input,
@@ -1262,6 +1274,9 @@ fn function_swap(cx: &GenContext, b: &Built, to: u8, tags: &mut BTreeSet<Tag>) -
 }
 
 /// Addressed to another unit: broadcast, the next one, 255, 247 for the first choices, else `unit` itself.
+/// Where the line survey found an address no device answers ([`GenContext::on_line`]), every unicast
+/// address but 255 (no device's: 248-255 are reserved, serial line spec 2.2) is that one: another device on
+/// the line would answer the others.
 fn wrong_unit(cx: &GenContext, b: &Built, unit: u8, tags: &mut BTreeSet<Tag>) -> Sent {
     let choices = [0u8, cx.unit.wrapping_add(1), 255, 247];
     let mut u = if unit < 4 {
@@ -1274,13 +1289,13 @@ fn wrong_unit(cx: &GenContext, b: &Built, unit: u8, tags: &mut BTreeSet<Tag>) ->
     }
     // A double-axis SD2x owns two addresses, ID switch x 2 + 1 (axis A) and + 2 (axis B) (its manual, line
     // 183): the other axis of the run's may answer. The same axis of the next device does not.
-    let partner = if cx.unit % 2 == 1 {
-        cx.unit.wrapping_add(1)
-    } else {
-        cx.unit.wrapping_sub(1)
-    };
-    if cx.profile.device.id == "sd2x" && cx.unit != 0 && u == partner {
+    if cx.profile.device.id == "sd2x" && cx.unit != 0 && u == sd2x_partner(cx.unit) {
         u = u.wrapping_add(2);
+    }
+    if let Some(f) = cx.foreign {
+        if u != 0 && u != 255 {
+            u = f;
+        }
     }
     let t = pdu_tags(&cx.profile, &b.pdu);
     if t.contains(&Tag::Write) {

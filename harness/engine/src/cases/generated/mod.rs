@@ -90,6 +90,13 @@ impl Generator {
         Self { cx, strategy, seed }
     }
 
+    /// The same generator with the frames for another unit sent to `foreign`, an address no device on the
+    /// line answers, where it is set ([`GenContext::on_line`]).
+    pub fn on_line(mut self, foreign: Option<u8>) -> Self {
+        self.cx = self.cx.on_line(foreign);
+        self
+    }
+
     /// The run seed.
     pub fn seed(&self) -> u64 {
         self.seed

@@ -129,3 +129,62 @@ fn a_drive_answering_every_address_still_fails_and_a_foreign_address_of_its_own_
         );
     }
 }
+
+/// The drive at slave 3 with another SD2x at slave 1 on its line: the manual's examples, printed for slave 1,
+/// go to the drive at 3, also with the flags, and the SD2x at 1 takes no write. Before, they went to slave
+/// 1 as printed: the catalog FAILed them (the other drive answered), and with the flags the examples of
+/// 6.1 (shutdown, enable operation, 100 Hz, the watchdog on) were written to the other drive and left it
+/// in fault.
+#[test]
+fn the_manuals_examples_go_to_the_drive_under_test_not_to_slave_1() {
+    let dir = TempDir::new("multi-drop-golden");
+    let journal = dir.path().join("slave-1.jsonl");
+    let slave_1 = SimProcess::start(&[
+        "--profile",
+        "sd2x",
+        "--rtu-over-tcp",
+        "127.0.0.1:0",
+        "--journal",
+        journal.to_str().expect("path"),
+    ]);
+    let drive = SimProcess::start(&[
+        "--profile",
+        "sd2x",
+        "--rtu-over-tcp",
+        "127.0.0.1:0",
+        "--unit",
+        "3",
+    ]);
+    let line = PeerServer::line(
+        &[
+            slave_1.rtu_over_tcp.expect("endpoint"),
+            drive.rtu_over_tcp.expect("endpoint"),
+        ],
+        &[],
+    );
+    let url = format!("rtu+tcp://{}", line.addr);
+    let (code, out, err) = harness_bounded(
+        None,
+        &run_args(
+            &url,
+            "sd2x",
+            &[
+                "--unit",
+                "3",
+                "--cases",
+                "golden/*",
+                "--allow-motion",
+                "--allow-destructive",
+            ],
+        ),
+        RUN_LIMIT,
+    );
+    assert_eq!(code, 0, "{out}\n{err}");
+    assert!(out.contains("RESULT: PASS"), "{out}");
+    assert!(
+        out.contains("every kept parameter reads as before"),
+        "{out}"
+    );
+    let writes = journal_lines(&journal);
+    assert!(writes.is_empty(), "slave 1 took writes: {writes:?}");
+}

@@ -8,7 +8,13 @@ use drives::golden::{Form, GoldenDirection, GoldenFile, GoldenFrame};
 use drives::profile::Register;
 
 /// One case per request frame of the golden file that decodes as a request.
-pub(super) fn cases(cx: &mut Ctx, g: &GoldenFile) {
+///
+/// A frame printed for a unit id is sent to that unit, except on a serial line (a run framed RTU, or a drive
+/// that speaks RTU only, behind a gateway): there an address other than the run's is another device's (the
+/// SD2x manual prints its examples for slave 1; a drive at slave 3 shares its line with the one at 1), so
+/// the example's PDU goes to the run's slave, and the step says so.
+pub(super) fn cases(cx: &mut Ctx, g: &GoldenFile, framing: codec::Framing) {
+    let on_line = framing == codec::Framing::Rtu || !cx.p.speaks_tcp();
     for f in g
         .frames
         .iter()
@@ -24,17 +30,27 @@ pub(super) fn cases(cx: &mut Ctx, g: &GoldenFile) {
         let mut tags = Vec::new();
         let mut around = Around::new();
         let compare = judge(cx, &req, &mut tags, &mut around);
-        let send = match addr {
-            Some(u) if u != cx.unit => Outgoing::PduToUnit {
-                pdu: pdu_bytes.clone(),
-                unit: u,
-            },
-            _ => Outgoing::Pdu(pdu_bytes.clone()),
+        let (send, readdressed) = match addr {
+            Some(u) if u != cx.unit && on_line => (
+                Outgoing::Pdu(pdu_bytes.clone()),
+                format!(
+                    " (printed for slave {u}, sent to the run's slave {})",
+                    cx.unit
+                ),
+            ),
+            Some(u) if u != cx.unit => (
+                Outgoing::PduToUnit {
+                    pdu: pdu_bytes.clone(),
+                    unit: u,
+                },
+                String::new(),
+            ),
+            _ => (Outgoing::Pdu(pdu_bytes.clone()), String::new()),
         };
         let steps = around.wrap(vec![exchange(
             send,
             compare,
-            format!("golden request as corrected: {}", f.meaning),
+            format!("golden request as corrected{readdressed}: {}", f.meaning),
         )]);
         let id = format!("golden/{}", f.id);
         // Cited by the manual's name and section; the line is of the seed text the corpus quotes.

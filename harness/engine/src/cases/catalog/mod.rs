@@ -224,7 +224,7 @@ pub fn build_on_line(
         cases: Vec::new(),
     };
     if let Some(g) = golden {
-        golden::cases(&mut cx, g);
+        golden::cases(&mut cx, g, framing);
     }
     spec::cases(&mut cx);
     match framing {

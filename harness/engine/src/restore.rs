@@ -1804,8 +1804,11 @@ impl Keeper {
             let found = &snapshot[&item.key];
             if let (Some(&line), Value::Text(t)) =
                 (self.inventory.reassigning.get(&item.key), found)
-                && t.trim_start_matches('=').split(',').next().map(str::trim)
-                    == Some(&line.to_string())
+                && t.trim_start_matches('=')
+                    .split(',')
+                    .next()
+                    .and_then(|f| f.trim().parse::<u8>().ok())
+                    == Some(line)
             {
                 self.account.unwritable.push(Excluded {
                     key: item.key.clone(),

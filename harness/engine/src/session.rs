@@ -747,9 +747,7 @@ pub(crate) fn survey_line(
     log: &mut dyn Write,
 ) -> Result<Option<u8>, SessionError> {
     let framing = runner.framing();
-    // A line: RTU framing, or Modbus/TCP to a drive that speaks RTU only (a gateway in front of its line).
-    let line = framing == codec::Framing::Rtu || !profile.speaks_tcp();
-    if opts.foreign.is_some() || !line {
+    if opts.foreign.is_some() || !crate::cases::catalog::rtu::on_a_line(framing, profile) {
         return Ok(opts.foreign);
     }
     let candidates = crate::cases::catalog::rtu::foreign_candidates(profile, unit);

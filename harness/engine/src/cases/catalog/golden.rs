@@ -14,7 +14,7 @@ use drives::profile::Register;
 /// SD2x manual prints its examples for slave 1; a drive at slave 3 shares its line with the one at 1), so
 /// the example's PDU goes to the run's slave, and the step says so.
 pub(super) fn cases(cx: &mut Ctx, g: &GoldenFile, framing: codec::Framing) {
-    let on_line = framing == codec::Framing::Rtu || !cx.p.speaks_tcp();
+    let on_line = super::rtu::on_a_line(framing, cx.p);
     for f in g
         .frames
         .iter()

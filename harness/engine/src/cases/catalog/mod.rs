@@ -217,12 +217,10 @@ pub fn build_on_line(
     unit: u8,
     foreign: Option<u8>,
 ) -> Vec<Case> {
-    let mut cx = Ctx {
-        p,
-        unit,
-        foreign: foreign.unwrap_or_else(|| rtu::other_slave(unit)),
-        cases: Vec::new(),
-    };
+    let mut cx = Ctx::bare(p, unit);
+    if let Some(f) = foreign {
+        cx.foreign = f;
+    }
     if let Some(g) = golden {
         golden::cases(&mut cx, g, framing);
     }

@@ -56,6 +56,12 @@ pub fn foreign_candidates(p: &Profile, unit: u8) -> Vec<u8> {
     out
 }
 
+/// True where the run's drive is a slave on a serial line, whose other addresses are other devices': a run
+/// framed RTU, or Modbus/TCP to a drive that speaks RTU only (a gateway in front of its line).
+pub fn on_a_line(framing: codec::Framing, p: &Profile) -> bool {
+    framing == codec::Framing::Rtu || !p.speaks_tcp()
+}
+
 /// The other axis's address of a double-axis SD2x at `unit`: ID switch x 2 + 1 (axis A) and + 2 (axis B)
 /// (its manual, line 183).
 pub fn sd2x_partner(unit: u8) -> u8 {

@@ -13,7 +13,10 @@ use crate::cases::regressions::{Origin, RegressionFile, file_stem};
 use crate::cases::{Case, Compare, Level, Outgoing, Step, Verdict};
 use crate::expect::Expectations;
 use crate::runner::skip_reason;
-use crate::session::{Options, SessionError, config, open_runner, resolve_profile};
+use crate::session::{
+    LinkTally, Options, SessionError, config, open_runner, resolve_profile,
+    run_over_link as over_link,
+};
 
 /// How a campaign runs.
 #[derive(Clone, Debug)]
@@ -472,6 +475,8 @@ fn fuzz_loop(
         );
     }
     let mut depth = pipelining.depth;
+    // Cases run again where a damaged link may have made them FAIL (see `session::run_over_link`).
+    let mut link = LinkTally::default();
     if let Some((case, result)) = burst.filter(|(_, r)| r.verdict == Verdict::Fail) {
         let f: Vec<String> = result.findings().cloned().collect();
         let first = f.first().cloned().unwrap_or_default();
@@ -539,7 +544,7 @@ fn fuzz_loop(
             if batch.len() < 2 {
                 // Nothing to put in flight beside it.
                 let case = batch.remove(0);
-                let result = runner.run_case(&case)?;
+                let result = over_link(runner, None, &case, profile, cfg, &mut link)?;
                 vec![(case, result, false)]
             } else {
                 let results = runner.run_pipelined(&batch)?;
@@ -550,7 +555,14 @@ fn fuzz_loop(
                     .collect()
             }
         } else {
-            vec![run_one(runner, keeper.as_deref_mut(), case, profile, log)?]
+            vec![run_one(
+                runner,
+                keeper.as_deref_mut(),
+                case,
+                (profile, cfg),
+                &mut link,
+                log,
+            )?]
         };
         cases += ran.len() as u64;
         pipelined += ran.iter().filter(|r| r.2).count() as u64;
@@ -559,7 +571,7 @@ fn fuzz_loop(
         // that stopped answering is that finding, not a wrong answer), and every N cases.
         if ran.iter().any(|r| r.1.unanswered()) || cases % opts.probe_every.max(1) == 0 {
             probes += 1;
-            let p = runner.run_case(&probe)?;
+            let p = over_link(runner, None, &probe, profile, cfg, &mut link)?;
             if p.verdict == Verdict::Fail {
                 let first = history.first().map_or("?".to_string(), |c| c.id.clone());
                 let mut f: Vec<String> = p.findings().cloned().collect();
@@ -693,6 +705,9 @@ fn fuzz_loop(
         }
     }
     crate::session::log_silences(log, runner);
+    if let Some(n) = link.note() {
+        let _ = writeln!(log, "{n}");
+    }
     let stopped = stopped.unwrap_or_else(|| {
         if interrupt.load(Ordering::SeqCst) {
             "interrupted".to_string()
@@ -723,11 +738,12 @@ fn run_one(
     runner: &mut crate::runner::Runner,
     keeper: Option<&mut crate::restore::Keeper>,
     case: Case,
-    profile: &drives::profile::Profile,
+    (profile, cfg): (&drives::profile::Profile, &crate::runner::RunConfig),
+    link: &mut LinkTally,
     log: &mut dyn Write,
 ) -> Result<Ran, SessionError> {
     let Some(k) = keeper else {
-        let result = runner.run_case(&case)?;
+        let result = over_link(runner, None, &case, profile, cfg, link)?;
         return Ok((case, result, false));
     };
     let t = k.touched(&case);
@@ -750,7 +766,8 @@ fn run_one(
     }
     // A save to NVM stores the settings as found, whatever the cases before changed.
     k.before_save(runner, &case, profile);
-    let result = runner.run_case(&case)?;
+    let keep = (!t.is_empty()).then_some(&mut *k);
+    let result = over_link(runner, keep, &case, profile, cfg, link)?;
     if !t.is_empty() {
         let t = k.taken(&case, runner.refused_writes());
         k.after_case(runner, &case.id, &t, profile)?;

@@ -75,7 +75,51 @@ impl StepResult {
     }
 }
 
+/// What [`StepResult::link_damage`] calls a step that got nothing at all where the reference answers.
+pub const NO_ANSWER: &str = "no answer";
+
+impl StepResult {
+    /// Where the step FAILed in a way a damaged link gives as well as a faulty drive, what came, in a few
+    /// words: nothing where the reference answers (no answer, a closed connection: a request damaged on its
+    /// way, an answer lost with its connection), or no whole frame (part of one, then silence; bytes that
+    /// are no frame; over RTU a frame whose CRC does not check: an answer damaged on its way). Noise on an
+    /// RS-485 line flips bits, loses bytes and adds stray ones (serial line spec 2.5.1.2: the CRC is there to
+    /// catch them), and a TCP link drops connections; the drive cannot be told from its link by one step.
+    pub fn link_damage(&self, framing: codec::Framing) -> Option<&'static str> {
+        if self.verdict != Verdict::Fail {
+            return None;
+        }
+        self.observed.iter().find_map(|o| match o {
+            Received::Silence { partial, .. } | Received::Closed { partial, .. }
+                if !partial.is_empty() =>
+            {
+                Some("part of a frame, then nothing")
+            }
+            Received::Closed { .. } if self.expected.is_some() => {
+                Some("the connection closed without an answer")
+            }
+            Received::Silence { .. } if self.expected.is_some() => Some(NO_ANSWER),
+            Received::Garbage { .. } => Some("bytes that are no frame"),
+            Received::Frame { bytes, .. }
+                if framing == codec::Framing::Rtu && !codec::rtu::crc_ok(bytes) =>
+            {
+                Some("a frame whose CRC does not check")
+            }
+            _ => None,
+        })
+    }
+}
+
 impl CaseResult {
+    /// The first step that FAILed in a way a damaged link gives too (see [`StepResult::link_damage`]): its
+    /// index and what came.
+    pub fn link_damage(&self, framing: codec::Framing) -> Option<(usize, &'static str)> {
+        self.steps
+            .iter()
+            .enumerate()
+            .find_map(|(k, s)| s.link_damage(framing).map(|d| (k, d)))
+    }
+
     /// True when a step expected an answer and got silence or a close (see [`StepResult::unanswered`]).
     pub fn unanswered(&self) -> bool {
         self.steps.iter().any(StepResult::unanswered)
@@ -122,5 +166,72 @@ fn opt_hex<S: serde::Serializer>(b: &Option<Vec<u8>>, s: S) -> Result<S::Ok, S::
     match b {
         Some(b) => s.serialize_str(&codec::hex_spaced(b)),
         None => s.serialize_none(),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn step(expected: Option<&[u8]>, observed: Received, verdict: Verdict) -> StepResult {
+        StepResult {
+            note: String::new(),
+            sent: None,
+            expected: expected.map(<[u8]>::to_vec),
+            observed: vec![observed],
+            verdict,
+            findings: vec![],
+        }
+    }
+
+    /// What a damaged link gives is told from what it cannot give: a whole frame whose CRC checks, or a
+    /// silence where the reference is silent too, is the drive's; so is anything of a step that did not FAIL.
+    #[test]
+    fn link_damage_is_what_a_link_can_give() {
+        use codec::Framing::{Rtu, Tcp};
+        let answer = [0x01u8, 0x03, 0x02, 0x00, 0x00, 0xB8, 0x44];
+        let mut bad = answer.to_vec();
+        bad[3] ^= 0x10;
+        let exp = Some(&answer[..]);
+        let fail = Verdict::Fail;
+        let cases: [(StepResult, codec::Framing, Option<&str>); 8] = [
+            (step(exp, Received::silence(), fail), Rtu, Some("no answer")),
+            (step(None, Received::silence(), fail), Rtu, None),
+            (
+                step(exp, Received::frame(bad.clone()), fail),
+                Rtu,
+                Some("a frame whose CRC does not check"),
+            ),
+            (step(exp, Received::frame(bad.clone()), fail), Tcp, None),
+            (step(exp, Received::frame(answer.to_vec()), fail), Rtu, None),
+            (
+                step(
+                    exp,
+                    Received::Silence {
+                        partial: answer[..3].to_vec(),
+                        at: Duration::ZERO,
+                    },
+                    fail,
+                ),
+                Rtu,
+                Some("part of a frame, then nothing"),
+            ),
+            (
+                step(
+                    exp,
+                    Received::Closed {
+                        partial: vec![],
+                        at: Duration::ZERO,
+                    },
+                    fail,
+                ),
+                Tcp,
+                Some("the connection closed without an answer"),
+            ),
+            (step(exp, Received::silence(), Verdict::Pass), Rtu, None),
+        ];
+        for (k, (s, framing, want)) in cases.iter().enumerate() {
+            assert_eq!(s.link_damage(*framing), *want, "case {k}");
+        }
     }
 }

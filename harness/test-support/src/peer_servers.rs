@@ -56,23 +56,33 @@ impl PeerServer {
     /// bench/gateway.py in front of the RTU-over-TCP drive at `upstream`, with `args` (`--timeout MS`, ...):
     /// a Modbus/TCP-to-RTU gateway answering 0B where the drive is silent, 0A for a unit id with no path.
     pub fn gateway(upstream: SocketAddr, args: &[&str]) -> Self {
+        Self::bench_script("gateway.py", &[upstream], args)
+    }
+
+    /// bench/`script` (a loopback relay) in front of `upstreams`, with `args`, ending by itself after 900 s.
+    fn bench_script(script: &str, upstreams: &[SocketAddr], args: &[&str]) -> Self {
         let mut c = Command::new("python3");
-        c.arg(std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../bench/gateway.py"))
-            .arg(upstream.to_string())
-            .args(args)
-            .args(["--lifetime", "900"]);
+        c.arg(
+            std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+                .join("../../bench")
+                .join(script),
+        )
+        .args(upstreams.iter().map(ToString::to_string))
+        .args(args)
+        .args(["--lifetime", "900"]);
         Self::start(c)
     }
 
     /// bench/line.py joining the RTU-over-TCP drives at `drops` into one multi-drop line, with `args`
     /// (`--hear-replies off`, ...), served to the master over RTU over TCP.
     pub fn line(drops: &[SocketAddr], args: &[&str]) -> Self {
-        let mut c = Command::new("python3");
-        c.arg(std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../bench/line.py"))
-            .args(drops.iter().map(ToString::to_string))
-            .args(args)
-            .args(["--lifetime", "900"]);
-        Self::start(c)
+        Self::bench_script("line.py", drops, args)
+    }
+
+    /// bench/noisy-link.py in front of the drive at `upstream`, with `args` (`--mode rtu|tcp`, `--rate R`,
+    /// `--seed N`, ...): a noisy RS-485 line, or a Modbus/TCP link that drops connections.
+    pub fn noisy_link(upstream: SocketAddr, args: &[&str]) -> Self {
+        Self::bench_script("noisy-link.py", &[upstream], args)
     }
 
     /// SIGTERM by pid, then the exit status (bounded).

@@ -100,6 +100,13 @@ pub struct FuzzArgs {
     /// answer is judged, in milliseconds; 0: never sent again.
     #[arg(long, default_value_t = 5000, value_name = "MS")]
     busy_wait: u64,
+    /// Run a case (or a liveness probe) again, at most N more times (after half the answer timeout, 1 s, 3 s,
+    /// then 1 s each), where it
+    /// FAILed as a damaged link makes a case fail (no answer, part of a frame, a frame whose CRC does not
+    /// check, a closed connection); it is a finding only where no attempt comes through whole. 0: every
+    /// first attempt is judged. Real targets only; pipelined batches are not run again.
+    #[arg(long, default_value_t = 6, value_name = "N")]
+    link_retries: u32,
     /// With --keep-going: stop after this many distinct findings (the same kind, case family and finding
     /// with other numbers is a repeat: counted, no second reproducer).
     #[arg(long, default_value_t = 20, value_name = "N")]
@@ -174,6 +181,7 @@ pub fn run(args: &FuzzArgs) -> ExitCode {
     base.journal = args.journal.clone();
     base.timing.sentinel = !args.no_sentinel;
     base.timing.busy_wait = Duration::from_millis(args.busy_wait);
+    base.timing.link_retries = args.link_retries;
     let regressions = args.regressions.clone().unwrap_or_else(|| {
         if std::path::Path::new("corpus").is_dir() {
             PathBuf::from("corpus/regressions")

@@ -174,6 +174,14 @@ pub struct RunArgs {
     /// answer is judged, in milliseconds; 0: never sent again.
     #[arg(long, default_value_t = 5000, value_name = "MS")]
     busy_wait: u64,
+    /// Run a case again, at most N more times (after half the answer timeout, 1 s, 3 s, then 1 s each),
+    /// where it FAILed as a damaged link
+    /// makes a case fail (no answer, part of a frame, a frame whose CRC does not check, a closed connection:
+    /// noise on an RS-485 line, a TCP link that dropped); an attempt that comes through whole is judged, one
+    /// that FAILs the same way as the first is the drive's own and the first is judged. 0: every first
+    /// attempt is judged (a clean link). Real targets only.
+    #[arg(long, default_value_t = 6, value_name = "N")]
+    link_retries: u32,
     /// Inject a fault into the in-process simulator (sim: targets; repeatable; see `simulate --list-faults`).
     #[arg(long = "fault", value_name = "NAME")]
     faults: Vec<String>,
@@ -277,6 +285,7 @@ pub fn run(args: &RunArgs) -> ExitCode {
     opts.timing.silence = Duration::from_millis(args.silence.max(1));
     opts.timing.sentinel = !args.no_sentinel;
     opts.timing.busy_wait = Duration::from_millis(args.busy_wait);
+    opts.timing.link_retries = args.link_retries;
     opts.safety.allow_motion = args.allow_motion;
     opts.safety.allow_destructive = args.allow_destructive;
     opts.safety.read_only = args.read_only;

@@ -11,6 +11,7 @@ mod html_browser;
 mod junit_schema;
 mod leave_as_found;
 mod multi_drop;
+mod noisy_link;
 mod pipeline;
 mod profiles;
 mod rtu_resync;

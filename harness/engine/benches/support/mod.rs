@@ -236,6 +236,7 @@ fn runner_for(target: Box<dyn Target>, profile: &Profile) -> Runner {
             silence: Duration::from_millis(300),
             sentinel: true,
             busy_wait: engine::runner::BUSY_WITHIN,
+            link_retries: 6,
         },
         safety: Default::default(),
         is_sim: false,

@@ -12,6 +12,10 @@ use super::freedoms::Shown;
 /// How many case ids a choice keeps, at most (the rest are counted).
 pub const CASES_KEPT: usize = 8;
 
+/// How many silences against an answered choice a link that loses frames may account for, per freedom: more
+/// is the drive's own (noise hitting the same kind of request again and again is no noise).
+pub const LOSSY_SILENCES: usize = 2;
+
 /// One choice of the run.
 #[derive(Clone, Debug, PartialEq, Eq, Serialize)]
 pub struct Choice {
@@ -29,6 +33,10 @@ pub struct Choice {
     pub count: usize,
     /// Other values shown later: (value, case id).
     pub changed: Vec<(String, String)>,
+    /// Cases that showed silence against this answered value on a link seen to lose frames in the run (see
+    /// [`ChoiceLog::link_loses_frames`]): not held against the drive.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub silent_on_a_lossy_link: Vec<String>,
 }
 
 impl FromIterator<Choice> for ChoiceLog {
@@ -38,6 +46,7 @@ impl FromIterator<Choice> for ChoiceLog {
                 .into_iter()
                 .map(|c| ((c.freedom.clone(), c.about.clone()), c))
                 .collect(),
+            lossy: false,
         }
     }
 }
@@ -46,9 +55,21 @@ impl FromIterator<Choice> for ChoiceLog {
 #[derive(Clone, Debug, Default, PartialEq, Eq)]
 pub struct ChoiceLog {
     entries: BTreeMap<(String, String), Choice>,
+    /// The link lost or damaged frames in this run (see [`ChoiceLog::link_loses_frames`]).
+    lossy: bool,
 }
 
 impl ChoiceLog {
+    /// The link to the drive lost or damaged frames in this run (a case FAILed as a damaged link makes it
+    /// fail, and came through whole when run again): from now on a silence where the drive answered before
+    /// (or an answer where it was silent) is no change of mind. A request damaged on its way gets no answer
+    /// from any drive (serial line spec 2.5.1.2: a frame whose CRC does not check is discarded), so a silence
+    /// on such a link is no evidence of a choice against an answer, which is: the answer is kept as the
+    /// choice, and the case that was silent is listed with it (at most [`LOSSY_SILENCES`] a freedom).
+    pub fn link_loses_frames(&mut self) {
+        self.lossy = true;
+    }
+
     /// Record what a case showed; returns a finding's text when the drive departs from an earlier choice.
     /// Status-bit masks are recorded but never held to one value: how loose a comparison must be depends
     /// on the state the word shows, not on a choice.
@@ -74,8 +95,33 @@ impl ChoiceLog {
                         cases: vec![case.to_string()],
                         count: 1,
                         changed: Vec::new(),
+                        silent_on_a_lossy_link: Vec::new(),
                     },
                 );
+                None
+            }
+            Some(c)
+                if self.lossy
+                    && held
+                    && (c.value == "silence") != (shown.value == "silence")
+                    && if c.value == "silence" {
+                        c.count
+                    } else {
+                        c.silent_on_a_lossy_link.len() + 1
+                    } <= LOSSY_SILENCES =>
+            {
+                if c.value == "silence" {
+                    // The answer is the choice; the cases that were silent are listed with it.
+                    let mut silent = std::mem::take(&mut c.cases);
+                    silent.truncate(CASES_KEPT);
+                    c.silent_on_a_lossy_link = silent;
+                    c.value = shown.value.clone();
+                    c.reference = shown.reference;
+                    c.cases = vec![case.to_string()];
+                    c.count = 1;
+                } else if c.silent_on_a_lossy_link.len() < CASES_KEPT {
+                    c.silent_on_a_lossy_link.push(case.to_string());
+                }
                 None
             }
             Some(c) if c.value == shown.value || !held => {
@@ -159,5 +205,66 @@ impl ChoiceLog {
                 )
             })
             .collect()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn shown(value: &str) -> Shown {
+        Shown {
+            freedom: "rtu-length-framing".into(),
+            about: String::new(),
+            value: value.into(),
+            reference: false,
+        }
+    }
+
+    /// On a clean link a silence against an answer is a change of mind (NON-STRICT); on a link that lost
+    /// frames in the run, up to [`LOSSY_SILENCES`] silences are not held against the answer, which becomes
+    /// the choice, and the cases are listed; a third is the drive's own again.
+    #[test]
+    fn a_silence_on_a_link_that_loses_frames_is_not_held_against_an_answer() {
+        let requirements = drives::corpus::Corpus::Embedded
+            .requirements()
+            .expect("requirements");
+        let mut clean = ChoiceLog::default();
+        assert_eq!(clean.record(&shown("silence"), "a", &requirements), None);
+        assert!(
+            clean
+                .record(&shown("exception-03"), "b", &requirements)
+                .is_some()
+        );
+
+        let mut lossy = ChoiceLog::default();
+        lossy.link_loses_frames();
+        assert_eq!(lossy.record(&shown("silence"), "a", &requirements), None);
+        assert_eq!(
+            lossy.record(&shown("exception-03"), "b", &requirements),
+            None
+        );
+        let c = lossy.choices().next().expect("a choice");
+        assert_eq!(
+            (
+                c.value.as_str(),
+                c.cases.clone(),
+                c.silent_on_a_lossy_link.clone()
+            ),
+            ("exception-03", vec!["b".to_string()], vec!["a".to_string()])
+        );
+        assert_eq!(lossy.record(&shown("silence"), "c", &requirements), None);
+        assert!(
+            lossy
+                .record(&shown("silence"), "d", &requirements)
+                .is_some(),
+            "a third silence is the drive's"
+        );
+        // An answer against an answer is a change of mind on any link.
+        assert!(
+            lossy
+                .record(&shown("exception-01"), "e", &requirements)
+                .is_some()
+        );
     }
 }

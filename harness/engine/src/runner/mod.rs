@@ -33,16 +33,22 @@ pub struct Timing {
     /// How long a request the drive answers Server Busy (06) is sent again before that answer is judged
     /// (App 7: "the client should retransmit the message later"); zero: never sent again.
     pub busy_wait: Duration,
+    /// How many times more a case is run where it FAILed in a way a damaged link gives as well as a faulty
+    /// drive (see [`crate::observe::StepResult::link_damage`]), real targets only; zero: a FAIL stands at the
+    /// first attempt. See [`crate::session::LINK_PAUSES`].
+    pub link_retries: u32,
 }
 
 impl Default for Timing {
-    /// 1 s for an answer, 300 ms of listening for one that must not come, sentinels on, 5 s for a busy drive.
+    /// 1 s for an answer, 300 ms of listening for one that must not come, sentinels on, 5 s for a busy drive,
+    /// six more attempts of a case the link may have damaged.
     fn default() -> Self {
         Self {
             timeout: Duration::from_millis(1000),
             silence: Duration::from_millis(300),
             sentinel: true,
             busy_wait: BUSY_WITHIN,
+            link_retries: 6,
         }
     }
 }
@@ -907,6 +913,24 @@ impl Runner {
         &self.choices
     }
 
+    /// The choices the target showed so far and those the reference follows, to put back with
+    /// [`Runner::forget_attempt`] where a case's attempt is not judged.
+    pub fn choices_before(&self) -> (ChoiceLog, drives::Choices) {
+        (self.choices.clone(), self.learned.clone())
+    }
+
+    /// An attempt of a case that the link damaged is not judged: what it showed of the drive's choices is
+    /// forgotten (a request damaged on its way is not answered, which is no choice of the drive), and the
+    /// link is known to lose frames from now on (see [`ChoiceLog::link_loses_frames`]).
+    pub fn forget_attempt(&mut self, (choices, learned): (ChoiceLog, drives::Choices)) {
+        self.choices = choices;
+        self.choices.link_loses_frames();
+        if learned != self.learned {
+            self.learned = learned;
+            self.shadow.adopt(self.learned.clone());
+        }
+    }
+
     /// How frames are delimited on the target.
     pub fn framing(&self) -> Framing {
         self.target.framing()
@@ -1378,6 +1402,23 @@ impl Runner {
     /// it, put-back steps included.
     pub fn watch_mid_case(&mut self, probe: Vec<u8>, bound: Duration) {
         self.mid_case = Some((probe, bound));
+    }
+
+    /// Let `pause` pass with nothing sent, and say whether anything came from the target meanwhile (taken
+    /// and dropped): before a case is run again after an attempt that got no answer, bytes coming now are a
+    /// late answer to that attempt (the drive answered, after the timeout; no frame was lost).
+    pub fn came_within(&mut self, pause: Duration) -> bool {
+        self.target.idle(pause);
+        self.sync_shadow();
+        let came = match self.target.recv(Duration::ZERO) {
+            Ok(Received::Frame { .. } | Received::Garbage { .. }) => true,
+            Ok(Received::Silence { partial, .. } | Received::Closed { partial, .. }) => {
+                !partial.is_empty()
+            }
+            Err(_) => false,
+        };
+        self.target.drain();
+        came
     }
 
     /// Whether the last case run was stopped after a step whose due answer did not come, and why.
@@ -3453,13 +3494,17 @@ impl crate::restore::Link for Runner {
             self.busy_pause(&mut pause);
             answer = self.transact_pdu(&pdu)?;
         }
-        // Nothing came at all (no frame, or the connection closed): a drive may leave a connection hung
-        // after a malformed request and still answer on a new one (jsmodbus did, after a truncated FC 15).
-        // What the keeper sends puts values back or reads them (the same request twice does no harm): once
-        // more on a new connection before the request counts as unanswered.
-        if answer.is_none() && self.restore_unheard && self.target.framing() == Framing::Tcp {
-            self.target.reconnect()?;
-            self.restore_reconnects += 1;
+        // Nothing came at all (no frame, or the connection closed), or no frame that decodes: a drive may
+        // leave a connection hung after a malformed request and still answer on a new one (jsmodbus did,
+        // after a truncated FC 15), a link may drop a connection, a noisy line damage the request or the
+        // answer (the serial line spec's CRC catches it, 2.5.1.2). What the keeper sends puts values back
+        // or reads them (the same request twice does no harm): once more (on Modbus/TCP on a new
+        // connection) before the request counts as unanswered.
+        if answer.is_none() && self.restore_unheard {
+            if self.target.framing() == Framing::Tcp {
+                self.target.reconnect()?;
+                self.restore_reconnects += 1;
+            }
             answer = self.transact_pdu(&pdu)?;
         }
         Ok(answer.and_then(|r| crate::readings::decode_response_pdu(&r)))
@@ -3497,11 +3542,17 @@ impl Runner {
             let (tid, unit, answer) = match self.target.framing() {
                 Framing::Tcp => match tcp::decode_adu(&bytes) {
                     Ok(a) => (Some(a.header.transaction_id), a.header.unit_id, a.pdu),
-                    Err(_) => return Ok(None),
+                    Err(_) => {
+                        self.restore_unheard = true;
+                        return Ok(None);
+                    }
                 },
                 _ => match rtu::decode_adu(&bytes) {
                     Ok(a) => (None, a.address, a.pdu),
-                    Err(_) => return Ok(None),
+                    Err(_) => {
+                        self.restore_unheard = true;
+                        return Ok(None);
+                    }
                 },
             };
             if f.sent.tid.is_some() && tid != f.sent.tid {

@@ -30,6 +30,8 @@ pub struct TcpTarget {
     answered_at: Option<Instant>,
     /// RTU over TCP: the silence the device needs to end a frame (`?gap=MS`), if given.
     resync_gap: Option<Duration>,
+    /// A connection was opened to the target before: a refusal now is a link or a stack that comes back.
+    opened_before: bool,
 }
 
 /// Every address `host` names (a name may have several: `localhost` is 127.0.0.1 and ::1), in the
@@ -75,6 +77,8 @@ fn peek(s: &TcpStream) -> std::io::Result<usize> {
 
 /// Connection attempts while the target refuses (see `open_retrying`).
 const RECONNECT_TRIES: usize = 6;
+/// How long a target that took a connection before is tried again while it refuses (see `open_retrying`).
+const LINK_BACK_WITHIN: Duration = Duration::from_secs(5);
 /// Waits shorter than this are made with ppoll (see `TcpTarget::read_once`).
 const SHORT_WAIT: Duration = Duration::from_millis(20);
 /// How long a connection being closed waits for the target's own close before the next one is opened (see
@@ -127,6 +131,7 @@ impl TcpTarget {
             fresh: false,
             answered_at: None,
             resync_gap: None,
+            opened_before: false,
         };
         // A name with several addresses: the first that takes a connection is the target (as
         // `TcpStream::connect` does); where none does, the first is tried again as below.
@@ -159,6 +164,7 @@ impl TcpTarget {
         self.fin_sent = None;
         self.fresh = true;
         self.answered_at = None;
+        self.opened_before = true;
         Ok(())
     }
 
@@ -224,9 +230,17 @@ impl TcpTarget {
     /// TCP guide leaves the number to the device, 4.4.2.1) may refuse a connection until it has freed the one
     /// just closed (the harness closes and reopens between cases, and after reading the identification).
     /// At most RECONNECT_TRIES attempts over about 0.6 s; a port nobody listens on is reported that much later.
+    /// A target that took a connection before is tried for [`LINK_BACK_WITHIN`], the pause between attempts
+    /// growing to 1 s: a link that dropped for a moment (a switch port, a cable), after which a drive's small
+    /// stack may refuse connects for a while, is waited for and not taken for a drive gone for good.
     fn open_retrying(&mut self) -> Result<(), TargetError> {
         let mut wait = Duration::from_millis(20);
-        for _ in 1..RECONNECT_TRIES {
+        let started = Instant::now();
+        let mut tries = 1;
+        while tries < RECONNECT_TRIES
+            || (self.opened_before && started.elapsed() + wait < LINK_BACK_WITHIN)
+        {
+            tries += 1;
             match self.open() {
                 Err(TargetError::Connect { source, .. })
                     if matches!(
@@ -237,7 +251,7 @@ impl TcpTarget {
                     ) =>
                 {
                     std::thread::sleep(wait);
-                    wait *= 2;
+                    wait = (wait * 2).min(Duration::from_secs(1));
                 }
                 other => return other,
             }

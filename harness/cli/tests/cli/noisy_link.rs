@@ -1,0 +1,168 @@
+//! A drive behind an imperfect link (bench/noisy-link.py): an RS-485 line whose noise flips bits, loses
+//! bytes, adds stray ones and cuts frames short, in both directions; a Modbus/TCP link that drops
+//! connections (a request lost, an answer lost after the request was executed, an outage during which
+//! connects are reset). One step cannot tell a drive from its link: a case that FAILed as a damaged link
+//! makes a case fail is run again, and judged at the first attempt that comes through whole; one that FAILs
+//! the same way again is the drive's own. Before, each damaged frame was a FAIL of a good drive.
+
+use std::time::Duration;
+
+use test_support::peer_servers::PeerServer;
+use test_support::{SimProcess, TempDir, harness_bounded, run_args};
+
+use super::leave_as_found::PresetDrive;
+
+const RUN_LIMIT: Duration = Duration::from_secs(240);
+
+/// The `link: ...` line of a run's log: (cases run again, of them come through whole, the same again).
+fn link_line(err: &str) -> (usize, usize, usize) {
+    let line = err
+        .lines()
+        .find(|l| l.starts_with("link: "))
+        .unwrap_or_else(|| panic!("no link line in the log:\n{err}"));
+    let num = |after: &str| -> usize {
+        let i = line
+            .find(after)
+            .unwrap_or_else(|| panic!("{after:?} not in {line:?}"));
+        let digits: String = line[..i]
+            .chars()
+            .rev()
+            .skip_while(|c| *c == ' ')
+            .take_while(char::is_ascii_digit)
+            .collect::<Vec<_>>()
+            .into_iter()
+            .rev()
+            .collect();
+        digits
+            .parse()
+            .unwrap_or_else(|_| panic!("no number before {after:?} in {line:?}"))
+    };
+    (
+        num(" case(s) run again"),
+        num(" came through whole"),
+        num(" FAILed the same way again"),
+    )
+}
+
+/// The SD2x (preset off its factory values) behind a line with 25 damaged frames in 1,000: the catalog with
+/// the flags PASSes, some cases run again and all of them come through, and every parameter reads as before;
+/// with `--link-retries 0` the same line FAILs the run (the noise is real). A fault of the drive that looks
+/// like a damaged link (it drops a request whose quantity is above the specification's limit) still FAILs,
+/// judged at its first attempt, "the same way again". A fuzz campaign over the line has no finding.
+#[test]
+fn an_rtu_drive_on_a_noisy_line_passes_is_left_as_found_and_its_own_faults_still_fail() {
+    let dir = TempDir::new("noisy-rtu");
+    let drive = PresetDrive::start_framed("sd2x", dir.path(), &[], true);
+    let before = drive.read();
+    let upstream = drive.sim.rtu_over_tcp.expect("rtu-over-tcp endpoint");
+    let line = PeerServer::noisy_link(upstream, &["--mode", "rtu", "--rate", "25", "--seed", "7"]);
+    let url = format!("rtu+tcp://{}", line.addr);
+    let flags = ["--allow-motion", "--allow-destructive"];
+    let (code, out, err) = harness_bounded(None, &run_args(&url, "sd2x", &flags), RUN_LIMIT);
+    assert_eq!(code, 0, "{out}\n{err}");
+    assert!(out.contains("RESULT: PASS"), "{out}");
+    let (again, through, same) = link_line(&err);
+    assert!(again >= 1, "the noise damaged no case: {err}");
+    assert_eq!((through, same), (again, 0), "{err}");
+    drive.assert_reads_as(&before, "after the catalog on a noisy line");
+
+    let (code, out, err) = harness_bounded(
+        None,
+        &run_args(&url, "sd2x", &["--link-retries", "0"]),
+        RUN_LIMIT,
+    );
+    assert_eq!(
+        code, 1,
+        "without reruns the noise FAILs cases: {out}\n{err}"
+    );
+    assert!(!err.contains("link: "), "{err}");
+
+    let faulty = SimProcess::start(&[
+        "--profile",
+        "sd2x",
+        "--rtu-over-tcp",
+        "127.0.0.1:0",
+        "--fault",
+        "quantity-over-spec-dropped",
+    ]);
+    let noisy = PeerServer::noisy_link(
+        faulty.rtu_over_tcp.expect("rtu-over-tcp endpoint"),
+        &["--mode", "rtu", "--rate", "25", "--seed", "7"],
+    );
+    let (code, out, err) = harness_bounded(
+        None,
+        &run_args(
+            &format!("rtu+tcp://{}", noisy.addr),
+            "sd2x",
+            &["--cases", "spec/app-6/quantity/*"],
+        ),
+        RUN_LIMIT,
+    );
+    assert_eq!(code, 1, "{out}\n{err}");
+    assert!(
+        out.contains("FAIL spec/app-6/quantity/fc-0x03/spec-max-plus-1"),
+        "{out}"
+    );
+    let (again, _, same) = link_line(&err);
+    assert!(same >= 1 && same <= again, "{err}");
+
+    let (code, out, err) = harness_bounded(
+        None,
+        &[
+            "fuzz",
+            "--target",
+            &url,
+            "--profile",
+            "sd2x",
+            "--max-cases",
+            "80",
+            "--seed",
+            "1",
+            "--regressions",
+            dir.path().join("regressions").to_str().expect("path"),
+        ],
+        RUN_LIMIT,
+    );
+    assert_eq!(code, 0, "{out}\n{err}");
+    assert!(out.contains(" 0 finding(s)"), "{out}\n{err}");
+}
+
+/// An MDrive (preset) behind a Modbus/TCP link that drops a connection at 15 requests in 1,000 (a request
+/// lost, an answer lost after the drive executed the request, an outage of 600 ms with connects reset): the
+/// catalog with the flags PASSes and every parameter reads as before; without reruns it FAILs.
+#[test]
+fn a_tcp_drive_behind_a_link_that_drops_passes_and_is_left_as_found() {
+    let dir = TempDir::new("noisy-tcp");
+    let drive = PresetDrive::start_framed("mdrive", dir.path(), &[], false);
+    let before = drive.read();
+    let upstream = drive.sim.tcp.expect("tcp endpoint");
+    let link = PeerServer::noisy_link(
+        upstream,
+        &[
+            "--mode",
+            "tcp",
+            "--rate",
+            "15",
+            "--seed",
+            "3",
+            "--outage-ms",
+            "600",
+        ],
+    );
+    let url = format!("tcp://{}", link.addr);
+    let flags = ["--allow-motion", "--allow-destructive"];
+    let (code, out, err) = harness_bounded(None, &run_args(&url, "mdrive", &flags), RUN_LIMIT);
+    assert_eq!(code, 0, "{out}\n{err}");
+    assert!(out.contains("RESULT: PASS"), "{out}");
+    let (again, through, _) = link_line(&err);
+    assert!(again >= 1, "the link dropped no case: {err}");
+    assert_eq!(through, again, "{err}");
+    drive.assert_reads_as(&before, "after the catalog behind a link that drops");
+
+    let (code, out, err) = harness_bounded(
+        None,
+        &run_args(&url, "mdrive", &["--link-retries", "0"]),
+        RUN_LIMIT,
+    );
+    assert_eq!(code, 1, "without reruns the drops FAIL cases: {out}\n{err}");
+}

@@ -85,25 +85,35 @@ impl StepResult {
     /// are no frame; over RTU a frame whose CRC does not check: an answer damaged on its way). Noise on an
     /// RS-485 line flips bits, loses bytes and adds stray ones (serial line spec 2.5.1.2: the CRC is there to
     /// catch them), and a TCP link drops connections; the drive cannot be told from its link by one step.
+    /// Also a step NON-STRICT for a connection closed where the reference keeps it open (no answer due): a
+    /// link that drops the connection then makes that too.
     pub fn link_damage(&self, framing: codec::Framing) -> Option<&'static str> {
-        if self.verdict != Verdict::Fail {
+        let fail = self.verdict == Verdict::Fail;
+        if !fail && self.verdict != Verdict::NonStrict {
             return None;
         }
         self.observed.iter().find_map(|o| match o {
             Received::Silence { partial, .. } | Received::Closed { partial, .. }
-                if !partial.is_empty() =>
+                if fail && !partial.is_empty() =>
             {
                 Some("part of a frame, then nothing")
             }
-            Received::Closed { .. } if self.expected.is_some() => {
-                Some("the connection closed without an answer")
-            }
+            Received::Closed { .. } => Some("the connection closed without an answer"),
+            _ if !fail => None,
             Received::Silence { .. } if self.expected.is_some() => Some(NO_ANSWER),
             Received::Garbage { .. } => Some("bytes that are no frame"),
             Received::Frame { bytes, .. }
                 if framing == codec::Framing::Rtu && !codec::rtu::crc_ok(bytes) =>
             {
                 Some("a frame whose CRC does not check")
+            }
+            // Cut short where the CRC of what is left happens to check: sd2x-m's exception 01 to FC 0x44,
+            // 01 C4 01 B3 00 cut after 4 bytes, is 01 C4 with a valid CRC (0xB301), and no response.
+            Received::Frame { bytes, .. }
+                if framing == codec::Framing::Rtu
+                    && crate::readings::decode_response(framing, bytes).is_none() =>
+            {
+                Some("a frame that does not decode")
             }
             _ => None,
         })
@@ -194,7 +204,7 @@ mod tests {
         bad[3] ^= 0x10;
         let exp = Some(&answer[..]);
         let fail = Verdict::Fail;
-        let cases: [(StepResult, codec::Framing, Option<&str>); 8] = [
+        let cases: [(StepResult, codec::Framing, Option<&str>); 11] = [
             (step(exp, Received::silence(), fail), Rtu, Some("no answer")),
             (step(None, Received::silence(), fail), Rtu, None),
             (
@@ -229,6 +239,28 @@ mod tests {
                 Some("the connection closed without an answer"),
             ),
             (step(exp, Received::silence(), Verdict::Pass), Rtu, None),
+            (
+                step(
+                    None,
+                    Received::Closed {
+                        partial: vec![],
+                        at: Duration::ZERO,
+                    },
+                    Verdict::NonStrict,
+                ),
+                Tcp,
+                Some("the connection closed without an answer"),
+            ),
+            (
+                step(None, Received::silence(), Verdict::NonStrict),
+                Tcp,
+                None,
+            ),
+            (
+                step(exp, Received::frame(vec![0x01, 0xC4, 0x01, 0xB3]), fail),
+                Rtu,
+                Some("a frame that does not decode"),
+            ),
         ];
         for (k, (s, framing, want)) in cases.iter().enumerate() {
             assert_eq!(s.link_damage(*framing), *want, "case {k}");

@@ -687,19 +687,34 @@ pub fn preflight(
     };
     let pdu = crate::cases::catalog::known_good_read(profile);
     let unit = opts.unit.unwrap_or(profile.device.default_unit);
-    let (heard, request) = runner.known_good(&pdu, bounds.probe_timeout)?;
-    match crate::liveness::preflight_failure(
-        &runner.target().describe(),
-        &heard,
-        &request,
-        runner.framing(),
-        match opts.target {
-            TargetUrl::Serial { echo, .. } => Some(echo),
-            _ => None,
-        },
-        unit,
-        bounds.probe_timeout,
-    ) {
+    let failure = |runner: &Runner, heard: &crate::liveness::Heard, request: &[u8]| {
+        crate::liveness::preflight_failure(
+            &runner.target().describe(),
+            heard,
+            request,
+            runner.framing(),
+            match opts.target {
+                TargetUrl::Serial { echo, .. } => Some(echo),
+                _ => None,
+            },
+            unit,
+            bounds.probe_timeout,
+        )
+    };
+    let (mut heard, mut request) = runner.known_good(&pdu, bounds.probe_timeout)?;
+    // RTU: noise on the line may damage the read or its answer (serial line spec 2.5.1.2), which a slave
+    // discards or the harness cannot decode: asked twice more, 1 s each at most, before the target counts
+    // as not answering (as a case is run again, `--link-retries`; not with 0).
+    if runner.framing() == codec::Framing::Rtu && opts.timing.link_retries > 0 {
+        for _ in 0..2 {
+            if failure(runner, &heard, &request).is_none() {
+                break;
+            }
+            (heard, request) =
+                runner.known_good(&pdu, bounds.probe_timeout.min(Duration::from_secs(1)))?;
+        }
+    }
+    match failure(runner, &heard, &request) {
         None => Ok(None),
         Some(mut m) => {
             // Silence on Modbus/TCP: is it the unit id? The same read at the unit ids a device that is not a
@@ -1481,10 +1496,12 @@ pub(crate) fn run_over_link(
     } else {
         cfg.timing.link_retries as usize
     };
-    let choices = (retries > 0).then(|| runner.choices_before());
+    if retries > 0 {
+        runner.mark_choices();
+    }
     let first = runner.run_case(case)?;
     let framing = runner.framing();
-    let (Some(damage), Some(choices)) = (LinkDamage::of(&first, framing), choices) else {
+    let Some(damage) = LinkDamage::of(&first, framing).filter(|_| retries > 0) else {
         return Ok(first);
     };
     if tally.own_kinds.contains(&damage.kind(&case.id)) {
@@ -1527,7 +1544,7 @@ pub(crate) fn run_over_link(
             ));
         }
         // What the attempt before showed of the drive's choices is not held against it.
-        runner.forget_attempt(choices.clone());
+        runner.forget_attempt();
         let r = match runner.run_case(case) {
             Ok(r) => r,
             // A link still down: a connect refused, a serial error; the next attempt waits longer.

@@ -47,6 +47,7 @@ impl FromIterator<Choice> for ChoiceLog {
                 .map(|c| ((c.freedom.clone(), c.about.clone()), c))
                 .collect(),
             lossy: false,
+            undo: None,
         }
     }
 }
@@ -57,6 +58,8 @@ pub struct ChoiceLog {
     entries: BTreeMap<(String, String), Choice>,
     /// The link lost or damaged frames in this run (see [`ChoiceLog::link_loses_frames`]).
     lossy: bool,
+    /// Since [`ChoiceLog::mark`]: each entry as it was before its first change (`None`: there was none).
+    undo: Option<BTreeMap<(String, String), Option<Choice>>>,
 }
 
 impl ChoiceLog {
@@ -70,6 +73,29 @@ impl ChoiceLog {
         self.lossy = true;
     }
 
+    /// From now on remember each entry as it was before its first change, for [`ChoiceLog::rewind`] (a case's
+    /// attempt that may not be judged). Cheap: nothing is copied until an entry changes.
+    pub fn mark(&mut self) {
+        self.undo = Some(BTreeMap::new());
+    }
+
+    /// Put every entry back as it was at the last [`ChoiceLog::mark`], which stays set.
+    pub fn rewind(&mut self) {
+        let Some(undo) = self.undo.as_mut() else {
+            return;
+        };
+        for (key, was) in std::mem::take(undo) {
+            match was {
+                Some(c) => {
+                    self.entries.insert(key, c);
+                }
+                None => {
+                    self.entries.remove(&key);
+                }
+            }
+        }
+    }
+
     /// Record what a case showed; returns a finding's text when the drive departs from an earlier choice.
     /// Status-bit masks are recorded but never held to one value: how loose a comparison must be depends
     /// on the state the word shows, not on a choice.
@@ -80,6 +106,11 @@ impl ChoiceLog {
         requirements: &Requirements,
     ) -> Option<String> {
         let key = (shown.freedom.clone(), shown.about.clone());
+        if let Some(undo) = self.undo.as_mut()
+            && !undo.contains_key(&key)
+        {
+            undo.insert(key.clone(), self.entries.get(&key).cloned());
+        }
         let held = requirements
             .freedom(&shown.freedom)
             .is_none_or(|f| f.kind != FreedomKind::StatusBits);

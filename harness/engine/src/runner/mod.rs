@@ -201,6 +201,10 @@ pub struct Runner {
     served_functions: std::collections::BTreeSet<u8>,
     /// The keeper's last request got no frame at all (silence, or the connection closed).
     restore_unheard: bool,
+    /// See [`Runner::mark_choices`]: marking, and the reference's choices as they were at the mark once they
+    /// changed since.
+    marking: bool,
+    learned_before: Option<drives::Choices>,
     /// New connections the keeper opened after a request of its got no frame at all.
     pub restore_reconnects: u32,
     /// The case being run sends an FC 15 (Write File Record): its FC 14 reads read back what it wrote.
@@ -426,6 +430,8 @@ impl Runner {
             lacking: std::collections::BTreeSet::new(),
             served_functions: std::collections::BTreeSet::new(),
             restore_unheard: false,
+            marking: false,
+            learned_before: None,
             restore_reconnects: 0,
             case_writes_files: false,
             function_outputs: Vec::new(),
@@ -680,6 +686,7 @@ impl Runner {
         let shown = crate::oracle::freedoms::shown_value(freedom, "", value);
         let requirements = Arc::clone(&self.requirements);
         let _ = self.choices.record(&shown, origin, &requirements);
+        self.before_learning();
         self.learned.choose(freedom, v);
         self.rebuild_reference();
     }
@@ -913,21 +920,31 @@ impl Runner {
         &self.choices
     }
 
-    /// The choices the target showed so far and those the reference follows, to put back with
-    /// [`Runner::forget_attempt`] where a case's attempt is not judged.
-    pub fn choices_before(&self) -> (ChoiceLog, drives::Choices) {
-        (self.choices.clone(), self.learned.clone())
+    /// Remember the choices the target showed so far and those the reference follows, to put back with
+    /// [`Runner::forget_attempt`] where a case's attempt is not judged (nothing is copied until one changes).
+    pub fn mark_choices(&mut self) {
+        self.choices.mark();
+        self.learned_before = None;
+        self.marking = true;
     }
 
     /// An attempt of a case that the link damaged is not judged: what it showed of the drive's choices is
-    /// forgotten (a request damaged on its way is not answered, which is no choice of the drive), and the
-    /// link is known to lose frames from now on (see [`ChoiceLog::link_loses_frames`]).
-    pub fn forget_attempt(&mut self, (choices, learned): (ChoiceLog, drives::Choices)) {
-        self.choices = choices;
+    /// forgotten (a request damaged on its way is not answered, which is no choice of the drive), back to
+    /// [`Runner::mark_choices`], and the link is known to lose frames from now on (see
+    /// [`ChoiceLog::link_loses_frames`]).
+    pub fn forget_attempt(&mut self) {
+        self.choices.rewind();
         self.choices.link_loses_frames();
-        if learned != self.learned {
+        if let Some(learned) = self.learned_before.take() {
             self.learned = learned;
             self.shadow.adopt(self.learned.clone());
+        }
+    }
+
+    /// Before the reference follows another choice: the choices as they were at [`Runner::mark_choices`].
+    fn before_learning(&mut self) {
+        if self.marking && self.learned_before.is_none() {
+            self.learned_before = Some(self.learned.clone());
         }
     }
 
@@ -2409,6 +2426,7 @@ impl Runner {
         }
         let follow = std::mem::take(&mut self.follow);
         for (f, v) in &follow {
+            self.before_learning();
             self.learned.choose(f, v.clone());
         }
         let ignored = std::mem::take(&mut self.unit_ignored);

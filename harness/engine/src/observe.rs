@@ -107,6 +107,16 @@ impl StepResult {
             {
                 Some("a frame whose CRC does not check")
             }
+            // A gateway's exception 0B, "gateway target device failed to respond" (App 7): its serial side
+            // got no answer in time, which a damaged line or a busy host gives as well.
+            Received::Frame { bytes, .. }
+                if framing == codec::Framing::Tcp
+                    && bytes.len() == 9
+                    && bytes[7] & 0x80 != 0
+                    && bytes[8] == 0x0B =>
+            {
+                Some("a gateway's exception 0B (its target did not answer)")
+            }
             // Cut short where the CRC of what is left happens to check: sd2x-m's exception 01 to FC 0x44,
             // 01 C4 01 B3 00 cut after 4 bytes, is 01 C4 with a valid CRC (0xB301), and no response.
             Received::Frame { bytes, .. }

@@ -13,7 +13,7 @@ use serde::Deserialize;
 use toml::Spanned;
 
 use crate::corpus::Corpus;
-use crate::profile::line_of;
+use crate::profile::{LineIndex, line_of};
 use codec::{Mnemonic, Request};
 
 /// Why the requirements could not be had from a corpus.
@@ -616,6 +616,7 @@ impl Requirements {
                     };
                     out.add_document(doc, &mut doc_kinds, known)
                         .map_err(|r| invalid(name, text, (doc_at, r)))?;
+                    let lines = LineIndex::new(text);
                     let doc_id = out
                         .documents
                         .last()
@@ -624,7 +625,7 @@ impl Requirements {
                     let doc_kind = out.documents.last().map(|d| d.kind);
                     for r in f.requirements {
                         let at = r.span().start;
-                        out.add_requirement(r.into_inner(), &doc_id, doc_kind, name, text, at)
+                        out.add_requirement(r.into_inner(), &doc_id, doc_kind, name, &lines, at)
                             .map_err(|e| invalid(name, text, e))?;
                     }
                 }
@@ -634,17 +635,19 @@ impl Requirements {
         }
         for (name, text) in raw_freedoms {
             let f: FreedomFile = toml::from_str(text).map_err(|e| toml_err(name, text, e))?;
+            let lines = LineIndex::new(text);
             for fr in f.freedoms {
                 let at = fr.span().start;
-                out.add_freedom(fr.into_inner(), &doc_kinds, known, name, text, at)
+                out.add_freedom(fr.into_inner(), &doc_kinds, known, name, &lines, at)
                     .map_err(|e| invalid(name, text, e))?;
             }
         }
         for (name, text) in raw_cites {
             let f: CiteFile = toml::from_str(text).map_err(|e| toml_err(name, text, e))?;
+            let lines = LineIndex::new(text);
             for c in f.cites {
                 let at = c.span().start;
-                out.add_cite(c.into_inner(), known, name, text, at)
+                out.add_cite(c.into_inner(), known, name, &lines, at)
                     .map_err(|e| invalid(name, text, e))?;
             }
         }
@@ -687,7 +690,7 @@ impl Requirements {
         doc: &str,
         doc_kind: Option<DocKind>,
         file: &str,
-        text: &str,
+        lines: &LineIndex,
         at: usize,
     ) -> Result<(), Fail> {
         let id_at = r.id.span().start;
@@ -740,7 +743,7 @@ impl Requirements {
             note: r.note,
             origin: Origin {
                 file: file.to_string(),
-                line: line_of(text, at),
+                line: lines.line(at),
             },
         });
         Ok(())
@@ -752,7 +755,7 @@ impl Requirements {
         docs: &BTreeMap<String, (DocKind, Origin)>,
         known: &KnownIds,
         file: &str,
-        text: &str,
+        lines: &LineIndex,
         at: usize,
     ) -> Result<(), Fail> {
         let id_at = f.id.span().start;
@@ -882,7 +885,7 @@ impl Requirements {
             note: f.note,
             origin: Origin {
                 file: file.to_string(),
-                line: line_of(text, at),
+                line: lines.line(at),
             },
         });
         Ok(())
@@ -893,7 +896,7 @@ impl Requirements {
         c: RawCite,
         known: &KnownIds,
         file: &str,
-        text: &str,
+        lines: &LineIndex,
         at: usize,
     ) -> Result<(), Fail> {
         let cases_at = c.cases.span().start;
@@ -929,7 +932,7 @@ impl Requirements {
             note: c.note,
             origin: Origin {
                 file: file.to_string(),
-                line: line_of(text, at),
+                line: lines.line(at),
             },
         });
         Ok(())

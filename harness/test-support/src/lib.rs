@@ -3,13 +3,14 @@
 //! helpers. Every wait is bounded.
 
 pub mod mbpoll;
+pub mod modbus_client;
 pub mod peer_servers;
 pub mod reports;
 use std::io::{BufRead, BufReader, Write};
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, ExitStatus, Stdio};
-use std::sync::atomic::{AtomicU32, Ordering};
+use std::sync::atomic::Ordering;
 use std::sync::mpsc;
 use std::time::{Duration, Instant};
 
@@ -268,30 +269,23 @@ pub fn read_json(path: &Path) -> serde_json::Value {
     serde_json::from_str(&text).unwrap_or_else(|e| panic!("{} is not JSON: {e}", path.display()))
 }
 
-/// A fresh temporary directory, removed on drop.
-pub struct TempDir(PathBuf);
+/// A fresh temporary directory (`mbh-TAG-` and a random suffix, in the system's temporary directory), removed
+/// on drop. `tempfile` is a normal dependency of this crate so that `cargo build` at the top level resolves the
+/// features `cargo test` does (see [`modbus_client`]).
+pub struct TempDir(tempfile::TempDir);
 
 impl TempDir {
     pub fn new(tag: &str) -> Self {
-        static N: AtomicU32 = AtomicU32::new(0);
-        let p = std::env::temp_dir().join(format!(
-            "mbh-{tag}-{}-{}",
-            std::process::id(),
-            N.fetch_add(1, Ordering::Relaxed)
-        ));
-        let _ = std::fs::remove_dir_all(&p);
-        std::fs::create_dir_all(&p).expect("create temp dir");
-        Self(p)
+        Self(
+            tempfile::Builder::new()
+                .prefix(&format!("mbh-{tag}-"))
+                .tempdir()
+                .expect("create temp dir"),
+        )
     }
 
     pub fn path(&self) -> &Path {
-        &self.0
-    }
-}
-
-impl Drop for TempDir {
-    fn drop(&mut self) {
-        let _ = std::fs::remove_dir_all(&self.0);
+        self.0.path()
     }
 }
 

@@ -49,7 +49,7 @@ fn write_snapshot(mut o: Options, path: &Path) -> String {
 }
 
 fn snapshot(url: &str, profile: &str) -> String {
-    let dir = tempfile::tempdir().expect("tempdir");
+    let dir = test_support::TempDir::new("tempdir");
     write_snapshot(
         options(url, profile, SEED, &[]),
         &dir.path().join("snap.txt"),
@@ -204,7 +204,7 @@ fn peer_server_snapshots() {
 
 #[test]
 fn the_same_seed_twice_writes_byte_identical_snapshot_files() {
-    let dir = tempfile::tempdir().expect("tempdir");
+    let dir = test_support::TempDir::new("tempdir");
     let (a, b) = (dir.path().join("a.txt"), dir.path().join("b.txt"));
     write_snapshot(options("sim:mdrive", "mdrive", SEED, &[]), &a);
     write_snapshot(options("sim:mdrive", "mdrive", SEED, &[]), &b);
@@ -223,7 +223,7 @@ fn the_same_seed_twice_writes_byte_identical_snapshot_files() {
 
 #[test]
 fn another_seed_or_a_fault_is_drift_naming_the_cases() {
-    let dir = tempfile::tempdir().expect("tempdir");
+    let dir = test_support::TempDir::new("tempdir");
     let file = dir.path().join("mdrive.snap.txt");
     // Without the policy on the simulator: every write runs, so the faults below have cases to spoil.
     let opts = |seed: u64, faults: &[Fault]| {
@@ -296,7 +296,7 @@ fn another_seed_or_a_fault_is_drift_naming_the_cases() {
 /// although every case still passes.
 #[test]
 fn another_admissible_choice_is_drift_naming_the_freedom() {
-    let dir = tempfile::tempdir().expect("tempdir");
+    let dir = test_support::TempDir::new("tempdir");
     let file = dir.path().join("lmd.snap.txt");
     let opts = |choose: &[&str]| {
         let mut o = options("sim:lmd", "lmd", SEED, &[]);
@@ -345,7 +345,7 @@ fn another_admissible_choice_is_drift_naming_the_freedom() {
 
 #[test]
 fn the_command_line_exits_1_on_drift_and_prints_the_cases() {
-    let dir = tempfile::tempdir().expect("tempdir");
+    let dir = test_support::TempDir::new("tempdir");
     let file = dir.path().join("snap.txt");
     let snap = file.to_str().expect("utf-8 path");
     let cli = |extra: &[&str]| {

@@ -18,7 +18,7 @@ use test_support::peers::{Peer, client_command};
 use test_support::*;
 use tokio_modbus::prelude::*;
 
-use crate::tokio_modbus::answered;
+use test_support::modbus_client::{self, answered};
 
 /// Run `peer` with `endpoint` and the operations of `ops`, and compare every output line with the expected
 /// one (`ops`: operation, expected line).
@@ -107,10 +107,7 @@ async fn pymodbus_tcp_lmd_manual_answers() {
 async fn tokio_modbus_tcp_lmd_manual_answers() {
     let server = serve_on("lmd", false).await;
     let addr = server.tcp_addr().expect("tcp addr");
-    let slave = Slave(profile("lmd").device.default_unit);
-    let mut ctx = within("connect", tcp::connect_slave(addr, slave))
-        .await
-        .expect("connect");
+    let mut ctx = modbus_client::tcp(addr, profile("lmd").device.default_unit).await;
     assert_eq!(
         answered("FC 01", ctx.read_coils(0, 3), "FC 01").await,
         [true, false, true]

@@ -4,24 +4,11 @@
 //! The value checks are the manuals' answers (golden frames): they hold once the drive models are in.
 
 use engine::servers::{ServerConfig, ServerHandle};
+use test_support::modbus_client::{self, answered};
 use test_support::*;
 use tokio::io::AsyncWriteExt;
 use tokio_modbus::client::Context;
 use tokio_modbus::prelude::*;
-
-/// A tokio-modbus call, bounded in time ([`within`], naming it `what`), that must reach the drive
-/// (else a panic saying `transport`) and be answered without an exception (else a panic saying
-/// `exception`): the answer.
-pub(crate) async fn answered<T, X: std::fmt::Debug, E: std::fmt::Debug>(
-    what: &str,
-    call: impl std::future::Future<Output = Result<Result<T, X>, E>>,
-    exception: &str,
-) -> T {
-    within(what, call)
-        .await
-        .expect("transport")
-        .expect(exception)
-}
 
 /// The transports a fixture can use.
 #[derive(Clone, Copy, Debug)]
@@ -41,21 +28,17 @@ struct Fixture {
 /// `None` (after a printed skip notice) when the transport needs a tool that is missing.
 async fn fixture(test: &str, profile_name: &str, via: Via) -> Option<Fixture> {
     let unit = profile(profile_name).device.default_unit;
-    let slave = Slave(unit);
     match via {
         Via::Tcp | Via::RtuOverTcp => {
             let server = serve(profile_name, &[], loopback_tcp_and_rtu()).await;
             let ctx = match via {
                 Via::Tcp => {
                     let addr = server.tcp_addr().expect("tcp addr");
-                    tokio::time::timeout(STEP, tcp::connect_slave(addr, slave))
-                        .await
-                        .expect("connect timed out")
-                        .expect("connect")
+                    modbus_client::tcp(addr, unit).await
                 }
                 _ => {
                     let addr = server.rtu_over_tcp_addr().expect("rtu-over-tcp addr");
-                    rtu::attach_slave(connect(addr).await, slave)
+                    modbus_client::rtu_over_tcp(addr, unit).await
                 }
             };
             Some(Fixture {
@@ -67,7 +50,7 @@ async fn fixture(test: &str, profile_name: &str, via: Via) -> Option<Fixture> {
         Via::Pty => {
             let (pty, server, port) = on_a_pty(test, profile_name).await?;
             Some(Fixture {
-                ctx: rtu::attach_slave(port, slave),
+                ctx: modbus_client::rtu_on(port, unit),
                 server,
                 _pty: Some(pty),
             })

@@ -507,3 +507,15 @@ fn a_coil_item_is_touched_by_the_coil_requests_covering_it() {
         }
     }
 }
+
+proptest::proptest! {
+    /// The line index the requirements are parsed with gives every offset the line `line_of` gives it (at
+    /// a newline, before the first byte, past the end).
+    #[test]
+    fn the_line_index_agrees_with_line_of(text in "[a\n]{0,60}", offsets in proptest::collection::vec(0usize..70, 1..10)) {
+        let index = drives::profile::LineIndex::new(&text);
+        for offset in offsets {
+            proptest::prop_assert_eq!(index.line(offset), drives::profile::line_of(&text, offset));
+        }
+    }
+}

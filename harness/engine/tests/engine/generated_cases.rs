@@ -239,7 +239,7 @@ fn a_faulted_drive_fails_generated_cases_and_the_shrinker_returns_a_small_reprod
     let seed = 7;
     say(&format!("seed {seed}"));
     for fault in [Fault::RangeUnchecked, Fault::QuantityUnchecked] {
-        let dir = tempfile::tempdir().expect("tempdir");
+        let dir = test_support::TempDir::new("tempdir");
         let mut o = generated("sim:mdrive", 200, seed, &[fault]);
         o.regressions_dir = Some(dir.path().to_path_buf());
         o.max_shrinks = 3;
@@ -282,7 +282,7 @@ fn a_faulted_drive_fails_generated_cases_and_the_shrinker_returns_a_small_reprod
 
 #[test]
 fn the_shrinker_respects_its_step_bound() {
-    let dir = tempfile::tempdir().expect("tempdir");
+    let dir = test_support::TempDir::new("tempdir");
     let mut o = generated("sim:mdrive", 200, 7, &[Fault::RangeUnchecked]);
     o.regressions_dir = Some(dir.path().to_path_buf());
     o.shrink = Some(ShrinkLimits {

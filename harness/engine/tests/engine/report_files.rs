@@ -62,7 +62,7 @@ fn case_file_names(dir: &Path) -> Vec<String> {
 
 #[test]
 fn index_json_has_every_case_and_the_counts() {
-    let dir = tempfile::tempdir().expect("tempdir");
+    let dir = test_support::TempDir::new("tempdir");
     write_sample(dir.path(), Transport::Tcp, 502);
     let index: serde_json::Value =
         serde_json::from_str(&read(&dir.path().join("index.json"))).expect("index.json parses");
@@ -126,7 +126,7 @@ fn index_json_has_every_case_and_the_counts() {
 
 #[test]
 fn cases_jsonl_has_every_case_and_cases_dir_the_failing_and_noted_ones() {
-    let dir = tempfile::tempdir().expect("tempdir");
+    let dir = test_support::TempDir::new("tempdir");
     write_sample(dir.path(), Transport::Tcp, 502);
     let sample = sample(Transport::Tcp);
     let lines = json_lines(&dir.path().join("cases.jsonl"));
@@ -176,7 +176,7 @@ fn attr(list: &[(String, String)], name: &str) -> Option<String> {
 
 #[test]
 fn junit_is_well_formed_with_one_failure_and_one_skip() {
-    let dir = tempfile::tempdir().expect("tempdir");
+    let dir = test_support::TempDir::new("tempdir");
     write_sample(dir.path(), Transport::RtuOverTcp, 15020);
     let xml = read(&dir.path().join("junit.xml"));
     let mut reader = quick_xml::Reader::from_str(&xml);
@@ -293,7 +293,7 @@ fn junit_is_well_formed_with_one_failure_and_one_skip() {
 
 #[test]
 fn html_has_every_case_and_escapes_findings() {
-    let dir = tempfile::tempdir().expect("tempdir");
+    let dir = test_support::TempDir::new("tempdir");
     write_sample(dir.path(), Transport::Tcp, 502);
     let html = read(&dir.path().join("report.html"));
     assert!(html.starts_with("<!DOCTYPE html>"));
@@ -336,7 +336,7 @@ fn write_numbered(dir: &Path, total: usize, every_100th: Verdict) {
 
 #[test]
 fn html_shows_every_failure_first_and_a_bounded_number_of_passes() {
-    let dir = tempfile::tempdir().expect("tempdir");
+    let dir = test_support::TempDir::new("tempdir");
     let extra = 250;
     let total = reports::HTML_PASS_ROWS + extra;
     write_numbered(dir.path(), total, Verdict::Fail);
@@ -361,7 +361,7 @@ fn html_shows_every_failure_first_and_a_bounded_number_of_passes() {
 /// PASS cases their verdict and id and where the rest is; every other case has everything, however late.
 #[test]
 fn junit_gives_the_wire_of_a_bounded_number_of_passes_and_of_every_other_case() {
-    let dir = tempfile::tempdir().expect("tempdir");
+    let dir = test_support::TempDir::new("tempdir");
     let total = reports::JUNIT_PASS_IN_FULL + 300;
     write_numbered(dir.path(), total, Verdict::NonStrict);
     let xml = read(&dir.path().join("junit.xml"));
@@ -402,7 +402,7 @@ fn junit_gives_the_wire_of_a_bounded_number_of_passes_and_of_every_other_case() 
 
 #[test]
 fn terminal_summary_ends_with_the_result_line() {
-    let dir = tempfile::tempdir().expect("tempdir");
+    let dir = test_support::TempDir::new("tempdir");
     let summary = write_sample(dir.path(), Transport::Tcp, 502);
     let mut info = run_info(Transport::Tcp, 502);
     info.report_dir = Some(dir.path().to_path_buf());
@@ -443,7 +443,7 @@ fn interrupted_and_killed_runs() {
     let cases = sample(Transport::Tcp);
 
     // Killed: no finish. Only .partial files, the index prefix has one complete entry per line.
-    let dir = tempfile::tempdir().expect("tempdir");
+    let dir = test_support::TempDir::new("tempdir");
     let mut reports = Reports::create(dir.path(), &info).expect("create");
     for (case, result) in &cases[..3] {
         reports.case(case, result).expect("case");
@@ -497,7 +497,7 @@ fn interrupted_and_killed_runs() {
 fn an_error_of_the_writer_thread_is_returned_and_finish_joins_it() {
     // The case file of a FAIL cannot be written once `cases/` is gone: the writer thread stops at the first
     // error, and a later `case`, `flush` or `finish` returns it, naming the file.
-    let dir = tempfile::tempdir().expect("tempdir");
+    let dir = test_support::TempDir::new("tempdir");
     let info = run_info(Transport::Tcp, 502);
     let mut reports = Reports::create(dir.path(), &info).expect("create");
     std::fs::remove_dir_all(dir.path().join("cases")).expect("remove cases/");
@@ -533,7 +533,7 @@ fn an_error_of_the_writer_thread_is_returned_and_finish_joins_it() {
 
 #[test]
 fn io_errors_name_the_file() {
-    let dir = tempfile::tempdir().expect("tempdir");
+    let dir = test_support::TempDir::new("tempdir");
     let blocker = dir.path().join("not-a-dir");
     std::fs::write(&blocker, b"x").expect("write");
     let err = match Reports::create(&blocker.join("out"), &run_info(Transport::Tcp, 502)) {
@@ -584,7 +584,7 @@ fn check_pcap(transport: Transport, port: u16) {
     if !tshark_available() {
         return;
     }
-    let dir = tempfile::tempdir().expect("tempdir");
+    let dir = test_support::TempDir::new("tempdir");
     write_sample(dir.path(), transport, port);
     let info = run_info(transport, port);
     let pcap = dir.path().join("session.pcapng");
@@ -736,7 +736,7 @@ fn pcap_reassembles_a_response_read_in_pieces() {
             ..rx.clone()
         });
     }
-    let dir = tempfile::tempdir().expect("tempdir");
+    let dir = test_support::TempDir::new("tempdir");
     let info = run_info(transport, 15_020);
     let mut reports = Reports::create(dir.path(), &info).expect("create");
     reports.case(&case, &result).expect("case");

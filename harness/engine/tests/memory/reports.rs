@@ -18,7 +18,7 @@ const FAIL_EVERY: usize = 40;
 #[test]
 fn memory_does_not_grow_with_the_number_of_cases() {
     let _alone = alone();
-    let dir = tempfile::tempdir().expect("tempdir");
+    let dir = test_support::TempDir::new("tempdir");
     let info = run_info(Transport::Tcp, 502);
     let mut reports = Reports::create(dir.path(), &info).expect("create reports");
     // The live heap varies with the writer thread's pipeline (up to four batches of cases, one being filled,

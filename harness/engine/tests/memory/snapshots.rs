@@ -61,7 +61,7 @@ const CHUNK: usize = 256 * 1024;
 #[test]
 fn order_is_by_case_id_and_memory_does_not_grow_with_cases() {
     let _alone = alone();
-    let dir = tempfile::tempdir().expect("tempdir");
+    let dir = test_support::TempDir::new("tempdir");
 
     // Small: spilled or not, the same bytes, in natural id order.
     let (a, b) = (dir.path().join("a.txt"), dir.path().join("b.txt"));

@@ -12,11 +12,9 @@ use crate::cases::generated::Generator;
 use crate::cases::regressions::{Origin, RegressionFile, file_stem};
 use crate::cases::{Case, Compare, Level, Outgoing, Step, Verdict};
 use crate::expect::Expectations;
+use crate::link::{LinkTally, run_over_link as over_link};
 use crate::runner::skip_reason;
-use crate::session::{
-    LinkTally, Options, SessionError, config, open_runner, resolve_profile,
-    run_over_link as over_link,
-};
+use crate::session::{Options, SessionError, config, open_runner, resolve_profile};
 
 /// How a campaign runs.
 #[derive(Clone, Debug)]
@@ -475,7 +473,7 @@ fn fuzz_loop(
         );
     }
     let mut depth = pipelining.depth;
-    // Cases run again where a damaged link may have made them FAIL (see `session::run_over_link`).
+    // Cases run again where a damaged link may have made them FAIL (see `link::run_over_link`).
     let mut link = LinkTally::default();
     if let Some((case, result)) = burst.filter(|(_, r)| r.verdict == Verdict::Fail) {
         let f: Vec<String> = result.findings().cloned().collect();

@@ -14,6 +14,7 @@ pub mod campaign;
 pub mod capture;
 pub mod cases;
 pub mod expect;
+pub mod link;
 pub mod liveness;
 pub mod observe;
 pub mod oracle;

@@ -204,6 +204,20 @@ mod tests {
         }
     }
 
+    /// An exception `code` to FC 03 in a Modbus/TCP frame (transaction 1, unit 1).
+    fn gateway(code: u8) -> Vec<u8> {
+        vec![0x00, 0x01, 0x00, 0x00, 0x00, 0x03, 0x01, 0x83, code]
+    }
+
+    /// `pdu` of unit 1 as an RTU frame with its CRC.
+    fn rtu_adu(pdu: &[u8]) -> Vec<u8> {
+        let mut f = vec![0x01];
+        f.extend_from_slice(pdu);
+        let crc = codec::rtu::crc16(&f);
+        f.extend_from_slice(&crc.to_le_bytes());
+        f
+    }
+
     /// What a damaged link gives is told from what it cannot give: a whole frame whose CRC checks, or a
     /// silence where the reference is silent too, is the drive's; so is anything of a step that did not FAIL.
     #[test]
@@ -214,7 +228,7 @@ mod tests {
         bad[3] ^= 0x10;
         let exp = Some(&answer[..]);
         let fail = Verdict::Fail;
-        let cases: [(StepResult, codec::Framing, Option<&str>); 11] = [
+        let cases: [(StepResult, codec::Framing, Option<&str>); 14] = [
             (step(exp, Received::silence(), fail), Rtu, Some("no answer")),
             (step(None, Received::silence(), fail), Rtu, None),
             (
@@ -270,6 +284,20 @@ mod tests {
                 step(exp, Received::frame(vec![0x01, 0xC4, 0x01, 0xB3]), fail),
                 Rtu,
                 Some("a frame that does not decode"),
+            ),
+            // A gateway's 0B over Modbus/TCP: its serial side got nothing in time.
+            (
+                step(exp, Received::frame(gateway(0x0B)), fail),
+                Tcp,
+                Some("a gateway's exception 0B (its target did not answer)"),
+            ),
+            // Another exception is the drive's (or the gateway's) answer: 0A, no path to the unit.
+            (step(exp, Received::frame(gateway(0x0A)), fail), Tcp, None),
+            // A whole RTU exception 0B with its CRC is a frame the line delivered.
+            (
+                step(exp, Received::frame(rtu_adu(&[0x83, 0x0B])), fail),
+                Rtu,
+                None,
             ),
         ];
         for (k, (s, framing, want)) in cases.iter().enumerate() {

@@ -814,6 +814,37 @@ fn a_late_answer_is_attributed_to_its_request_by_transaction_id() {
     drop(sim);
 }
 
+/// The late answer of the test above with the default reruns: it comes 0.3 s after the case's 1 s timeout,
+/// within the pause before the case would be run again (half the timeout). The drive answered and no frame
+/// was lost, so the case is not run again: its first attempt is judged (FAIL), as without reruns, and the
+/// run counts it among the drive's own. Run again, it would come through whole and PASS.
+#[test]
+fn a_late_answer_in_the_pause_before_a_rerun_is_judged_at_the_first_attempt() {
+    let (sim, target) = Proxy::before_generic_sim(Mode::Delay(100, Duration::from_millis(1300)));
+    let dir = TempDir::new("late-answer-rerun");
+    let (report, (code, out, err, _)) =
+        read_only_generic_run(&target, &dir, &["--max-rate", "200"]);
+    assert_eq!(code, 1, "the late case FAILs\n{out}\n{err}");
+    let summary = &index(&report)["summary"];
+    assert_eq!(summary["counts"]["FAIL"], 1, "{summary}");
+    let late = summary["failing"][0].as_str().expect("the late case");
+    let cases = case_records(&report);
+    let record = cases
+        .iter()
+        .find(|c| c.contains(&format!("\"{late}\"")))
+        .expect("the late case's record");
+    assert!(
+        record.contains("judged at attempt 1, whose answer came late"),
+        "{record}"
+    );
+    assert!(
+        err.contains("link: 1 case(s) run again")
+            && err.contains("1 FAILed the same way again or answered late"),
+        "{err}"
+    );
+    drop(sim);
+}
+
 #[test]
 fn a_probe_whose_target_stops_answering_stops_and_exits_2() {
     // From the 30th request on (the pre-flight and the function codes answered, the scan begun) the drive

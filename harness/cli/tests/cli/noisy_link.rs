@@ -46,11 +46,9 @@ fn link_line(err: &str) -> (usize, usize, usize) {
 
 /// The SD2x (preset off its factory values) behind a line with 25 damaged frames in 1,000: the catalog with
 /// the flags PASSes, some cases run again and all of them come through, and every parameter reads as before;
-/// with `--link-retries 0` the same line FAILs the run (the noise is real). A fault of the drive that looks
-/// like a damaged link (it drops a request whose quantity is above the specification's limit) still FAILs,
-/// judged at its first attempt, "the same way again". A fuzz campaign over the line has no finding.
+/// with `--link-retries 0` the same line FAILs the run (the noise is real).
 #[test]
-fn an_rtu_drive_on_a_noisy_line_passes_is_left_as_found_and_its_own_faults_still_fail() {
+fn an_rtu_drive_on_a_noisy_line_passes_and_is_left_as_found() {
     let dir = TempDir::new("noisy-rtu");
     let drive = PresetDrive::start_framed("sd2x", dir.path(), &[], true);
     let before = drive.read();
@@ -76,7 +74,13 @@ fn an_rtu_drive_on_a_noisy_line_passes_is_left_as_found_and_its_own_faults_still
         "without reruns the noise FAILs cases: {out}\n{err}"
     );
     assert!(!err.contains("link: "), "{err}");
+}
 
+/// On the line of the test above, a fault of the drive that looks like a damaged link (it drops a request
+/// whose quantity is above the specification's limit) still FAILs, judged at its first attempt, "the same
+/// way again"; a fuzz campaign over the line has no finding.
+#[test]
+fn an_rtu_drive_on_a_noisy_line_still_fails_its_own_faults_and_fuzzes_clean() {
     let faulty = SimProcess::start(&[
         "--profile",
         "sd2x",
@@ -106,6 +110,13 @@ fn an_rtu_drive_on_a_noisy_line_passes_is_left_as_found_and_its_own_faults_still
     let (again, _, same) = link_line(&err);
     assert!(same >= 1 && same <= again, "{err}");
 
+    let dir = TempDir::new("noisy-rtu-fuzz");
+    let drive = SimProcess::start(&["--profile", "sd2x", "--rtu-over-tcp", "127.0.0.1:0"]);
+    let line = PeerServer::noisy_link(
+        drive.rtu_over_tcp.expect("rtu-over-tcp endpoint"),
+        &["--mode", "rtu", "--rate", "25", "--seed", "7"],
+    );
+    let url = format!("rtu+tcp://{}", line.addr);
     let (code, out, err) = harness_bounded(
         None,
         &[
@@ -165,4 +176,72 @@ fn a_tcp_drive_behind_a_link_that_drops_passes_and_is_left_as_found() {
         RUN_LIMIT,
     );
     assert_eq!(code, 1, "without reruns the drops FAIL cases: {out}\n{err}");
+}
+
+/// A generated run has many cases of a kind: once one FAILed the same way at every attempt (the drive's own),
+/// another of its kind that FAILs the same way at the same step is judged at its first attempt, not run
+/// again. Against a drive that drops requests with a quantity above the specification's limit (a fault
+/// that looks like a lost frame), 300 generated cases of seed 1: every FAIL is run again or named "not run
+/// again" (at least one is), and the verdicts are those of a run that judges every first attempt.
+#[test]
+fn a_kind_of_generated_case_proven_the_drives_own_is_not_run_again() {
+    let sim = SimProcess::start(&[
+        "--profile",
+        "generic",
+        "--listen",
+        "127.0.0.1:0",
+        "--fault",
+        "quantity-over-spec-dropped",
+    ]);
+    let target = format!("tcp://{}", sim.tcp.expect("tcp endpoint"));
+    let dir = TempDir::new("own-kinds");
+    let report = dir.path().join("report");
+    let report_s = report.to_string_lossy().into_owned();
+    let generated = [
+        "--generated",
+        "300",
+        "--seed",
+        "1",
+        "--no-shrink",
+        "--timeout",
+        "200",
+    ];
+    let mut args = run_args(&target, "generic", &generated);
+    args.extend_from_slice(&["--report", &report_s]);
+    let (code, out, err) = harness_bounded(None, &args, RUN_LIMIT);
+    assert_eq!(code, 1, "{out}\n{err}");
+    let records = std::fs::read_to_string(report.join("cases.jsonl")).expect("cases.jsonl");
+    let fails: Vec<(String, bool)> = records
+        .lines()
+        .filter_map(|l| {
+            let c: serde_json::Value = serde_json::from_str(l).expect("a case record");
+            (c["result"]["verdict"] == "FAIL").then(|| {
+                (
+                    c["case"]["id"].as_str().expect("id").to_string(),
+                    l.contains("as a case of its kind did before at every attempt"),
+                )
+            })
+        })
+        .collect();
+    let not_again = fails.iter().filter(|(_, n)| *n).count();
+    assert!(not_again >= 1, "no FAIL was judged as its kind: {fails:?}");
+    let (again, through, same) = link_line(&err);
+    assert_eq!(
+        (again + not_again, through, same),
+        (fails.len(), 0, again),
+        "{err}"
+    );
+
+    let mut first = run_args(&target, "generic", &generated);
+    first.extend_from_slice(&["--link-retries", "0"]);
+    let (code0, out0, err0) = harness_bounded(None, &first, RUN_LIMIT);
+    assert_eq!(code0, 1, "{out0}\n{err0}");
+    let failing = |out: &str| -> Vec<String> {
+        out.lines()
+            .filter_map(|l| l.strip_prefix("FAIL "))
+            .map(|l| l.split_whitespace().next().unwrap_or("").to_string())
+            .collect()
+    };
+    assert_eq!(failing(&out), failing(&out0), "{out}\n{out0}");
+    assert!(!failing(&out).is_empty());
 }

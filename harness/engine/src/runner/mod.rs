@@ -35,7 +35,7 @@ pub struct Timing {
     pub busy_wait: Duration,
     /// How many times more a case is run where it FAILed in a way a damaged link gives as well as a faulty
     /// drive (see [`crate::observe::StepResult::link_damage`]), real targets only; zero: a FAIL stands at the
-    /// first attempt. See [`crate::session::LINK_PAUSES`].
+    /// first attempt. See [`crate::link::LINK_PAUSES`].
     pub link_retries: u32,
 }
 
@@ -1421,18 +1421,27 @@ impl Runner {
         self.mid_case = Some((probe, bound));
     }
 
-    /// Let `pause` pass with nothing sent, and say whether anything came from the target meanwhile (taken
-    /// and dropped): before a case is run again after an attempt that got no answer, bytes coming now are a
-    /// late answer to that attempt (the drive answered, after the timeout; no frame was lost).
+    /// Let `pause` pass with nothing sent, and say whether an answer came from the target meanwhile (taken
+    /// and dropped): before a case is run again after an attempt that got no answer, a frame that decodes
+    /// as a response coming now is a late answer to that attempt (the drive answered, after the timeout; no
+    /// frame was lost). Bytes that are no such frame (a stray byte of a noisy line, a frame whose CRC does
+    /// not check) prove nothing: the case is run again.
     pub fn came_within(&mut self, pause: Duration) -> bool {
         self.target.idle(pause);
         self.sync_shadow();
-        let came = match self.target.recv(Duration::ZERO) {
-            Ok(Received::Frame { .. } | Received::Garbage { .. }) => true,
-            Ok(Received::Silence { partial, .. } | Received::Closed { partial, .. }) => {
-                !partial.is_empty()
+        let framing = self.framing();
+        let until = Instant::now() + LATE_LOOK;
+        // Receives of a few milliseconds each: one of no time at all returns before it reads the socket or
+        // the serial port (it never saw a late answer there); an RTU frame is whole after its silence.
+        let came = loop {
+            match self.target.recv(Duration::from_millis(5)) {
+                Ok(Received::Frame { bytes, .. }) => {
+                    break crate::readings::decode_response(framing, &bytes).is_some();
+                }
+                Ok(Received::Silence { partial, .. })
+                    if !partial.is_empty() && Instant::now() < until => {}
+                _ => break false,
             }
-            Err(_) => false,
         };
         self.target.drain();
         came
@@ -3824,6 +3833,10 @@ fn canopen_answer_with_reserved(pdu: &[u8]) -> Option<Vec<u8>> {
     )
     .then_some(long)
 }
+
+/// How long [`Runner::came_within`] waits at most for a frame begun during its pause to end (an RTU frame
+/// ends with a silence of 3.5 characters: 32 ms at 1200 baud).
+const LATE_LOOK: Duration = Duration::from_millis(50);
 
 #[cfg(test)]
 pub(super) mod tests {

@@ -4200,6 +4200,116 @@ pub(super) mod tests {
         }
     }
 
+    /// A runner for profile `name` against a real TCP target (`rtu+tcp` when `rtu`) at `port` of 127.0.0.1.
+    fn runner_over_tcp(name: &str, port: u16, rtu: bool) -> Runner {
+        let p = drives::corpus::Corpus::Embedded
+            .profile(name)
+            .expect("profile");
+        let target =
+            crate::targets::net::TcpTarget::connect("127.0.0.1", port, Duration::from_secs(2), rtu)
+                .expect("connect");
+        let unit = p.device.default_unit;
+        let cfg = RunConfig {
+            unit,
+            timing: Timing::default(),
+            safety: Safety::default(),
+            is_sim: false,
+        };
+        let shadow = drives::Station::new(
+            drives::build(p.clone(), drives::FaultSet::none()),
+            drives::FaultSet::none(),
+            unit,
+        );
+        Runner::new(
+            Box::new(target),
+            SimTarget::new(shadow),
+            p,
+            cfg,
+            Expectations::default(),
+        )
+    }
+
+    /// The rule of a rerun: only a frame that decodes as a response, coming in the pause before the case
+    /// would be run again, is a late answer (the case is then judged at its first attempt). A stray byte of
+    /// a noisy line, a frame whose CRC does not check, a well-framed PDU that is no response (a byte count
+    /// its data does not have), a cut frame, or nothing at all prove nothing: the case is run again. Each row: a loopback peer sends its bytes 20 ms into a 100 ms pause.
+    #[test]
+    fn only_a_response_frame_in_the_pause_is_a_late_answer() {
+        let rtu_answer = |unit: u8, corrupt: bool| {
+            let mut f = vec![unit, 0x03, 0x02, 0x00, 0x2A];
+            let crc = codec::rtu::crc16(&f).to_le_bytes();
+            f.extend_from_slice(&crc);
+            if corrupt {
+                f[6] ^= 0xFF;
+            }
+            f
+        };
+        let mut tcp_answer = Vec::new();
+        tcp::encode_adu(7, 1, &[0x03, 0x02, 0x00, 0x2A], &mut tcp_answer).expect("encodes");
+        // Framed well (MBAP length, CRC) but no response: a byte count the data does not have.
+        let mut tcp_miscounted = Vec::new();
+        tcp::encode_adu(7, 1, &[0x03, 0x05, 0x00], &mut tcp_miscounted).expect("encodes");
+        let rtu_miscounted = |unit: u8| {
+            let mut f = vec![unit, 0x03, 0x05, 0x00];
+            let crc = codec::rtu::crc16(&f).to_le_bytes();
+            f.extend_from_slice(&crc);
+            f
+        };
+        let mut tcp_exception = Vec::new();
+        tcp::encode_adu(7, 1, &[0x83, 0x02], &mut tcp_exception).expect("encodes");
+        // (profile, rtu over tcp, bytes sent in the pause, a late answer?)
+        let sd2x_unit = drives::corpus::Corpus::Embedded
+            .profile("sd2x")
+            .expect("profile")
+            .device
+            .default_unit;
+        let rows: Vec<(&str, bool, Vec<u8>, bool)> = vec![
+            ("sd2x", true, rtu_answer(sd2x_unit, false), true),
+            ("sd2x", true, rtu_answer(sd2x_unit, true), false),
+            ("sd2x", true, rtu_miscounted(sd2x_unit), false),
+            ("sd2x", true, vec![0x00], false),
+            ("sd2x", true, vec![0xFF, 0x13, 0x00], false),
+            ("sd2x", true, Vec::new(), false),
+            ("generic", false, tcp_answer.clone(), true),
+            ("generic", false, tcp_exception, true),
+            ("generic", false, tcp_miscounted, false),
+            ("generic", false, tcp_answer[..5].to_vec(), false),
+            ("generic", false, Vec::new(), false),
+        ];
+        // Each row sent at once 20 ms into the pause, and the late answers also cut in two, begun 85 ms into
+        // the pause and ended 30 ms after it (a frame begun in the pause is waited for).
+        let rows = rows.into_iter().flat_map(|(name, rtu, bytes, late)| {
+            let split = (late, (name, rtu, bytes.clone(), late, 85, bytes.len() / 2));
+            std::iter::once((name, rtu, bytes, late, 20, 0)).chain(split.0.then_some(split.1))
+        });
+        for (i, (name, rtu, bytes, late, at, cut)) in rows.enumerate() {
+            let listener = std::net::TcpListener::bind("127.0.0.1:0").expect("bind");
+            let port = listener.local_addr().expect("addr").port();
+            let peer = std::thread::spawn(move || {
+                use std::io::Write;
+                let (mut s, _) = listener.accept().expect("accept");
+                std::thread::sleep(Duration::from_millis(at));
+                if cut > 0 {
+                    s.write_all(&bytes[..cut]).expect("send");
+                    std::thread::sleep(Duration::from_millis(45));
+                    s.write_all(&bytes[cut..]).expect("send");
+                } else if !bytes.is_empty() {
+                    s.write_all(&bytes).expect("send");
+                }
+                // Held open until the runner has looked (bounded).
+                std::thread::sleep(Duration::from_millis(400));
+            });
+            let mut runner = runner_over_tcp(name, port, rtu);
+            assert_eq!(
+                runner.came_within(Duration::from_millis(100)),
+                late,
+                "row {i}"
+            );
+            drop(runner);
+            peer.join().expect("peer");
+        }
+    }
+
     #[test]
     fn server_busy_is_recognised() {
         let bytes = |tid, pdu: &[u8]| {

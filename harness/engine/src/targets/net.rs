@@ -560,6 +560,64 @@ mod tests {
         drop(first);
     }
 
+    /// A target that took a connection and then refuses for 2 s (a link that dropped for a moment, a small
+    /// stack that refuses connects while it recovers) is waited for: longer than the 0.6 s of tries a target
+    /// that never took a connection gets. One that refuses for longer than [`LINK_BACK_WITHIN`] is given up
+    /// after about that long, and a port nobody ever listened on is reported within the short tries.
+    #[test]
+    fn a_target_that_took_a_connection_is_waited_for_while_it_refuses() {
+        let listener = TcpListener::bind("127.0.0.1:0").expect("bind");
+        let addr = listener.local_addr().expect("addr");
+        let mut t = TcpTarget::connect("127.0.0.1", addr.port(), Duration::from_secs(2), false)
+            .expect("connect");
+        let (first, _) = listener.accept().expect("accept");
+        drop(listener);
+        let back = std::thread::spawn(move || {
+            std::thread::sleep(Duration::from_secs(2));
+            let listener = TcpListener::bind(addr).expect("bind the same port again");
+            listener.set_nonblocking(true).expect("nonblocking");
+            // Bounded: one connection within 5 s.
+            let until = Instant::now() + Duration::from_secs(5);
+            while Instant::now() < until {
+                if let Ok((s, _)) = listener.accept() {
+                    return Some(s);
+                }
+                std::thread::sleep(Duration::from_millis(5));
+            }
+            None
+        });
+        t.reconnect()
+            .expect("reconnected once the target takes connections again");
+        let second = back.join().expect("thread");
+        assert!(second.is_some(), "the new connection was accepted");
+        drop(first);
+        // The listener is gone for good now.
+        let started = Instant::now();
+        let gone = t.reconnect();
+        let took = started.elapsed();
+        assert!(
+            matches!(gone, Err(TargetError::Connect { .. })),
+            "{:?}",
+            gone.map(|_| ())
+        );
+        assert!(
+            took > LINK_BACK_WITHIN - Duration::from_secs(1)
+                && took < LINK_BACK_WITHIN + Duration::from_secs(2),
+            "given up after {took:?}"
+        );
+        drop(second);
+        // Never took a connection: reported after the short tries.
+        let started = Instant::now();
+        assert!(
+            TcpTarget::connect("127.0.0.1", addr.port(), Duration::from_secs(2), false).is_err()
+        );
+        assert!(
+            started.elapsed() < Duration::from_secs(2),
+            "{:?}",
+            started.elapsed()
+        );
+    }
+
     /// What the peer sent unasked is taken before a case, all of it, and nothing is waited for when nothing
     /// was sent; a close seen there is remembered.
     #[test]

@@ -1,7 +1,8 @@
 #!/usr/bin/env python3
 """An imperfect link in front of a drive on loopback: a noisy RS-485 line, or a Modbus/TCP link with bad moments.
 
-    noisy-link.py UPSTREAM_HOST:PORT --mode rtu|tcp [--rate R] [--seed N] [--outage-ms MS] [--lifetime S]
+    noisy-link.py UPSTREAM_HOST:PORT --mode rtu|tcp [--rate R] [--seed N] [--outage-ms MS] [--lose-first N]
+                  [--lifetime S]
 
 Listens on 127.0.0.1, port 0, prints `listening tcp 127.0.0.1:PORT`, and relays each connection to UPSTREAM
 (a loopback address). Deterministic from --seed (default 1). Every event is one line on stderr.
@@ -10,7 +11,9 @@ Listens on 127.0.0.1, port 0, prints `listening tcp 127.0.0.1:PORT`, and relays 
 is one frame, or one piece of a frame a client sends in pieces), is damaged with probability R/1000
 (default 20): one bit flipped, one byte lost, a stray 0x00 or 0xFF before it (a transmitter switching on),
 or cut short. A damaged request reaches the drive damaged (a conforming slave stays silent); a damaged
-answer reaches the client damaged (the drive did execute the request).
+answer reaches the client damaged (the drive did execute the request). With --lose-first N the first N
+request chunks (client to drive, counted over all connections) are lost on the line whatever the rate: the
+drive never hears them.
 
 --mode tcp (UPSTREAM serves Modbus/TCP): each request chunk from the client is, with probability R/1000
 (default 10), the moment of a link event: `lost` (the request is dropped and the connection reset),
@@ -36,6 +39,7 @@ ap.add_argument("--mode", choices=["rtu", "tcp"], required=True)
 ap.add_argument("--rate", type=float, default=None, help="events per 1000 chunks (rtu: 20, tcp: 10)")
 ap.add_argument("--seed", type=int, default=1)
 ap.add_argument("--outage-ms", type=float, default=800.0)
+ap.add_argument("--lose-first", type=int, default=0, help="rtu: the first N request chunks are lost")
 ap.add_argument("--lifetime", type=float, default=900.0, help="seconds")
 args = ap.parse_args()
 up_host, up_port = args.upstream.rsplit(":", 1)
@@ -46,6 +50,7 @@ rng = random.Random(args.seed)
 outage_until = 0.0
 started = time.monotonic()
 events = 0
+lose_left = args.lose_first
 
 
 def say(what):
@@ -93,6 +98,11 @@ async def relay_rtu(src, dst, direction):
             data = await src.read(4096)
             if not data:
                 break
+            global lose_left
+            if direction == "request" and lose_left > 0:
+                lose_left -= 1
+                say(f"{direction}: {data.hex()} lost (--lose-first)")
+                continue
             if rng.random() < rate:
                 global events
                 events += 1

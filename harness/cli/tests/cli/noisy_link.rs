@@ -245,3 +245,33 @@ fn a_kind_of_generated_case_proven_the_drives_own_is_not_run_again() {
     assert_eq!(failing(&out), failing(&out0), "{out}\n{out0}");
     assert!(!failing(&out).is_empty());
 }
+
+/// Noise may damage the pre-flight's known-good read on an RS-485 line (serial line spec 2.5.1.2): a slave
+/// discards it and stays silent. With reruns (the default) the read is asked twice more over RTU before the
+/// target counts as not answering: a line that loses the first two reads still runs (one case, PASS); a
+/// third lost read, or one lost read with `--link-retries 0`, is "does not answer" (exit 2), no case run.
+#[test]
+fn an_rtu_preflight_read_lost_on_the_line_is_asked_again() {
+    let sim = SimProcess::start(&["--profile", "sd2x", "--rtu-over-tcp", "127.0.0.1:0"]);
+    let upstream = sim.rtu_over_tcp.expect("rtu-over-tcp endpoint");
+    let case = ["--cases", "golden/sd2x/6.2/read-temperature/request"];
+    for (lose, retries, code) in [("2", "2", 0), ("3", "2", 2), ("1", "0", 2)] {
+        let line = PeerServer::noisy_link(
+            upstream,
+            &["--mode", "rtu", "--rate", "0", "--lose-first", lose],
+        );
+        let url = format!("rtu+tcp://{}", line.addr);
+        let mut extra = vec!["--preflight-timeout", "500", "--link-retries", retries];
+        extra.extend_from_slice(&case);
+        let (got, out, err) = harness_bounded(None, &run_args(&url, "sd2x", &extra), RUN_LIMIT);
+        let row = format!("{lose} read(s) lost, --link-retries {retries}");
+        assert_eq!(got, code, "{row}\n{out}\n{err}");
+        if code == 0 {
+            assert!(out.contains("RESULT: PASS (1 PASS)"), "{row}\n{out}");
+        } else {
+            assert!(err.contains("does not answer"), "{row}\n{err}");
+            assert!(!out.contains("RESULT:"), "{row}: no case is run\n{out}");
+        }
+    }
+    drop(sim);
+}

@@ -684,6 +684,19 @@ pub fn about_of(freedom: &str, cx: &StepContext<'_>) -> String {
     if freedom == drives::choices::ids::GATEWAY_NO_RESPONSE {
         return format!("unit {}", cx.unit);
     }
+    // FC 43 with an MEI type the drive does not serve: App 7's 03 also covers a request whose "implied length
+    // is incorrect", so a drive that checks the PDU's length against the one interface it serves (Read Device
+    // Identification: function code, MEI type, read code, object id, 4 bytes, App 6.21) before it looks at
+    // the MEI type refuses another length with 03 and an unknown MEI type of that length with 01, as an
+    // independent LMD does (tests/independent/lmd-m, DECISIONS.md section 1: "PDU length wrong for the FC:
+    // exception 03"). It keeps to each.
+    if freedom == drives::choices::ids::UNSUPPORTED_MEI_TYPE {
+        return if cx.pdu.len() == 4 {
+            "4 bytes, as Read Device Identification".into()
+        } else {
+            "another length".into()
+        };
+    }
     // A group write of the outputs (OT/OL) that sets no output at all cannot drive a point that is an input:
     // a drive may take it and refuse one that sets a bit (an independent MDrive refuses with 03 a bit of a
     // point that is not an output, and takes 0). Held apart.
@@ -795,14 +808,22 @@ pub fn about_of(freedom: &str, cx: &StepContext<'_>) -> String {
     }
     // A write that starts where a 32-bit register starts reads as a write of it (a drive may take its first
     // register for the whole value), one that starts inside it cannot: a drive may take the one and refuse
-    // the other, and keeps to each.
+    // the other, and keeps to each. A write that starts at an earlier register and ends in a 32-bit one's
+    // first register is a third case: no register is written from inside, but the last is cut short. A drive
+    // may refuse the address of a write that starts inside a parameter (02) and the quantity of one that
+    // does not cover its last parameter (03), as an independent LMD does (tests/independent/lmd-m,
+    // DECISIONS.md section 2, "Writing"); it keeps to each. Only the registers the write cuts count (one
+    // it covers whole is written as a whole).
     if freedom == PARTIAL_REGISTER_WRITE
-        && let Some(r) = registers().find(|r| r.width == 2 && overlapped(r))
+        && let Some(r) = registers()
+            .find(|r| r.width == 2 && overlapped(r) && (r.address < address || r.end() > end))
     {
-        return if r.address == address {
+        return if r.address < address {
+            "from inside it".into()
+        } else if r.address == address {
             "from its first register".into()
         } else {
-            "from inside it".into()
+            "up to its first register".into()
         };
     }
     String::new()
@@ -1927,6 +1948,49 @@ mod tests {
         assert_eq!(into_reserved, "FC 0x03");
     }
 
+    /// An FC 43 with an MEI type the drive does not serve is a choice per whether the PDU has Read Device
+    /// Identification's 4 bytes: lmd-m answers `2B 2E 05 AF` (a bit flip of a device-id read) 01 and `2B 00 9E
+    /// 00 02` (a register read's body under FC 43) 03, its length check first; the run held the one against
+    /// the other as one choice ("a drive keeps to one choice"). Two of the same length are one choice.
+    #[test]
+    fn an_unserved_mei_type_is_a_choice_per_whether_the_length_is_a_device_id_reads() {
+        let profile = drives::corpus::Corpus::Embedded
+            .profile("lmd")
+            .expect("lmd");
+        let requirements = drives::corpus::Corpus::Embedded
+            .requirements()
+            .expect("requirements");
+        let f = requirements
+            .freedom(drives::choices::ids::UNSUPPORTED_MEI_TYPE)
+            .expect("freedom");
+        let shown = |pdu: &[u8], code: &str| {
+            let cx = StepContext {
+                request: None,
+                malformed: true,
+                ..cx_for(&Request::ReadExceptionStatus, pdu, &profile)
+            };
+            shown_named(
+                f,
+                about_of(drives::choices::ids::UNSUPPORTED_MEI_TYPE, &cx),
+                code,
+            )
+        };
+        let mut log = super::super::choices::ChoiceLog::default();
+        let four = shown(&[0x2B, 0x2E, 0x05, 0xAF], "1");
+        let longer = shown(&[0x2B, 0x00, 0x9E, 0x00, 0x02], "3");
+        assert_ne!(four.about, longer.about);
+        assert_eq!(log.record(&longer, "fcswap", &requirements), None);
+        assert_eq!(log.record(&four, "bitflip", &requirements), None);
+        // The same length refused another way is a change of mind.
+        let four_again = shown(&[0x2B, 0x0F, 0x01, 0x00], "3");
+        assert!(log.record(&four_again, "other", &requirements).is_some());
+        let longer_again = shown(&[0x2B, 0x01, 0x01, 0x00, 0x00, 0x00], "3");
+        assert_eq!(
+            log.record(&longer_again, "other-longer", &requirements),
+            None
+        );
+    }
+
     /// A request cut short is a choice per function code, and, where the layout has a byte count, per whether
     /// the cut falls inside the data it counts (sd2x-g drops an FC 10 cut inside its fields and refuses one
     /// cut inside its data with 03).
@@ -2218,6 +2282,29 @@ mod tests {
         );
         assert_eq!(about(0x0001, PARTIAL_REGISTER_WRITE), "from inside it");
         assert_eq!(about(0x009C, UNKNOWN_MNEMONIC), "");
+        // Writes of several registers: only the 32-bit registers they cut count. VF (0x00A7, one register)
+        // and the first register of the 32-bit one after it: cut short at its end (lmd-m answers this 03 and a
+        // write from inside a parameter 02; a bit flip of a write from 0x00B7 made it, and the run held the
+        // 03 against the 02, "a drive keeps to one choice"). C1 (0x0005-0x0006) whole and the first register
+        // of C2: the same. From C1's second register on: from inside it, wherever it ends.
+        let about_n = |address: u16, n: usize| {
+            let req = Request::WriteMultipleRegisters {
+                address,
+                values: vec![7; n],
+            };
+            let pdu = req.to_bytes().expect("pdu");
+            about_of(PARTIAL_REGISTER_WRITE, &cx_for(&req, &pdu, &lmd))
+        };
+        let width_at = |a: u16| lmd.register_at(a, false).map(|r| (r.address, r.width));
+        assert_eq!(width_at(0x00A7), Some((0x00A7, 1)));
+        assert_eq!(width_at(0x00A8), Some((0x00A8, 2)));
+        assert_eq!(about_n(0x00A7, 2), "up to its first register");
+        assert_eq!(width_at(0x0005), Some((0x0005, 2)));
+        assert_eq!(width_at(0x0007), Some((0x0007, 2)));
+        assert_eq!(about_n(0x0005, 3), "up to its first register");
+        assert_eq!(about_n(0x0006, 2), "from inside it");
+        assert_eq!(about_n(0x0006, 3), "from inside it");
+        assert_eq!(about_n(0x0000, 1), "from its first register");
         let mut log = super::super::choices::ChoiceLog::default();
         let requirements = drives::corpus::Corpus::Embedded
             .requirements()

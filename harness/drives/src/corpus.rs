@@ -36,6 +36,37 @@ pub fn is_profile_path(s: &str) -> bool {
     s.contains('/') || s.contains('\\') || s.ends_with(".toml")
 }
 
+/// What the embedded corpus gave for a name, parsed once per process (the embedded files never change).
+type Parsed<T> = std::sync::Mutex<std::collections::HashMap<String, T>>;
+static EMBEDDED_PROFILES: std::sync::OnceLock<Parsed<Profile>> = std::sync::OnceLock::new();
+static EMBEDDED_GOLDEN: std::sync::OnceLock<Parsed<Option<GoldenFile>>> =
+    std::sync::OnceLock::new();
+
+/// A copy of what `parse` gave for `name` the first time: errors are not kept (an unknown name is asked
+/// again, and says so again).
+fn embedded_once<T: Clone>(
+    name: &str,
+    cache: &std::sync::OnceLock<Parsed<T>>,
+    parse: impl FnOnce() -> Result<T, CorpusError>,
+) -> Result<T, CorpusError> {
+    let cache = cache.get_or_init(Default::default);
+    if let Some(v) = cache
+        .lock()
+        .unwrap_or_else(std::sync::PoisonError::into_inner)
+        .get(name)
+    {
+        return Ok(v.clone());
+    }
+    // Parsed outside the lock: two threads asking at once may both parse; either copy is the same.
+    let v = parse()?;
+    cache
+        .lock()
+        .unwrap_or_else(std::sync::PoisonError::into_inner)
+        .entry(name.to_string())
+        .or_insert_with(|| v.clone());
+    Ok(v)
+}
+
 /// Where corpus files come from.
 #[derive(Clone, Debug)]
 pub enum Corpus {
@@ -118,8 +149,17 @@ impl Corpus {
             .collect()
     }
 
-    /// Load and validate the profile `name`; an unknown name lists the known ones.
+    /// Load and validate the profile `name`; an unknown name lists the known ones. An embedded profile is
+    /// parsed once per process and copied after that (parsing takes about 10 ms, a copy about 60 µs; a
+    /// process that runs many sessions, as the tests and a fuzz target do, loaded it for each).
     pub fn profile(&self, name: &str) -> Result<Profile, CorpusError> {
+        if let Corpus::Embedded = self {
+            return embedded_once(name, &EMBEDDED_PROFILES, || self.parse_profile(name));
+        }
+        self.parse_profile(name)
+    }
+
+    fn parse_profile(&self, name: &str) -> Result<Profile, CorpusError> {
         // Read the directory first: a corpus that cannot be read is not an unknown profile.
         self.files("profiles").map_err(|source| CorpusError::Read {
             corpus: self.describe(),
@@ -157,8 +197,16 @@ impl Corpus {
             .collect()
     }
 
-    /// The golden frames of a profile's manual, if the corpus has them.
+    /// The golden frames of a profile's manual, if the corpus has them (embedded ones parsed once per
+    /// process, as profiles are).
     pub fn golden(&self, profile: &str) -> Result<Option<GoldenFile>, CorpusError> {
+        if let Corpus::Embedded = self {
+            return embedded_once(profile, &EMBEDDED_GOLDEN, || self.parse_golden(profile));
+        }
+        self.parse_golden(profile)
+    }
+
+    fn parse_golden(&self, profile: &str) -> Result<Option<GoldenFile>, CorpusError> {
         match self.file("golden", profile) {
             Ok((file, text)) => Ok(Some(GoldenFile::parse(&file, &text)?)),
             Err(_) => Ok(None),

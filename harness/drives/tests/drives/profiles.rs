@@ -412,3 +412,32 @@ fn shared_io_points_need_a_setup_mnemonic_for_each_point_and_as_many_inputs_as_o
         }
     }
 }
+
+/// The embedded corpus parses a profile or a golden file once per process and hands out copies: each copy
+/// equals what parsing the file gives, a change to one copy does not show in the next, and an unknown name
+/// is an error every time it is asked (errors are not kept).
+#[test]
+fn embedded_profiles_and_golden_files_are_copies_of_one_parse() {
+    let corpus = Corpus::Embedded;
+    for name in corpus.profile_names() {
+        let (file, text) = corpus.file("profiles", &name).expect("the file");
+        let parsed = Profile::parse(&file, &text).expect("parses");
+        let mut first = corpus.profile(&name).expect("loads");
+        assert_eq!(first, parsed, "{name}");
+        first.device.id = "changed".into();
+        assert_eq!(corpus.profile(&name).expect("loads"), parsed, "{name}");
+        let golden = corpus.golden(&name).expect("golden");
+        let again = corpus.golden(&name).expect("golden");
+        assert_eq!(
+            format!("{golden:?}"),
+            format!("{again:?}"),
+            "{name}'s golden frames"
+        );
+    }
+    for _ in 0..2 {
+        assert!(matches!(
+            corpus.profile("no-such-drive"),
+            Err(drives::corpus::CorpusError::UnknownProfile { .. })
+        ));
+    }
+}

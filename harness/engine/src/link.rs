@@ -97,6 +97,22 @@ pub(crate) fn run_over_link(
         );
         return Ok(out);
     }
+    // Modbus/TCP: the answer to the unanswered step came during a later step of the case (noted there as
+    // late): the drive answered, no frame was lost.
+    if damage.what == NO_ANSWER
+        && framing == Framing::Tcp
+        && let Some(sent) = first.steps[damage.step].sent.as_deref()
+        && sent.len() >= 2
+        && runner.answered_late(u16::from_be_bytes([sent[0], sent[1]]))
+    {
+        let seen = [damage.told(1)];
+        let (wire, duration) = (first.wire.clone(), first.duration);
+        return Ok(judged_first(
+            first,
+            (wire, duration, &seen),
+            "whose answer came late, during a later step (the drive answered: no frame was lost; not run again)",
+        ));
+    }
     tally.again += 1;
     let mut seen = vec![damage.told(1)];
     let mut shown = vec![damage];
@@ -108,10 +124,8 @@ pub(crate) fn run_over_link(
         .chain(std::iter::repeat(LINK_PAUSES[3]));
     for (n, pause) in pauses.take(retries).enumerate() {
         let attempt = n + 2;
-        if let Some(k) = keeper.as_deref_mut() {
-            let put_back = k.taken(case, runner.refused_writes());
-            k.after_case(runner, &case.id, &put_back, profile)?;
-        }
+        // The pause first, then the keeper's read-back: an answer that comes late, right after the attempt,
+        // would otherwise come while the keeper's read is out, be noted there as late, and not be seen here.
         let came = runner.came_within(pause);
         if came && shown.last().is_some_and(|d| d.what == NO_ANSWER) {
             tally.own += 1;
@@ -124,6 +138,10 @@ pub(crate) fn run_over_link(
                 (wire, duration, &seen),
                 "whose answer came late (the drive answered: no frame was lost; not run again)",
             ));
+        }
+        if let Some(k) = keeper.as_deref_mut() {
+            let put_back = k.taken(case, runner.refused_writes());
+            k.after_case(runner, &case.id, &put_back, profile)?;
         }
         // What the attempt before showed of the drive's choices is not held against it.
         runner.forget_attempt();

@@ -367,6 +367,10 @@ enum Mode {
     Pause(usize, Duration),
     /// The `at`-th chunk the server sends is held back for the duration, the others pass: one late answer.
     Delay(usize, Duration),
+    /// The answer to the first request chunk containing these bytes is held back for the first duration
+    /// (once), every other answer for the second: one late answer to a chosen request, from a drive that
+    /// takes its time with every answer.
+    DelayAnswerTo(&'static [u8], Duration, Duration),
     /// The first request chunk containing these bytes goes to the server, and from then on nothing passes
     /// on that connection either way (its answer included); other connections are relayed as usual: a drive
     /// that leaves a connection hung after a request, as jsmodbus 5 does.
@@ -417,14 +421,17 @@ impl Proxy {
                     _ => Arc::new(AtomicBool::new(false)),
                 };
                 let swallowing: Arc<Mutex<Option<Vec<u8>>>> = Arc::default();
+                // DelayAnswerTo: the next answer is to be held (set by the request, taken by its answer).
+                let hold_next = Arc::new(AtomicBool::new(false));
                 let pump = |mut from: TcpStream, to: TcpStream, upward: bool| {
-                    let (requests, answers, paused_until, hung, swallowing, dead) = (
+                    let (requests, answers, paused_until, hung, swallowing, dead, hold_next) = (
                         requests.clone(),
                         answers.clone(),
                         paused_until.clone(),
                         hung.clone(),
                         swallowing.clone(),
                         dead.clone(),
+                        hold_next.clone(),
                     );
                     let to = Arc::new(Mutex::new(to));
                     thread::spawn(move || {
@@ -462,6 +469,7 @@ impl Proxy {
                                 }
                             }
                             let mut held = None;
+                            let mut lag = None;
                             {
                                 let mut p = paused_until.lock().expect("pause");
                                 match mode {
@@ -471,11 +479,33 @@ impl Proxy {
                                     Mode::Delay(at, delay) if !upward && nth == at => {
                                         held = Some(delay)
                                     }
+                                    // Once (`dead` marks it done); the answer of that connection.
+                                    Mode::DelayAnswerTo(pattern, _, _)
+                                        if upward
+                                            && !dead.load(Ordering::SeqCst)
+                                            && chunk
+                                                .windows(pattern.len())
+                                                .any(|w| w == pattern) =>
+                                    {
+                                        dead.store(true, Ordering::SeqCst);
+                                        hold_next.store(true, Ordering::SeqCst);
+                                    }
+                                    Mode::DelayAnswerTo(_, delay, _)
+                                        if !upward && hold_next.swap(false, Ordering::SeqCst) =>
+                                    {
+                                        held = Some(delay)
+                                    }
+                                    Mode::DelayAnswerTo(_, _, latency) if !upward => {
+                                        lag = Some(latency)
+                                    }
                                     _ => {}
                                 }
                                 if p.is_some_and(|u| now < u) {
                                     continue;
                                 }
+                            }
+                            if let Some(lag) = lag {
+                                thread::sleep(lag);
                             }
                             if let Some(delay) = held {
                                 let to = to.clone();
@@ -843,6 +873,61 @@ fn a_late_answer_in_the_pause_before_a_rerun_is_judged_at_the_first_attempt() {
         "{err}"
     );
     drop(sim);
+}
+
+/// The same for a case that writes, against a drive that takes 200 ms over every answer and answers the
+/// case's FC 16 whose byte count disagrees with its quantity late (timeout 1 s). Between attempts the keeper
+/// reads back what the case may have changed, on the same connection; and the case has steps after the
+/// unanswered one. A late answer that came while the keeper's read was out was noted there as late, and the
+/// look for one in the pause after it saw nothing: the case was run again and PASSed at its second attempt.
+/// Now the pause comes before the keeper's read. And a late answer that comes during a later step of the
+/// case (noted there, not taken for that step's) is the drive's answer too. Either way the case is judged at
+/// its first attempt, FAIL, as without reruns, and the drive is left as found.
+#[test]
+fn a_late_answer_to_a_writing_case_is_seen_after_the_case_or_during_it() {
+    for (late_ms, judged) in [
+        // After the case's last step (its put-back write, sent about 1.43 s after the late request and
+        // answered 0.2 s later),
+        // while the keeper's read-back is out.
+        (
+            1730,
+            "judged at attempt 1, whose answer came late (the drive answered",
+        ),
+        // During that last step.
+        (
+            1530,
+            "judged at attempt 1, whose answer came late, during a later step",
+        ),
+    ] {
+        let (sim, target) = Proxy::before_generic_sim(Mode::DelayAnswerTo(
+            &[0x01, 0x10, 0x00, 0x00, 0x00, 0x02, 0x02],
+            Duration::from_millis(late_ms),
+            Duration::from_millis(200),
+        ));
+        let dir = TempDir::new("late-answer-keeper");
+        let report = dir.path().join("report");
+        let report_s = report.to_string_lossy().into_owned();
+        let args = run_args(
+            &target,
+            "generic",
+            &[
+                "--cases",
+                "spec/app-6.12/byte-count-mismatch/fc-0x10",
+                "--report",
+                &report_s,
+            ],
+        );
+        let (code, out, err, _) = harness_timed(&args, Duration::from_secs(90));
+        let cases = case_records(&report);
+        assert_eq!(code, 1, "the late case FAILs ({late_ms} ms)\n{out}\n{err}");
+        assert_eq!(cases.len(), 1, "{cases:?}");
+        assert!(cases[0].contains(judged), "{late_ms} ms: {}", cases[0]);
+        assert!(
+            out.contains("every kept parameter reads as before"),
+            "{out}"
+        );
+        drop(sim);
+    }
 }
 
 #[test]

@@ -238,6 +238,9 @@ pub struct Runner {
     /// liveness probe, and when), so that a late answer is attributed to its request instead of being
     /// taken for a later step's.
     recent: std::collections::VecDeque<(u16, String, Duration)>,
+    /// Modbus/TCP: the transaction ids of the running case's requests whose answer came late, during a later
+    /// step of the case (see [`Runner::answered_late`]).
+    late_in_case: Vec<u16>,
     /// The requests of the cases sent since the target last answered one (case id, bytes; the first few):
     /// the first of them is the one that preceded a silence.
     unanswered: Vec<(String, Vec<u8>)>,
@@ -443,6 +446,7 @@ impl Runner {
             learning_reads: Vec::new(),
             learned: drives::Choices::reference(),
             recent: std::collections::VecDeque::new(),
+            late_in_case: Vec::new(),
             unanswered: Vec::new(),
             sentinels: std::collections::VecDeque::new(),
             sentinel_given_up: false,
@@ -1185,6 +1189,7 @@ impl Runner {
                 break;
             };
             let by = if *by == self.case_id {
+                self.late_in_case.push(tid);
                 "an earlier step of this case".to_string()
             } else {
                 by.clone()
@@ -1419,6 +1424,13 @@ impl Runner {
     /// it, put-back steps included.
     pub fn watch_mid_case(&mut self, probe: Vec<u8>, bound: Duration) {
         self.mid_case = Some((probe, bound));
+    }
+
+    /// Modbus/TCP: whether the answer to the last case's request with transaction id `tid` came late, during
+    /// a later step of the case (noted there as a late answer, not taken for that step's): the drive answered
+    /// it, after the timeout.
+    pub fn answered_late(&self, tid: u16) -> bool {
+        self.late_in_case.contains(&tid)
     }
 
     /// Let `pause` pass with nothing sent, and say whether an answer came from the target meanwhile (taken
@@ -1965,6 +1977,7 @@ impl Runner {
         // One empty slot per capture the case names; a restore of a slot nothing filled is SKIPPED.
         self.slots = vec![None; case.slots()];
         self.case_id.clone_from(&case.id);
+        self.late_in_case.clear();
         self.case_freedoms.clone_from(&case.freedoms);
         self.case_tags.clone_from(&case.tags);
         self.refused = false;

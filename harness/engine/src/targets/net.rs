@@ -528,6 +528,28 @@ mod tests {
     use super::*;
     use std::net::TcpListener;
 
+    /// After `gone`, listen on `addr` again and take one connection (bounded by `within`): a drive that
+    /// refused connects for a while.
+    fn listen_again(
+        addr: std::net::SocketAddr,
+        gone: Duration,
+        within: Duration,
+    ) -> std::thread::JoinHandle<Option<std::net::TcpStream>> {
+        std::thread::spawn(move || {
+            std::thread::sleep(gone);
+            let listener = TcpListener::bind(addr).expect("bind the same port again");
+            listener.set_nonblocking(true).expect("nonblocking");
+            let until = Instant::now() + within;
+            while Instant::now() < until {
+                if let Ok((s, _)) = listener.accept() {
+                    return Some(s);
+                }
+                std::thread::sleep(Duration::from_millis(5));
+            }
+            None
+        })
+    }
+
     /// A drive that frees its one connection slot a moment after the close (here: a listener that is gone for
     /// 150 ms, so connects are refused) is reconnected to, not given up on.
     #[test]
@@ -538,20 +560,7 @@ mod tests {
             .expect("connect");
         let (first, _) = listener.accept().expect("accept");
         drop(listener);
-        let back = std::thread::spawn(move || {
-            std::thread::sleep(Duration::from_millis(150));
-            let listener = TcpListener::bind(addr).expect("bind the same port again");
-            listener.set_nonblocking(true).expect("nonblocking");
-            // Bounded: one connection within 3 s.
-            let until = Instant::now() + Duration::from_secs(3);
-            while Instant::now() < until {
-                if let Ok((s, _)) = listener.accept() {
-                    return Some(s);
-                }
-                std::thread::sleep(Duration::from_millis(5));
-            }
-            None
-        });
+        let back = listen_again(addr, Duration::from_millis(150), Duration::from_secs(3));
         t.reconnect().expect("reconnected once the slot is free");
         assert!(
             back.join().expect("thread").is_some(),
@@ -572,20 +581,7 @@ mod tests {
             .expect("connect");
         let (first, _) = listener.accept().expect("accept");
         drop(listener);
-        let back = std::thread::spawn(move || {
-            std::thread::sleep(Duration::from_secs(2));
-            let listener = TcpListener::bind(addr).expect("bind the same port again");
-            listener.set_nonblocking(true).expect("nonblocking");
-            // Bounded: one connection within 5 s.
-            let until = Instant::now() + Duration::from_secs(5);
-            while Instant::now() < until {
-                if let Ok((s, _)) = listener.accept() {
-                    return Some(s);
-                }
-                std::thread::sleep(Duration::from_millis(5));
-            }
-            None
-        });
+        let back = listen_again(addr, Duration::from_secs(2), Duration::from_secs(5));
         t.reconnect()
             .expect("reconnected once the target takes connections again");
         let second = back.join().expect("thread");

@@ -803,8 +803,30 @@ pub fn about_of(freedom: &str, cx: &StepContext<'_>) -> String {
     let overlapped =
         |r: &&drives::profile::Register| u32::from(r.address) < end && r.end() > u32::from(address);
     let registers = || cx.profile.registers.iter().map(|r| r.get_ref());
+    // Where the range cuts a 32-bit register: from its second register, from its first and ending there,
+    // or from an earlier register and ending in its first.
+    let cut = |r: &drives::profile::Register| {
+        (r.width == 2 && overlapped(&r) && (r.address < address || r.end() > end)).then_some(
+            if r.address < address {
+                "from inside it"
+            } else if r.address == address {
+                "from its first register"
+            } else {
+                "up to its first register"
+            },
+        )
+    };
+    // A register whose width the manual gives two ways is a choice of its own, and so is each of its
+    // halves: a drive that reads it as one register takes a write of its first and refuses one of its
+    // second, a reserved address (02); one that reads it as two refuses both, the first as a quantity that
+    // does not cover it (03) and the second as a start inside it (02), as an independent LMD does with LT
+    // (tests/independent/lmd-m, DECISIONS.md section 2, "Writing").
     if let Some(r) = registers().find(|r| r.width_disputed && overlapped(r)) {
-        return r.mnemonic.clone().unwrap_or_else(|| r.name.clone());
+        let name = r.mnemonic.clone().unwrap_or_else(|| r.name.clone());
+        return match cut(r) {
+            Some(half) => format!("{name}, {half}"),
+            None => name,
+        };
     }
     // A write that starts where a 32-bit register starts reads as a write of it (a drive may take its first
     // register for the whole value), one that starts inside it cannot: a drive may take the one and refuse
@@ -815,16 +837,9 @@ pub fn about_of(freedom: &str, cx: &StepContext<'_>) -> String {
     // DECISIONS.md section 2, "Writing"); it keeps to each. Only the registers the write cuts count (one
     // it covers whole is written as a whole).
     if freedom == PARTIAL_REGISTER_WRITE
-        && let Some(r) = registers()
-            .find(|r| r.width == 2 && overlapped(r) && (r.address < address || r.end() > end))
+        && let Some(half) = registers().find_map(cut)
     {
-        return if r.address < address {
-            "from inside it".into()
-        } else if r.address == address {
-            "from its first register".into()
-        } else {
-            "up to its first register".into()
-        };
+        return half.into();
     }
     String::new()
 }
@@ -2267,8 +2282,17 @@ mod tests {
             let pdu = req.to_bytes().expect("pdu");
             about_of(freedom, &cx_for(&req, &pdu, &lmd))
         };
-        assert_eq!(about(0x009C, PARTIAL_REGISTER_WRITE), "LT");
-        assert_eq!(about(0x00A3, PARTIAL_REGISTER_WRITE), "TS");
+        assert_eq!(
+            about(0x009C, PARTIAL_REGISTER_WRITE),
+            "LT, from its first register"
+        );
+        assert_eq!(
+            about(0x00A3, PARTIAL_REGISTER_WRITE),
+            "TS, from its first register"
+        );
+        // LT's second half is another choice (lmd-m refuses the first with 03, the second with 02; a drive
+        // reading LT as one register would take the first and refuse the second as reserved).
+        assert_eq!(about(0x009D, PARTIAL_REGISTER_WRITE), "LT, from inside it");
         // R2 (0x0061) and A (0x0000) are 32-bit one way only: a half write of them is about where it starts
         // (a drive may take a write from a register's first word as the whole value, and refuse one from
         // inside it); other freedoms are about the whole freedom.

@@ -684,6 +684,35 @@ pub fn about_of(freedom: &str, cx: &StepContext<'_>) -> String {
     if freedom == drives::choices::ids::GATEWAY_NO_RESPONSE {
         return format!("unit {}", cx.unit);
     }
+    // A write to an output of an I/O point configured as an input, with a value the register cannot hold
+    // (O1-O4 are 0 or 1): a drive may refuse the value (03) before it looks at the point's configuration, as
+    // an independent MDrive does (tests/independent/mdrive-h: 03 to O1 = 52098, 02 to FC 05 ON of the same
+    // point). A value in range and one out of it are held apart.
+    if freedom == drives::choices::ids::MDRIVE_OUTPUT_WRITE_WHILE_INPUT {
+        let in_range = |address: u16, values: &[u16]| {
+            values.iter().zip(address..).all(|(v, a)| {
+                cx.profile.register_at(a, false).is_none_or(|r| {
+                    let v = i64::from(*v);
+                    r.min.is_none_or(|m| v >= m) && r.max.is_none_or(|m| v <= m)
+                })
+            })
+        };
+        let fits = match cx.request {
+            Some(Request::WriteSingleRegister { address, value }) => in_range(*address, &[*value]),
+            Some(Request::WriteMultipleRegisters { address, values })
+            | Some(Request::ReadWriteMultipleRegisters {
+                write_address: address,
+                values,
+                ..
+            }) => in_range(*address, values),
+            _ => true,
+        };
+        return if fits {
+            String::new()
+        } else {
+            "a value out of range".into()
+        };
+    }
     // FC 43 with an MEI type the drive does not serve: App 7's 03 also covers a request whose "implied length
     // is incorrect", so a drive that checks the PDU's length against the one interface it serves (Read Device
     // Identification: function code, MEI type, read code, object id, 4 bytes, App 6.21) before it looks at
@@ -804,17 +833,25 @@ pub fn about_of(freedom: &str, cx: &StepContext<'_>) -> String {
         |r: &&drives::profile::Register| u32::from(r.address) < end && r.end() > u32::from(address);
     let registers = || cx.profile.registers.iter().map(|r| r.get_ref());
     // Where the range cuts a 32-bit register: from its second register, from its first and ending there,
-    // or from an earlier register and ending in its first.
+    // or from an earlier register and ending in its first. And a write of a register the profile says is
+    // read-only: a drive may refuse it for that (02, App 7: not an allowable address for a write) before it
+    // looks at the halves, as an independent MDrive does for V (tests/independent/mdrive-h).
+    let write = freedom == PARTIAL_REGISTER_WRITE;
     let cut = |r: &drives::profile::Register| {
-        (r.width == 2 && overlapped(&r) && (r.address < address || r.end() > end)).then_some(
-            if r.address < address {
+        (r.width == 2 && overlapped(&r) && (r.address < address || r.end() > end)).then(|| {
+            let half = if r.address < address {
                 "from inside it"
             } else if r.address == address {
                 "from its first register"
             } else {
                 "up to its first register"
-            },
-        )
+            };
+            if write && !r.access.writable() {
+                format!("{half}, read-only")
+            } else {
+                half.to_string()
+            }
+        })
     };
     // A register whose width the manual gives two ways is a choice of its own, and so is each of its
     // halves: a drive that reads it as one register takes a write of its first and refuses one of its
@@ -836,12 +873,11 @@ pub fn about_of(freedom: &str, cx: &StepContext<'_>) -> String {
     // does not cover its last parameter (03), as an independent LMD does (tests/independent/lmd-m,
     // DECISIONS.md section 2, "Writing"); it keeps to each. Only the registers the write cuts count (one
     // it covers whole is written as a whole).
-    if freedom == PARTIAL_REGISTER_WRITE
-        && let Some(half) = registers().find_map(cut)
-    {
-        return half.into();
-    }
-    String::new()
+    // The same for reads: a drive may refuse a read that starts inside a 32-bit register with 02 (no item
+    // starts there) and one whose quantity ends inside it with 03, as an independent MDrive does
+    // (tests/independent/mdrive-h, DECISIONS.md item 4: "items are only accessed whole ... this applies to
+    // both reads and writes"); it keeps to each.
+    registers().find_map(cut).unwrap_or_default()
 }
 
 /// True when every address a read or multiple write (FC 01-04, 0F, 10) covers is one the profile maps, and
@@ -1961,6 +1997,87 @@ mod tests {
         // the addresses first answers 02 there and its limit's 03 over a range it maps whole (the sixth
         // wave's MDrive).
         assert_eq!(into_reserved, "FC 0x03");
+    }
+
+    /// A read of part of a 32-bit register is a choice per where it cuts the register, as a write is: mdrive-h
+    /// refuses a read from P's second register (0x0058) with 02 and one that ends in a register's first with
+    /// 03 ("items are only accessed whole"); the run held the 02 against the 03 it learned before the cases
+    /// (a read of A's first register) as one choice.
+    #[test]
+    fn a_half_read_is_a_choice_per_where_it_cuts_the_register() {
+        let mdrive = drives::corpus::Corpus::Embedded
+            .profile("mdrive")
+            .expect("mdrive");
+        let requirements = drives::corpus::Corpus::Embedded
+            .requirements()
+            .expect("requirements");
+        let f = requirements
+            .freedom(drives::choices::ids::PARTIAL_REGISTER_READ)
+            .expect("freedom");
+        let about = |address: u16, quantity: u16| {
+            let req = Request::ReadHoldingRegisters { address, quantity };
+            let pdu = req.to_bytes().expect("pdu");
+            about_of(
+                drives::choices::ids::PARTIAL_REGISTER_READ,
+                &cx_for(&req, &pdu, &mdrive),
+            )
+        };
+        assert_eq!(mdrive.register_at(0x0057, false).map(|r| r.width), Some(2));
+        assert_eq!(about(0x0057, 1), "from its first register");
+        assert_eq!(about(0x0058, 1), "from inside it");
+        assert_eq!(about(0x0057, 2), "", "a whole register is no half");
+        let mut log = super::super::choices::ChoiceLog::default();
+        let first = shown_named(f, about(0x0000, 1), "exception-03");
+        let inside = shown_named(f, about(0x0058, 1), "exception-02");
+        assert_eq!(log.record(&first, "learned", &requirements), None);
+        assert_eq!(log.record(&inside, "read-half", &requirements), None);
+        let first_again = shown_named(f, about(0x0057, 1), "exception-02");
+        assert!(log.record(&first_again, "other", &requirements).is_some());
+    }
+
+    /// mdrive-h refuses a half write of V (0x0085, read-only) with 02 and half writes of registers it may
+    /// write with 03; and a write of O1 = 52098 (O1-O4 hold 0 or 1) with 03 where an FC 05 of the same point
+    /// configured as an input gets 02. Each pair is held apart.
+    #[test]
+    fn a_read_only_half_and_an_output_value_out_of_range_are_choices_of_their_own() {
+        let mdrive = drives::corpus::Corpus::Embedded
+            .profile("mdrive")
+            .expect("mdrive");
+        let about = |freedom: &str, req: Request| {
+            let pdu = req.to_bytes().expect("pdu");
+            about_of(freedom, &cx_for(&req, &pdu, &mdrive))
+        };
+        let half = |address: u16| {
+            about(
+                PARTIAL_REGISTER_WRITE,
+                Request::WriteMultipleRegisters {
+                    address,
+                    values: vec![7],
+                },
+            )
+        };
+        assert_eq!(half(0x0085), "from its first register, read-only");
+        assert_eq!(half(0x0057), "from its first register");
+        let output = drives::choices::ids::MDRIVE_OUTPUT_WRITE_WHILE_INPUT;
+        let o1 = |value: u16| {
+            about(
+                output,
+                Request::WriteMultipleRegisters {
+                    address: 0x004B,
+                    values: vec![value],
+                },
+            )
+        };
+        assert_eq!(o1(52098), "a value out of range");
+        assert_eq!(o1(1), "");
+        let coil = about(
+            output,
+            Request::WriteSingleCoil {
+                address: 0x004B,
+                value: 0xFF00,
+            },
+        );
+        assert_eq!(coil, "");
     }
 
     /// An FC 43 with an MEI type the drive does not serve is a choice per whether the PDU has Read Device

@@ -613,7 +613,7 @@ impl Runner {
             first.wrapping_add(OFFSET)
         );
         self.input_offset = OFFSET;
-        self.follow_reading(freedom, EXAMPLE, &origin);
+        self.follow_reading(freedom, "", EXAMPLE, &origin);
     }
 
     /// Learn before the cases whether the drive serves a read of one half of a 32-bit holding register
@@ -673,21 +673,25 @@ impl Runner {
             "(learned before the cases: FC 03 of one register at 0x{address:04X}, the first half of a 32-bit register, refused with {:02X})",
             code.0
         );
-        self.follow_reading(freedom, &value, &origin);
+        // Held as the drive's choice for reads from a 32-bit register's first register (a read from inside one
+        // is a choice of its own: see `oracle::freedoms::about_of`).
+        self.follow_reading(freedom, "from its first register", &value, &origin);
     }
 
     /// The drive follows the other reading `value` of `freedom`, learned before the cases: recorded as its
-    /// choice (from `origin`), taken by the reference drive, which is rebuilt with it.
+    /// choice (about `about` within the freedom, from `origin`), taken by the reference drive, which is
+    /// rebuilt with it.
     fn follow_reading(
         &mut self,
         freedom: &drives::requirements::Freedom,
+        about: &str,
         value: &str,
         origin: &str,
     ) {
         let Some(v) = freedom.values.iter().find(|v| v.matches(value)).cloned() else {
             return;
         };
-        let shown = crate::oracle::freedoms::shown_value(freedom, "", value);
+        let shown = crate::oracle::freedoms::shown_value(freedom, about, value);
         let requirements = Arc::clone(&self.requirements);
         let _ = self.choices.record(&shown, origin, &requirements);
         self.before_learning();
@@ -785,7 +789,7 @@ impl Runner {
             return;
         }
         self.fc43_without_reserved = true;
-        self.follow_reading(freedom, EXAMPLE, &origin("example's"));
+        self.follow_reading(freedom, "", EXAMPLE, &origin("example's"));
     }
 
     /// An answer frame of the target or the reference drive in the form the cases are judged in: a

@@ -354,6 +354,15 @@ impl Register {
         self.operand_open || (!self.safe_values.is_empty() && !self.safe_values.contains(&value))
     }
 
+    /// A one-register entry's value as `word` holds it, at the register's sign.
+    pub fn value_of_word(&self, word: u16) -> i64 {
+        if self.signed {
+            i64::from(word as i16)
+        } else {
+            i64::from(word)
+        }
+    }
+
     /// The inclusive range a write must fall in.
     pub fn range(&self) -> (i64, i64) {
         let (lo, hi) = self.natural_range();

@@ -100,10 +100,10 @@ pub(crate) fn run_over_link(
     // Modbus/TCP: the answer to the unanswered step came during a later step of the case (noted there as
     // late): the drive answered, no frame was lost.
     if damage.what == NO_ANSWER
-        && framing == Framing::Tcp
-        && let Some(sent) = first.steps[damage.step].sent.as_deref()
-        && sent.len() >= 2
-        && runner.answered_late(u16::from_be_bytes([sent[0], sent[1]]))
+        && first.steps[damage.step]
+            .sent
+            .as_deref()
+            .is_some_and(|sent| runner.answered_late(sent))
     {
         let seen = [damage.told(1)];
         let (wire, duration) = (first.wire.clone(), first.duration);

@@ -692,8 +692,8 @@ pub fn about_of(freedom: &str, cx: &StepContext<'_>) -> String {
         let in_range = |address: u16, values: &[u16]| {
             values.iter().zip(address..).all(|(v, a)| {
                 cx.profile.register_at(a, false).is_none_or(|r| {
-                    let v = i64::from(*v);
-                    r.min.is_none_or(|m| v >= m) && r.max.is_none_or(|m| v <= m)
+                    let (min, max) = r.range();
+                    (min..=max).contains(&r.value_of_word(*v))
                 })
             })
         };
@@ -1928,12 +1928,7 @@ fn value_meaning_about(cx: &StepContext<'_>) -> Option<String> {
             (!r.safe_values.is_empty() || r.operand_open) && r.width == 1 && r.address >= address
         })
         .find_map(|r| {
-            let w = *values.get(usize::from(r.address - address))?;
-            let v = if r.signed {
-                i64::from(w as i16)
-            } else {
-                i64::from(w)
-            };
+            let v = r.value_of_word(*values.get(usize::from(r.address - address))?);
             r.meaning_open(v).then(|| {
                 format!(
                     "{}={v}",
@@ -1947,6 +1942,20 @@ fn value_meaning_about(cx: &StepContext<'_>) -> Option<String> {
 mod tests {
     use super::*;
     use drives::choices::ids::{PARTIAL_REGISTER_WRITE, UNKNOWN_MNEMONIC};
+
+    /// The embedded corpus's profile `name`.
+    fn embedded_profile(name: &str) -> drives::profile::Profile {
+        drives::corpus::Corpus::Embedded
+            .profile(name)
+            .expect("an embedded profile")
+    }
+
+    /// The embedded corpus's requirements and freedoms.
+    fn embedded_requirements() -> drives::requirements::Requirements {
+        drives::corpus::Corpus::Embedded
+            .requirements()
+            .expect("requirements")
+    }
 
     fn cx_for<'a>(
         request: &'a Request,
@@ -1975,9 +1984,7 @@ mod tests {
     /// by its own state diagram (App 6). Two register reads are one choice, held to one code.
     #[test]
     fn a_quantity_over_the_device_limit_is_a_choice_per_function() {
-        let profile = drives::corpus::Corpus::Embedded
-            .profile("lmd")
-            .expect("lmd");
+        let profile = embedded_profile("lmd");
         let about = |pdu: &[u8]| {
             let req = Request::decode(pdu).expect("a request");
             about_of(
@@ -2005,12 +2012,8 @@ mod tests {
     /// (a read of A's first register) as one choice.
     #[test]
     fn a_half_read_is_a_choice_per_where_it_cuts_the_register() {
-        let mdrive = drives::corpus::Corpus::Embedded
-            .profile("mdrive")
-            .expect("mdrive");
-        let requirements = drives::corpus::Corpus::Embedded
-            .requirements()
-            .expect("requirements");
+        let mdrive = embedded_profile("mdrive");
+        let requirements = embedded_requirements();
         let f = requirements
             .freedom(drives::choices::ids::PARTIAL_REGISTER_READ)
             .expect("freedom");
@@ -2040,9 +2043,7 @@ mod tests {
     /// configured as an input gets 02. Each pair is held apart.
     #[test]
     fn a_read_only_half_and_an_output_value_out_of_range_are_choices_of_their_own() {
-        let mdrive = drives::corpus::Corpus::Embedded
-            .profile("mdrive")
-            .expect("mdrive");
+        let mdrive = embedded_profile("mdrive");
         let about = |freedom: &str, req: Request| {
             let pdu = req.to_bytes().expect("pdu");
             about_of(freedom, &cx_for(&req, &pdu, &mdrive))
@@ -2086,12 +2087,8 @@ mod tests {
     /// the other as one choice ("a drive keeps to one choice"). Two of the same length are one choice.
     #[test]
     fn an_unserved_mei_type_is_a_choice_per_whether_the_length_is_a_device_id_reads() {
-        let profile = drives::corpus::Corpus::Embedded
-            .profile("lmd")
-            .expect("lmd");
-        let requirements = drives::corpus::Corpus::Embedded
-            .requirements()
-            .expect("requirements");
+        let profile = embedded_profile("lmd");
+        let requirements = embedded_requirements();
         let f = requirements
             .freedom(drives::choices::ids::UNSUPPORTED_MEI_TYPE)
             .expect("freedom");
@@ -2128,9 +2125,7 @@ mod tests {
     /// cut inside its data with 03).
     #[test]
     fn a_request_cut_short_is_a_choice_per_function_and_per_where_it_is_cut() {
-        let profile = drives::corpus::Corpus::Embedded
-            .profile("sd2x")
-            .expect("sd2x");
+        let profile = embedded_profile("sd2x");
         let about = |pdu: &[u8]| {
             let cx = StepContext {
                 request: None,
@@ -2170,9 +2165,7 @@ mod tests {
     /// too large and a bad address 03), each one of the two orders the spec draws.
     #[test]
     fn the_check_order_is_held_apart_for_the_quantity_and_the_byte_count() {
-        let profile = drives::corpus::Corpus::Embedded
-            .profile("generic")
-            .expect("generic");
+        let profile = embedded_profile("generic");
         let about = |pdu: &[u8]| {
             let cx = StepContext {
                 request: None,
@@ -2212,9 +2205,7 @@ mod tests {
     #[test]
     fn touchable_is_every_freedom_touched() {
         use crate::cases::{Outgoing, Step};
-        let requirements = drives::corpus::Corpus::Embedded
-            .requirements()
-            .expect("requirements");
+        let requirements = embedded_requirements();
         let mut touched = 0usize;
         for stem in ["generic", "mdrive", "lmd", "sd2x"] {
             let profile = drives::corpus::Corpus::Embedded
@@ -2275,12 +2266,8 @@ mod tests {
     /// inputs (0x0031) served, or an input read refused with another code, is not.
     #[test]
     fn an_lmd_serving_its_inputs_at_both_addresses_is_admitted() {
-        let lmd = drives::corpus::Corpus::Embedded
-            .profile("lmd")
-            .expect("lmd");
-        let requirements = drives::corpus::Corpus::Embedded
-            .requirements()
-            .expect("requirements");
+        let lmd = embedded_profile("lmd");
+        let requirements = embedded_requirements();
         let f = requirements
             .freedom("lmd-discrete-input-addressing")
             .expect("freedom");
@@ -2320,9 +2307,7 @@ mod tests {
     /// takes OT = 0 and refuses OT = 8 with 03 while the points are inputs, and keeps to both.
     #[test]
     fn a_group_write_of_the_outputs_is_keyed_by_whether_it_sets_one() {
-        let mdrive = drives::corpus::Corpus::Embedded
-            .profile("mdrive")
-            .expect("mdrive");
+        let mdrive = embedded_profile("mdrive");
         let about = |value: u16| {
             let req = Request::WriteMultipleRegisters {
                 address: 0x0056,
@@ -2344,12 +2329,8 @@ mod tests {
     /// value that differs, or as many values as the reference with one wrong, is not.
     #[test]
     fn a_read_back_of_the_format_fields_is_admitted_only_with_the_reference_values() {
-        let mdrive = drives::corpus::Corpus::Embedded
-            .profile("mdrive")
-            .expect("mdrive");
-        let requirements = drives::corpus::Corpus::Embedded
-            .requirements()
-            .expect("requirements");
+        let mdrive = embedded_profile("mdrive");
+        let requirements = embedded_requirements();
         let f = requirements
             .freedom(drives::choices::ids::FC41_READ_BACK_FIELDS)
             .expect("freedom");
@@ -2388,9 +2369,7 @@ mod tests {
     /// freedom, so a drive taking LT's first register alone and refusing other half writes keeps its choices.
     #[test]
     fn a_half_write_of_a_register_of_disputed_width_is_a_choice_of_its_own() {
-        let lmd = drives::corpus::Corpus::Embedded
-            .profile("lmd")
-            .expect("lmd");
+        let lmd = embedded_profile("lmd");
         let about = |address: u16, freedom: &str| {
             let req = Request::WriteMultipleRegisters {
                 address,
@@ -2447,9 +2426,7 @@ mod tests {
         assert_eq!(about_n(0x0006, 3), "from inside it");
         assert_eq!(about_n(0x0000, 1), "from its first register");
         let mut log = super::super::choices::ChoiceLog::default();
-        let requirements = drives::corpus::Corpus::Embedded
-            .requirements()
-            .expect("requirements");
+        let requirements = embedded_requirements();
         let f = requirements
             .freedom(PARTIAL_REGISTER_WRITE)
             .expect("freedom");

@@ -1430,11 +1430,15 @@ impl Runner {
         self.mid_case = Some((probe, bound));
     }
 
-    /// Modbus/TCP: whether the answer to the last case's request with transaction id `tid` came late, during
-    /// a later step of the case (noted there as a late answer, not taken for that step's): the drive answered
-    /// it, after the timeout.
-    pub fn answered_late(&self, tid: u16) -> bool {
-        self.late_in_case.contains(&tid)
+    /// Modbus/TCP: whether the answer to the last case's request `sent` (its frame) came late, during a later
+    /// step of the case (noted there as a late answer, not taken for that step's): the drive answered it,
+    /// after the timeout. Never on RTU, which has no transaction ids.
+    pub fn answered_late(&self, sent: &[u8]) -> bool {
+        // The transaction id as sent, in a frame whose header a case may have altered.
+        sent.get(..2).is_some_and(|t| {
+            self.late_in_case
+                .contains(&u16::from_be_bytes([t[0], t[1]]))
+        })
     }
 
     /// Let `pause` pass with nothing sent, and say whether an answer came from the target meanwhile (taken

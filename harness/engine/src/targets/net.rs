@@ -528,6 +528,17 @@ mod tests {
     use super::*;
     use std::net::TcpListener;
 
+    /// A target connected to a loopback listener that is then gone (connects refused): the target, the
+    /// accepted connection, and the address to listen on again.
+    fn connected_then_refused() -> (TcpTarget, std::net::TcpStream, std::net::SocketAddr) {
+        let listener = TcpListener::bind("127.0.0.1:0").expect("bind");
+        let addr = listener.local_addr().expect("addr");
+        let t = TcpTarget::connect("127.0.0.1", addr.port(), Duration::from_secs(2), false)
+            .expect("connect");
+        let (first, _) = listener.accept().expect("accept");
+        (t, first, addr)
+    }
+
     /// After `gone`, listen on `addr` again and take one connection (bounded by `within`): a drive that
     /// refused connects for a while.
     fn listen_again(
@@ -554,12 +565,7 @@ mod tests {
     /// 150 ms, so connects are refused) is reconnected to, not given up on.
     #[test]
     fn a_reconnect_refused_for_a_moment_is_tried_again() {
-        let listener = TcpListener::bind("127.0.0.1:0").expect("bind");
-        let addr = listener.local_addr().expect("addr");
-        let mut t = TcpTarget::connect("127.0.0.1", addr.port(), Duration::from_secs(2), false)
-            .expect("connect");
-        let (first, _) = listener.accept().expect("accept");
-        drop(listener);
+        let (mut t, first, addr) = connected_then_refused();
         let back = listen_again(addr, Duration::from_millis(150), Duration::from_secs(3));
         t.reconnect().expect("reconnected once the slot is free");
         assert!(
@@ -575,12 +581,7 @@ mod tests {
     /// after about that long, and a port nobody ever listened on is reported within the short tries.
     #[test]
     fn a_target_that_took_a_connection_is_waited_for_while_it_refuses() {
-        let listener = TcpListener::bind("127.0.0.1:0").expect("bind");
-        let addr = listener.local_addr().expect("addr");
-        let mut t = TcpTarget::connect("127.0.0.1", addr.port(), Duration::from_secs(2), false)
-            .expect("connect");
-        let (first, _) = listener.accept().expect("accept");
-        drop(listener);
+        let (mut t, first, addr) = connected_then_refused();
         let back = listen_again(addr, Duration::from_secs(2), Duration::from_secs(5));
         t.reconnect()
             .expect("reconnected once the target takes connections again");

@@ -2,7 +2,7 @@
 """An imperfect link in front of a drive on loopback: a noisy RS-485 line, or a Modbus/TCP link with bad moments.
 
     noisy-link.py UPSTREAM_HOST:PORT --mode rtu|tcp [--rate R] [--seed N] [--outage-ms MS] [--lose-first N]
-                  [--lifetime S]
+                  [--lose-after-unanswered N] [--lifetime S]
 
 Listens on 127.0.0.1, port 0, prints `listening tcp 127.0.0.1:PORT`, and relays each connection to UPSTREAM
 (a loopback address). Deterministic from --seed (default 1). Every event is one line on stderr.
@@ -13,7 +13,9 @@ is one frame, or one piece of a frame a client sends in pieces), is damaged with
 or cut short. A damaged request reaches the drive damaged (a conforming slave stays silent); a damaged
 answer reaches the client damaged (the drive did execute the request). With --lose-first N the first N
 request chunks (client to drive, counted over all connections) are lost on the line whatever the rate: the
-drive never hears them.
+drive never hears them. With --lose-after-unanswered N the first N request chunks that come at least 200 ms
+after a request chunk the drive did not answer are lost (what follows a silence first: a liveness probe), and
+so are N in a row.
 
 --mode tcp (UPSTREAM serves Modbus/TCP): each request chunk from the client is, with probability R/1000
 (default 10), the moment of a link event: `lost` (the request is dropped and the connection reset),
@@ -40,6 +42,12 @@ ap.add_argument("--rate", type=float, default=None, help="events per 1000 chunks
 ap.add_argument("--seed", type=int, default=1)
 ap.add_argument("--outage-ms", type=float, default=800.0)
 ap.add_argument("--lose-first", type=int, default=0, help="rtu: the first N request chunks are lost")
+ap.add_argument(
+    "--lose-after-unanswered",
+    type=int,
+    default=0,
+    help="rtu: the first N request chunks that come 200 ms or more after an unanswered one are lost",
+)
 ap.add_argument("--lifetime", type=float, default=900.0, help="seconds")
 args = ap.parse_args()
 up_host, up_port = args.upstream.rsplit(":", 1)
@@ -51,6 +59,9 @@ outage_until = 0.0
 started = time.monotonic()
 events = 0
 lose_left = args.lose_first
+lose_after_left = args.lose_after_unanswered
+# The time of the last request chunk the drive has not answered yet (None: answered, or none yet).
+unanswered_since = None
 
 
 def say(what):
@@ -98,11 +109,22 @@ async def relay_rtu(src, dst, direction):
             data = await src.read(4096)
             if not data:
                 break
-            global lose_left
+            global lose_left, lose_after_left, unanswered_since
+            if direction == "answer":
+                unanswered_since = None
             if direction == "request" and lose_left > 0:
                 lose_left -= 1
                 say(f"{direction}: {data.hex()} lost (--lose-first)")
                 continue
+            if direction == "request":
+                now = time.monotonic()
+                after_silence = unanswered_since is not None and now - unanswered_since >= 0.2
+                if unanswered_since is None or after_silence:
+                    unanswered_since = now
+                if after_silence and lose_after_left > 0:
+                    lose_after_left -= 1
+                    say(f"{direction}: {data.hex()} lost (--lose-after-unanswered)")
+                    continue
             if rng.random() < rate:
                 global events
                 events += 1

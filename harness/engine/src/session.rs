@@ -820,6 +820,9 @@ pub(crate) fn survey_line(
 struct Watch {
     bounds: crate::liveness::Liveness,
     probe: Vec<u8>,
+    /// Whether a probe that got no answer is asked again before the target counts as silent (cases are run
+    /// again too, `--link-retries` above 0): a damaged link loses a probe as it loses any frame.
+    ask_again: bool,
     /// Why the remaining cases are not run: the target stopped answering and did not come back.
     dead: Option<String>,
     /// Targets that stopped answering and came back, with after how long.
@@ -831,6 +834,7 @@ impl Watch {
         liveness_of(opts).map(|bounds| Self {
             bounds,
             probe: crate::cases::catalog::known_good_read(profile),
+            ask_again: opts.timing.link_retries > 0,
             dead: None,
             notes: Vec::new(),
         })
@@ -841,6 +845,26 @@ impl Watch {
             runner.known_good(&self.probe, bound),
             Ok((crate::liveness::Heard::Modbus, _))
         )
+    }
+
+    /// Is the target still there after a case whose due answer did not come? The probe, and where it got
+    /// no answer and reruns are on, twice more, as the pre-flight's read is on RTU (noise on the line may
+    /// damage the probe or its answer, serial line spec 2.5.1.2) and over Modbus/TCP on a new connection (a
+    /// link that dropped the connection under the probe). A target that stopped answering misses all three.
+    fn still_there(&self, runner: &mut Runner) -> bool {
+        if self.alive(runner, self.bounds.probe_timeout) {
+            return true;
+        }
+        if !self.ask_again {
+            return false;
+        }
+        let bound = self.bounds.probe_timeout.min(Duration::from_secs(1));
+        (0..2).any(|_| {
+            if runner.framing() == codec::Framing::Tcp {
+                let _ = runner.reconnect();
+            }
+            self.alive(runner, bound)
+        })
     }
 
     /// After a case: if an answer that was due did not come, is the target still there?
@@ -856,6 +880,11 @@ impl Watch {
         if runner.stalled().is_some() {
             // The case stopped after its last step run: that is the one the target went silent after.
             step = result.steps.len() - 1;
+        } else if runner.first_unanswered().is_none() {
+            // The target answered after that step (a later step of the case, a sentinel): it is there. (A
+            // silence a freedom admits, a short request left unanswered, is followed by the case's own
+            // known-good read.)
+            return;
         }
         // The request that preceded the silence: the first one sent since the last answer (an earlier
         // case's when the target took it silently, as a malformed frame may be), else this step's.
@@ -881,7 +910,7 @@ impl Watch {
             // The case stopped with nothing answering on a new connection either: known, not asked again.
             Some(crate::runner::Stall::Target) => {}
             None => {
-                if self.alive(runner, self.bounds.probe_timeout) {
+                if self.still_there(runner) {
                     return;
                 }
             }
@@ -1339,6 +1368,7 @@ pub fn run(
             let mut summary = collected.tally.summary(false, started.elapsed());
             summary.ended = Some(format!("stopped on an error: {e}"));
             summary.liveness = watch.map(|w| w.notes).unwrap_or_default();
+            summary.link = link.note();
             summary.leave_as_found = account.clone();
             if let Err(re) = r.finish(&summary) {
                 let _ = writeln!(log, "cannot complete the reports: {re}");
@@ -1392,7 +1422,7 @@ pub fn run(
         summary.ended = w.dead;
         summary.liveness = w.notes;
     }
-    summary.liveness.extend(link_note);
+    summary.link = link_note;
     if interrupted && summary.ended.is_none() {
         summary.ended = Some(
             "interrupted (Ctrl-C or SIGTERM): the cases after the last one reported were not run"

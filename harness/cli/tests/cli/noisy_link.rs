@@ -62,6 +62,11 @@ fn an_rtu_drive_on_a_noisy_line_passes_and_is_left_as_found() {
     let (again, through, same) = link_line(&err);
     assert!(again >= 1, "the noise damaged no case: {err}");
     assert_eq!((through, same), (again, 0), "{err}");
+    // The summary says it on a line of its own (not as a liveness note).
+    assert!(
+        out.lines().any(|l| l.starts_with("link: ")) && !out.contains("liveness: link"),
+        "{out}"
+    );
     drive.assert_reads_as(&before, "after the catalog on a noisy line");
 
     let (code, out, err) = harness_bounded(
@@ -271,6 +276,75 @@ fn an_rtu_preflight_read_lost_on_the_line_is_asked_again() {
         } else {
             assert!(err.contains("does not answer"), "{row}\n{err}");
             assert!(!out.contains("RESULT:"), "{row}: no case is run\n{out}");
+        }
+    }
+    drop(sim);
+}
+
+/// The liveness probe after a case whose due answer did not come may be lost on the line as well. The drive
+/// here chooses silence for a request too short for its function code (`truncated-pdu`, which admits it), and
+/// the generated case has no known-good read of its own after it: the harness probes after the case. With
+/// reruns (the default) a probe that gets no answer is asked twice more before the target counts as having
+/// stopped answering: a line that loses the first two probes PASSes; a third lost probe, or one lost probe
+/// with `--link-retries 0`, FAILs the case with "stopped answering" (the silence is then real to the
+/// harness). Before, one lost probe FAILed this good drive.
+#[test]
+fn a_liveness_probe_lost_on_the_line_is_asked_again() {
+    let sim = SimProcess::start(&[
+        "--profile",
+        "sd2x",
+        "--rtu-over-tcp",
+        "127.0.0.1:0",
+        "--choose",
+        "truncated-pdu=silence",
+        "--choose",
+        "rtu-length-framing=silence",
+    ]);
+    let upstream = sim.rtu_over_tcp.expect("rtu-over-tcp endpoint");
+    // An FC 03 read cut to 4 bytes, alone in its case (no known-good read follows it in the case).
+    let case = [
+        "--generated",
+        "300",
+        "--seed",
+        "1",
+        "--cases",
+        "gen/1/164/read-reg-truncated",
+        "--foreign-address",
+        "3",
+        "--preflight-timeout",
+        "500",
+    ];
+    for (lose, retries, code) in [("2", "2", 0), ("3", "2", 1), ("1", "0", 1)] {
+        let line = PeerServer::noisy_link(
+            upstream,
+            &[
+                "--mode",
+                "rtu",
+                "--rate",
+                "0",
+                "--lose-after-unanswered",
+                lose,
+            ],
+        );
+        let url = format!("rtu+tcp://{}", line.addr);
+        let mut extra = vec!["--link-retries", retries];
+        extra.extend_from_slice(&case);
+        let (got, out, err) = harness_bounded(None, &run_args(&url, "sd2x", &extra), RUN_LIMIT);
+        let row = format!("{lose} probe(s) lost, --link-retries {retries}");
+        assert_eq!(got, code, "{row}\n{out}\n{err}");
+        assert!(
+            out.contains("truncated-pdu [FC 0x03] = silence"),
+            "{row}: the case is the one meant\n{out}"
+        );
+        if code == 0 {
+            assert!(out.contains("RESULT: PASS (1 PASS)"), "{row}\n{out}");
+            assert!(!err.contains("stopped answering"), "{row}\n{err}");
+        } else {
+            assert!(out.contains("RESULT: FAIL (1 FAIL)"), "{row}\n{out}");
+            assert!(
+                out.contains("the target stopped answering after this request"),
+                "{row}\n{out}"
+            );
         }
     }
     drop(sim);

@@ -377,7 +377,7 @@ fn header(info: &RunInfo, summary: &Summary) -> String {
             escape_html(e)
         );
     }
-    for l in &summary.liveness {
+    for l in summary.liveness.iter().chain(&summary.link) {
         let _ = writeln!(s, "<p class=\"banner\">{}</p>", escape_html(l));
     }
     s.push_str("<table class=\"run\">\n");

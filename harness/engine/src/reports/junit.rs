@@ -227,6 +227,9 @@ impl JunitSink {
             for (i, l) in summary.liveness.iter().enumerate() {
                 restore.push((format!("liveness.{i}"), l.clone()));
             }
+            if let Some(l) = &summary.link {
+                restore.push(("link".into(), l.clone()));
+            }
             for (name, value) in restore
                 .iter()
                 .map(|(n, v)| (n.as_str(), v.as_str()))

@@ -132,6 +132,9 @@ pub struct Summary {
     pub ended: Option<String>,
     /// What the liveness probes saw: a target that stopped answering and came back, and after how long.
     pub liveness: Vec<String>,
+    /// What the link did, where cases were run again after an attempt that FAILed as a damaged link makes
+    /// a case fail (the `link: ...` line).
+    pub link: Option<String>,
 }
 
 impl Summary {
@@ -220,6 +223,9 @@ impl Summary {
             if !self.liveness.is_empty() {
                 o.insert("liveness".into(), self.liveness.clone().into());
             }
+            if let Some(l) = &self.link {
+                o.insert("link".into(), l.clone().into());
+            }
         }
         json
     }
@@ -277,6 +283,7 @@ impl Tally {
             leave_as_found: None,
             ended: None,
             liveness: Vec::new(),
+            link: None,
         }
     }
 }
@@ -674,6 +681,9 @@ pub fn terminal_summary(summary: &Summary, info: &RunInfo) -> String {
     }
     for l in &summary.liveness {
         let _ = writeln!(s, "liveness: {l}");
+    }
+    if let Some(l) = &summary.link {
+        let _ = writeln!(s, "{l}");
     }
     if let Some(e) = &summary.ended {
         let _ = writeln!(s, "the run ended early: {e}");

@@ -84,6 +84,8 @@ pub mod ids {
     pub const UNSUPPORTED_MEI_TYPE: &str = "unsupported-mei-type";
     /// A request whose function code is 128-255, the codes of exception responses: 01, silence or a close.
     pub const REQUEST_FC_OVER_127: &str = "request-fc-over-127";
+    /// A request whose function code is 0, not valid (App 4.1): 01, silence, or a close.
+    pub const REQUEST_FC_ZERO: &str = "request-fc-zero";
     /// Modbus/TCP, a unit id in the freedom's `units` that is not the station's own (nor 0, 0xFF):
     /// answered or ignored.
     pub const TCP_UNIT_IDS: &str = "tcp-unit-ids";
@@ -138,7 +140,8 @@ pub mod ids {
     /// SD2x FC 43 SDO error code: little-endian (the reference), or in the order the code is printed.
     pub const SD2X_SDO_ERROR_BYTE_ORDER: &str = "sd2x-sdo-error-byte-order";
     /// After S (NVM save), CP or UG: every request, or the writes, answered Server Busy (06) for 400 ms.
-    /// Taken by the station (see `MODELLED`); no answer is a decision of it (the runner asks again).
+    /// Taken by the station (see `MODELLED`); no answer is a decision of it: the runner asks again, and
+    /// decides it where it cannot (a request of a batch refused 06 soon after an NVM save).
     pub const BUSY_AFTER_LONG_COMMAND: &str = "busy-after-long-command";
 
     /// Every id above.
@@ -172,6 +175,7 @@ pub mod ids {
         QUANTITY_OVER_DEVICE_LIMIT_SERVED,
         VALUE_MEANING_OPEN,
         REQUEST_FC_OVER_127,
+        REQUEST_FC_ZERO,
         UNSUPPORTED_MEI_TYPE,
         EXCEPTION_CHECK_ORDER,
         TCP_UNIT_IDS,

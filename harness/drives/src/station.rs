@@ -1387,10 +1387,16 @@ impl Station {
             masked[0] &= 0x7F;
             return self.process(now, unit, FunctionCode(masked[0]), &masked, via);
         }
-        if fc.is_exception() {
-            // 128-255 are exception responses' codes (App 4.1): 01, or no answer at all (`request-fc-over-127`).
-            self.decisions.push(ids::REQUEST_FC_OVER_127);
-            match self.choices.name(ids::REQUEST_FC_OVER_127) {
+        if fc.is_exception() || fc.0 == 0 {
+            // 128-255 are exception responses' codes and 0 is not valid (App 4.1): 01, or no answer at all
+            // (`request-fc-over-127`, `request-fc-zero`).
+            let id = if fc.0 == 0 {
+                ids::REQUEST_FC_ZERO
+            } else {
+                ids::REQUEST_FC_OVER_127
+            };
+            self.decisions.push(id);
+            match self.choices.name(id) {
                 Some("silence") => return Some((None, false)),
                 Some("close") => {
                     self.close_requested = via == Via::Tcp;

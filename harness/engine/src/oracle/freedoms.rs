@@ -1113,6 +1113,9 @@ pub fn alternatives(
                 vec![]
             }
         }
+        FreedomKind::Reading if f.id == drives::choices::ids::BUSY_AFTER_LONG_COMMAND => {
+            busy_after_long_command(f, cx, observed)
+        }
         FreedomKind::Reading => reading(f, cx, expected, observed),
         FreedomKind::Counter => {
             // Another reading of what the counter counts: the value it gives, for the same sub-function.
@@ -1863,6 +1866,43 @@ fn reading(
         shown: shown_named(f, "", &other),
         values_free: false,
         note: Some(note),
+    }]
+}
+
+/// `busy-after-long-command`, where the runner found it decided the answer (a request sent with others,
+/// refused Server Busy soon after the drive took a long-duration command: an NVM save; App 7, exception 06):
+/// the refusal is admitted. Which requests a drive refuses while busy is its choice (every one, or the
+/// writes), so each kind of request is a choice of its own: a refused write shows no more than that writes
+/// are refused.
+fn busy_after_long_command(
+    f: &Freedom,
+    cx: &StepContext<'_>,
+    observed: Option<&Response>,
+) -> Vec<Alternative> {
+    let (Some(o @ Response::Exception { function, code }), Some(&fc), true) =
+        (observed, cx.pdu.first(), cx.decided(f))
+    else {
+        return vec![];
+    };
+    if function.without_exception_bit().0 != fc || *code != ExceptionCode::SERVER_DEVICE_BUSY {
+        return vec![];
+    }
+    let writes = cx.request.is_some_and(|r| {
+        registers_written(r).is_some()
+            || is_coil_write(r)
+            || matches!(r, Request::VendorWrite { .. })
+    });
+    let (about, value) = if writes {
+        ("a write", "writes")
+    } else {
+        ("a request that writes nothing", "all-requests")
+    };
+    vec![Alternative {
+        answer: Some(o.clone()),
+        shown: shown_named(f, about, value),
+        values_free: false,
+        // Shown in the run's choices, as the pipelining freedom's refusal is.
+        note: None,
     }]
 }
 

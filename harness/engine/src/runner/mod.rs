@@ -292,6 +292,11 @@ pub struct Runner {
     /// The freedoms of `requirements` a request to this profile can touch (see
     /// [`oracle::freedoms::touchable`]), found once.
     touchable: Vec<usize>,
+    /// The items whose write starts a long-duration command (`busy-after-long-command`: an NVM save), and
+    /// when the drive last took such a write (the target's clock): a request of a batch refused Server Busy
+    /// (06) within [`Timing::busy_wait`] of it is busy with that command, not with the batch.
+    long_commands: Vec<drives::requirements::Item>,
+    long_command_at: Option<Duration>,
     /// For a step that sends several requests in one write: the freedoms that decided each one's answer,
     /// found by sending them one by one to a copy of the reference (see [`decisions_one_by_one`]).
     frame_decisions: Vec<Vec<drives::Decision>>,
@@ -455,6 +460,8 @@ impl Runner {
             gaps_measurable,
             reads_decided: false,
             touchable: Vec::new(),
+            long_commands: Vec::new(),
+            long_command_at: None,
             frame_decisions: Vec::new(),
             unit_ignored: false,
             follow: Vec::new(),
@@ -913,12 +920,33 @@ impl Runner {
         req.to_bytes().unwrap_or_else(|_| pdu.to_vec())
     }
 
+    /// Whether `req` writes an item whose write starts a long-duration command (`busy-after-long-command`).
+    fn starts_long_command(&self, req: &Request) -> bool {
+        !self.long_commands.is_empty()
+            && drives::requirements::registers_written(req).is_some()
+            && self
+                .long_commands
+                .iter()
+                .any(|i| i.touched_by(req, &self.profile))
+    }
+
+    /// Whether the drive took a long-duration command within [`Timing::busy_wait`] (see `long_commands`).
+    fn busy_with_long_command(&self) -> bool {
+        self.long_command_at
+            .is_some_and(|at| self.target.now().saturating_sub(at) <= self.cfg.timing.busy_wait)
+    }
+
     /// Judge with the freedoms of `requirements`: an answer another admissible choice gives passes.
     pub fn with_requirements(mut self, requirements: Arc<Requirements>) -> Self {
         self.reads_decided = requirements
             .freedom(drives::choices::ids::PARTIAL_REGISTER_READ)
             .is_some_and(|f| f.applies_to(&self.profile.device.id));
         self.touchable = oracle::freedoms::touchable(&requirements, &self.profile.device.id);
+        self.long_commands = requirements
+            .freedom(drives::choices::ids::BUSY_AFTER_LONG_COMMAND)
+            .filter(|f| f.applies_to(&self.profile.device.id))
+            .map(|f| f.items.clone())
+            .unwrap_or_default();
         self.requirements = requirements;
         self
     }
@@ -3200,11 +3228,31 @@ impl Runner {
             // A request sent with others in flight and refused Server Busy: the freedom decided it (see
             // `pipeline`). Only then: the freedom's other value would admit any served answer.
             let mut decisions = std::borrow::Cow::Borrowed(&decisions);
-            if self.presented.is_some()
-                && matches!(&got, Received::Frame { bytes, .. } if busy_refusal(bytes))
-            {
+            let busy = matches!(&got, Received::Frame { bytes, .. } if busy_refusal(bytes));
+            // (A request sent alone is sent again while the drive is busy: `exchange_patiently`.)
+            let together = frames.len() > 1 || self.presented.is_some();
+            if busy && together && self.busy_with_long_command() {
+                // Refused Server Busy after the drive took a long-duration command (an NVM save earlier in
+                // the batch, or just before it): busy with that (App 7, 06: "engaged in processing a
+                // long-duration program command"), not short of transactions. Not the pipelining freedom,
+                // which the reference would follow and refuse every request after the first of a batch.
+                let long = drives::choices::ids::BUSY_AFTER_LONG_COMMAND;
+                decided.retain(|d| *d != pipeline::SERVER_BUSY);
+                decided.push(long);
+                let d = decisions.to_mut();
+                d.retain(|d| *d != pipeline::SERVER_BUSY);
+                d.push(long);
+            } else if self.presented.is_some() && busy {
                 decided.push(pipeline::SERVER_BUSY);
                 decisions.to_mut().push(pipeline::SERVER_BUSY);
+            }
+            if !busy
+                && let (Some(req), Received::Frame { bytes, .. }) = (request.as_ref(), &got)
+                && self.starts_long_command(req)
+                && crate::readings::decode_response(framing, bytes)
+                    .is_some_and(|r| !r.is_exception())
+            {
+                self.long_command_at = Some(self.target.now());
             }
             let cx = StepContext {
                 request: request.as_ref(),
@@ -4117,6 +4165,63 @@ pub(super) mod tests {
                 r.steps
             );
         }
+    }
+
+    /// A request of a batch refused Server Busy (06) right after an NVM save earlier in the batch is busy
+    /// with the save (`busy-after-long-command`, App 7), not short of transactions: PASS, shown as that
+    /// choice, and not as `pipelined-server-busy`, which the reference would follow and refuse the second
+    /// request of every batch after (tests/independent/lmd-d, seed 47: a later batch of reads, served, FAILed
+    /// against the reference's 06). A batch sent long after the save is answered in full and PASSes.
+    #[test]
+    fn a_batched_request_refused_busy_after_a_save_is_busy_with_the_save() {
+        let batch = |id: &str, pdus: Vec<Vec<u8>>| Case {
+            id: id.into(),
+            title: id.into(),
+            reference: String::new(),
+            requirement: String::new(),
+            level: crate::cases::Level::Must,
+            tags: vec![Tag::Write, Tag::Destructive, Tag::TcpOnly],
+            steps: vec![Step::Exchange {
+                send: Outgoing::Batch(pdus),
+                compare: Compare::Structure,
+                capture: None,
+                note: id.into(),
+            }],
+            requirements: Vec::new(),
+            freedoms: Vec::new(),
+        };
+        let save = vec![0x10, 0x00, 0x76, 0x00, 0x01, 0x02, 0x00, 0x01];
+        let read = vec![0x03, 0x00, 0x4A, 0x00, 0x01];
+        let write = vec![0x10, 0x00, 0x67, 0x00, 0x01, 0x02, 0x00, 0x16];
+        let mut runner = runner_choosing("lmd", &[], &["busy-after-long-command=writes"]);
+        let first = runner
+            .run_case(&batch(
+                "save-then-write",
+                vec![save, read.clone(), write.clone()],
+            ))
+            .expect("the batch with the save");
+        assert_eq!(first.verdict, Verdict::Pass, "{first:#?}");
+        let refused = first.steps[0]
+            .observed
+            .iter()
+            .any(|o| matches!(o, Received::Frame { bytes, .. } if busy_refusal(bytes)));
+        assert!(refused, "the write behind the save is refused: {first:#?}");
+        let shown: Vec<&crate::oracle::choices::Choice> = runner.choices().choices().collect();
+        assert!(
+            shown.iter().any(|c| c.freedom == "busy-after-long-command"
+                && c.about == "a write"
+                && c.value == "writes"),
+            "{shown:#?}"
+        );
+        assert!(
+            !shown.iter().any(|c| c.freedom == "pipelined-server-busy"),
+            "{shown:#?}"
+        );
+        runner.idle(Duration::from_secs(6));
+        let later = runner
+            .run_case(&batch("reads-later", vec![read.clone(), read, write]))
+            .expect("a batch long after");
+        assert_eq!(later.verdict, Verdict::Pass, "{later:#?}");
     }
 
     /// A drive that answers 06 for good (fault `letter-case-busy`: to a mnemonic named in lower case) is not

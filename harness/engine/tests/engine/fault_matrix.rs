@@ -187,6 +187,12 @@ pub(crate) const WITNESSES: &[(&str, &str, &str)] = &[
         "sim:generic",
         "spec/app-4.1/request-fc-over-127/fc-0x83",
     ),
+    // Function code 0 refused with 01 and function code 0x80 (`request-fc-zero`), the code changed.
+    (
+        "wrong-exception-code",
+        "sim:generic",
+        "spec/app-4.1/request-fc-zero/fc-0x00",
+    ),
     (
         "mei-type-served",
         "sim:generic",

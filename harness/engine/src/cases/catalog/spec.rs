@@ -19,6 +19,7 @@ pub(super) fn cases(cx: &mut Ctx) {
     truncated_pdus(cx);
     trailing_bytes(cx);
     request_fc_over_127(cx);
+    request_fc_zero(cx);
     quantity_over_device_limit_mapped(cx);
     unsupported_mei_type(cx);
     write_coil_illegal_value(cx);
@@ -103,6 +104,27 @@ fn request_fc_over_127(cx: &mut Ctx) {
                 Outgoing::Pdu(vec![0x83, 0x00, 0x00, 0x00, 0x01]),
                 Compare::Exact,
                 "FC 0x83",
+            ),
+            cx.liveness(),
+        ],
+    );
+}
+
+/// A request whose function code is 0, which App 4.1 says is not valid: exception 01, no answer, or a close
+/// (`request-fc-zero`), and the drive keeps answering. The body is a read's (FC 03's with its code's bits
+/// cleared, as one bit flip of FC 01, 02 or 04's may give).
+fn request_fc_zero(cx: &mut Ctx) {
+    cx.push(
+        "spec/app-4.1/request-fc-zero/fc-0x00".into(),
+        "a request with function code 0, which is not valid",
+        format!("{APP}, sections 4.1 and 7"),
+        "A request whose function code is 0 (not valid) is refused with exception 01 or dropped, never served, and the drive keeps answering.",
+        vec![],
+        vec![
+            exchange(
+                Outgoing::Pdu(vec![0x00, 0x00, 0x00, 0x00, 0x01]),
+                Compare::Exact,
+                "FC 0x00",
             ),
             cx.liveness(),
         ],

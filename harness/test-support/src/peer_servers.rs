@@ -79,6 +79,17 @@ impl PeerServer {
         Self::bench_script("line.py", drops, args)
     }
 
+    /// bench/transactions-proxy.py in front of the Modbus/TCP drive at `upstream`: a server holding
+    /// `transactions` requests at once, answering the ones after them in a batch with exception 06.
+    pub fn transactions(upstream: SocketAddr, transactions: usize) -> Self {
+        let n = transactions.to_string();
+        Self::bench_script(
+            "transactions-proxy.py",
+            &[upstream],
+            &["--transactions", &n],
+        )
+    }
+
     /// bench/noisy-link.py in front of the drive at `upstream`, with `args` (`--mode rtu|tcp`, `--rate R`,
     /// `--seed N`, ...): a noisy RS-485 line, or a Modbus/TCP link that drops connections.
     pub fn noisy_link(upstream: SocketAddr, args: &[&str]) -> Self {

@@ -3330,6 +3330,21 @@ impl Runner {
                 kind.as_deref(),
                 &requirements,
             );
+            // Requests sent together: whether one is refused Server Busy depends on how many a server holds
+            // at once (NumberMaxOfServerTransaction, "a value from 1 to 16", TCP guide 4.4.2.1): one with two
+            // serves the second of a batch and refuses the third. A choice per place in the batch, so that
+            // the one is not held against the other; the reference follows a refusal of the second only
+            // (the one transaction it models), see `follow_busy`.
+            if frames.len() > 1 {
+                for s in judged
+                    .shown
+                    .iter_mut()
+                    .filter(|s| s.freedom == pipeline::SERVER_BUSY)
+                {
+                    s.about = format!("request {} of those sent together", j + 1);
+                }
+            }
+            let follow_busy = frames.len() == 1 || j == 1;
             // A freedom the reference follows the drive in (see [`follows`]) decided an answer the drive gave
             // alike: the drive keeps its choice there, shown as the choice it is.
             let passed = frames.len() == 1
@@ -3494,7 +3509,9 @@ impl Runner {
                         text,
                     });
                 }
-                if let Some(f) = requirements.freedom(&s.freedom).filter(|f| follows(f))
+                if let Some(f) = requirements
+                    .freedom(&s.freedom)
+                    .filter(|f| follows(f) && (follow_busy || f.id != pipeline::SERVER_BUSY))
                     && let Some(v) = f
                         .values
                         .iter()

@@ -1887,12 +1887,7 @@ fn busy_after_long_command(
     if function.without_exception_bit().0 != fc || *code != ExceptionCode::SERVER_DEVICE_BUSY {
         return vec![];
     }
-    let writes = cx.request.is_some_and(|r| {
-        registers_written(r).is_some()
-            || is_coil_write(r)
-            || matches!(r, Request::VendorWrite { .. })
-    });
-    let (about, value) = if writes {
+    let (about, value) = if crate::cases::safety::is_write(cx.pdu) {
         ("a write", "writes")
     } else {
         ("a request that writes nothing", "all-requests")

@@ -3231,20 +3231,20 @@ impl Runner {
             let busy = matches!(&got, Received::Frame { bytes, .. } if busy_refusal(bytes));
             // (A request sent alone is sent again while the drive is busy: `exchange_patiently`.)
             let together = frames.len() > 1 || self.presented.is_some();
-            if busy && together && self.busy_with_long_command() {
-                // Refused Server Busy after the drive took a long-duration command (an NVM save earlier in
-                // the batch, or just before it): busy with that (App 7, 06: "engaged in processing a
-                // long-duration program command"), not short of transactions. Not the pipelining freedom,
-                // which the reference would follow and refuse every request after the first of a batch.
-                let long = drives::choices::ids::BUSY_AFTER_LONG_COMMAND;
-                decided.retain(|d| *d != pipeline::SERVER_BUSY);
-                decided.push(long);
-                let d = decisions.to_mut();
-                d.retain(|d| *d != pipeline::SERVER_BUSY);
-                d.push(long);
-            } else if self.presented.is_some() && busy {
-                decided.push(pipeline::SERVER_BUSY);
-                decisions.to_mut().push(pipeline::SERVER_BUSY);
+            // Refused Server Busy after the drive took a long-duration command (an NVM save earlier in the
+            // batch, or just before it): busy with that (App 7, 06: "engaged in processing a long-duration
+            // program command"), not short of transactions. Not the pipelining freedom, which the reference
+            // would follow and refuse every request after the first of a batch.
+            let busy_by = if busy && together && self.busy_with_long_command() {
+                Some(drives::choices::ids::BUSY_AFTER_LONG_COMMAND)
+            } else {
+                (busy && self.presented.is_some()).then_some(pipeline::SERVER_BUSY)
+            };
+            if let Some(id) = busy_by {
+                for d in [&mut decided, decisions.to_mut()] {
+                    d.retain(|d| *d != pipeline::SERVER_BUSY || id == pipeline::SERVER_BUSY);
+                    d.push(id);
+                }
             }
             if !busy
                 && let (Some(req), Received::Frame { bytes, .. }) = (request.as_ref(), &got)

@@ -14,7 +14,7 @@ use toml::Spanned;
 
 use crate::corpus::Corpus;
 use crate::profile::{LineIndex, line_of};
-use codec::{Mnemonic, Request};
+use codec::{FunctionCode, Mnemonic, Request};
 
 /// Why the requirements could not be had from a corpus.
 #[derive(Debug, thiserror::Error)]
@@ -287,6 +287,23 @@ pub fn coils_touched(req: &Request) -> Option<(u16, u16)> {
         Request::WriteMultipleCoils {
             address, quantity, ..
         } => Some((*address, *quantity)),
+        _ => None,
+    }
+}
+
+/// The function and the quantity a read (FC 01-04) or a multiple write (FC 0F, 10) asks for: the items read or
+/// written (an FC 10's values counted). `None` for any other request.
+pub fn quantity_asked(req: &Request) -> Option<(FunctionCode, usize)> {
+    use Request::*;
+    match req {
+        ReadCoils { quantity, .. }
+        | ReadDiscreteInputs { quantity, .. }
+        | ReadHoldingRegisters { quantity, .. }
+        | ReadInputRegisters { quantity, .. }
+        | WriteMultipleCoils { quantity, .. } => Some((req.function(), usize::from(*quantity))),
+        WriteMultipleRegisters { values, .. } => {
+            Some((FunctionCode::WRITE_MULTIPLE_REGISTERS, values.len()))
+        }
         _ => None,
     }
 }

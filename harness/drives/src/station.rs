@@ -23,7 +23,7 @@ use crate::choices::{Choices, Decision, Rejection, ids};
 use crate::faults::{Fault, FaultSet};
 use crate::models::DriveModel;
 use crate::profile::{DiagCounter, Profile};
-use crate::requirements::{FreedomKind, FreedomValue};
+use crate::requirements::{FreedomKind, FreedomValue, quantity_asked};
 use crate::tell::{self, WriteRecord, WriteSink, Written};
 use codec::codes::{diag, event};
 use codec::framer::{DiscardReason, FramerEvent, RtuFramer, RtuTiming};
@@ -1563,11 +1563,41 @@ impl Station {
         // is higher than its manual says, `quantity-over-device-limit-served`), or refuse it with the code
         // `quantity-over-device-limit` gives.
         let over_limit = self.over_device_limit(&req);
+        let served = over_limit
+            && self.choices.name(ids::QUANTITY_OVER_DEVICE_LIMIT_SERVED) == Some("response");
         if over_limit {
             self.decisions.push(ids::QUANTITY_OVER_DEVICE_LIMIT_SERVED);
         }
-        let served = over_limit
-            && self.choices.name(ids::QUANTITY_OVER_DEVICE_LIMIT_SERVED) == Some("response");
+        if over_limit && self.observed {
+            // The answer under the other value, as this drive would give it (on a copy): a drive whose own
+            // limit is above the manual's takes the request to the checks after the quantity's and may refuse
+            // it there, for a value out of range or a read-only register (tests/independent/mdrive-g: 04 to
+            // FC 16 of 3 registers from MV, its own limit 4), which no served answer shows.
+            // Only where someone takes the alternatives (the copy takes none: it asks no copy of its own).
+            let other = if served { "exception-03" } else { "response" };
+            let mut scratch = self.clone();
+            scratch.sink = None;
+            scratch.observed = false;
+            scratch.choices.set(
+                ids::QUANTITY_OVER_DEVICE_LIMIT_SERVED,
+                FreedomValue::Text(other.into()),
+            );
+            if let Some((Some(answer), _)) = scratch.process_request(now, unit, fc, pdu, via) {
+                self.own_alternatives
+                    .push((ids::QUANTITY_OVER_DEVICE_LIMIT_SERVED, other, answer));
+            }
+            // And where the copy refused it for a value or an access, the code of that refusal is the drive's
+            // choice too (the reference does not follow exception codes: its copy gives its own).
+            let mut made = std::mem::take(&mut scratch.decisions);
+            made.extend(scratch.model.take_decisions());
+            for d in made.into_iter().filter(|d| {
+                [ids::VALUE_OUT_OF_RANGE, ids::WRITE_READ_ONLY, ids::READ_WRITE_ONLY].contains(d)
+            }) {
+                if !self.decisions.contains(&d) {
+                    self.decisions.push(d);
+                }
+            }
+        }
         let resp = if let Some(e) = (!served).then(|| self.spec_checks(&req)).flatten() {
             self.decisions.extend(e.freedom);
             let e = self.check_order(now, unit, &req, e);
@@ -2368,23 +2398,6 @@ fn header_range(pdu: &[u8]) -> Option<Request> {
         0x04 => Request::ReadInputRegisters { address, quantity },
         _ => return None,
     })
-}
-
-/// The function and the quantity a read (FC 01-04) or a multiple write (FC 0F, 10) asks for: the items read or
-/// written (an FC 10's values counted). `None` for any other request.
-fn quantity_asked(req: &Request) -> Option<(FunctionCode, usize)> {
-    use Request::*;
-    match req {
-        ReadCoils { quantity, .. }
-        | ReadDiscreteInputs { quantity, .. }
-        | ReadHoldingRegisters { quantity, .. }
-        | ReadInputRegisters { quantity, .. }
-        | WriteMultipleCoils { quantity, .. } => Some((req.function(), usize::from(*quantity))),
-        WriteMultipleRegisters { values, .. } => {
-            Some((FunctionCode::WRITE_MULTIPLE_REGISTERS, values.len()))
-        }
-        _ => None,
-    }
 }
 
 /// False when the RTU frame of `pdu` to `unit` is not as long as the request length rules of its function code

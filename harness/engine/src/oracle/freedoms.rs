@@ -819,6 +819,17 @@ pub fn about_of(freedom: &str, cx: &StepContext<'_>) -> String {
             format!("FC 0x{fc:02X}")
         };
     }
+    // Whether a quantity above the manual's limit is served is about that quantity: a drive's own limit may
+    // lie between the manual's and the specification's, as an independent MDrive's does (tests/independent/
+    // mdrive-g, DECISIONS.md item 3: 4 to read and to write, the manual's 2 to write). It serves up to its
+    // limit and refuses above, and keeps to each quantity.
+    if freedom == drives::choices::ids::QUANTITY_OVER_DEVICE_LIMIT_SERVED {
+        return cx
+            .request
+            .and_then(drives::requirements::quantity_asked)
+            .map(|(fc, q)| format!("FC 0x{:02X} quantity {q}", fc.0))
+            .unwrap_or_default();
+    }
     if freedom != PARTIAL_REGISTER_WRITE && freedom != PARTIAL_REGISTER_READ {
         return String::new();
     }

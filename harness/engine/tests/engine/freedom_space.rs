@@ -935,3 +935,51 @@ fn a_drive_refusing_a_write_of_an_output_configured_as_an_output_fails() {
         );
     }
 }
+
+/// A drive whose own quantity limit lies between its manual's and the specification's (an independent MDrive,
+/// tests/independent/mdrive-g, DECISIONS.md item 3: 4 registers to write, where the manual's prose gives 2).
+/// It takes FC 16 of 3 or 4 registers to the checks after the quantity's and refuses a value above its
+/// maximum there, with its own code (04, `value-out-of-range`), where the reference refuses the quantity
+/// (03). The station offers the answer the request would get served (`quantity-over-device-limit-served`),
+/// and the code of the refusal it then meets is the drive's choice too; whether a quantity is served is
+/// about that quantity. Before, `gen/131/478/write-span` FAILed against that drive, and against this one.
+#[test]
+fn a_drive_whose_own_quantity_limit_is_above_its_manuals_passes() {
+    let dir = test_support::TempDir::new("limit4");
+    let corpus = concat!(env!("CARGO_MANIFEST_DIR"), "/../../corpus/profiles/mdrive.toml");
+    let text = std::fs::read_to_string(corpus).expect("mdrive profile");
+    let limit2 = "code = 0x10\nname = \"Write Multiple Registers\"\nmax_quantity = 2\n";
+    assert!(text.contains(limit2), "the MDrive profile's FC 16 limit moved");
+    let path = dir.path().join("mdrive-limit4.toml");
+    std::fs::write(&path, text.replace(limit2, &limit2.replace("= 2", "= 4"))).expect("write");
+    let target = format!("sim:{}", path.display());
+    let choose: Vec<String> = ["value-out-of-range=4", "write-read-only-exception=4"]
+        .iter()
+        .map(|c| c.to_string())
+        .collect();
+    let mut o = options(&target, &choose);
+    o.profile = Some("mdrive".into());
+    o.generated = 1000;
+    o.seed = Some(131);
+    o.keep_verdicts = true;
+    let out = run_quietly(&o).unwrap_or_else(|e| panic!("{target}: {e}"));
+    let bad: Vec<_> = out
+        .verdicts
+        .iter()
+        .filter(|(_, v)| matches!(v, Verdict::Fail | Verdict::NonStrict))
+        .collect();
+    assert!(bad.is_empty(), "FAIL or NON-STRICT: {bad:?}");
+    let served: Vec<_> = out
+        .summary
+        .choices
+        .iter()
+        .filter(|c| c.freedom == "quantity-over-device-limit-served")
+        .map(|c| (c.about.clone(), c.value.clone()))
+        .collect();
+    assert!(
+        served
+            .iter()
+            .any(|(about, v)| about.starts_with("FC 0x10 quantity") && v == "response"),
+        "no FC 16 above the manual's limit was shown served: {served:?}"
+    );
+}

@@ -1582,19 +1582,44 @@ impl Station {
                 ids::QUANTITY_OVER_DEVICE_LIMIT_SERVED,
                 FreedomValue::Text(other.into()),
             );
-            if let Some((Some(answer), _)) = scratch.process_request(now, unit, fc, pdu, via) {
-                self.own_alternatives
-                    .push((ids::QUANTITY_OVER_DEVICE_LIMIT_SERVED, other, answer));
-            }
-            // And where the copy refused it for a value or an access, the code of that refusal is the drive's
-            // choice too (the reference does not follow exception codes: its copy gives its own).
+            let answer = scratch
+                .process_request(now, unit, fc, pdu, via)
+                .and_then(|(answer, _)| answer);
+            // Where the copy refused it for a value or an access (04 for an MDrive whose own limit is 4,
+            // tests/independent/mdrive-g), the code of that refusal is the drive's choice too: the reference
+            // does not follow exception codes, so its copy gives its own.
             let mut made = std::mem::take(&mut scratch.decisions);
             made.extend(scratch.model.take_decisions());
-            for d in made.into_iter().filter(|d| {
-                [ids::VALUE_OUT_OF_RANGE, ids::WRITE_READ_ONLY, ids::READ_WRITE_ONLY].contains(d)
-            }) {
-                if !self.decisions.contains(&d) {
-                    self.decisions.push(d);
+            let codes: Vec<Decision> = made
+                .into_iter()
+                .filter(|d| {
+                    [
+                        ids::VALUE_OUT_OF_RANGE,
+                        ids::WRITE_READ_ONLY,
+                        ids::READ_WRITE_ONLY,
+                    ]
+                    .contains(d)
+                })
+                .collect();
+            // Served and then refused with 02 or 03 for no such reason is no other answer than a refusal of
+            // the quantity (`quantity-over-device-limit` admits both: the specification's diagrams test the
+            // quantity, then address + quantity, 02 where the range runs into reserved addresses), and is
+            // taken as that.
+            let as_refused = other == "response"
+                && codes.is_empty()
+                && matches!(
+                    answer,
+                    Some(Response::Exception { code, .. })
+                        if code == ExceptionCode::ILLEGAL_DATA_ADDRESS
+                            || code == ExceptionCode::ILLEGAL_DATA_VALUE
+                );
+            if let Some(answer) = answer.filter(|_| !as_refused) {
+                self.own_alternatives
+                    .push((ids::QUANTITY_OVER_DEVICE_LIMIT_SERVED, other, answer));
+                for d in codes {
+                    if !self.decisions.contains(&d) {
+                        self.decisions.push(d);
+                    }
                 }
             }
         }

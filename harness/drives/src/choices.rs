@@ -118,6 +118,9 @@ pub mod ids {
     pub const MNEMONIC_PADDING: &str = "mnemonic-padding";
     /// FC 0x41/0x42 naming a known mnemonic in lower or mixed case: served, or refused as unknown.
     pub const MNEMONIC_LETTER_CASE: &str = "mnemonic-letter-case";
+    /// FC 0x42 of a setting whose parameter string lacks the leading '=': refused as a bad parameter, or
+    /// taken as if it had it.
+    pub const SETTING_EQUALS_SIGN: &str = "setting-equals-sign";
     /// SD2x FC 43, a read with byte count 0: the length error, the object at its size, or no data.
     pub const SD2X_FC43_READ_ZERO_COUNT: &str = "sd2x-fc43-read-zero-count";
     /// SD2x FC 43, a byte count above 4: the SDO length error or exception 03.
@@ -193,6 +196,7 @@ pub mod ids {
         LMD_OUTPUT_4_WRITE,
         MNEMONIC_LETTER_CASE,
         MNEMONIC_PADDING,
+        SETTING_EQUALS_SIGN,
         SD2X_FC43_READ_ZERO_COUNT,
         SD2X_FC43_BYTE_COUNT_OVER_4,
         SD2X_FC43_CONTROL_BITS,

@@ -76,6 +76,7 @@ pub enum Fault {
     HighFunctionServed,
     MeiTypeServed,
     NulPaddingBusy,
+    EqualsSignBusy,
     SdoErrorOrderInconsistent,
     ErrorRecordKept,
 }
@@ -422,6 +423,11 @@ impl Fault {
             Fault::NulPaddingBusy,
             "nul-padding-busy",
             "MDrive/LMD FC 0x41/0x42: a known mnemonic padded with NUL instead of spaces is answered with exception 06 (busy): neither refused as unknown nor served (mnemonic-padding)",
+        ),
+        (
+            Fault::EqualsSignBusy,
+            "equals-sign-busy",
+            "MDrive/LMD FC 0x42: a setting written without the '=' the manuals print before its values is answered with exception 06 (busy): neither refused as a bad parameter nor taken (setting-equals-sign)",
         ),
         (
             Fault::SdoErrorOrderInconsistent,

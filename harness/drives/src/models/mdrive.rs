@@ -589,6 +589,8 @@ pub struct Mdrive {
     letter_case_busy: bool,
     /// `Fault::NulPaddingBusy`: a known mnemonic padded with NUL is answered with exception 06.
     padding_busy: bool,
+    /// `Fault::EqualsSignBusy`: a setting written without its '=' is answered with exception 06.
+    equals_busy: bool,
     /// `Fault::GroupWriteClears`: OT/OL written while a point is an input clears every output.
     group_write_clears: bool,
     /// `Fault::HomingNeverEnds`: a write of HM starts a homing that never ends (`homing`).
@@ -679,6 +681,7 @@ impl Mdrive {
             write_only_readable: faults.has(Fault::WriteOnlyReadable),
             letter_case_busy: faults.has(Fault::LetterCaseBusy),
             padding_busy: faults.has(Fault::NulPaddingBusy),
+            equals_busy: faults.has(Fault::EqualsSignBusy),
             group_write_clears: faults.has(Fault::GroupWriteClears),
             homing_never_ends: faults.has(Fault::HomingNeverEnds),
             homing: false,
@@ -1428,6 +1431,10 @@ impl Mdrive {
                 written: BYTES_WRITTEN,
                 mnemonic: *echo,
             },
+            // `Fault::EqualsSignBusy`, whatever code the drive refuses bad parameters with.
+            Err(ExceptionCode::SERVER_DEVICE_BUSY) => {
+                Response::exception(fc, ExceptionCode::SERVER_DEVICE_BUSY)
+            }
             Err(code) => self.refuse(fc, ids::MNEMONIC_BAD_PARAMETER, code),
         }
     }
@@ -1485,6 +1492,21 @@ impl Mdrive {
         Ok(())
     }
 
+    /// A setting's parameter string without the leading '=' the manuals print (000 line 1006, 001 line 1202:
+    /// "the data string includes all of the characters, including the equal sign"; 001 line 1279: AO's
+    /// "Hex 3D 31 32"): refused as a bad parameter (the reference), or taken as if the '=' were there by a
+    /// drive that reads the sign as optional (`setting-equals-sign`). `Ok`: the values to go on with.
+    fn without_equals_sign<'t>(&mut self, text: &'t str) -> Result<&'t str, ExceptionCode> {
+        if self.equals_busy {
+            return Err(ExceptionCode::SERVER_DEVICE_BUSY);
+        }
+        self.decided(ids::SETTING_EQUALS_SIGN);
+        match self.bank.choices().get(ids::SETTING_EQUALS_SIGN) {
+            Some(v) if v.matches("response") => Ok(text),
+            _ => Err(ExceptionCode::ILLEGAL_DATA_VALUE),
+        }
+    }
+
     fn write_setting(
         &mut self,
         m: &VendorMnemonic,
@@ -1493,7 +1515,12 @@ impl Mdrive {
         count: usize,
     ) -> Result<(), ExceptionCode> {
         let bad = ExceptionCode::ILLEGAL_DATA_VALUE;
-        let body = text.strip_prefix('=').ok_or(bad)?;
+        let body = match text.strip_prefix('=') {
+            Some(body) => body,
+            // No value at all: nothing a '=' would make a setting of.
+            None if text.trim().is_empty() => return Err(bad),
+            None => self.without_equals_sign(text)?,
+        };
         let given: Vec<String> = body.split(',').map(|v| v.trim().to_string()).collect();
         if given.len() > count || !given.iter().all(|v| is_number(v)) {
             return Err(bad);

@@ -36,6 +36,16 @@ pub(crate) const WITNESSES: &[(&str, &str, &str)] = &[
         "profile/lmd/mnemonic/nul-padding/read",
     ),
     (
+        "equals-sign-busy",
+        "sim:mdrive",
+        "profile/mdrive/mnemonic/s5/no-equals-sign",
+    ),
+    (
+        "equals-sign-busy",
+        "sim:lmd",
+        "profile/lmd/mnemonic/ao/no-equals-sign",
+    ),
+    (
         "letter-case-busy",
         "sim:mdrive",
         "profile/mdrive/mnemonic/letter-case/read",

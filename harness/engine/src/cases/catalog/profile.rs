@@ -1174,4 +1174,42 @@ fn mnemonic_refusals(cx: &mut Ctx) {
             steps,
         );
     }
+    // The manual's example of a setting without its leading '=': refused as a bad parameter, or taken as if
+    // the '=' were there (`setting-equals-sign`), the setting read first and put back after.
+    if cx.supports(FunctionCode::VENDOR_READ)
+        && cx.supports(FunctionCode::VENDOR_WRITE)
+        && let Some((m, values)) = mnemonics()
+            .filter(plain)
+            .filter(|m| m.read && m.write && m.register.is_none())
+            .find_map(|m| {
+                let values = m.example.as_deref()?.strip_prefix('=')?;
+                (!values.trim().is_empty()).then_some((m, values))
+            })
+        && let Some(w) = Mnemonic::from_name(&m.name)
+    {
+        let mut a = Around::new();
+        a.keep_setting(cx, &m.name);
+        let steps = a.wrap(vec![exchange(
+            Outgoing::Pdu(pdu(&Request::VendorWrite {
+                mnemonic: w,
+                params: values.as_bytes().to_vec(),
+            })),
+            Compare::Exact,
+            format!("write the manual's example \"{values}\" without its '='"),
+        )]);
+        cx.push(
+            format!("profile/{pid}/mnemonic/{}/no-equals-sign", slug(&m.name)),
+            format!("FC 0x42 of {} {values} without the '='", m.name),
+            format!(
+                "{}: vendor FC 0x42, mnemonic {} (parameters: {})",
+                p.device.name,
+                m.name,
+                m.format.as_deref().unwrap_or("numbers")
+            ),
+            "A setting's values written without the leading '=' the manual prints are refused as a bad parameter, \
+             or taken as if the '=' were there, the same way each time.",
+            vec![Tag::Write],
+            steps,
+        );
+    }
 }

@@ -13,6 +13,8 @@
 #   tests/independent/against.sh sd2x-c sd2x serial    # on one end of a socat pty pair (drives with --serial)
 #   ECHO="" tests/independent/against.sh sd2x-b sd2x serial   # behind bench/echo-line.py, the run with echo=on
 #                                                             # (ECHO_URL=off: without it)
+#   CMD=fuzz tests/independent/against.sh lmd-b lmd tcp --duration 20s --seed 5 --keep-going --allow-writes
+#                                                             # a live fuzz campaign instead of `run`
 set -u
 [ $# -ge 3 ] || { sed -n 2,14p "$0"; exit 2; }
 drive=$1 profile=$2 scheme=$3; shift 3
@@ -87,8 +89,14 @@ if [ -n "${GATEWAY+x}" ]; then
   target="$scheme://$addr"
 fi
 kill -USR1 $pid; sleep 0.5; cp "$out/state.json" "$out/before.json"
-timeout 1800 "$B" run --target "$target" --profile "$profile" --report "$out/report" --regressions "$out/regressions" --no-progress "$@" \
-  > "$out/run.out" 2> "$out/run.err"
+if [ "${CMD:-run}" = fuzz ]; then
+  # CMD=fuzz: a live fuzz campaign instead of a run (its options after the scheme: --duration, --seed, ...).
+  timeout 1800 "$B" fuzz --target "$target" --profile "$profile" --regressions "$out/regressions" "$@" \
+    > "$out/run.out" 2> "$out/run.err"
+else
+  timeout 1800 "$B" run --target "$target" --profile "$profile" --report "$out/report" --regressions "$out/regressions" --no-progress "$@" \
+    > "$out/run.out" 2> "$out/run.err"
+fi
 echo "harness exit $?" >> "$out/run.out"
 kill -USR1 $pid; sleep 0.5; cp "$out/state.json" "$out/after.json"
 python3 - "$out" <<'PY'

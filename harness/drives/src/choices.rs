@@ -121,6 +121,9 @@ pub mod ids {
     /// FC 0x42 of a setting whose parameter string lacks the leading '=': refused as a bad parameter, or
     /// taken as if it had it.
     pub const SETTING_EQUALS_SIGN: &str = "setting-equals-sign";
+    /// FC 0x42 whose parameter string holds a control character a text parser reads as a blank (a tab):
+    /// refused as a bad parameter, or read with a space for it.
+    pub const PARAMETER_BLANK_CONTROLS: &str = "parameter-blank-controls";
     /// SD2x FC 43, a read with byte count 0: the length error, the object at its size, or no data.
     pub const SD2X_FC43_READ_ZERO_COUNT: &str = "sd2x-fc43-read-zero-count";
     /// SD2x FC 43, a byte count above 4: the SDO length error or exception 03.
@@ -197,6 +200,7 @@ pub mod ids {
         MNEMONIC_LETTER_CASE,
         MNEMONIC_PADDING,
         SETTING_EQUALS_SIGN,
+        PARAMETER_BLANK_CONTROLS,
         SD2X_FC43_READ_ZERO_COUNT,
         SD2X_FC43_BYTE_COUNT_OVER_4,
         SD2X_FC43_CONTROL_BITS,

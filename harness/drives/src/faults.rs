@@ -77,6 +77,7 @@ pub enum Fault {
     MeiTypeServed,
     NulPaddingBusy,
     EqualsSignBusy,
+    BlankControlBusy,
     SdoErrorOrderInconsistent,
     ErrorRecordKept,
 }
@@ -428,6 +429,11 @@ impl Fault {
             Fault::EqualsSignBusy,
             "equals-sign-busy",
             "MDrive/LMD FC 0x42: a setting written without the '=' the manuals print before its values is answered with exception 06 (busy): neither refused as a bad parameter nor taken (setting-equals-sign)",
+        ),
+        (
+            Fault::BlankControlBusy,
+            "blank-control-busy",
+            "MDrive/LMD FC 0x42: a parameter string with an ASCII control character a text parser reads as a blank (a tab) is answered with exception 06 (busy): neither refused as a bad parameter nor read with a space for it (parameter-blank-controls)",
         ),
         (
             Fault::SdoErrorOrderInconsistent,

@@ -1568,13 +1568,17 @@ impl Station {
         if over_limit {
             self.decisions.push(ids::QUANTITY_OVER_DEVICE_LIMIT_SERVED);
         }
-        if over_limit && self.observed {
-            // The answer under the other value, as this drive would give it (on a copy): a drive whose own
+        // Offered where the reference refuses the quantity only: where it serves, a refusal is judged as the
+        // quantity's (`outcome`), and an answer of the served path that refuses with 02 or 03 for an address
+        // is the same answer either way (tests/independent/mdrive-f serves FC 03 of 5 mapped registers and
+        // refuses 5 that run into reserved addresses: no change of mind).
+        if over_limit && self.observed && !served {
+            // The answer served, as this drive would give it (on a copy): a drive whose own
             // limit is above the manual's takes the request to the checks after the quantity's and may refuse
             // it there, for a value out of range or a read-only register (tests/independent/mdrive-g: 04 to
             // FC 16 of 3 registers from MV, its own limit 4), which no served answer shows.
             // Only where someone takes the alternatives (the copy takes none: it asks no copy of its own).
-            let other = if served { "exception-03" } else { "response" };
+            let other = "response";
             let mut scratch = self.clone();
             scratch.sink = None;
             scratch.observed = false;
@@ -1601,26 +1605,25 @@ impl Station {
                     .contains(d)
                 })
                 .collect();
-            // Served and then refused with 02 or 03 for no such reason is no other answer than a refusal of
-            // the quantity (`quantity-over-device-limit` admits both: the specification's diagrams test the
-            // quantity, then address + quantity, 02 where the range runs into reserved addresses), and is
-            // taken as that.
-            let as_refused = other == "response"
-                && codes.is_empty()
-                && matches!(
-                    answer,
-                    Some(Response::Exception { code, .. })
-                        if code == ExceptionCode::ILLEGAL_DATA_ADDRESS
-                            || code == ExceptionCode::ILLEGAL_DATA_VALUE
-                );
+            for d in codes {
+                if !self.decisions.contains(&d) {
+                    self.decisions.push(d);
+                }
+            }
+            // Served and then refused with 02 or 03 is no other answer than a refusal of the quantity
+            // (`quantity-over-device-limit` admits both: the specification's diagrams test the quantity, then
+            // address + quantity, 02 where the range runs into reserved addresses), and is taken as that: offered
+            // as served, an MDrive whose limit is its manual's (tests/independent/mdrive-f, 02 to FC 03 of 5
+            // registers over a write-only one) was taken to serve 5 and to change its mind at the next 03.
+            let as_refused = matches!(
+                answer,
+                Some(Response::Exception { code, .. })
+                    if code == ExceptionCode::ILLEGAL_DATA_ADDRESS
+                        || code == ExceptionCode::ILLEGAL_DATA_VALUE
+            );
             if let Some(answer) = answer.filter(|_| !as_refused) {
                 self.own_alternatives
                     .push((ids::QUANTITY_OVER_DEVICE_LIMIT_SERVED, other, answer));
-                for d in codes {
-                    if !self.decisions.contains(&d) {
-                        self.decisions.push(d);
-                    }
-                }
             }
         }
         let resp = if let Some(e) = (!served).then(|| self.spec_checks(&req)).flatten() {

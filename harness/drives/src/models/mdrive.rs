@@ -591,6 +591,8 @@ pub struct Mdrive {
     padding_busy: bool,
     /// `Fault::EqualsSignBusy`: a setting written without its '=' is answered with exception 06.
     equals_busy: bool,
+    /// `Fault::BlankControlBusy`: a parameter string with a blank control character is answered with 06.
+    blank_busy: bool,
     /// `Fault::GroupWriteClears`: OT/OL written while a point is an input clears every output.
     group_write_clears: bool,
     /// `Fault::HomingNeverEnds`: a write of HM starts a homing that never ends (`homing`).
@@ -682,6 +684,7 @@ impl Mdrive {
             letter_case_busy: faults.has(Fault::LetterCaseBusy),
             padding_busy: faults.has(Fault::NulPaddingBusy),
             equals_busy: faults.has(Fault::EqualsSignBusy),
+            blank_busy: faults.has(Fault::BlankControlBusy),
             group_write_clears: faults.has(Fault::GroupWriteClears),
             homing_never_ends: faults.has(Fault::HomingNeverEnds),
             homing: false,
@@ -1364,6 +1367,15 @@ impl Mdrive {
                 ExceptionCode::ILLEGAL_DATA_ADDRESS,
             );
         }
+        let blanked;
+        let params = match self.blank_controls(params) {
+            Ok(Some(b)) => {
+                blanked = b;
+                blanked.as_slice()
+            }
+            Ok(None) => params,
+            Err(busy) => return Response::exception(fc, busy),
+        };
         if params.len() > MAX_PARAM_BYTES || !params.iter().all(|b| (0x20..=0x7E).contains(b)) {
             return self.refuse(
                 fc,
@@ -1490,6 +1502,35 @@ impl Mdrive {
             (_, other) => other,
         };
         Ok(())
+    }
+
+    /// A parameter string holding ASCII control characters a text parser reads as blanks (HT, LF, VT, FF, CR,
+    /// FS, GS, RS, US; C's `isspace` and Python's `str.strip` take them so) and otherwise printable: refused as
+    /// a bad parameter (the reference: the manuals give the string as ASCII text, 000 line 986, 001 line
+    /// 1176, and print none), or read with each of them as a space by a drive whose parser strips blanks
+    /// (`parameter-blank-controls`). `Ok(Some)`: the string to go on with; `Ok(None)`: as sent; `Err`: the
+    /// code of `Fault::BlankControlBusy`.
+    fn blank_controls(&mut self, params: &[u8]) -> Result<Option<Vec<u8>>, ExceptionCode> {
+        let blank = |b: &u8| matches!(b, 0x09..=0x0D | 0x1C..=0x1F);
+        if params.len() > MAX_PARAM_BYTES
+            || !params.iter().any(blank)
+            || !params.iter().all(|b| blank(b) || (0x20..=0x7E).contains(b))
+        {
+            return Ok(None);
+        }
+        if self.blank_busy {
+            return Err(ExceptionCode::SERVER_DEVICE_BUSY);
+        }
+        self.decided(ids::PARAMETER_BLANK_CONTROLS);
+        match self.bank.choices().get(ids::PARAMETER_BLANK_CONTROLS) {
+            Some(v) if v.matches("response") => Ok(Some(
+                params
+                    .iter()
+                    .map(|b| if blank(b) { b' ' } else { *b })
+                    .collect(),
+            )),
+            _ => Ok(None),
+        }
     }
 
     /// A setting's parameter string without the leading '=' the manuals print (000 line 1006, 001 line 1202:

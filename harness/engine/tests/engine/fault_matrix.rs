@@ -36,6 +36,16 @@ pub(crate) const WITNESSES: &[(&str, &str, &str)] = &[
         "profile/lmd/mnemonic/nul-padding/read",
     ),
     (
+        "blank-control-busy",
+        "sim:mdrive",
+        "profile/mdrive/mnemonic/s5/blank-control",
+    ),
+    (
+        "blank-control-busy",
+        "sim:lmd",
+        "profile/lmd/mnemonic/ao/blank-control",
+    ),
+    (
         "equals-sign-busy",
         "sim:mdrive",
         "profile/mdrive/mnemonic/s5/no-equals-sign",

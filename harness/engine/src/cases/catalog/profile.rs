@@ -1175,7 +1175,8 @@ fn mnemonic_refusals(cx: &mut Ctx) {
         );
     }
     // The manual's example of a setting without its leading '=': refused as a bad parameter, or taken as if
-    // the '=' were there (`setting-equals-sign`), the setting read first and put back after.
+    // the '=' were there (`setting-equals-sign`); and with a tab after the '='. The setting is read first and
+    // put back after each.
     if cx.supports(FunctionCode::VENDOR_READ)
         && cx.supports(FunctionCode::VENDOR_WRITE)
         && let Some((m, values)) = mnemonics()
@@ -1187,29 +1188,51 @@ fn mnemonic_refusals(cx: &mut Ctx) {
             })
         && let Some(w) = Mnemonic::from_name(&m.name)
     {
-        let mut a = Around::new();
-        a.keep_setting(cx, &m.name);
-        let steps = a.wrap(vec![exchange(
-            Outgoing::Pdu(pdu(&Request::VendorWrite {
-                mnemonic: w,
-                params: values.as_bytes().to_vec(),
-            })),
-            Compare::Exact,
-            format!("write the manual's example \"{values}\" without its '='"),
-        )]);
-        cx.push(
-            format!("profile/{pid}/mnemonic/{}/no-equals-sign", slug(&m.name)),
-            format!("FC 0x42 of {} {values} without the '='", m.name),
-            format!(
-                "{}: vendor FC 0x42, mnemonic {} (parameters: {})",
-                p.device.name,
-                m.name,
-                m.format.as_deref().unwrap_or("numbers")
+        // (the id's last part, the title, what the step sends and says, the requirement)
+        let cases = [
+            (
+                "no-equals-sign",
+                format!("FC 0x42 of {} {values} without the '='", m.name),
+                values.to_string(),
+                format!("write the manual's example \"{values}\" without its '='"),
+                "A setting's values written without the leading '=' the manual prints are refused as a bad \
+                 parameter, or taken as if the '=' were there, the same way each time.",
             ),
-            "A setting's values written without the leading '=' the manual prints are refused as a bad parameter, \
-             or taken as if the '=' were there, the same way each time.",
-            vec![Tag::Write],
-            steps,
-        );
+            // And with a tab between the '=' and the values: refused as a bad parameter, or read as a blank
+            // (`parameter-blank-controls`).
+            (
+                "blank-control",
+                format!("FC 0x42 of {}=<TAB>{values}", m.name),
+                format!("=\t{values}"),
+                format!("write the manual's example \"={values}\" with a tab after the '='"),
+                "A parameter string with a control character a text parser reads as a blank (a tab) is refused \
+                 as a bad parameter, or read with a space for it, the same way each time.",
+            ),
+        ];
+        for (last, title, params, note, requirement) in cases {
+            let mut a = Around::new();
+            a.keep_setting(cx, &m.name);
+            let steps = a.wrap(vec![exchange(
+                Outgoing::Pdu(pdu(&Request::VendorWrite {
+                    mnemonic: w,
+                    params: params.into_bytes(),
+                })),
+                Compare::Exact,
+                note,
+            )]);
+            cx.push(
+                format!("profile/{pid}/mnemonic/{}/{last}", slug(&m.name)),
+                title,
+                format!(
+                    "{}: vendor FC 0x42, mnemonic {} (parameters: {})",
+                    p.device.name,
+                    m.name,
+                    m.format.as_deref().unwrap_or("numbers")
+                ),
+                requirement,
+                vec![Tag::Write],
+                steps,
+            );
+        }
     }
 }

@@ -44,8 +44,10 @@
 //!   role of the data address (like a reserved register, 000 line 618). Reading a write-only mnemonic (E, EX,
 //!   PS, RS, ...) or writing a read-only one (IT, VT, AV) is exception 02 for the same reason (the address does
 //!   not allow that access; `read-only-writable` accepts the write). Bad parameters are exception 03: more than
-//!   28 bytes (000 line 985), non-printable bytes, a setting without the leading '=' (000 line 1006: "the data
-//!   string includes all of the characters, including the equal sign"), non-numeric values, too many values,
+//!   28 bytes (000 line 985), non-printable bytes (those a text parser reads as blanks, a tab, are a drive's
+//!   choice: `parameter-blank-controls`), a setting without the leading '=' (000 line 1006: "the data string
+//!   includes all of the characters, including the equal sign"; a drive may take the values without it:
+//!   `setting-equals-sign`), non-numeric values, too many values,
 //!   and values outside the parameter tables the manuals print (S1-S4, S5, S7/S8, S13, MU, IS, OS, AO, RD, BE,
 //!   FL; see `RULES`). A write may give fewer values than the setting has; the rest keep their values.
 //!   A read returns the values without '=' and separated by ", ", as the only printed read-back does

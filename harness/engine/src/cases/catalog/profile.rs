@@ -899,18 +899,24 @@ pub(super) fn write_value(cx: &Ctx, r: &Register) -> i64 {
         .unwrap_or(candidates[0])
 }
 
-/// True when a freedom of the corpus is about this register or mnemonic (a product may lack it, or give it
-/// another access): the cases below use entries every admissible drive has, as the manual gives them.
-fn freedom_item(register: Option<u16>, mnemonic: Option<&str>) -> bool {
+/// True when a freedom of the corpus for profile `pid` is about this register or mnemonic (a product may
+/// lack it, or give it another access): the cases below use entries every admissible drive has, as the
+/// manual gives them. A freedom of another profile is not about this one's entries (the LMD's S5, which an
+/// LMD may refuse, is a documented MDrive setting).
+fn freedom_item(pid: &str, register: Option<u16>, mnemonic: Option<&str>) -> bool {
     let Ok(requirements) = drives::corpus::Corpus::Embedded.requirements_shared() else {
         return true;
     };
-    requirements.freedoms().iter().any(|f| {
-        f.items.iter().any(|i| {
-            (register.is_some() && i.register == register)
-                || mnemonic.is_some_and(|m| i.mnemonic.as_deref() == Some(m))
+    requirements
+        .freedoms()
+        .iter()
+        .filter(|f| f.applies_to(pid))
+        .any(|f| {
+            f.items.iter().any(|i| {
+                (register.is_some() && i.register == register)
+                    || mnemonic.is_some_and(|m| i.mnemonic.as_deref() == Some(m))
+            })
         })
-    })
 }
 
 /// Reads and a write of one half of a 32-bit register (freedoms `partial-register-read`,
@@ -926,7 +932,7 @@ fn half_registers(cx: &mut Ctx) {
             && r.confirmed
             && r.table != Table::Input
             && r.access.readable()
-            && !freedom_item(Some(r.address), None)
+            && !freedom_item(pid, Some(r.address), None)
     };
     if cx.supports(FunctionCode::READ_HOLDING_REGISTERS)
         && let Some(r) = p.registers.iter().map(|r| r.get_ref()).find(plain)
@@ -1038,7 +1044,7 @@ fn multi_item_read(cx: &mut Ctx) {
             && r.access.readable()
             && !r.read_clears
             && !r.width_disputed
-            && !freedom_item(Some(r.address), None)
+            && !freedom_item(pid, Some(r.address), None)
     };
     let regs: Vec<&Register> = p.registers.iter().map(|r| r.get_ref()).collect();
     let Some((a, b)) = regs.iter().find_map(|a| {
@@ -1082,7 +1088,7 @@ fn mnemonic_refusals(cx: &mut Ctx) {
     let p = cx.p;
     let pid = &p.device.id;
     let plain = |m: &&drives::profile::VendorMnemonic| {
-        !m.motion && !m.destructive && !freedom_item(None, Some(&m.name))
+        !m.motion && !m.destructive && !freedom_item(pid, None, Some(&m.name))
     };
     let mnemonics = || p.mnemonics.iter().map(|m| m.get_ref());
     if cx.supports(FunctionCode::VENDOR_READ)

@@ -763,6 +763,7 @@ fn run_one(
         return Ok((case, skipped, false));
     }
     // A save to NVM stores the settings as found, whatever the cases before changed.
+    k.note_case(&case);
     k.before_save(runner, &case, profile);
     let keep = (!t.is_empty()).then_some(&mut *k);
     let result = over_link(runner, keep, &case, profile, cfg, link)?;

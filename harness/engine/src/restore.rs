@@ -792,6 +792,12 @@ pub struct Account {
     /// within what they moved by. Not counted as unrestored; no longer put back or verified once seen.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub live: Vec<Unrestored>,
+    /// The run's cases sent a program start or resume (MCode EX, RS: only with the flags), so at the end the
+    /// program was ended with E before anything was put back: what was sent and what the drive answered. A
+    /// running program is no parameter (the MDrive has no register that shows it), and one the run started
+    /// must not be left running. Said, not counted as unrestored.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub program_ended: Option<String>,
 }
 
 impl Account {
@@ -850,6 +856,11 @@ impl Account {
                     .map(|u| format!("{} ({})", u.name, u.reason))
                     .collect::<Vec<_>>()
                     .join("; ")
+            ));
+        }
+        if let Some(ended) = &self.program_ended {
+            out.push(format!(
+                "  the cases started or resumed an MCode program (EX, RS): ended at the end with E ({ended})"
             ));
         }
         if let Some((before, after)) = self.left_faulted {
@@ -1444,6 +1455,8 @@ pub struct Keeper {
     /// The profile's error flag to read before the first write and at the end (see
     /// [`Keeper::watch_status`]), and what it read before.
     error_flag: Option<Watched>,
+    /// A case sent a program start or resume (MCode EX, RS; [`Keeper::note_case`]): E at the end.
+    program_started: bool,
 }
 
 /// A one-register state the keeper reads before the first write and at the end (see
@@ -1511,7 +1524,62 @@ impl Keeper {
             checkpoint: None,
             status_word: None,
             error_flag: None,
+            program_started: false,
         }
+    }
+
+    /// Before a case runs: note whether it sends a program start or resume (FC 0x41 or 0x42 of MCode's EX
+    /// or RS, the form the manual prints and the form a drive may take them in), so that [`Keeper::finish`]
+    /// ends the program with E. The fourteenth wave's MDrive holds a program at the example's label A3: the
+    /// catalog's golden EX, PS and RS frames (with `--allow-motion --allow-destructive`) left it running.
+    pub fn note_case(&mut self, case: &Case) {
+        let starts = ["EX", "RS"].map(Mnemonic::from_name);
+        self.program_started |= case_pdus(case).iter().any(|pdu| {
+            matches!(pdu.first(), Some(0x41 | 0x42))
+                && pdu
+                    .get(1..5)
+                    .is_some_and(|m| starts.iter().flatten().any(|s| s.0.as_slice() == m))
+        });
+    }
+
+    /// End a program the cases may have started ([`Keeper::note_case`]): E by FC 0x42 (the function the
+    /// manuals' tables give program control), and by FC 0x41 (the one the MDrive's sections print, freedom
+    /// `mdrive-program-control-function`) where 0x42 is refused or unanswered. A drive running nothing
+    /// acknowledges E or refuses it; either leaves it as it was.
+    fn end_program(&mut self, link: &mut dyn Link, profile: &Profile) {
+        let Some(e) = profile
+            .mnemonic("E")
+            .filter(|m| m.write)
+            .and_then(|m| Mnemonic::from_name(&m.name))
+        else {
+            return;
+        };
+        let mut counting = Counting { link, sent: 0 };
+        let mut said = Vec::new();
+        for req in [
+            Request::VendorWrite {
+                mnemonic: e,
+                params: Vec::new(),
+            },
+            Request::VendorRead { mnemonic: e },
+        ] {
+            let fc = req.function().0;
+            let answer = counting.transact(&req);
+            let ended = matches!(&answer, Ok(Some(r)) if !r.is_exception());
+            said.push(match answer {
+                Ok(Some(Response::Exception { code, .. })) => {
+                    format!("FC 0x{fc:02X}: refused with {code}")
+                }
+                Ok(Some(_)) => format!("FC 0x{fc:02X}: acknowledged"),
+                Ok(None) => format!("FC 0x{fc:02X}: no answer"),
+                Err(e) => format!("FC 0x{fc:02X}: {e}"),
+            });
+            if ended {
+                break;
+            }
+        }
+        self.account.requests += counting.sent;
+        self.account.program_ended = Some(said.join(", then "));
     }
 
     /// Read the profile's CiA 402 status word (a read-only register named "Status Word") and its error flag
@@ -1822,6 +1890,17 @@ impl Keeper {
             }
             let reqs = write_requests(item, found, None);
             if reqs.is_empty() {
+                // Read as nothing (a drive that lists the outputs set up, and has none yet): no write puts
+                // that back, so no case writes it (the fourteenth wave's LMD read OS as "", and a case's
+                // "=1,16,0" made its shared I/O point 1 an output for good).
+                self.account.unwritable.push(Excluded {
+                    key: item.key.clone(),
+                    name: item.name.clone(),
+                    reason: format!(
+                        "it reads {found}, and no write puts a setting back as nothing, so none is tried and no case writes it"
+                    ),
+                });
+                self.unwritable.push(item.clone());
                 continue;
             }
             let mut answer = None;
@@ -2059,6 +2138,10 @@ impl Keeper {
         let Some(snapshot) = self.snapshot.clone() else {
             return self.account.clone();
         };
+        // A program the cases started changes what is put back while it runs, and must not be left running.
+        if std::mem::take(&mut self.program_started) {
+            self.end_program(link, profile);
+        }
         let items: Vec<Item> = self.restored_items().cloned().collect();
         let restored = self.put_back(link, &items, profile);
         let mut counting = Counting { link, sent: 0 };
@@ -3040,6 +3123,32 @@ mod tests {
         k.take_snapshot(&mut drive).expect("snapshot");
         assert_eq!(drive.writes, ["S1=0,1", "OS=1,16,1"]);
         assert_eq!(k.unrestorable(&setting_write("S1")), None);
+    }
+
+    /// A setting read as nothing (the fourteenth wave's LMD lists the I/O points set up as outputs, and has
+    /// none at first: OS reads "") has no write that puts it back: none is tried and no case may write it
+    /// (a case's "OS=1,16,0" made that LMD's shared point 1 an output, which nothing could undo).
+    #[test]
+    fn a_setting_read_as_nothing_is_written_by_no_case() {
+        for empty in ["", " ", "="] {
+            let mut k = settings_keeper();
+            let mut drive = Settings::new(";", false);
+            drive.os = empty.into();
+            k.take_snapshot(&mut drive).expect("snapshot");
+            assert_eq!(drive.writes, ["S1=0,1,0"], "no write of OS ({empty:?})");
+            let a = k.account();
+            let os = a
+                .unwritable
+                .iter()
+                .find(|e| e.key == "mnemonic:OS")
+                .expect("OS is written by no case");
+            assert!(os.reason.contains("as nothing"), "{}", os.reason);
+            let why = k
+                .unrestorable(&setting_write("OS"))
+                .expect("a write of OS may not run");
+            assert!(why.contains("mnemonic:OS"), "{why}");
+            assert_eq!(k.unrestorable(&setting_write("S1")), None);
+        }
     }
 
     /// A setting read for all its lines at once (the LMD's OS, with the lines apart by `;` or by a space, as

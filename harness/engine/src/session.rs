@@ -1293,6 +1293,7 @@ pub fn run(
                     }
                     // A save to NVM stores the settings as found, whatever the cases before changed.
                     if unrestorable.is_none() {
+                        k.note_case(&case);
                         k.before_save(&mut runner, &case, &profile);
                     }
                 }
@@ -1834,5 +1835,6 @@ pub fn restore_journal(
         fault_cleared: None,
         error_flag_changed: None,
         live: Vec::new(),
+        program_ended: None,
     })
 }

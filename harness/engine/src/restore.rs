@@ -3125,6 +3125,55 @@ mod tests {
         assert_eq!(k.unrestorable(&setting_write("S1")), None);
     }
 
+    /// A case that starts or resumes a program (MCode EX or RS, by FC 0x42 or 0x41) makes `finish` end it
+    /// with E before anything is put back: by FC 0x42, and by FC 0x41 where 0x42 is refused (this drive takes
+    /// E only as a read); a run whose cases sent neither sends no E.
+    #[test]
+    fn a_program_a_case_started_is_ended_at_the_end() {
+        let p = drives::corpus::Corpus::Embedded.load("lmd").expect("lmd");
+        let m = |name: &str| Mnemonic::from_name(name).expect("mnemonic");
+        let bytes = |r: Request| r.to_bytes().expect("pdu");
+        let starts = [
+            bytes(Request::VendorWrite {
+                mnemonic: m("EX"),
+                params: b"A3".to_vec(),
+            }),
+            bytes(Request::VendorRead { mnemonic: m("RS") }),
+            bytes(Request::VendorRead { mnemonic: m("EX") }),
+        ];
+        for pdu in starts {
+            let mut k = settings_keeper();
+            let mut drive = Settings::new(";", false);
+            k.take_snapshot(&mut drive).expect("snapshot");
+            k.note_case(&one_request_case(pdu.clone()));
+            let a = k.finish(&mut drive, &p);
+            assert_eq!(
+                drive.writes.last().map(String::as_str),
+                Some("E"),
+                "{pdu:02X?}"
+            );
+            let said = a.program_ended.as_deref().expect("the program is ended");
+            assert!(
+                said.starts_with("FC 0x42: refused") && said.ends_with("FC 0x41: acknowledged"),
+                "{said}"
+            );
+            assert!(
+                a.lines()
+                    .iter()
+                    .any(|l| l.contains("ended at the end with E"))
+            );
+        }
+        for case in [setting_write("S1"), reset()] {
+            let mut k = settings_keeper();
+            let mut drive = Settings::new(";", false);
+            k.take_snapshot(&mut drive).expect("snapshot");
+            k.note_case(&case);
+            let a = k.finish(&mut drive, &p);
+            assert!(!drive.writes.iter().any(|w| w == "E"), "{:?}", drive.writes);
+            assert_eq!(a.program_ended, None);
+        }
+    }
+
     /// A setting read as nothing (the fourteenth wave's LMD lists the I/O points set up as outputs, and has
     /// none at first: OS reads "") has no write that puts it back: none is tried and no case may write it
     /// (a case's "OS=1,16,0" made that LMD's shared point 1 an output, which nothing could undo).

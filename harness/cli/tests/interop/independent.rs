@@ -1,10 +1,11 @@
-//! Drives written independently from the manuals (tests/independent/): twenty-seven simulators, nine of each
-//! drive by authors who had the manuals, the public Modbus specifications and tests/independent/BRIEF.md
+//! Drives written independently from the manuals (tests/independent/): forty-two simulators, fourteen of
+//! each drive by authors who had the manuals, the public Modbus specifications and tests/independent/BRIEF.md
 //! (the second wave, `*-b`: BRIEF-b.md; the third, `*-c`: BRIEF-c.md; the fourth, `*-d`: BRIEF-d.md; the fifth, `*-e`, built
 //! on pymodbus and libmodbus: BRIEF-e.md; the sixth, `*-f`, commissioned drives on a bench with their motors
 //! attached: BRIEF-f.md; the seventh, `*-g`, unusual but admissible choices: BRIEF-g.md; the eighth, `*-h`, the
 //! less obvious reading wherever a manual reads two ways: BRIEF-h.md; the ninth, `*-i`, parameters tied to each
-//! other and to the drive's state: BRIEF-i.md), and never saw this
+//! other and to the drive's state: BRIEF-i.md; the tenth to the fourteenth: BRIEF-j.md to BRIEF-n.md, the
+//! fourteenth built on modbus-tk and uModbus), and never saw this
 //! code nor each
 //! other's. Where they conform to the manuals the harness must give them no FAIL, and it must leave every
 //! value of their state (their own dump, `--state`) as it found it. Each fix they led to is in the log
@@ -1273,4 +1274,78 @@ fn the_catalogs_pass_the_thirteenth_wave_and_leave_it_as_found_through_its_link(
     }
     let (code, out) = run_on_serial_leaving_as_found("sd2x-m", &[]);
     assert_strict_pass("sd2x-m", code, &out);
+}
+
+/// The fourteenth wave (BRIEF-n.md): drives built on the smaller Python Modbus libraries, not on pymodbus or
+/// libmodbus: an MDrive Hybrid on modbus-tk 1.1.5, an LMD (closed loop) on uModbus 1.0.4, both Modbus/TCP,
+/// and an SD2x on uModbus's RTU server, on a serial line or RTU over TCP. Each catalog PASSes without a
+/// NON-STRICT and leaves the drive as found, with and without the flags (the LMD's CP and UG change it for
+/// good by design: its program cleared, an upgrade requested), and so do generated runs. What they found:
+/// - the LMD reads OS as "" while none of its I/O points (shared with IS) is an output, and no write puts
+///   a setting back as nothing: the keeper wrote no trial and went on, a case's `OS=1,16,0` made point 1 an
+///   output for good, NOT RESTORED in a run without flags. A setting read as nothing is now written by no
+///   case (`restore` test `a_setting_read_as_nothing_is_written_by_no_case`);
+/// - the MDrive holds a program at the example's label A3: with the flags the golden EX, PS and RS frames
+///   left it running. The keeper now ends a program the cases started or resumed, with E, before it puts
+///   anything back, and says so;
+/// - the LMD takes S1-S5 in MDrive syntax, S5 for its analog input, as lmd, lmd-f, lmd-k, lmd-l and lmd-m do
+///   (found by a live fuzz campaign): freedom `lmd-mnemonics-from-mdrive-examples` admits S5, whose catalog
+///   cases this LMD PASSes by serving it.
+#[test]
+fn the_catalogs_pass_the_fourteenth_wave_and_leave_it_as_found() {
+    let all = ["--allow-motion", "--allow-destructive"];
+    for (drive, scheme) in [("mdrive-n", "tcp"), ("lmd-n", "tcp"), ("sd2x-n", "rtu+tcp")] {
+        let (code, out) = run_leaving_as_found(drive, scheme, &[]);
+        assert_strict_pass(drive, code, &out);
+        if drive == "lmd-n" {
+            assert!(
+                out.contains("so no case wrote them") && out.contains("OS"),
+                "lmd-n: OS read as nothing is written by no case\n{out}"
+            );
+        }
+    }
+    for (drive, scheme, by_design) in [
+        ("mdrive-n", "tcp", &[][..]),
+        (
+            "lmd-n",
+            "tcp",
+            &["/program/present", "/program/upgrade_mode_requested"][..],
+        ),
+        ("sd2x-n", "rtu+tcp", &[][..]),
+    ] {
+        let (code, out) = run_leaving_as_found_but(drive, &[], scheme, &all, by_design);
+        assert_strict_pass(drive, code, &out);
+        if drive == "mdrive-n" {
+            assert!(
+                out.contains("ended at the end with E (") && out.contains("FC 0x41: acknowledged"),
+                "mdrive-n: the program EX started is ended\n{out}"
+            );
+        }
+    }
+    if !socat_or_skip(
+        "independent::the_catalogs_pass_the_fourteenth_wave (sd2x-n on a serial line)",
+    ) {
+        return;
+    }
+    let (code, out) = run_on_serial_leaving_as_found("sd2x-n", &[]);
+    assert_strict_pass("sd2x-n", code, &out);
+}
+
+/// Generated runs against the fourteenth wave: PASS, no NON-STRICT, nothing left changed (the MDrive and the
+/// LMD with the flags too).
+#[test]
+fn generated_runs_leave_the_fourteenth_wave_as_found() {
+    let flags = ["--allow-motion", "--allow-destructive"];
+    for drive in ["mdrive-n", "lmd-n"] {
+        let (code, out) =
+            run_leaving_as_found(drive, "tcp", &["--generated", "1000", "--seed", "2"]);
+        assert_strict_pass(drive, code, &out);
+        let mut args = vec!["--generated", "1000", "--seed", "1"];
+        args.extend(flags);
+        let (code, out) = run_leaving_as_found(drive, "tcp", &args);
+        assert_strict_pass(drive, code, &out);
+    }
+    let (code, out) =
+        run_leaving_as_found("sd2x-n", "rtu+tcp", &["--generated", "300", "--seed", "2"]);
+    assert_strict_pass("sd2x-n", code, &out);
 }

@@ -26,7 +26,18 @@ B=${B:-${CARGO_TARGET_DIR:-$repo/target}/release/modbus-harness}
 # libmodbus, takes the same options).
 out=${OUT:-/tmp/independent}/$(basename "$drive")-$(date +%s%N); mkdir -p "$out"
 case $drive in */*) dir=$drive; drive=$(basename "$drive") ;; *) dir=$here/$drive ;; esac
-if [ -f "$dir/sim.c" ]; then
+if [ -f "$dir/sim.js" ]; then
+  # A drive in JavaScript on an npm library (the fifteenth wave): its packages installed by `npm ci` from its
+  # lock file into cargo's target directory (once; again when the lock file changes), found by NODE_PATH.
+  npmdir=${CARGO_TARGET_DIR:-$repo/target}/tmp/npm-against-$(basename "$dir")
+  if ! cmp -s "$dir/package-lock.json" "$npmdir/package-lock.json" || [ ! -d "$npmdir/node_modules" ]; then
+    rm -rf "$npmdir" && mkdir -p "$npmdir" && cp "$dir/package.json" "$dir/package-lock.json" "$npmdir/" &&
+      (cd "$npmdir" && timeout 300 npm ci --no-audit --no-fund --loglevel=error > /dev/null) ||
+      { echo "npm ci for $dir failed" >&2; rm -rf "$npmdir"; exit 2; }
+  fi
+  export NODE_PATH=$npmdir/node_modules
+  launch=(node "$dir/sim.js")
+elif [ -f "$dir/sim.c" ]; then
   # A drive in C on libmodbus (the fifth wave): built here, run as is.
   gcc -O2 -Wall -Wextra -o "$out/sim" "$dir/sim.c" $(pkg-config --cflags --libs libmodbus) || exit 2
   launch=("$out/sim")

@@ -1782,6 +1782,16 @@ impl Keeper {
         })
     }
 
+    /// A kept setting no case may write, with why (listed in the account).
+    fn written_by_no_case(&mut self, item: &Item, reason: String) {
+        self.account.unwritable.push(Excluded {
+            key: item.key.clone(),
+            name: item.name.clone(),
+            reason,
+        });
+        self.unwritable.push(item.clone());
+    }
+
     /// Read every kept parameter and write the journal, before the first write. Items the drive does not
     /// read are left out with the reason.
     pub fn take_snapshot(&mut self, link: &mut dyn Link) -> Result<(), SnapshotError> {
@@ -1878,14 +1888,9 @@ impl Keeper {
                     .and_then(|f| f.trim().parse::<u8>().ok())
                     == Some(line)
             {
-                self.account.unwritable.push(Excluded {
-                    key: item.key.clone(),
-                    name: item.name.clone(),
-                    reason: format!(
-                        "it reads {found}, which may be the line of point {line} of another setting (the manual documents no read of it), and it sets up what the flags allow (an I/O point, a limit): a write of it as read, to try whether it puts the setting back, may be taken as other fields and change it, so none is made and no case writes it"
-                    ),
-                });
-                self.unwritable.push(item.clone());
+                self.written_by_no_case(item, format!(
+                    "it reads {found}, which may be the line of point {line} of another setting (the manual documents no read of it), and it sets up what the flags allow (an I/O point, a limit): a write of it as read, to try whether it puts the setting back, may be taken as other fields and change it, so none is made and no case writes it"
+                ));
                 continue;
             }
             let reqs = write_requests(item, found, None);
@@ -1893,14 +1898,9 @@ impl Keeper {
                 // Read as nothing (a drive that lists the outputs set up, and has none yet): no write puts
                 // that back, so no case writes it (the fourteenth wave's LMD read OS as "", and a case's
                 // "=1,16,0" made its shared I/O point 1 an output for good).
-                self.account.unwritable.push(Excluded {
-                    key: item.key.clone(),
-                    name: item.name.clone(),
-                    reason: format!(
-                        "it reads {found}, and no write puts a setting back as nothing, so none is tried and no case writes it"
-                    ),
-                });
-                self.unwritable.push(item.clone());
+                self.written_by_no_case(item, format!(
+                    "it reads {found}, and no write puts a setting back as nothing, so none is tried and no case writes it"
+                ));
                 continue;
             }
             let mut answer = None;
@@ -1932,14 +1932,10 @@ impl Keeper {
                 (_, Some(v)) => format!("acknowledged, but it then read {v}"),
                 (_, None) => "acknowledged, but it then did not read back".to_string(),
             };
-            self.account.unwritable.push(Excluded {
-                key: item.key.clone(),
-                name: item.name.clone(),
-                reason: format!(
-                    "writing back the value read first ({found}) did not put it back: {why}"
-                ),
-            });
-            self.unwritable.push(item.clone());
+            self.written_by_no_case(
+                item,
+                format!("writing back the value read first ({found}) did not put it back: {why}"),
+            );
         }
         self.account.requests += counting.sent - sent;
         self.inventory.items = kept;

@@ -833,6 +833,70 @@ pub fn compile_libmodbus(source: &Path, exe_name: &str) -> Result<PathBuf, Strin
     Ok(exe)
 }
 
+/// The npm packages of the Node.js program in `dir` (its `package.json` and `package-lock.json`), installed
+/// with `npm ci` into the target's scratch directory as `name` (the source tree gets no `node_modules`), once:
+/// again only when the lock file changed. Returns the `node_modules` folder, for `NODE_PATH`. Made under a
+/// name of this process and renamed into place, so test processes running at once never see half of it.
+/// `Err` says what is missing or failed (no npm, no registry).
+pub fn npm_modules(dir: &Path, name: &str) -> Result<PathBuf, String> {
+    let lock = std::fs::read(dir.join("package-lock.json"))
+        .map_err(|e| format!("{}: package-lock.json: {e}", dir.display()))?;
+    let root = target_tmpdir().join(format!("npm-{name}"));
+    let modules = root.join("node_modules");
+    if std::fs::read(root.join("package-lock.json")).is_ok_and(|l| l == lock) && modules.is_dir() {
+        return Ok(modules);
+    }
+    let tmp = target_tmpdir().join(format!("npm-{name}.{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&tmp);
+    std::fs::create_dir_all(&tmp).map_err(|e| format!("{}: {e}", tmp.display()))?;
+    for f in ["package.json", "package-lock.json"] {
+        std::fs::copy(dir.join(f), tmp.join(f)).map_err(|e| format!("{f}: {e}"))?;
+    }
+    let mut child = Command::new("npm")
+        .args(["ci", "--no-audit", "--no-fund", "--loglevel=error"])
+        .current_dir(&tmp)
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .map_err(|e| {
+            format!(
+                "npm: {e} (Node.js and npm are needed for {})",
+                dir.display()
+            )
+        })?;
+    // Bounded: a registry that does not answer ends the install after 5 minutes.
+    let until = Instant::now() + Duration::from_secs(300);
+    let status = loop {
+        if let Some(st) = child.try_wait().map_err(|e| format!("npm: {e}"))? {
+            break st;
+        }
+        if Instant::now() > until {
+            let _ = child.kill();
+            let _ = child.wait();
+            return Err(format!("npm ci in {} took over 5 minutes", tmp.display()));
+        }
+        std::thread::sleep(Duration::from_millis(100));
+    };
+    if !status.success() {
+        let mut err = String::new();
+        if let Some(mut e) = child.stderr.take() {
+            let _ = std::io::Read::read_to_string(&mut e, &mut err);
+        }
+        return Err(format!("npm ci for {} failed: {err}", dir.display()));
+    }
+    let _ = std::fs::remove_dir_all(&root);
+    if let Err(e) = std::fs::rename(&tmp, &root) {
+        // Another test process put its copy in place first.
+        let _ = std::fs::remove_dir_all(&tmp);
+        if !(std::fs::read(root.join("package-lock.json")).is_ok_and(|l| l == lock)
+            && modules.is_dir())
+        {
+            return Err(format!("rename {}: {e}", tmp.display()));
+        }
+    }
+    Ok(modules)
+}
+
 /// Drain socat's log (stderr, run with `-d -d`) on a thread so it never blocks on a full pipe, and wait,
 /// bounded by `STEP`, until it logs "starting data transfer loop" (ptys and links made, peers connected).
 /// Returns the log so far; panics with it, naming `what`, when socat does not get there in time.

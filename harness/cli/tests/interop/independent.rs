@@ -1,11 +1,11 @@
-//! Drives written independently from the manuals (tests/independent/): forty-two simulators, fourteen of
+//! Drives written independently from the manuals (tests/independent/): forty-five simulators, fifteen of
 //! each drive by authors who had the manuals, the public Modbus specifications and tests/independent/BRIEF.md
 //! (the second wave, `*-b`: BRIEF-b.md; the third, `*-c`: BRIEF-c.md; the fourth, `*-d`: BRIEF-d.md; the fifth, `*-e`, built
 //! on pymodbus and libmodbus: BRIEF-e.md; the sixth, `*-f`, commissioned drives on a bench with their motors
 //! attached: BRIEF-f.md; the seventh, `*-g`, unusual but admissible choices: BRIEF-g.md; the eighth, `*-h`, the
 //! less obvious reading wherever a manual reads two ways: BRIEF-h.md; the ninth, `*-i`, parameters tied to each
-//! other and to the drive's state: BRIEF-i.md; the tenth to the fourteenth: BRIEF-j.md to BRIEF-n.md, the
-//! fourteenth built on modbus-tk and uModbus), and never saw this
+//! other and to the drive's state: BRIEF-i.md; the tenth to the fifteenth: BRIEF-j.md to BRIEF-o.md, the
+//! fourteenth built on modbus-tk and uModbus, the fifteenth in JavaScript on npm libraries), and never saw this
 //! code nor each
 //! other's. Where they conform to the manuals the harness must give them no FAIL, and it must leave every
 //! value of their state (their own dump, `--state`) as it found it. Each fix they led to is in the log
